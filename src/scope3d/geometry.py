@@ -1,0 +1,119 @@
+"""Rotation and rigid-transform maths shared by every layer.
+
+Conventions
+-----------
+* A rotation vector ``w`` (3,) in radians encodes ``R = exp([w]x)`` (Rodrigues).
+* Quaternions are scalar-last ``(x, y, z, w)``, as in :mod:`scipy.spatial.transform`.
+* Every function is vectorised over a leading batch axis where the docstring says ``(N, ...)``.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+_SMALL_ANGLE_RAD = 1e-8
+
+
+def hat(v: np.ndarray) -> np.ndarray:
+    """Skew-symmetric matrices ``[v]x`` such that ``hat(v) @ x == cross(v, x)``.
+
+    v : (..., 3) float  ->  (..., 3, 3) float
+    """
+    v = np.asarray(v, dtype=float)
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1] = -v[..., 2]
+    out[..., 0, 2] = v[..., 1]
+    out[..., 1, 0] = v[..., 2]
+    out[..., 1, 2] = -v[..., 0]
+    out[..., 2, 0] = -v[..., 1]
+    out[..., 2, 1] = v[..., 0]
+    return out
+
+
+def rotvec_to_matrix(rotvec: np.ndarray) -> np.ndarray:
+    """Rodrigues' formula. rotvec : (..., 3) rad  ->  (..., 3, 3)."""
+    rotvec = np.asarray(rotvec, dtype=float)
+    theta = np.linalg.norm(rotvec, axis=-1)[..., None, None]
+    k = hat(rotvec)
+    small = theta < _SMALL_ANGLE_RAD
+    theta_safe = np.where(small, 1.0, theta)
+    a = np.where(small, 1.0 - theta**2 / 6.0, np.sin(theta_safe) / theta_safe)
+    b = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(theta_safe)) / theta_safe**2)
+    eye = np.broadcast_to(np.eye(3), k.shape)
+    return eye + a * k + b * (k @ k)
+
+
+def matrix_to_rotvec(matrix: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`rotvec_to_matrix`. matrix : (..., 3, 3) -> (..., 3) rad, angle in [0, pi]."""
+    matrix = np.asarray(matrix, dtype=float)
+    flat = matrix.reshape(-1, 3, 3)
+    out = Rotation.from_matrix(flat).as_rotvec()
+    return out.reshape(matrix.shape[:-2] + (3,))
+
+
+def quaternion_to_matrix(quat_xyzw: np.ndarray) -> np.ndarray:
+    """(..., 4) scalar-last unit quaternion -> (..., 3, 3)."""
+    quat_xyzw = np.asarray(quat_xyzw, dtype=float)
+    out = Rotation.from_quat(quat_xyzw.reshape(-1, 4)).as_matrix()
+    return out.reshape(quat_xyzw.shape[:-1] + (3, 3))
+
+
+def matrix_to_quaternion(matrix: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) -> (..., 4) scalar-last unit quaternion with w >= 0."""
+    matrix = np.asarray(matrix, dtype=float)
+    q = Rotation.from_matrix(matrix.reshape(-1, 3, 3)).as_quat()
+    q = np.where(q[:, 3:4] < 0, -q, q)
+    return q.reshape(matrix.shape[:-2] + (4,))
+
+
+def so3_left_jacobian(rotvec: np.ndarray) -> np.ndarray:
+    """Left Jacobian of SO(3), ``J_l(w)``, such that ``exp(w + d) ~= exp(J_l(w) d) exp(w)``.
+
+    It gives the exact derivative of a rotated vector with respect to the rotation vector:
+    ``d(exp(w) y)/dw = -[exp(w) y]x J_l(w)``. rotvec : (..., 3) -> (..., 3, 3).
+    """
+    rotvec = np.asarray(rotvec, dtype=float)
+    theta = np.linalg.norm(rotvec, axis=-1)[..., None, None]
+    k = hat(rotvec)
+    small = theta < 1e-5
+    theta_safe = np.where(small, 1.0, theta)
+    b = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(theta_safe)) / theta_safe**2)
+    c = np.where(small, 1.0 / 6.0 - theta**2 / 120.0, (theta_safe - np.sin(theta_safe)) / theta_safe**3)
+    eye = np.broadcast_to(np.eye(3), k.shape)
+    return eye + b * k + c * (k @ k)
+
+
+def rotation_angle_between(r_a: np.ndarray, r_b: np.ndarray) -> np.ndarray:
+    """Geodesic angle (rad) between rotation matrices, (..., 3, 3) each -> (...)."""
+    rel = np.swapaxes(np.asarray(r_a), -1, -2) @ np.asarray(r_b)
+    cos = (np.trace(rel, axis1=-2, axis2=-1) - 1.0) / 2.0
+    return np.arccos(np.clip(cos, -1.0, 1.0))
+
+
+def look_at(centre: np.ndarray, target: np.ndarray, up: np.ndarray = (0.0, -1.0, 0.0)) -> np.ndarray:
+    """Rotation ``cam_from_world`` of a camera at ``centre`` whose optical axis (+z) points at ``target``.
+
+    The camera's +y axis (image down) is chosen as close as possible to ``up`` (world), so that
+    the default ``(0, -1, 0)`` gives images with world +y pointing up in the picture.
+    centre, target : (3,) mm  ->  (3, 3).
+    """
+    z = np.asarray(target, float) - np.asarray(centre, float)
+    norm = np.linalg.norm(z)
+    if norm == 0:
+        raise ValueError("look_at: camera centre and target coincide")
+    z /= norm
+    up = np.asarray(up, float)
+    y = up - np.dot(up, z) * z
+    if np.linalg.norm(y) < 1e-9:  # up parallel to the optical axis: pick any perpendicular
+        y = np.cross(z, [1.0, 0.0, 0.0])
+        if np.linalg.norm(y) < 1e-9:
+            y = np.cross(z, [0.0, 1.0, 0.0])
+    y /= np.linalg.norm(y)
+    x = np.cross(y, z)
+    return np.stack([x, y, z])
+
+
+def slerp_rotations(r_a: np.ndarray, r_b: np.ndarray, fraction: float) -> np.ndarray:
+    """Spherical interpolation between two rotation matrices; fraction 0 -> r_a, 1 -> r_b."""
+    key = Rotation.from_matrix(np.stack([r_a, r_b]))
+    return Slerp([0.0, 1.0], key)([float(fraction)]).as_matrix()[0]
