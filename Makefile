@@ -1,0 +1,35 @@
+# Two entry points (see README): `make demo` and `make test`. Both create .venv and install what they need.
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP_CORE := $(VENV)/.installed-core
+STAMP_ALL := $(VENV)/.installed-all
+
+.PHONY: demo test bench clean
+
+$(BIN)/python:
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+
+$(STAMP_CORE): pyproject.toml | $(BIN)/python
+	$(BIN)/python -m pip install --quiet -e .
+	touch $@
+
+$(STAMP_ALL): pyproject.toml | $(BIN)/python
+	$(BIN)/python -m pip install --quiet -e ".[peers,test]"
+	touch $@ $(STAMP_CORE)
+
+# The main job on the built-in default: render the dome phantom, then map it.
+demo: $(STAMP_CORE)
+	$(BIN)/scope3d phantom dome --out runs/demo/dataset --seed 0 --pose-noise 0.25
+	$(BIN)/scope3d map runs/demo/dataset --out runs/demo/map
+	@echo "Open runs/demo/map/ (report.json, *.png, *.ply)."
+
+test: $(STAMP_ALL)
+	$(BIN)/python -m pytest -q
+
+bench: $(STAMP_ALL)
+	for b in benchmarks/bench_*.py; do $(BIN)/python $$b || exit 1; done
+
+clean:
+	rm -rf $(VENV) runs
