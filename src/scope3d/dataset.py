@@ -31,6 +31,8 @@ import csv
 import io
 import json
 import math
+import shutil
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -38,7 +40,7 @@ import cv2
 import numpy as np
 
 from .atomic import atomic_directory, atomic_file
-from .camera import Camera
+from .camera import Camera, fov_from_focal
 from .errors import InputError
 from .geometry import matrix_to_quaternion, quaternion_to_matrix
 from .mesh import Mesh, read_ply, write_ply
@@ -100,6 +102,43 @@ class Dataset:
         """(H, W, 3) uint8 RGB, or (H, W) uint8 with ``grey=True``."""
         return read_image(self.frame_paths[index], grey=grey)
 
+    def summary(self) -> str:
+        """Several lines saying what the dataset holds (what ``scope3d check`` prints)."""
+        cam = self.camera
+        centres = np.array([m.pose.centre for m in self.poses])
+        span = centres.max(axis=0) - centres.min(axis=0)
+        lines = [
+            f"dataset       {self.root} ({self.metadata.get('name', self.root.name)})",
+            f"frames        {len(self)} images of {cam.width}x{cam.height} px ({self.names[0]} .. {self.names[-1]})",
+            f"camera        fx {cam.fx:.6g} fy {cam.fy:.6g} cx {cam.cx:.6g} cy {cam.cy:.6g} px, "
+            f"k1 {cam.k1:.4g} k2 {cam.k2:.4g}; field of view {cam.fov_deg:.1f} x "
+            f"{fov_from_focal(cam.height, cam.fy):.1f} deg; "
+            + (f"circular mask radius {cam.mask_radius_px:.6g} px" if cam.mask_radius_px else "no circular mask"),
+            f"poses         camera centres span {span[0]:.4g} x {span[1]:.4g} x {span[2]:.4g} mm; "
+            f"tolerance {_tolerance_summary([m.tolerance for m in self.poses])}",
+            f"fluorescence  {'yes' if self.fluorescence_paths else 'no'}",
+            f"ground truth  {self._ground_truth_summary()}",
+        ]
+        source = self.metadata.get("source")
+        if isinstance(source, dict) and source.get("format"):
+            lines.append(f"source        {source['format']}: {source.get('path', '?')}")
+        return "\n".join(lines)
+
+    def _ground_truth_summary(self) -> str:
+        gt = self.ground_truth
+        if gt is None:
+            return "none"
+        parts = []
+        if gt.poses is not None:
+            parts.append("true poses")
+        if gt.surface_path is not None:
+            parts.append("surface mesh")
+        if gt.depth_paths:
+            parts.append(f"{len(gt.depth_paths)} depth maps")
+        if gt.scene:
+            parts.append(f"scene {gt.scene.get('name', '(unnamed)')}")
+        return ", ".join(parts) or "empty folder"
+
     def fluorescence_frame(self, index: int) -> np.ndarray:
         """(H, W) uint8 fluorescence intensity (the green emission channel)."""
         if not self.fluorescence_paths:
@@ -108,13 +147,44 @@ class Dataset:
         return img[..., 1]
 
 
+def _tolerance_summary(tolerances: list[PoseTolerance]) -> str:
+    """One phrase: exact, unknown, or the range of half-widths over all frames."""
+    if all(t.is_exact for t in tolerances):
+        return "exact (0) for every frame"
+    pos = np.array([t.position_mm for t in tolerances])
+    rot = np.array([t.orientation_deg for t in tolerances])
+    if np.all(np.isinf(pos)) and np.all(np.isinf(rot)):
+        return "unknown (inf) for every frame"
+
+    def span(values: np.ndarray, unit: str) -> str:
+        lo, hi = float(values.min()), float(values.max())
+        return f"+-{lo:.4g} {unit}" if lo == hi else f"+-{lo:.4g}..{hi:.4g} {unit}"
+
+    return f"position {span(pos, 'mm')} per axis, orientation {span(rot, 'deg')} per axis"
+
+
 def read_image(path: str | Path, *, grey: bool = False) -> np.ndarray:
-    """Read an image as RGB uint8 (H, W, 3), or grey (H, W). A missing or corrupt file is an InputError."""
+    """Read an image as RGB uint8 (H, W, 3), or grey (H, W). A missing or corrupt file is an InputError.
+
+    The file is decoded from its bytes (not ``cv2.imread``) so that non-ASCII paths work and OpenCV's
+    decoder warnings are not printed: the caller reports the problem in one line.
+    """
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: image file is missing")
+    try:
+        data = np.frombuffer(path.read_bytes(), dtype=np.uint8)
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read image ({exc.strerror})") from None
     flag = cv2.IMREAD_GRAYSCALE if grey else cv2.IMREAD_COLOR
-    img = cv2.imread(str(path), flag)
+    old_level = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+    try:
+        img = cv2.imdecode(data, flag) if data.size else None
+    except cv2.error:
+        img = None
+    finally:
+        cv2.utils.logging.setLogLevel(old_level)
     if img is None:
         raise InputError(f"{path}: not a readable image (corrupt or unsupported format)")
     if img.dtype != np.uint8:
@@ -160,12 +230,25 @@ def write_poses_csv(path: str | Path, names: list[str], poses: list[MeasuredPose
 
 
 def read_poses_csv(path: str | Path, length_scale_to_mm: float = 1.0) -> tuple[list[str], list[MeasuredPose]]:
-    """Parse ``poses.csv``. Every problem is an InputError naming the file and the row (1 = header)."""
-    path = Path(path)
+    """Parse ``poses.csv``. Every problem is an InputError naming the file and the row (1 = header).
+
+    length_scale_to_mm : the file's length unit in mm (1 for mm, 1000 for m); positions and position
+    tolerances are returned in mm. Returns the image names and the measured ``cam_from_world`` poses.
+    """
+    names, poses, _ = _read_pose_rows(Path(path), length_scale_to_mm)
+    return names, poses
+
+
+def _read_pose_rows(path: Path, length_scale_to_mm: float) -> tuple[list[str], list[MeasuredPose], list[int]]:
+    """:func:`read_poses_csv`, also returning each pose's row number in the file (for error messages)."""
     if not path.is_file():
         raise InputError(f"{path}: pose file is missing")
-    with open(path, newline="") as fh:
-        rows = list(csv.reader(fh))
+    try:
+        # utf-8-sig: spreadsheets often save CSV with a byte-order mark before the first column name.
+        with open(path, newline="", encoding="utf-8-sig") as fh:
+            rows = list(csv.reader(fh))
+    except (UnicodeDecodeError, csv.Error) as exc:
+        raise InputError(f"{path}: not a readable CSV file ({exc})") from None
     if not rows:
         raise InputError(f"{path}: pose file is empty")
     header = [h.strip() for h in rows[0]]
@@ -173,24 +256,34 @@ def read_poses_csv(path: str | Path, length_scale_to_mm: float = 1.0) -> tuple[l
     if missing:
         raise InputError(f"{path} row 1: missing column(s) {', '.join(missing)}")
     col = {name: header.index(name) for name in POSE_COLUMNS}
-    names, poses = [], []
+    names, poses, row_numbers = [], [], []
+    first_row_of = {}
     for row_number, row in enumerate(rows[1:], start=2):
         if not row or all(not cell.strip() for cell in row):
             continue
         where = f"{path} row {row_number}"
         if len(row) < len(header):
             raise InputError(f"{where}: expected {len(header)} values, found {len(row)}")
+        name = row[col["image"]].strip()
+        if not name:
+            raise InputError(f"{where}: image name is empty")
+        if "/" in name or "\\" in name or name in (".", ".."):
+            raise InputError(f"{where}: image name {name!r} must be a plain file name inside frames/")
+        if name in first_row_of:
+            raise InputError(f"{where}: image {name} is listed twice (also on row {first_row_of[name]})")
+        first_row_of[name] = row_number
         values = {}
-        for name in POSE_COLUMNS[1:]:
-            text = row[col[name]].strip()
+        for column in POSE_COLUMNS[1:]:
+            text = row[col[column]].strip()
             try:
-                values[name] = float(text)
+                values[column] = float(text)
             except ValueError:
-                raise InputError(f"{where}: {name} = {text!r} is not a number") from None
-            if math.isnan(values[name]) or (math.isinf(values[name]) and not name.startswith("tol_")):
-                raise InputError(f"{where}: {name} is {text} (NaN or infinite)")
-            if name.startswith("tol_") and values[name] < 0:
-                raise InputError(f"{where}: {name} = {text} is negative (lower bound above upper bound)")
+                raise InputError(f"{where}: {column} = {text!r} is not a number") from None
+            # inf is allowed only as a tolerance, where it means "unknown".
+            if math.isnan(values[column]) or (math.isinf(values[column]) and not column.startswith("tol_")):
+                raise InputError(f"{where}: {column} is {text} (NaN or infinite)")
+            if column.startswith("tol_") and values[column] < 0:
+                raise InputError(f"{where}: {column} = {text} is negative (lower bound above upper bound)")
         q = np.array([values["qx"], values["qy"], values["qz"], values["qw"]])
         if abs(np.linalg.norm(q) - 1.0) > _QUATERNION_NORM_TOLERANCE:
             raise InputError(f"{where}: quaternion (qw, qx, qy, qz) is not unit length (norm {np.linalg.norm(q):.4g})")
@@ -200,11 +293,12 @@ def read_poses_csv(path: str | Path, length_scale_to_mm: float = 1.0) -> tuple[l
             np.array([values["tol_x_mm"], values["tol_y_mm"], values["tol_z_mm"]]) * length_scale_to_mm,
             [values["tol_rx_deg"], values["tol_ry_deg"], values["tol_rz_deg"]],
         )
-        names.append(row[col["image"]].strip())
+        names.append(name)
         poses.append(MeasuredPose(Pose.from_centre(world_from_cam.T, centre), tolerance))
+        row_numbers.append(row_number)
     if not poses:
         raise InputError(f"{path}: pose file has a header but no rows")
-    return names, poses
+    return names, poses, row_numbers
 
 
 # --- camera.json ------------------------------------------------------------------------------
@@ -221,63 +315,94 @@ def camera_to_dict(camera: Camera) -> dict:
 
 
 def read_camera_json(path: str | Path) -> Camera:
+    """Read ``camera.json`` (pixels; see the module docstring). Problems are InputErrors naming the file."""
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: camera intrinsics file is missing")
-    try:
-        data = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise InputError(f"{path}: not valid JSON ({exc.msg} at line {exc.lineno})") from None
+    data = _read_json_object(path)
     missing = [k for k in CAMERA_KEYS if k not in data]
     if missing:
         raise InputError(f"{path}: missing key(s) {', '.join(missing)}")
-    try:
-        values = {k: float(data[k]) for k in CAMERA_KEYS}
-    except (TypeError, ValueError):
-        raise InputError(f"{path}: intrinsics must be numbers") from None
+    values = {}
+    for k in CAMERA_KEYS:
+        # bool is an int subclass in Python; "width": true is a mistake, not 1 pixel.
+        if isinstance(data[k], bool) or not isinstance(data[k], (int, float)):
+            raise InputError(f"{path}: {k} = {data[k]!r} is not a number")
+        values[k] = float(data[k])
     bad = [k for k, v in values.items() if not math.isfinite(v)]
     if bad:
         raise InputError(f"{path}: {', '.join(bad)} is NaN or infinite")
+    for k in ("width", "height"):
+        if values[k] != int(values[k]):
+            raise InputError(f"{path}: {k} = {data[k]} is not a whole number of pixels")
+    mask = data.get("mask_radius_px")
+    if mask is not None and (isinstance(mask, bool) or not isinstance(mask, (int, float)) or not math.isfinite(mask)):
+        raise InputError(f"{path}: mask_radius_px = {mask!r} must be a finite number or null")
     try:
         return Camera(
             int(values["width"]), int(values["height"]), values["fx"], values["fy"], values["cx"], values["cy"],
-            values["k1"], values["k2"], data.get("mask_radius_px"),
+            values["k1"], values["k2"], None if mask is None else float(mask),
         )
     except ValueError as exc:
         raise InputError(f"{path}: {exc}") from None
+
+
+def _read_json_object(path: Path) -> dict:
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as exc:
+        raise InputError(f"{path}: not valid JSON ({exc.msg} at line {exc.lineno})") from None
+    except (UnicodeDecodeError, OSError) as exc:
+        raise InputError(f"{path}: cannot read ({exc})") from None
+    if not isinstance(data, dict):
+        raise InputError(f"{path}: expected a JSON object {{...}}, found {type(data).__name__}")
+    return data
 
 
 # --- whole datasets ---------------------------------------------------------------------------
 
 
 def load_dataset(root: str | Path, *, check_images: bool = False) -> Dataset:
-    """Load and validate a dataset folder. With ``check_images`` every image is decoded once."""
+    """Load and validate a dataset folder; lengths are returned in mm whatever ``length_unit`` says.
+
+    Always checked: the JSON and CSV files parse, every value is finite (tolerances may be ``inf``),
+    tolerances are non-negative, quaternions are unit, every pose row has its image and every image has
+    its pose row, fluorescence and ground-truth files match the frames. With ``check_images`` every
+    image is also decoded once and its size compared with ``camera.json``, every ground-truth depth map
+    is opened and its shape checked, and the ground-truth surface is parsed (what ``scope3d check`` does).
+    The first problem found is raised as an :class:`InputError` naming the file (and the row).
+    """
     root = Path(root)
     if not root.is_dir():
         raise InputError(f"{root}: dataset folder does not exist")
     meta_path = root / "dataset.json"
-    metadata = {}
-    if meta_path.is_file():
-        try:
-            metadata = json.loads(meta_path.read_text())
-        except json.JSONDecodeError as exc:
-            raise InputError(f"{meta_path}: not valid JSON ({exc.msg} at line {exc.lineno})") from None
+    metadata = _read_json_object(meta_path) if meta_path.is_file() else {}
+    fmt = metadata.get("format", "scope3d-dataset")
+    if fmt != "scope3d-dataset":
+        raise InputError(f"{meta_path}: format is {fmt!r}, expected 'scope3d-dataset'")
+    version = metadata.get("version", 1)
+    if version != 1:
+        raise InputError(f"{meta_path}: dataset version {version!r} is not supported (this scope3d reads version 1)")
     unit = metadata.get("length_unit", "mm")
-    if unit not in LENGTH_UNITS_TO_MM:
+    if not isinstance(unit, str) or unit not in LENGTH_UNITS_TO_MM:
         raise InputError(f"{meta_path}: unknown length_unit {unit!r} (use one of {', '.join(LENGTH_UNITS_TO_MM)})")
     scale = LENGTH_UNITS_TO_MM[unit]
     camera = read_camera_json(root / "camera.json")
-    names, poses = read_poses_csv(root / "poses.csv", scale)
-    frame_paths = [root / "frames" / n for n in names]
-    for i, p in enumerate(frame_paths):
-        if not p.is_file():
-            raise InputError(f"{root / 'poses.csv'} row {i + 2}: image {p.relative_to(root)} is missing")
+    poses_path = root / "poses.csv"
+    names, poses, row_numbers = _read_pose_rows(poses_path, scale)
     frames_dir = root / "frames"
-    extra = sorted(set(q.name for q in frames_dir.iterdir() if not q.name.startswith(".")) - set(names))
+    if not frames_dir.is_dir():
+        raise InputError(f"{frames_dir}: frames folder is missing")
+    frame_paths = [frames_dir / n for n in names]
+    for p, row in zip(frame_paths, row_numbers):
+        if not p.is_file():
+            raise InputError(f"{poses_path} row {row}: image {p.relative_to(root)} is missing")
+    on_disk = {q.name for q in frames_dir.iterdir() if q.is_file() and not q.name.startswith(".")}
+    extra = sorted(on_disk - set(names))
     if extra:
         raise InputError(
-            f"{root / 'poses.csv'}: {len(names)} pose rows but {len(names) + len(extra)} frames "
-            f"(no pose for frames/{extra[0]})"
+            f"{poses_path}: {len(names)} pose rows but {len(on_disk)} frames "
+            f"(no pose row for frames/{extra[0]})"
         )
     fluo_dir = root / "fluorescence"
     fluorescence_paths = None
@@ -291,7 +416,11 @@ def load_dataset(root: str | Path, *, check_images: bool = False) -> Dataset:
         for p in frame_paths + (fluorescence_paths or []):
             img = read_image(p)
             if img.shape[:2] != (camera.height, camera.width):
-                raise InputError(f"{p}: image is {img.shape[1]}x{img.shape[0]}, camera.json says {camera.width}x{camera.height}")
+                raise InputError(
+                    f"{p}: image is {img.shape[1]}x{img.shape[0]}, camera.json says {camera.width}x{camera.height}"
+                )
+        if ground_truth is not None:
+            _check_ground_truth_files(ground_truth, camera)
     return Dataset(root, camera, frame_paths, poses, fluorescence_paths, ground_truth, metadata)
 
 
@@ -302,23 +431,46 @@ def _load_ground_truth(gt_dir: Path, names: list[str], scale: float) -> GroundTr
     if (gt_dir / "poses.csv").is_file():
         gt_names, measured = read_poses_csv(gt_dir / "poses.csv", scale)
         if gt_names != names:
-            raise InputError(f"{gt_dir / 'poses.csv'}: frames differ from poses.csv ({len(gt_names)} vs {len(names)} rows)")
+            first = next((i for i, (a, b) in enumerate(zip(gt_names, names)) if a != b), min(len(gt_names), len(names)))
+            raise InputError(
+                f"{gt_dir / 'poses.csv'}: frames differ from poses.csv ({len(gt_names)} vs {len(names)} rows, "
+                f"first difference at data row {first + 1})"
+            )
         poses = [m.pose for m in measured]
     surface = gt_dir / "surface.ply"
     depth_dir = gt_dir / "depth"
-    depth_paths = [depth_dir / (Path(n).stem + ".npy") for n in names] if depth_dir.is_dir() else None
-    scene = json.loads((gt_dir / "scene.json").read_text()) if (gt_dir / "scene.json").is_file() else {}
+    depth_paths = None
+    if depth_dir.is_dir():
+        depth_paths = [depth_dir / (Path(n).stem + ".npy") for n in names]
+        for p in depth_paths:
+            if not p.is_file():
+                raise InputError(f"{p}: ground-truth depth map is missing (every frame needs one)")
+    scene_path = gt_dir / "scene.json"
+    scene = _read_json_object(scene_path) if scene_path.is_file() else {}
     return GroundTruth(poses, surface if surface.is_file() else None, depth_paths, scene)
+
+
+def _check_ground_truth_files(gt: GroundTruth, camera: Camera) -> None:
+    """Open every ground-truth file once (depth maps memory-mapped: only their headers are read)."""
+    for p in gt.depth_paths or []:
+        try:
+            depth = np.load(p, mmap_mode="r", allow_pickle=False)
+        except (ValueError, OSError, EOFError) as exc:
+            raise InputError(f"{p}: not a readable .npy depth map ({exc})") from None
+        if depth.shape != (camera.height, camera.width):
+            raise InputError(f"{p}: depth map has shape {depth.shape}, expected ({camera.height}, {camera.width})")
+    if gt.surface_path is not None:
+        gt.surface()
 
 
 def write_dataset(
     out_dir: str | Path,
     camera: Camera,
-    frames: list[np.ndarray],
+    frames: Sequence[np.ndarray | str | Path],
     poses: list[MeasuredPose],
     *,
     names: list[str] | None = None,
-    fluorescence: list[np.ndarray] | None = None,
+    fluorescence: Sequence[np.ndarray | str | Path] | None = None,
     true_poses: list[Pose] | None = None,
     true_surface: Mesh | None = None,
     true_depths: list[np.ndarray] | None = None,
@@ -327,27 +479,45 @@ def write_dataset(
 ) -> Path:
     """Write a dataset folder atomically (built beside ``out_dir``, then renamed into place).
 
-    frames : list of (H, W, 3) uint8 RGB or (H, W) uint8; fluorescence likewise; true_depths : (H, W) mm.
+    frames : list of (H, W, 3) uint8 RGB or (H, W) uint8 arrays, or paths of image files. A path whose
+        suffix matches the frame's name is copied byte for byte (no re-encoding); any other is decoded
+        and written in the name's format, so large sets never need to be held in memory at once.
+    poses : measured ``cam_from_world`` per frame, mm. names : plain file names, default ``0000.png``...
+    fluorescence : like ``frames``. true_depths : (H, W) z-depth in mm per frame, NaN where no surface.
+    metadata : merged into ``dataset.json`` (e.g. ``{"source": {...}}`` provenance).
+
+    If anything fails, ``out_dir`` is left as it was (absent, or the previous dataset).
     """
-    if len(frames) != len(poses):
-        raise ValueError(f"{len(frames)} frames but {len(poses)} poses")
-    names = names or [f"{i:04d}.png" for i in range(len(frames))]
+    n = len(frames)
+    if len(poses) != n:
+        raise ValueError(f"{n} frames but {len(poses)} poses")
+    names = list(names) if names is not None else [f"{i:04d}.png" for i in range(n)]
+    if len(names) != n:
+        raise ValueError(f"{n} frames but {len(names)} names")
+    if len(set(names)) != n:
+        raise ValueError("frame names must be unique")
+    bad = [name for name in names if not name or "/" in name or "\\" in name or name.startswith(".")]
+    if bad:
+        raise ValueError(f"frame name {bad[0]!r} must be a plain file name")
+    for label, items in (("fluorescence frames", fluorescence), ("true poses", true_poses), ("depth maps", true_depths)):
+        if items is not None and len(items) != n:
+            raise ValueError(f"{n} frames but {len(items)} {label}")
     out_dir = Path(out_dir)
     with atomic_directory(out_dir) as tmp:
         meta = {"format": "scope3d-dataset", "version": 1, "length_unit": "mm", "name": out_dir.name}
         meta.update(metadata or {})
         if scene is not None:
             meta["scene"] = scene.get("name", "custom")
-        (tmp / "dataset.json").write_text(json.dumps(meta, indent=2) + "\n")
+        (tmp / "dataset.json").write_text(json.dumps(meta, indent=2, default=_json_default) + "\n")
         (tmp / "camera.json").write_text(json.dumps(camera_to_dict(camera), indent=2) + "\n")
         (tmp / "poses.csv").write_text(format_poses_csv(names, poses))
         (tmp / "frames").mkdir()
         for name, img in zip(names, frames):
-            write_image(tmp / "frames" / name, img)
+            _write_frame(tmp / "frames" / name, img)
         if fluorescence is not None:
             (tmp / "fluorescence").mkdir()
             for name, img in zip(names, fluorescence):
-                write_image(tmp / "fluorescence" / name, img)
+                _write_frame(tmp / "fluorescence" / name, img)
         if any(x is not None for x in (true_poses, true_surface, true_depths, scene)):
             gt = tmp / "ground_truth"
             gt.mkdir()
@@ -363,6 +533,17 @@ def write_dataset(
             if scene is not None:
                 (gt / "scene.json").write_text(json.dumps(scene, indent=2, default=_json_default) + "\n")
     return out_dir
+
+
+def _write_frame(dest: Path, image: np.ndarray | str | Path) -> None:
+    if isinstance(image, (str, Path)):
+        source = Path(image)
+        if source.suffix.lower() == dest.suffix.lower():
+            read_image(source)  # refuse to copy a corrupt file into a dataset
+            shutil.copyfile(source, dest)
+            return
+        image = read_image(source)
+    write_image(dest, image)
 
 
 def _json_default(obj):
