@@ -105,9 +105,12 @@ def write_ply(path: str | Path, geometry: PointCloud | Mesh) -> None:
 
 
 def read_ply(path: str | Path) -> PointCloud | Mesh:
-    """Read a PLY point cloud or triangle mesh (ASCII or binary little-endian).
+    """Read a PLY point cloud or triangle mesh (ASCII, binary little- or big-endian).
 
-    Returns a :class:`Mesh` when the file has triangular faces, else a :class:`PointCloud`.
+    Returns a :class:`Mesh` when the file has a ``face`` element (triangles only; ASCII polygons with
+    more corners are split into fans), else a :class:`PointCloud`. Vertex colours ``red green blue``
+    come back as uint8 (float colours in [0, 1] are scaled by 255); normals ``nx ny nz`` as float.
+    Lengths are returned as stored: scope3d writes mm. A malformed file is an InputError naming it.
     """
     path = Path(path)
     try:
@@ -117,64 +120,142 @@ def read_ply(path: str | Path) -> PointCloud | Mesh:
     end = data.find(b"end_header")
     if not data.startswith(b"ply") or end < 0:
         raise InputError(f"{path}: not a PLY file")
-    header_end = data.index(b"\n", end) + 1
-    lines = data[:header_end].decode("ascii", "replace").splitlines()
+    newline = data.find(b"\n", end)
+    header_end = newline + 1 if newline >= 0 else len(data)
+    try:
+        fmt, elements = _parse_ply_header(data[:header_end].decode("ascii", "replace"))
+        body = data[header_end:]
+        if fmt == "ascii":
+            arrays = _read_ply_ascii_body(body, elements)
+        elif fmt in ("binary_little_endian", "binary_big_endian"):
+            arrays = _read_ply_binary_body(body, elements, "<" if fmt == "binary_little_endian" else ">")
+        else:
+            raise ValueError(f"PLY format {fmt!r} is not supported")
+        vertex = arrays.get("vertex")
+        if vertex is None or not all(k in vertex for k in "xyz"):
+            raise ValueError("PLY file has no vertex element with x, y, z")
+        pts = np.stack([vertex["x"], vertex["y"], vertex["z"]], axis=1).astype(float)
+        colors = None
+        if all(k in vertex for k in ("red", "green", "blue")):
+            colors = np.stack([vertex["red"], vertex["green"], vertex["blue"]], axis=1)
+            if colors.dtype.kind == "f":
+                scale = 255.0 if colors.size and colors.max() <= 1.0 else 1.0
+                colors = np.clip(np.rint(colors * scale), 0, 255)
+            colors = colors.astype(np.uint8)
+        normals = None
+        if all(k in vertex for k in ("nx", "ny", "nz")):
+            normals = np.stack([vertex["nx"], vertex["ny"], vertex["nz"]], axis=1).astype(float)
+        if "face" in arrays:
+            return Mesh(pts, arrays["face"]["indices"], colors, normals)
+        return PointCloud(pts, colors, normals)
+    except (ValueError, KeyError, IndexError) as exc:
+        if isinstance(exc, InputError):
+            raise
+        detail = f"unknown property type {exc}" if isinstance(exc, KeyError) else str(exc) or "malformed header"
+        raise InputError(f"{path}: {detail}") from None
+
+
+def _parse_ply_header(text: str) -> tuple[str, list[tuple[str, int, list[list[str]]]]]:
     fmt, elements = None, []
-    for line in lines:
+    for line in text.splitlines():
         parts = line.split()
         if not parts:
             continue
         if parts[0] == "format":
             fmt = parts[1]
         elif parts[0] == "element":
-            elements.append((parts[1], int(parts[2]), []))
+            count = int(parts[2])
+            if count < 0:
+                raise ValueError(f"element {parts[1]} has a negative count")
+            elements.append((parts[1], count, []))
         elif parts[0] == "property":
-            elements[-1][2].append(parts[1:])
-    if fmt not in ("ascii", "binary_little_endian"):
-        raise InputError(f"{path}: PLY format {fmt!r} is not supported")
-    body = data[header_end:]
-    arrays: dict[str, np.ndarray] = {}
-    if fmt == "ascii":
-        tokens = body.split()
-        pos = 0
-        for name, count, props in elements:
-            if props and props[0][0] == "list":
-                rows = []
-                for _ in range(count):
+            if not elements:
+                raise ValueError("property before any element in the header")
+            prop = parts[1:]
+            types = prop[1:3] if prop[0] == "list" else prop[:1]
+            for t in types:
+                _PLY_TYPES[t]  # KeyError -> "unknown property type"
+            elements[-1][2].append(prop)
+    return fmt, elements
+
+
+def _element_result(name: str, props: list[list[str]], columns: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Name the face index list ``indices`` whatever the file calls it (vertex_indices, vertex_index)."""
+    out = dict(columns)
+    lists = [p[3] for p in props if p[0] == "list"]
+    if name == "face" and lists:
+        out["indices"] = out[lists[0]]
+    return out
+
+
+def _read_ply_ascii_body(body: bytes, elements) -> dict[str, dict[str, np.ndarray]]:
+    tokens = body.split()
+    pos = 0
+    arrays = {}
+    for name, count, props in elements:
+        if not any(p[0] == "list" for p in props):
+            n = len(props)
+            if pos + n * count > len(tokens):
+                raise ValueError(f"file ends inside element {name}")
+            block = np.array(tokens[pos : pos + n * count], dtype=float).reshape(count, n)
+            pos += n * count
+            arrays[name] = _element_result(name, props, {p[1]: block[:, i] for i, p in enumerate(props)})
+            continue
+        columns: dict[str, list] = {p[-1]: [] for p in props}
+        for _ in range(count):
+            for p in props:
+                if pos >= len(tokens):
+                    raise ValueError(f"file ends inside element {name}")
+                if p[0] == "list":
                     k = int(tokens[pos])
-                    rows.append([int(t) for t in tokens[pos + 1 : pos + 1 + k]])
+                    values = [int(t) for t in tokens[pos + 1 : pos + 1 + k]]
+                    if len(values) != k:
+                        raise ValueError(f"file ends inside element {name}")
                     pos += 1 + k
-                arrays[name] = np.array(rows, dtype=np.int64).reshape(count, -1)
+                    if name == "face":
+                        if k < 3:
+                            raise ValueError(f"a face has {k} corners")
+                        # A polygon becomes a fan of triangles around its first corner.
+                        columns[p[-1]].extend([values[0], values[i], values[i + 1]] for i in range(1, k - 1))
+                    else:
+                        columns[p[-1]].append(values)
+                else:
+                    columns[p[-1]].append(float(tokens[pos]))
+                    pos += 1
+        result = {}
+        for p in props:
+            if p[0] == "list" and name == "face":
+                result[p[-1]] = np.array(columns[p[-1]], dtype=np.int64).reshape(-1, 3)
+            elif p[0] != "list":
+                result[p[-1]] = np.array(columns[p[-1]], dtype=float)
+        arrays[name] = _element_result(name, props, result)
+    return arrays
+
+
+def _read_ply_binary_body(body: bytes, elements, order: str) -> dict[str, dict[str, np.ndarray]]:
+    offset = 0
+    arrays = {}
+    for name, count, props in elements:
+        # Lists are read as fixed-length triples (scope3d, trimesh, MeshLab and Open3D write triangles);
+        # the per-row counts are then checked, since a wrong guess would misalign everything after.
+        fields = []
+        for p in props:
+            if p[0] == "list":
+                fields += [(p[3] + "__n", order + _PLY_TYPES[p[1]]), (p[3], order + _PLY_TYPES[p[2]], (3,))]
             else:
-                n = len(props)
-                block = np.array(tokens[pos : pos + n * count], dtype=float).reshape(count, n)
-                pos += n * count
-                arrays[name] = {p[1]: block[:, i] for i, p in enumerate(props)}
-    else:
-        offset = 0
-        for name, count, props in elements:
-            if props and props[0][0] == "list":
-                count_t, index_t = _PLY_TYPES[props[0][1]], _PLY_TYPES[props[0][2]]
-                dt = np.dtype([("n", "<" + count_t), ("i", "<" + index_t, (3,))])
-                block = np.frombuffer(body, dtype=dt, count=count, offset=offset)
-                if count and np.any(block["n"] != 3):
-                    raise InputError(f"{path}: only triangle faces are supported")
-                arrays[name] = block["i"].astype(np.int64)
-                offset += dt.itemsize * count
+                fields.append((p[1], order + _PLY_TYPES[p[0]]))
+        dt = np.dtype(fields)
+        if offset + dt.itemsize * count > len(body):
+            raise ValueError(f"file ends inside element {name} (truncated?)")
+        block = np.frombuffer(body, dtype=dt, count=count, offset=offset)
+        offset += dt.itemsize * count
+        columns = {}
+        for p in props:
+            if p[0] == "list":
+                if count and np.any(block[p[3] + "__n"] != 3):
+                    raise ValueError(f"only triangles are supported in binary PLY ({name}.{p[3]})")
+                columns[p[3]] = block[p[3]].astype(np.int64)
             else:
-                dt = np.dtype([(p[1], "<" + _PLY_TYPES[p[0]]) for p in props])
-                block = np.frombuffer(body, dtype=dt, count=count, offset=offset)
-                arrays[name] = {n: block[n] for n in dt.names}
-                offset += dt.itemsize * count
-    vertex = arrays.get("vertex")
-    if vertex is None:
-        raise InputError(f"{path}: PLY file has no vertex element")
-    pts = np.stack([vertex["x"], vertex["y"], vertex["z"]], axis=1).astype(float)
-    colors = (
-        np.stack([vertex["red"], vertex["green"], vertex["blue"]], axis=1).astype(np.uint8)
-        if "red" in vertex else None
-    )
-    normals = np.stack([vertex["nx"], vertex["ny"], vertex["nz"]], axis=1) if "nx" in vertex else None
-    if "face" in arrays and len(arrays["face"]):
-        return Mesh(pts, arrays["face"], colors, normals)
-    return PointCloud(pts, colors, normals)
+                columns[p[1]] = block[p[1]].astype(block[p[1]].dtype.newbyteorder("="))
+        arrays[name] = _element_result(name, props, columns)
+    return arrays
