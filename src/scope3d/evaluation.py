@@ -1,0 +1,228 @@
+"""How far a reconstruction is from the true surface (reference sec. 4.5, Fig. 4.6(e), 4.7; sec. 6.3).
+
+* :func:`surface_distances` — unsigned distance from each reconstructed point to the true mesh. The
+  mesh is sampled densely (``sample_step_mm``) with normals; each point's distance is taken to the
+  tangent plane of its nearest sample (point-to-plane), so the sampling error is second order:
+  below ``step² / (8 R)`` for curvature radius ``R`` (< 1 µm at 0.1 mm on the 15 mm dome).
+* :func:`icp_point_to_plane` — rigid ICP, point-to-plane (Chen & Medioni), linearised small-rotation
+  steps solved by least squares; the reference aligned the reconstruction to the CAD model with ICP
+  from **eight** initial poses (:func:`icp_from_initial_poses`) to show the result does not depend on
+  the start.
+* :func:`distance_summary` — mean, median, 95th percentile and the fraction within 1 mm (reference:
+  0.674 mm mean after ICP, 96.3 % within 1 mm).
+* figures: error histogram and error map PNGs.
+
+Distances are reported both **direct** (the map is metric because the poses are) and **after ICP**
+(the reference's measure, which forgives a rigid misplacement of the whole map).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .geometry import rotvec_to_matrix
+from .mesh import Mesh
+
+
+@dataclass(frozen=True)
+class EvaluationOptions:
+    """sample_step_mm : float, spacing of the dense sampling of the true mesh (default 0.1 mm).
+    icp_iterations : int (default 50); icp_tolerance_mm : float, stop when the mean step < this (1e-5).
+    icp_trim_fraction : float, ICP ignores this worst fraction of correspondences each iteration
+        (default 0.05: wrong tracks and the unsurveyed rim must not drag the alignment).
+    initial_rotation_deg, initial_translation_mm : size of the eight ICP starting perturbations
+        (default 5 deg, 2 mm).
+    """
+
+    sample_step_mm: float = 0.1
+    icp_iterations: int = 50
+    icp_tolerance_mm: float = 1e-5
+    icp_trim_fraction: float = 0.05
+    initial_rotation_deg: float = 5.0
+    initial_translation_mm: float = 2.0
+
+    def __post_init__(self) -> None:
+        if self.sample_step_mm <= 0 or self.icp_iterations < 1 or not 0 <= self.icp_trim_fraction < 0.5:
+            raise ValueError("need sample_step_mm > 0, icp_iterations >= 1, icp_trim_fraction in [0, 0.5)")
+
+
+class SampledSurface:
+    """A triangle mesh sampled densely with normals, with a KD-tree for nearest queries."""
+
+    def __init__(self, mesh: Mesh, step_mm: float = 0.1):
+        v, f = mesh.vertices, mesh.faces
+        if len(f) == 0:
+            raise ValueError("true surface has no faces")
+        a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+        cross = np.cross(b - a, c - a)
+        area2 = np.linalg.norm(cross, axis=1)
+        normals = cross / np.maximum(area2, 1e-300)[:, None]
+        # samples per face ~ area / step², at least the centroid; barycentric grid would be nicer,
+        # random-but-seeded barycentric samples are simpler and as good at this density
+        counts = np.maximum(1, np.ceil(0.5 * area2 / step_mm**2)).astype(np.int64)
+        face = np.repeat(np.arange(len(f)), counts)
+        rng = np.random.default_rng(0)
+        r1, r2 = rng.random(len(face)), rng.random(len(face))
+        flip = r1 + r2 > 1
+        r1[flip], r2[flip] = 1 - r1[flip], 1 - r2[flip]
+        self.points = a[face] + r1[:, None] * (b - a)[face] + r2[:, None] * (c - a)[face]
+        self.points = np.concatenate([self.points, v])
+        vn = np.zeros_like(v)
+        np.add.at(vn, f.ravel(), np.repeat(cross, 3, axis=0))
+        vn /= np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-300)
+        self.normals = np.concatenate([normals[face], vn])
+        self.tree = cKDTree(self.points)
+
+    def nearest(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(N, 3) -> nearest samples (N, 3), their normals (N, 3), Euclidean distances (N,)."""
+        d, i = self.tree.query(points)
+        return self.points[i], self.normals[i], d
+
+    def distances(self, points: np.ndarray) -> np.ndarray:
+        """(N, 3) mm -> (N,) unsigned point-to-surface distance (mm), point-to-plane at the nearest
+        sample, never more than the distance to the sample itself."""
+        q, n, d = self.nearest(points)
+        plane = np.abs(np.einsum("ij,ij->i", points - q, n))
+        return np.minimum(plane, d)
+
+
+def surface_distances(points: np.ndarray, truth: Mesh | SampledSurface, options: EvaluationOptions = EvaluationOptions()) -> np.ndarray:
+    """points : (N, 3) mm world -> (N,) distance (mm) to the true surface (a Mesh or a SampledSurface)."""
+    pts = np.asarray(points, float)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"points must be (N, 3), got {pts.shape}")
+    sampled = truth if isinstance(truth, SampledSurface) else SampledSurface(truth, options.sample_step_mm)
+    return sampled.distances(pts)
+
+
+def distance_summary(distances: np.ndarray) -> dict:
+    """{mean, median, p95, rms, max, within_1mm_fraction, n} of distances (mm)."""
+    d = np.asarray(distances, float)
+    d = d[np.isfinite(d)]
+    if len(d) == 0:
+        return {"n": 0}
+    return {
+        "n": int(len(d)), "mean": float(d.mean()), "median": float(np.median(d)), "p95": float(np.percentile(d, 95)),
+        "rms": float(np.sqrt(np.mean(d * d))), "max": float(d.max()), "within_1mm_fraction": float(np.mean(d <= 1.0)),
+    }
+
+
+@dataclass
+class IcpResult:
+    """rotation (3, 3), translation (3,) mm: aligned = R @ x + t; mean_distance_mm after alignment;
+    iterations; history of mean distances (mm)."""
+
+    rotation: np.ndarray
+    translation: np.ndarray
+    mean_distance_mm: float
+    iterations: int
+    history: list
+
+    def apply(self, points: np.ndarray) -> np.ndarray:
+        return np.asarray(points, float) @ self.rotation.T + self.translation
+
+
+def icp_point_to_plane(
+    points: np.ndarray, target: SampledSurface, options: EvaluationOptions = EvaluationOptions(),
+    *, rotation: np.ndarray | None = None, translation: np.ndarray | None = None,
+) -> IcpResult:
+    """Rigid point-to-plane ICP of ``points`` (N, 3) onto the sampled true surface, from an initial
+    transform (default identity). Each iteration solves min Σ (n·(R x + t - q))² linearised in a small
+    rotation ``w`` about the points' centroid, over the best (1 - trim) correspondences."""
+    x = np.asarray(points, float)
+    R = np.eye(3) if rotation is None else np.asarray(rotation, float)
+    t = np.zeros(3) if translation is None else np.asarray(translation, float)
+    history = []
+    it = 0
+    for it in range(1, options.icp_iterations + 1):
+        y = x @ R.T + t
+        q, n, _ = target.nearest(y)
+        r = np.einsum("ij,ij->i", y - q, n)
+        keep = np.abs(r) <= np.quantile(np.abs(r), 1 - options.icp_trim_fraction) if options.icp_trim_fraction else np.ones(len(r), bool)
+        history.append(float(np.mean(np.abs(r))))
+        c = y[keep].mean(axis=0)
+        A = np.hstack([np.cross(y[keep] - c, n[keep]), n[keep]])
+        sol, *_ = np.linalg.lstsq(A, -r[keep], rcond=None)
+        dR = rotvec_to_matrix(sol[:3])
+        # rotate about the centroid c, then translate
+        R = dR @ R
+        t = dR @ (t - c) + c + sol[3:]
+        step = np.linalg.norm(sol[:3]) * np.sqrt(np.mean(np.sum((y - c) ** 2, axis=1))) + np.linalg.norm(sol[3:])
+        if step < options.icp_tolerance_mm:
+            break
+    final = target.distances(x @ R.T + t)
+    return IcpResult(R, t, float(final.mean()), it, history)
+
+
+def icp_from_initial_poses(points: np.ndarray, target: SampledSurface, options: EvaluationOptions = EvaluationOptions()) -> tuple[IcpResult, list[float]]:
+    """ICP from eight starting poses around the reconstruction (reference sec. 4.5): ± the configured
+    rotation about two axes through the centroid and ± translation along world x/y, paired. Returns
+    the best result and the eight final mean distances (mm), whose spread shows the alignment does not
+    depend on the start."""
+    x = np.asarray(points, float)
+    c = x.mean(axis=0)
+    a = np.deg2rad(options.initial_rotation_deg)
+    d = options.initial_translation_mm
+    starts = []
+    for sx in (-1, 1):
+        for sy in (-1, 1):
+            for sz in (-1, 1):
+                R0 = rotvec_to_matrix(a * np.array([sx, sy, sz]) / np.sqrt(3))
+                t0 = c - R0 @ c + np.array([sx * d, sy * d, sz * d]) / np.sqrt(3)
+                starts.append((R0, t0))
+    results = [icp_point_to_plane(x, target, options, rotation=R0, translation=t0) for R0, t0 in starts]
+    best = min(results, key=lambda r: r.mean_distance_mm)
+    return best, [r.mean_distance_mm for r in results]
+
+
+def save_error_histogram_png(path, distances: np.ndarray, *, title: str = "distance to the true surface") -> None:
+    """Histogram of distances (mm) with mean and the fraction within 1 mm (reference Fig. 4.7(b))."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .atomic import atomic_path
+
+    d = np.asarray(distances, float)
+    d = d[np.isfinite(d)]
+    s = distance_summary(d)
+    fig, ax = plt.subplots(figsize=(5.5, 3.8), dpi=110)
+    ax.hist(d, bins=60, range=(0, max(float(np.percentile(d, 99.5)), 1e-3)) if len(d) else None, color="#3465a4")
+    if len(d):
+        ax.axvline(s["mean"], color="k", ls="--", label=f"mean {s['mean']:.3f} mm")
+        ax.legend(title=f"{100 * s['within_1mm_fraction']:.1f} % within 1 mm")
+    ax.set_xlabel("distance (mm)")
+    ax.set_ylabel("points")
+    ax.set_title(title)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp)
+    plt.close(fig)
+
+
+def save_error_map_png(path, points: np.ndarray, distances: np.ndarray, *, title: str = "error map") -> None:
+    """Points seen from above (world x, y), coloured by distance (mm) (reference Fig. 4.7(a))."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .atomic import atomic_path
+
+    p = np.asarray(points, float)
+    d = np.asarray(distances, float)
+    fig, ax = plt.subplots(figsize=(5.5, 4.5), dpi=110)
+    vmax = max(float(np.percentile(d, 98)), 1e-3) if len(d) else 1.0
+    sc = ax.scatter(p[:, 0], p[:, 1], c=d, s=3, cmap="viridis", vmin=0, vmax=vmax)
+    fig.colorbar(sc, ax=ax, label="distance to the true surface (mm)")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (mm)")
+    ax.set_ylabel("y (mm)")
+    ax.set_title(title)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp)
+    plt.close(fig)
