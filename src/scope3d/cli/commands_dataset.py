@@ -1,5 +1,115 @@
-"""``scope3d check`` and ``scope3d import``: validate datasets and convert other formats (being written)."""
+"""``scope3d check`` and ``scope3d import``: validate datasets and convert other formats into them.
+
+Thin layer: each handler parses its arguments and calls the function a user would import
+(:func:`scope3d.dataset.load_dataset`, :func:`scope3d.formats.import_middlebury`,
+:func:`scope3d.formats.import_colmap`). Problems are raised as InputError; ``main`` prints them on one
+line and exits with status 2.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+
+from ..dataset import LENGTH_UNITS_TO_MM, load_dataset
+from ..errors import InputError
+from ..pose import PoseTolerance
 
 
 def register(subparsers) -> None:
-    pass
+    check = subparsers.add_parser(
+        "check",
+        help="validate a dataset folder and say what it holds",
+        description="Validate a dataset (parse every file, decode every image) and print what it holds, "
+                    "or the first problem found (exit status 2).",
+    )
+    check.add_argument("dataset", metavar="DATASET", type=Path, help="dataset folder")
+    check.set_defaults(func=run_check)
+
+    imp = subparsers.add_parser(
+        "import",
+        help="convert a Middlebury or COLMAP set into a scope3d dataset",
+        description="Convert another tool's multi-view set into a scope3d dataset folder (mm).",
+    )
+    formats = imp.add_subparsers(dest="format", metavar="FORMAT", required=True)
+
+    mid = formats.add_parser(
+        "middlebury",
+        help="Middlebury multi-view stereo set (*_par.txt with images beside it)",
+        description="Import a Middlebury multi-view set: images beside PAR_FILE, P = K[R|t], world in "
+                    "metres (converted to mm). Poses are exact unless --tolerance is given.",
+    )
+    mid.add_argument("par_file", metavar="PAR_FILE", type=Path, help="the set's *_par.txt")
+    _add_output_arguments(mid)
+    mid.set_defaults(func=run_import_middlebury)
+
+    col = formats.add_parser(
+        "colmap",
+        help="COLMAP sparse text model and its images",
+        description="Import a COLMAP text model (cameras.txt, images.txt; points3D.txt optional) and its "
+                    "image folder. Poses are exact unless --tolerance is given.",
+    )
+    col.add_argument("model_dir", metavar="MODEL_DIR", type=Path, help="folder with cameras.txt and images.txt")
+    col.add_argument("images", metavar="IMAGES", type=Path, help="folder the image names are relative to")
+    col.add_argument("--model-unit", choices=sorted(LENGTH_UNITS_TO_MM), default="mm",
+                     help="length unit of the model's translations (default mm)")
+    _add_output_arguments(col)
+    col.set_defaults(func=run_import_colmap)
+
+
+def _add_output_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--out", metavar="DIR", type=Path, required=True,
+                        help="dataset folder to write (replaced only if it is a scope3d dataset)")
+    parser.add_argument("--tolerance", metavar="MM", type=_non_negative, default=None,
+                        help="half-width of the camera-centre tolerance per axis, mm (default 0: exact)")
+    parser.add_argument("--tolerance-deg", metavar="DEG", type=_non_negative, default=0.0,
+                        help="half-width of the orientation tolerance per axis, degrees (default 0)")
+
+
+def _non_negative(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if math.isnan(value) or value < 0:
+        raise argparse.ArgumentTypeError(f"{text} must be zero or positive (inf = unknown)")
+    return value
+
+
+def _tolerance(args) -> PoseTolerance:
+    return PoseTolerance.from_degrees(args.tolerance or 0.0, args.tolerance_deg)
+
+
+def _check_output(out: Path) -> None:
+    """Refuse to replace a folder that is not a scope3d dataset: it may be someone's work."""
+    if out.exists() and not (out.is_dir() and (not any(out.iterdir()) or (out / "dataset.json").is_file())):
+        raise InputError(f"{out}: exists and is not a scope3d dataset; choose another --out")
+
+
+# --- handlers ----------------------------------------------------------------------------------
+
+
+def run_check(args) -> int:
+    dataset = load_dataset(args.dataset, check_images=True)
+    print(dataset.summary())
+    print("ok: every file parsed and every image decoded")
+    return 0
+
+
+def run_import_middlebury(args) -> int:
+    from ..formats.middlebury import import_middlebury
+
+    _check_output(args.out)
+    out = import_middlebury(args.par_file, args.out, tolerance=_tolerance(args))
+    print(load_dataset(out).summary())
+    return 0
+
+
+def run_import_colmap(args) -> int:
+    from ..formats.colmap import import_colmap
+
+    _check_output(args.out)
+    out = import_colmap(args.model_dir, args.images, args.out, tolerance=_tolerance(args),
+                        length_scale_to_mm=LENGTH_UNITS_TO_MM[args.model_unit])
+    print(load_dataset(out).summary())
+    return 0
