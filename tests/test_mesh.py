@@ -1,0 +1,198 @@
+"""PLY files: binary round trip, ASCII files written by hand, other writers (trimesh), malformed files."""
+import numpy as np
+import pytest
+import trimesh
+
+from scope3d.errors import InputError
+from scope3d.mesh import Mesh, PointCloud, read_ply, write_ply
+
+
+def _cloud(n=50, seed=0):
+    rng = np.random.default_rng(seed)
+    normals = rng.normal(size=(n, 3))
+    return PointCloud(rng.uniform(-10, 10, (n, 3)), rng.integers(0, 256, (n, 3)),
+                      normals / np.linalg.norm(normals, axis=1, keepdims=True))
+
+
+def _tetrahedron():
+    v = np.array([[0, 0, 0], [10, 0, 0], [0, 10, 0], [0, 0, 10]], float)
+    f = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    return Mesh(v, f, vertex_colors=[[255, 0, 0], [0, 255, 0], [0, 0, 255], [9, 9, 9]],
+                vertex_normals=v - v.mean(axis=0))
+
+
+def test_point_cloud_round_trip(tmp_path):
+    cloud = _cloud()
+    write_ply(tmp_path / "c.ply", cloud)
+    back = read_ply(tmp_path / "c.ply")
+    assert isinstance(back, PointCloud)
+    np.testing.assert_array_equal(back.points, cloud.points)  # stored as double: exact
+    np.testing.assert_array_equal(back.colors, cloud.colors)
+    np.testing.assert_allclose(back.normals, cloud.normals, atol=1e-7)  # stored as float32
+
+
+def test_bare_point_cloud_round_trip(tmp_path):
+    write_ply(tmp_path / "c.ply", PointCloud(np.arange(12.0).reshape(4, 3)))
+    back = read_ply(tmp_path / "c.ply")
+    np.testing.assert_array_equal(back.points, np.arange(12.0).reshape(4, 3))
+    assert back.colors is None and back.normals is None
+
+
+def test_mesh_round_trip(tmp_path):
+    mesh = _tetrahedron()
+    write_ply(tmp_path / "m.ply", mesh)
+    back = read_ply(tmp_path / "m.ply")
+    assert isinstance(back, Mesh)
+    np.testing.assert_array_equal(back.vertices, mesh.vertices)
+    np.testing.assert_array_equal(back.faces, mesh.faces)
+    np.testing.assert_array_equal(back.vertex_colors, mesh.vertex_colors)
+    np.testing.assert_allclose(back.vertex_normals, mesh.vertex_normals, atol=1e-6)
+
+
+def test_empty_mesh_stays_a_mesh(tmp_path):
+    write_ply(tmp_path / "e.ply", Mesh(np.zeros((0, 3)), np.zeros((0, 3), int)))
+    back = read_ply(tmp_path / "e.ply")
+    assert isinstance(back, Mesh) and back.vertices.shape == (0, 3) and back.faces.shape == (0, 3)
+
+
+def test_trimesh_reads_our_binary_ply(tmp_path):
+    mesh = _tetrahedron()
+    write_ply(tmp_path / "m.ply", mesh)
+    loaded = trimesh.load(tmp_path / "m.ply", process=False)
+    np.testing.assert_allclose(loaded.vertices, mesh.vertices)
+    np.testing.assert_array_equal(loaded.faces, mesh.faces)
+    np.testing.assert_array_equal(loaded.visual.vertex_colors[:, :3], mesh.vertex_colors)
+    assert loaded.volume == pytest.approx(1000.0 / 6.0)  # outward-facing triangles, in mm^3
+    cloud = _cloud()
+    write_ply(tmp_path / "c.ply", cloud)
+    np.testing.assert_allclose(trimesh.load(tmp_path / "c.ply").vertices, cloud.points)
+
+
+@pytest.mark.parametrize("encoding", ["ascii", "binary"])
+def test_we_read_trimesh_ply(tmp_path, encoding):
+    mesh = _tetrahedron()
+    tm = trimesh.Trimesh(mesh.vertices, mesh.faces, vertex_colors=mesh.vertex_colors, process=False)
+    tm.export(tmp_path / "t.ply", encoding=encoding)  # adds alpha; vertices as float32
+    back = read_ply(tmp_path / "t.ply")
+    np.testing.assert_allclose(back.vertices, mesh.vertices)
+    np.testing.assert_array_equal(back.faces, mesh.faces)
+    np.testing.assert_array_equal(back.vertex_colors, mesh.vertex_colors)
+
+
+ASCII_MESH = """ply
+format ascii 1.0
+comment written by hand: a unit square as one quad and a triangle fan
+element vertex 5
+property float x
+property float y
+property float z
+property float nx
+property float ny
+property float nz
+property uchar red
+property uchar green
+property uchar blue
+element face 2
+property list uchar int vertex_indices
+end_header
+0 0 0 0 0 1 255 0 0
+1 0 0 0 0 1 0 255 0
+1 1 0 0 0 1 0 0 255
+0 1 0 0 0 1 10 20 30
+0.5 0.5 1 0 0 1 1 2 3
+4 0 1 2 3
+3 0 1 4
+"""
+
+
+def test_ascii_mesh_written_by_hand(tmp_path):
+    (tmp_path / "a.ply").write_text(ASCII_MESH)
+    mesh = read_ply(tmp_path / "a.ply")
+    assert isinstance(mesh, Mesh)
+    np.testing.assert_array_equal(mesh.faces, [[0, 1, 2], [0, 2, 3], [0, 1, 4]])  # quad split as a fan
+    np.testing.assert_array_equal(mesh.vertex_colors[3], [10, 20, 30])
+    np.testing.assert_array_equal(mesh.vertex_normals[:, 2], 1.0)
+    np.testing.assert_array_equal(mesh.vertices[4], [0.5, 0.5, 1.0])
+
+
+def test_ascii_point_cloud_with_float_colours(tmp_path):
+    (tmp_path / "p.ply").write_text(
+        "ply\nformat ascii 1.0\nelement vertex 2\nproperty double x\nproperty double y\nproperty double z\n"
+        "property float red\nproperty float green\nproperty float blue\nend_header\n"
+        "1 2 3 1.0 0.5 0.0\n4 5 6 0 0 0.2\n"
+    )
+    cloud = read_ply(tmp_path / "p.ply")
+    assert isinstance(cloud, PointCloud)
+    np.testing.assert_array_equal(cloud.points, [[1, 2, 3], [4, 5, 6]])
+    np.testing.assert_array_equal(cloud.colors, [[255, 128, 0], [0, 0, 51]])
+
+
+def test_big_endian_binary(tmp_path):
+    header = ("ply\nformat binary_big_endian 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+              "property float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n")
+    verts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], ">f4").tobytes()
+    face = b"\x03" + np.array([0, 1, 2], ">i4").tobytes()
+    (tmp_path / "b.ply").write_bytes(header.encode() + verts + face)
+    mesh = read_ply(tmp_path / "b.ply")
+    np.testing.assert_array_equal(mesh.vertices[1], [1, 0, 0])
+    np.testing.assert_array_equal(mesh.faces, [[0, 1, 2]])
+
+
+@pytest.mark.parametrize(
+    "content, fragment",
+    [
+        (b"hello", "not a PLY file"),
+        (b"ply\nformat binary_little_endian 1.0\nelement vertex 10\nproperty double x\nproperty double y\n"
+         b"property double z\nend_header\n" + b"\0" * 100, "truncated"),
+        (b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\n"
+         b"end_header\n1 2 3\n", "ends inside element vertex"),
+        (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty quaternion x\nend_header\n1\n", "unknown property type"),
+        (b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+         b"element face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0 1 0 0 0 1 0\n3 0 1 7\n",
+         "vertices that do not exist"),
+        (b"ply\nformat ascii 1.0\nelement face 0\nproperty list uchar int vertex_indices\nend_header\n",
+         "no vertex element"),
+    ],
+)
+def test_malformed_files_are_input_errors(tmp_path, content, fragment):
+    (tmp_path / "bad.ply").write_bytes(content)
+    with pytest.raises(InputError) as info:
+        read_ply(tmp_path / "bad.ply")
+    assert "bad.ply" in str(info.value) and fragment in str(info.value), str(info.value)
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(InputError, match="nothing.ply: cannot read"):
+        read_ply(tmp_path / "nothing.ply")
+
+
+def test_failed_write_leaves_no_file(tmp_path, monkeypatch):
+    """A write that fails after the header (a full disk, say) leaves neither the file nor a temporary."""
+    import builtins
+
+    import scope3d.atomic
+
+    class FailsOnSecondWrite:
+        def __init__(self, handle):
+            self.handle, self.writes = handle, 0
+
+        def write(self, data):
+            self.writes += 1
+            if self.writes == 2:
+                raise OSError("No space left on device")
+            return self.handle.write(data)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return self.handle.__exit__(*exc)
+
+    monkeypatch.setattr(scope3d.atomic, "open", lambda *a, **k: FailsOnSecondWrite(builtins.open(*a, **k)),
+                        raising=False)
+    with pytest.raises(OSError, match="No space"):
+        write_ply(tmp_path / "m.ply", _tetrahedron())
+    assert list(tmp_path.iterdir()) == []
+    monkeypatch.undo()
+    write_ply(tmp_path / "m.ply", _tetrahedron())  # the same call succeeds without the failure
+    assert [p.name for p in tmp_path.iterdir()] == ["m.ply"]
