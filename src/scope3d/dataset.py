@@ -1,29 +1,34 @@
 """Datasets on disk: frames, reported poses with tolerances, camera intrinsics, optional ground truth.
 
-Folder layout (all lengths in millimetres, angles in degrees in files)::
+Folder layout (all lengths in millimetres, angles in degrees in files; see ``docs/datasets.md``)::
 
     DATASET/
-      dataset.json        {"format": "scope3d-dataset", "version": 1, "length_unit": "mm", "name": ..., "scene": {...}}
+      dataset.json        {"format": "scope3d-dataset", "version": 1, "length_unit": "mm", "name": ...}
+                          optional: "scene": NAME, "source": {...} (provenance of an import),
+                          "bounding_box_mm": [[xmin, ymin, zmin], [xmax, ymax, zmax]]
       camera.json         {"width", "height", "fx", "fy", "cx", "cy", "k1", "k2", "mask_radius_px" (or null)}
+                          (pixels; "model" and "fov_deg" are written for people and ignored when read)
       poses.csv           one row per frame, in frame order (columns below)
-      frames/             reflectance images named in poses.csv (PNG, grey or colour)
+      frames/             reflectance images named in poses.csv (PNG, grey or colour), nothing else
       fluorescence/       optional: fluorescence images with the same names
       ground_truth/       optional, written by the phantom lab
         poses.csv         the true poses (tolerance columns 0)
         surface.ply       the true surface, a triangle mesh in mm
-        depth/NAME.npy    optional (H, W) float32 z-depth in mm of each frame, NaN where no surface
+        depth/NAME.npy    optional (H, W) float32 z-depth in mm of each frame (NAME = image stem), NaN where no surface
         scene.json        scene parameters (targets, thread profile, ...)
 
 ``poses.csv`` columns::
 
     image, x_mm, y_mm, z_mm, qw, qx, qy, qz, tol_x_mm, tol_y_mm, tol_z_mm, tol_rx_deg, tol_ry_deg, tol_rz_deg
 
-``x, y, z`` is the camera centre in the world; ``(qw, qx, qy, qz)`` is the camera's orientation in the
-world (the rotation ``world_from_cam``, a unit quaternion), as a robot or tracker reports it. The
-``tol_*_mm`` columns bound the true centre per world axis; ``tol_r*_deg`` bound a small rotation about
-the camera's own x, y, z axes (``R_true = exp([w]x) R_measured`` for ``cam_from_world``). Tolerance 0
-means exact, ``inf`` means unknown. ``dataset.json``'s ``length_unit`` may be ``mm``, ``cm``, ``m`` or
-``um``; lengths are converted to mm when loading.
+``image`` is a plain file name in ``frames/``, unique. ``x, y, z`` is the camera centre in the world;
+``(qw, qx, qy, qz)`` is the camera's orientation in the world (the rotation ``world_from_cam``, a unit
+quaternion), as a robot or tracker reports it. The ``tol_*_mm`` columns bound the true centre per world
+axis; ``tol_r*_deg`` bound a small rotation about the camera's own x, y, z axes (``R_true = exp([w]x)
+R_measured`` for ``cam_from_world``). Tolerance 0 means exact, ``inf`` means unknown; NaN is an error
+everywhere. ``dataset.json``'s ``length_unit`` may be ``mm``, ``cm``, ``m`` or ``um``; lengths (positions
+and position tolerances) are converted to mm when loading. Pixels: origin at the centre of the top-left
+pixel, u right, v down (:mod:`scope3d.camera`).
 """
 from __future__ import annotations
 
