@@ -109,17 +109,24 @@ class PairOptions:
     max_pairs_per_frame : int, keep at most this many best-overlapping partners per frame
         (default 10; bounds the cost on dense trajectories). 0 = no limit.
     samples_per_side : int, the field of view is sampled on this many pixels per side (default 16).
+    max_view_angle_deg : float, pairs whose optical axes differ by more are skipped (default 60 deg:
+        SIFT descriptors stop matching beyond ~50-60 deg of viewpoint change). Partners are ranked by
+        overlap x cos(axis angle), so around an object (where every frustum "overlaps" at the depth
+        prior) the nearest viewpoints come first.
     """
 
     min_overlap: float = 0.25
     max_pairs_per_frame: int = 10
     samples_per_side: int = 16
+    max_view_angle_deg: float = 60.0
 
     def __post_init__(self) -> None:
         if not 0 <= self.min_overlap <= 1:
             raise ValueError(f"min_overlap must be in [0, 1], got {self.min_overlap}")
         if self.max_pairs_per_frame < 0 or self.samples_per_side < 2:
             raise ValueError("max_pairs_per_frame must be >= 0 and samples_per_side >= 2")
+        if not 0 < self.max_view_angle_deg <= 180:
+            raise ValueError(f"max_view_angle_deg must be in (0, 180], got {self.max_view_angle_deg}")
 
 
 @dataclass
@@ -187,17 +194,20 @@ def select_pairs(
     """Frame pairs worth matching, as (i, j, overlap) with i < j, best overlap first."""
     ov = frame_overlap(camera, poses, depth, samples_per_side=options.samples_per_side)
     n = len(poses)
+    axes = np.stack([p.optical_axis for p in poses])
+    cos_axes = np.clip(axes @ axes.T, -1.0, 1.0)
+    score = ov * np.maximum(cos_axes, 0.0)
     keep = np.zeros((n, n), dtype=bool)
-    cand = ov >= options.min_overlap
+    cand = (ov >= options.min_overlap) & (cos_axes >= np.cos(np.deg2rad(options.max_view_angle_deg)))
     np.fill_diagonal(cand, False)
     for a in range(n):
         partners = np.flatnonzero(cand[a])
         if options.max_pairs_per_frame:
-            partners = partners[np.argsort(-ov[a, partners], kind="stable")[: options.max_pairs_per_frame]]
+            partners = partners[np.argsort(-score[a, partners], kind="stable")[: options.max_pairs_per_frame]]
         keep[a, partners] = True
     keep = keep | keep.T
     ii, jj = np.nonzero(np.triu(keep, 1))
-    order = np.argsort(-ov[ii, jj], kind="stable")
+    order = np.argsort(-score[ii, jj], kind="stable")
     return [(int(ii[k]), int(jj[k]), float(ov[ii[k], jj[k]])) for k in order]
 
 
@@ -244,29 +254,26 @@ def window_radius_px(
 # --- descriptor search -------------------------------------------------------------------------
 
 
-def _ratio_select(a: np.ndarray, b: np.ndarray, d2: np.ndarray, n_a: int, ratio: float) -> tuple[np.ndarray, np.ndarray]:
-    """Ratio test among grouped candidates.
+def _ratio_select_grouped(a: np.ndarray, b: np.ndarray, d2: np.ndarray, ratio: float):
+    """Ratio test among candidates already grouped by ``a`` (equal values contiguous), in O(C).
 
-    a, b : (C,) candidate pairs, ``a`` sorted ascending; d2 : (C,) squared descriptor distances.
-    Returns matched (a, b) where best < ratio * second-best (a lone candidate passes).
+    Returns matched (a, b, d2) where best < ratio * second-best; a lone candidate passes.
     """
     if len(a) == 0:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    order = np.lexsort((d2, a))
-    a, b, d2 = a[order], b[order], d2[order]
-    first = np.ones(len(a), dtype=bool)
-    first[1:] = a[1:] != a[:-1]
-    start = np.flatnonzero(first)
-    has_second = np.zeros(len(start), dtype=bool)
-    second_d2 = np.full(len(start), np.inf)
-    nxt = start + 1
-    ok = nxt < len(a)
-    ok[ok] &= a[nxt[ok]] == a[start[ok]]
-    has_second[ok] = True
-    second_d2[ok] = d2[nxt[ok]]
-    best_d2 = d2[start]
-    passed = best_d2 < (ratio * ratio) * second_d2
-    return a[start[passed]], b[start[passed]]
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32)
+    start = np.flatnonzero(np.r_[True, a[1:] != a[:-1]])
+    best = np.minimum.reduceat(d2, start)
+    group = np.repeat(np.arange(len(start)), np.diff(np.r_[start, len(a)]))
+    is_best = d2 == best[group]
+    # position of the (first) best in each group
+    pos = np.full(len(start), len(a))
+    np.minimum.at(pos, group[is_best], np.flatnonzero(is_best))
+    masked = d2.copy()
+    masked[pos] = np.inf
+    second = np.minimum.reduceat(masked, start)
+    passed = best < (ratio * ratio) * second
+    chosen = pos[passed]
+    return a[chosen], b[chosen], d2[chosen]
 
 
 def _keep_mutual(a: np.ndarray, b: np.ndarray, d2: np.ndarray) -> np.ndarray:
@@ -382,30 +389,40 @@ def match_guided(
     idx_valid = np.flatnonzero(valid)
     if len(idx_valid) == 0:
         return PairMatches(i, j, empty, empty, time_s=time.perf_counter() - t0)
+    # Candidates near each segment: sample the segment every ``radius`` px; one fixed-radius
+    # tree-against-tree search (vectorised output) finds the keypoints of j within 1.12 radius of a
+    # sample, which covers every point within ``radius`` of the segment (sqrt(1 + 0.5^2) < 1.12).
+    n_samples = np.ceil(2.0 * half[idx_valid] / radius).astype(np.int64) + 1
+    owner = np.repeat(idx_valid, n_samples)
+    first = np.repeat(np.cumsum(n_samples) - n_samples, n_samples)
+    sample_k = np.arange(len(owner)) - first
+    last = np.repeat(n_samples - 1, n_samples)
+    frac = sample_k / np.maximum(last, 1)
+    samples = p0[owner] + frac[:, None] * (p1[owner] - p0[owner])
     tree = tree_j if tree_j is not None else cKDTree(features_j.keypoints)
-    balls = tree.query_ball_point(mid[idx_valid], r=radius + half[idx_valid], return_sorted=False)
-    counts = np.fromiter((len(x) for x in balls), dtype=np.int64, count=len(balls))
-    if counts.sum() == 0:
+    hits = cKDTree(samples).sparse_distance_matrix(tree, 1.12 * radius, output_type="ndarray")
+    if len(hits) == 0:
         return PairMatches(i, j, empty, empty, time_s=time.perf_counter() - t0)
-    a = np.repeat(idx_valid, counts)
-    b = np.concatenate([np.asarray(x, dtype=np.int64) for x in balls if len(x)])
-    # keep candidates within ``radius`` of the segment itself, not just of its midpoint
+    hits = hits[np.argsort(hits["i"], kind="stable")]  # group by sample, hence by feature of i
+    si, b = hits["i"].astype(np.int64), hits["j"].astype(np.int64)
+    a = owner[si]
+    # exact test against the segment, and de-duplication: a keypoint near several samples of one
+    # segment is kept only from the sample nearest to its foot on the segment
     q = features_j.keypoints[b]
     s0, s1 = p0[a], p1[a]
     seg = s1 - s0
     seg_len2 = np.maximum(np.einsum("ij,ij->i", seg, seg), 1e-12)
     tpar = np.clip(np.einsum("ij,ij->i", q - s0, seg) / seg_len2, 0.0, 1.0)
-    dist = np.linalg.norm(q - (s0 + tpar[:, None] * seg), axis=1)
-    inside = dist <= radius
+    foot = s0 + tpar[:, None] * seg
+    dist2 = np.einsum("ij,ij->i", q - foot, q - foot)
+    inside = (dist2 <= radius * radius) & (np.rint(tpar * last[si]).astype(np.int64) == sample_k[si])
     a, b = a[inside], b[inside]
-    d2 = _pair_d2(features_i.descriptors, features_j.descriptors, a, b)
     n_candidates = len(a)
-    a_m, b_m = _ratio_select(a, b, d2, len(features_i), options.ratio)
+    d2 = _pair_d2(features_i.descriptors, features_j.descriptors, a, b)
+    a_m, b_m, d_m = _ratio_select_grouped(a, b, d2, options.ratio)
     n_putative = len(a_m)
     if options.mutual and len(a_m):
-        # distances of the chosen pairs, recomputed (cheap) for the mutual check
-        dm = _pair_d2(features_i.descriptors, features_j.descriptors, a_m, b_m)
-        keep = _keep_mutual(a_m, b_m, dm)
+        keep = _keep_mutual(a_m, b_m, d_m)
         a_m, b_m = a_m[keep], b_m[keep]
     inl = _verify(camera, features_i.keypoints, features_j.keypoints, a_m, b_m, options)
     a_m, b_m = a_m[inl], b_m[inl]
@@ -464,7 +481,7 @@ def estimate_depth_prior(
     This bootstraps the guided matcher without asking the user for a working distance; it costs a
     few exhaustive pair matches. Raises ``ValueError`` if no pair yields enough matches.
     """
-    from .tracks import triangulate_pairs  # tracks sits beside matching; imported late to keep layers clear
+    from .tracks import TrackOptions, Tracks, triangulate_tracks  # imported late: tracks sits above matching
 
     centres = np.stack([m.pose.centre for m in poses])
     axes = np.stack([m.pose.optical_axis for m in poses])
@@ -472,21 +489,26 @@ def estimate_depth_prior(
     if n < 2:
         raise ValueError("need at least two frames to estimate a depth prior")
     dist = np.linalg.norm(centres[:, None] - centres[None], axis=2)
-    # prefer close pairs looking the same way: they overlap most
+    # prefer close pairs looking the same way (they overlap most), but not coincident ones (no parallax)
     same_way = axes @ axes.T
-    score = dist + 1e9 * (same_way < 0.5)
-    score = score + np.diag(np.full(n, np.inf))
+    score = dist + 1e9 * (same_way < 0.5) + 1e9 * (dist < 1e-6 * max(float(dist.max()), 1e-9))
     iu, ju = np.triu_indices(n, 1)
     order = np.argsort(score[iu, ju], kind="stable")
+    # loose reprojection gate: measured poses may be off by their tolerance; depths need not be precise
+    filters = TrackOptions(max_reprojection_error_px=8.0, min_angle_deg=1.0)
     depths = []
-    for k in order[: max(n_pairs * 3, n_pairs)]:
+    for k in order[: 3 * n_pairs]:
         i, j = int(iu[k]), int(ju[k])
         m = match_exhaustive(camera, features[i], features[j], options, i=i, j=j)
         if len(m) < options.min_matches:
             continue
-        pts, ok = triangulate_pairs(camera, poses[i].pose, poses[j].pose, features[i].keypoints[m.idx_i], features[j].keypoints[m.idx_j])
-        z = poses[i].pose.transform(pts[ok])[:, 2]
-        depths.append(z[z > 0])
+        nm = len(m)
+        tr = Tracks(np.repeat(np.arange(nm), 2), np.tile([0, 1], nm), np.zeros(2 * nm, np.int64),
+                    np.stack([features[i].keypoints[m.idx_i], features[j].keypoints[m.idx_j]], 1).reshape(-1, 2),
+                    np.zeros((nm, 3), np.uint8))
+        tr = triangulate_tracks(camera, [poses[i].pose, poses[j].pose], tr, filters)
+        if tr.n_tracks:
+            depths.append(poses[i].pose.transform(tr.points)[:, 2])
         if len(depths) >= n_pairs:
             break
     if not depths or sum(len(d) for d in depths) < options.min_matches:

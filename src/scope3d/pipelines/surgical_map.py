@@ -1,0 +1,660 @@
+"""The surgical-field map: a metric, textured, multimodal 3-D model of the field from a robot-held scope.
+
+Method (reference chapters 3, 4 and 6), one stage per function, run top to bottom by :func:`run`:
+
+1. :func:`detect_features` — SIFT on every reflectance frame, inside the scope's circular field.
+2. :func:`match_frames` — frame pairs that overlap, found from the measured poses and a depth prior
+   (itself estimated from a few exhaustively matched close pairs); then *feature position prediction*:
+   each feature is searched only near the epipolar segment the poses predict, with a window sized by
+   the pose tolerance; ratio test 0.8 and RANSAC.
+3. :func:`reconstruct` — tracks by union-find, multi-view triangulation with the measured poses, then
+   bundle adjustment in one of three pose modes: ``fixed`` (poses trusted, points refined — the
+   reference's chapter 3-4 method), ``free`` (conventional BA, gauge fixed by the first camera and one
+   coordinate of the farthest), ``bounded`` (BCBA, chapter 6: every pose scalar kept within its measured
+   tolerance). Observations that still reproject badly are dropped and the adjustment is repeated once.
+4. :func:`build_surface` — a thin-plate-spline height field through the points, meshed on a grid and
+   textured from each vertex's best view.
+5. :func:`map_targets` — fluorescence thresholded and cleaned per frame, voted onto the surface,
+   labelled and measured (centroid, area, star edge or disc diameter).
+6. :func:`evaluate_map` — where ground truth exists: distances to the true surface, direct and after
+   ICP from eight starts, pose errors, targets against the true ones.
+7. :func:`write_outputs` — report.json, PLYs, COLMAP text model, targets CSV/JSON, figures.
+
+Units: mm and radians inside; pixels with their origin at the top-left pixel's centre.
+"""
+from __future__ import annotations
+
+import csv
+import io
+import json
+import time
+import tracemalloc
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from ..atomic import atomic_directory
+from ..camera import Camera
+from ..dataset import Dataset, write_image
+from ..errors import InputError
+from ..evaluation import (
+    EvaluationOptions, SampledSurface, distance_summary, icp_from_initial_poses, save_error_histogram_png,
+    save_error_map_png,
+)
+from ..features import FEATURE_PRESETS, FeatureOptions, Features, detect
+from ..fluorescence import (
+    FluorescenceOptions, Target, auto_threshold, carry_to_surface, match_targets, measure_targets, overlay, segment,
+)
+from ..matching import (
+    DepthPrior, MatchOptions, PairMatches, PairOptions, estimate_depth_prior, match_exhaustive, match_pairs,
+    select_pairs,
+)
+from ..mesh import Mesh, PointCloud, write_ply
+from ..pose import MeasuredPose, Pose, PoseTolerance
+from ..surface import Surface, SurfaceOptions, fit_surface, save_depth_map_png, texture
+from ..tracks import TrackOptions, Tracks, build_tracks, reprojection_errors, triangulate_tracks
+
+POSE_MODES = ("fixed", "free", "bounded")
+MATCHERS = ("guided", "exhaustive")
+
+
+@dataclass(frozen=True)
+class BundleStageOptions:
+    """Bundle adjustment as the map uses it.
+
+    max_iterations : int, LM iterations per adjustment (default 30: from triangulated points and
+        measured poses the reference's BCBA converged in ~10).
+    loss_scale_px : float, Huber loss scale (default 1.0 px: SIFT localisation ~0.3-0.5 px, so a
+        residual beyond 1 px is downweighted as a likely wrong match).
+    max_points : int, the adjustment uses at most this many tracks, the longest first (default 6000):
+        poses are fixed by a few thousand well-spread points; the rest are re-triangulated with the
+        adjusted poses, which is exact for them and costs nothing.
+    refine_intrinsics : bool, let the intrinsics move (default False: the scope is calibrated, and
+        with a short-baseline survey focal length and depth trade off).
+    """
+
+    max_iterations: int = 30
+    loss_scale_px: float = 1.0
+    max_points: int = 6000
+    refine_intrinsics: bool = False
+
+    def __post_init__(self) -> None:
+        if self.max_iterations < 0 or self.loss_scale_px <= 0 or self.max_points < 10:
+            raise ValueError("need max_iterations >= 0, loss_scale_px > 0, max_points >= 10")
+
+
+@dataclass(frozen=True)
+class MapOptions:
+    """Everything the map pipeline can be told, with documented defaults per stage.
+
+    pose_mode : "fixed" | "free" | "bounded" (default "bounded": BCBA, which reduces to "fixed" for
+        exact poses and uses the tolerance otherwise).
+    matcher : "guided" (feature position prediction, default) or "exhaustive" (the baseline).
+    depth_prior : DepthPrior or None (default None: estimated from the data).
+    surface, fluorescence : bool, build the surface / the targets (default True; a photograph ring
+        around an object, like Middlebury's temple, is not a height field and turns them off).
+    figures : bool, write PNG figures (default True).
+    threads : int, threads for per-frame feature detection (default 2, the machine's cores).
+    """
+
+    pose_mode: str = "bounded"
+    matcher: str = "guided"
+    depth_prior: DepthPrior | None = None
+    features: FeatureOptions = field(default_factory=FeatureOptions)
+    pairs: PairOptions = field(default_factory=PairOptions)
+    matching: MatchOptions = field(default_factory=MatchOptions)
+    tracks: TrackOptions = field(default_factory=TrackOptions)
+    bundle: BundleStageOptions = field(default_factory=BundleStageOptions)
+    surface_options: SurfaceOptions = field(default_factory=SurfaceOptions)
+    fluorescence_options: FluorescenceOptions = field(default_factory=FluorescenceOptions)
+    evaluation: EvaluationOptions = field(default_factory=EvaluationOptions)
+    surface: bool = True
+    fluorescence: bool = True
+    figures: bool = True
+    threads: int = 2
+
+    def __post_init__(self) -> None:
+        if self.pose_mode not in POSE_MODES:
+            raise ValueError(f"pose_mode must be one of {POSE_MODES}, got {self.pose_mode!r}")
+        if self.matcher not in MATCHERS:
+            raise ValueError(f"matcher must be one of {MATCHERS}, got {self.matcher!r}")
+        if self.threads < 1:
+            raise ValueError("threads must be >= 1")
+
+
+#: Named presets. ``dim_endoscope``: CLAHE and a lower SIFT threshold for dark frames.
+#: ``photograph``: calibrated photographs around an object (no circular mask, no height-field surface).
+MAP_PRESETS: dict[str, MapOptions] = {
+    "default": MapOptions(),
+    "dim_endoscope": MapOptions(features=FEATURE_PRESETS["dim_endoscope"]),
+    "photograph": MapOptions(features=FEATURE_PRESETS["photograph"], surface=False, fluorescence=False,
+                             pairs=PairOptions(min_overlap=0.2, max_pairs_per_frame=6)),
+}
+
+
+# --- stage results ----------------------------------------------------------------------------
+
+
+@dataclass
+class MatchingResult:
+    """pairs : (i, j, overlap) selected; matches : per pair; depth_prior : used for prediction."""
+
+    pairs: list
+    matches: list[PairMatches]
+    depth_prior: DepthPrior | None
+    time_s: float
+    depth_prior_time_s: float = 0.0
+
+    @property
+    def n_matches(self) -> int:
+        return int(sum(len(m) for m in self.matches))
+
+
+@dataclass
+class SparseResult:
+    """The adjusted sparse model: tracks (observations, points in mm world), poses, BA results."""
+
+    tracks: Tracks
+    poses: list[Pose]
+    camera: Camera
+    bundle_results: list
+    mean_reprojection_error_px: float
+    time_s: float
+
+
+@dataclass
+class SurfaceResult:
+    surface: Surface
+    colors: np.ndarray  # (GH, GW, 3) uint8 texture
+    view_map: np.ndarray  # (GH, GW) best view per vertex
+    time_s: float
+
+
+@dataclass
+class TargetResult:
+    targets: list[Target]
+    fluorescent: np.ndarray  # (GH, GW) bool
+    labels: np.ndarray  # (GH, GW) int32
+    threshold: int
+    time_s: float
+
+
+@dataclass
+class MapResult:
+    """What :func:`run` returns: the report (also in ``out_dir/report.json``) and the in-memory model."""
+
+    report: dict
+    out_dir: Path
+    features: list[Features]
+    matching: MatchingResult
+    sparse: SparseResult
+    surface: SurfaceResult | None
+    targets: TargetResult | None
+
+    def summary(self) -> str:
+        r = self.report
+        lines = [f"{r['n_frames']} frames, {r['n_points']} points, {r['n_observations']} observations, "
+                 f"mean reprojection error {r['mean_reprojection_error_px']:.3f} px, {r['time_s']:.2f} s"]
+        if "surface_error_mm" in r:
+            d, i = r["surface_error_mm"]["direct"], r["surface_error_mm"]["after_icp"]
+            lines.append(f"surface error: direct mean {d['mean']:.3f} mm ({100 * d['within_1mm_fraction']:.1f} % "
+                         f"within 1 mm), after ICP mean {i['mean']:.3f} mm ({100 * i['within_1mm_fraction']:.1f} %)")
+        if r.get("targets"):
+            lines.append(f"targets: {len(r['targets'])} found")
+        return "\n".join(lines)
+
+
+# --- 1. features ------------------------------------------------------------------------------
+
+
+def detect_features(options: MapOptions, dataset: Dataset, frames: list[np.ndarray], *, progress=None) -> list[Features]:
+    """SIFT per frame (threads: OpenCV releases the GIL)."""
+    def one(k):
+        f = detect(frames[k], dataset.camera, options.features)
+        if progress is not None:
+            progress(1)
+        return f
+
+    with ThreadPoolExecutor(max_workers=options.threads) as pool:
+        return list(pool.map(one, range(len(frames))))
+
+
+# --- 2. matching ------------------------------------------------------------------------------
+
+
+def match_frames(options: MapOptions, dataset: Dataset, features: list[Features], *, progress=None) -> MatchingResult:
+    """Overlapping pairs from the poses and a depth prior, then guided (or exhaustive) matching."""
+    t0 = time.perf_counter()
+    depth = options.depth_prior
+    if depth is None:
+        depth = estimate_depth_prior(dataset.camera, features, dataset.poses, options.matching)
+    t_depth = time.perf_counter() - t0
+    pairs = select_pairs(dataset.camera, [m.pose for m in dataset.poses], depth, _pair_options(options, dataset, depth))
+    matches = match_pairs(dataset.camera, features, dataset.poses, pairs, depth, options.matching,
+                          method=options.matcher, progress=progress)
+    return MatchingResult(pairs, matches, depth, time.perf_counter() - t0, t_depth)
+
+
+def _pair_options(options: MapOptions, dataset: Dataset, depth: DepthPrior) -> PairOptions:
+    """Widen the overlap test when poses are loose: a frame that may be ``dp`` mm off still overlaps."""
+    return options.pairs
+
+
+# --- 3. tracks, triangulation, bundle adjustment ------------------------------------------------
+
+
+def _pose_error_px(camera: Camera, tolerance: PoseTolerance, depth: DepthPrior | None) -> float:
+    """Reprojection error (px) that a pose error within ``tolerance`` can cause at the nearest depth."""
+    if depth is None or tolerance.is_exact:
+        return 0.0
+    f = max(camera.fx, camera.fy)
+    dp, dw = np.linalg.norm(tolerance.position_mm), np.linalg.norm(tolerance.orientation_rad)
+    return float(2.0 * (f * dp / depth.near_mm + f * dw)) if np.isfinite(dp + dw) else np.inf
+
+
+def _bundle_problem(mode: str, poses: list[MeasuredPose], camera: Camera, tracks: Tracks, refine_intrinsics: bool):
+    from ..bundle import BundleProblem
+
+    pts = tracks.points
+    if mode == "bounded":
+        problem = BundleProblem.from_measured_poses(
+            poses, camera, pts, tracks.pixels, tracks.frame, tracks.track, refine_intrinsics=refine_intrinsics)
+        if all(not np.isfinite(m.tolerance.position_mm).all() for m in poses):
+            _fix_gauge(problem, poses)
+        return problem
+    rot = np.stack([m.pose.rotation for m in poses])
+    trans = np.stack([m.pose.translation for m in poses])
+    problem = BundleProblem(tracks.pixels, tracks.frame, tracks.track, rot, trans, pts, camera.intrinsics)
+    if not refine_intrinsics:
+        problem.fix("intrinsics")
+    if mode == "fixed":
+        problem.fix("pose")
+    else:
+        _fix_gauge(problem, poses)
+    return problem
+
+
+def _fix_gauge(problem, poses: list[MeasuredPose]) -> None:
+    """Conventional BA's gauge: the first camera's pose, and the scale through one position coordinate
+    of the camera farthest from it (along the axis where they differ most)."""
+    problem.fix("pose", [0])
+    centres = np.stack([m.pose.centre for m in poses])
+    d = np.abs(centres - centres[0])
+    far = int(np.argmax(d.max(axis=1)))
+    if far != 0:
+        problem.fix("pose", [far], [("px", "py", "pz")[int(np.argmax(d[far]))]])
+
+
+def reconstruct(options: MapOptions, dataset: Dataset, features: list[Features], matching: MatchingResult) -> SparseResult:
+    """Tracks, triangulation with the measured poses, bundle adjustment in ``options.pose_mode``."""
+    from ..bundle import SolverOptions, solve
+
+    t0 = time.perf_counter()
+    camera = dataset.camera
+    measured = dataset.poses
+    tracks = build_tracks(features, matching.matches, min_track_length=options.tracks.min_track_length)
+    if tracks.n_tracks == 0:
+        raise InputError(f"{dataset.root}: no feature could be matched between frames (do they overlap?)")
+    # With inexact poses and a mode that may move them, keep observations the pose error can explain.
+    loose = options.pose_mode != "fixed"
+    slack = max((_pose_error_px(camera, m.tolerance, matching.depth_prior) for m in measured), default=0.0) if loose else 0.0
+    if options.pose_mode == "free" and not np.isfinite(slack):
+        slack = 50.0
+    first = replace(options.tracks, max_reprojection_error_px=options.tracks.max_reprojection_error_px + min(slack, 200.0),
+                    min_angle_deg=options.tracks.min_angle_deg if not loose else 0.5 * options.tracks.min_angle_deg)
+    poses = [m.pose for m in measured]
+    tracks = triangulate_tracks(camera, poses, tracks, first)
+    if tracks.n_tracks == 0:
+        raise InputError(f"{dataset.root}: no point could be triangulated (poses inconsistent with the images?)")
+    solver = SolverOptions(max_iterations=options.bundle.max_iterations, loss="huber", loss_scale_px=options.bundle.loss_scale_px)
+    results = []
+    current = measured
+    for round_ in range(2):
+        sub = _strongest_tracks(tracks, options.bundle.max_points)
+        problem = _bundle_problem(options.pose_mode, current, camera, sub, options.bundle.refine_intrinsics)
+        result = solve(problem, solver)
+        results.append(result)
+        new_poses = result.poses
+        if options.bundle.refine_intrinsics:
+            camera = camera.with_intrinsics(result.intrinsics[0])
+        # the bounds stay those of the *measurement*: carry the tolerance box, centred where it was
+        current = [MeasuredPose(p, _remaining_tolerance(m, p)) for m, p in zip(measured, new_poses)]
+        poses = new_poses
+        tracks = Tracks(tracks.track, tracks.frame, tracks.feature, tracks.pixels, tracks.colors, None)
+        tracks = triangulate_tracks(camera, poses, tracks, options.tracks)
+        if tracks.n_tracks == 0:
+            raise InputError(f"{dataset.root}: bundle adjustment left no consistent point")
+        if options.pose_mode == "fixed":
+            break
+    err = reprojection_errors(camera, poses, tracks)
+    return SparseResult(tracks, poses, camera, results, float(np.mean(err)), time.perf_counter() - t0)
+
+
+def _remaining_tolerance(measured: MeasuredPose, pose: Pose) -> PoseTolerance:
+    """Tolerance box of the measurement, re-expressed around ``pose`` (shrunk to stay inside the original box)."""
+    tol = measured.tolerance
+    if tol.is_exact:
+        return tol
+    dc = np.abs(pose.centre - measured.pose.centre)
+    from ..geometry import matrix_to_rotvec
+
+    dw = np.abs(matrix_to_rotvec(pose.rotation @ measured.pose.rotation.T))
+    return PoseTolerance(np.maximum(tol.position_mm - dc, 0.0), np.maximum(tol.orientation_rad - dw, 0.0))
+
+
+def _strongest_tracks(tracks: Tracks, max_points: int) -> Tracks:
+    """The ``max_points`` longest tracks (ties: lowest id), all their observations."""
+    if tracks.n_tracks <= max_points:
+        return tracks
+    lengths = tracks.lengths()
+    keep_ids = np.argsort(-lengths, kind="stable")[:max_points]
+    keep = np.zeros(tracks.n_tracks, bool)
+    keep[keep_ids] = True
+    return tracks.subset(keep[tracks.track])
+
+
+# --- 4. surface -------------------------------------------------------------------------------
+
+
+def build_surface(options: MapOptions, dataset: Dataset, sparse: SparseResult, frames: list[np.ndarray]) -> SurfaceResult:
+    """Thin-plate-spline surface through the points, textured from each vertex's best view."""
+    t0 = time.perf_counter()
+    towards = -np.mean([p.optical_axis for p in sparse.poses], axis=0)
+    surface = fit_surface(sparse.tracks.points, options.surface_options, towards=towards)
+    colors, view_map = texture(surface, sparse.camera, sparse.poses, frames)
+    return SurfaceResult(surface, colors, view_map, time.perf_counter() - t0)
+
+
+# --- 5. fluorescence --------------------------------------------------------------------------
+
+
+def map_targets(options: MapOptions, dataset: Dataset, sparse: SparseResult, surface: SurfaceResult) -> TargetResult:
+    """Segment each fluorescence frame, vote onto the surface, label and measure the targets."""
+    t0 = time.perf_counter()
+    fl = options.fluorescence_options
+    images = [dataset.fluorescence_frame(k) for k in range(len(dataset))]
+    threshold = auto_threshold(images, fl)
+    valid = sparse.camera.mask()
+    masks = [segment(img, threshold, fl, mask=valid) for img in images]
+    on = carry_to_surface(surface.surface, sparse.camera, sparse.poses, masks, fl)
+    targets, labels = measure_targets(surface.surface, on, fl)
+    return TargetResult(targets, on, labels, threshold, time.perf_counter() - t0)
+
+
+# --- 6. evaluation ----------------------------------------------------------------------------
+
+
+def true_targets(scene: dict) -> list[dict]:
+    """Ground-truth targets from a phantom's scene description, as ``{name, centre_mm, size_mm, shape}``."""
+    out = []
+    for k, t in enumerate(scene.get("targets", []) or []):
+        centre = next((t[key] for key in ("centre_mm", "center_mm", "centroid_mm", "position_mm") if key in t), None)
+        size = next((t[key] for key in ("size_mm", "edge_mm", "diameter_mm") if key in t), None)
+        if centre is None or size is None:
+            continue
+        out.append({"name": t.get("name", f"target{k + 1}"), "centre_mm": centre, "size_mm": float(size), "shape": t.get("shape")})
+    return out
+
+
+def evaluate_map(options: MapOptions, dataset: Dataset, sparse: SparseResult, targets: TargetResult | None) -> dict:
+    """Accuracy against the dataset's ground truth (empty dict when it has none)."""
+    gt = dataset.ground_truth
+    out: dict = {}
+    if gt is None:
+        return out
+    t0 = time.perf_counter()
+    if gt.poses is not None:
+        dc = [np.linalg.norm(p.centre - q.centre) for p, q in zip(sparse.poses, gt.poses)]
+        dr = [np.degrees(p.distance_to(q)[1]) for p, q in zip(sparse.poses, gt.poses)]
+        dm = [np.linalg.norm(m.pose.centre - q.centre) for m, q in zip(dataset.poses, gt.poses)]
+        out["pose_error"] = {"position_mm_mean": float(np.mean(dc)), "position_mm_max": float(np.max(dc)),
+                             "orientation_deg_mean": float(np.mean(dr)), "orientation_deg_max": float(np.max(dr)),
+                             "measured_position_mm_mean": float(np.mean(dm))}
+    if gt.surface_path is not None:
+        truth = SampledSurface(gt.surface(), options.evaluation.sample_step_mm)
+        pts = sparse.tracks.points
+        direct = truth.distances(pts)
+        best, spread = icp_from_initial_poses(pts, truth, options.evaluation)
+        aligned = truth.distances(best.apply(pts))
+        out["surface_error_mm"] = {
+            "direct": distance_summary(direct), "after_icp": distance_summary(aligned),
+            "icp_mean_from_8_starts_mm": [round(v, 6) for v in spread],
+            "icp_rotation_deg": float(np.degrees(np.linalg.norm(_rotvec(best.rotation)))),
+            "icp_translation_mm": [float(v) for v in best.translation],
+        }
+        out["_distances"] = (direct, aligned)
+    if targets is not None:
+        truth_t = true_targets(gt.scene)
+        if truth_t:
+            out["targets_vs_truth"] = match_targets(targets.targets, truth_t)
+    out["time_s"] = time.perf_counter() - t0
+    return out
+
+
+def _rotvec(R: np.ndarray) -> np.ndarray:
+    from ..geometry import matrix_to_rotvec
+
+    return matrix_to_rotvec(R)
+
+
+# --- 7. outputs -------------------------------------------------------------------------------
+
+
+def write_outputs(
+    options: MapOptions, dataset: Dataset, out_dir: Path, frames: list[np.ndarray], features: list[Features],
+    matching: MatchingResult, sparse: SparseResult, surface: SurfaceResult | None, targets: TargetResult | None,
+    evaluation: dict, timings: dict,
+) -> dict:
+    """Write every output file into ``out_dir`` (already a temporary folder) and return the report."""
+    from ..formats.colmap import SparseModel, write_colmap_text
+
+    t0 = time.perf_counter()
+    tr = sparse.tracks
+    err = reprojection_errors(sparse.camera, sparse.poses, tr)
+    write_ply(out_dir / "points.ply", PointCloud(tr.points, tr.colors))
+    per_point_err = np.bincount(tr.track, err, tr.n_tracks) / np.maximum(tr.lengths(), 1)
+    model = SparseModel.from_observations(sparse.camera, dataset.names, sparse.poses, tr.points, tr.frame, tr.track,
+                                          tr.pixels, colors=tr.colors, errors=per_point_err)
+    write_colmap_text(model, out_dir / "sparse")
+    report: dict = {
+        "dataset": str(dataset.root), "n_frames": len(dataset), "pose_mode": options.pose_mode, "matcher": options.matcher,
+        "n_features": int(sum(len(f) for f in features)), "n_pairs": len(matching.pairs), "n_matches": matching.n_matches,
+        "depth_prior_mm": None if matching.depth_prior is None else [matching.depth_prior.near_mm, matching.depth_prior.far_mm],
+        "n_points": int(tr.n_tracks), "n_observations": int(tr.n_observations),
+        "mean_track_length": float(tr.n_observations / max(tr.n_tracks, 1)),
+        "mean_reprojection_error_px": float(np.mean(err)), "median_reprojection_error_px": float(np.median(err)),
+        "bundle": [_bundle_summary(r) for r in sparse.bundle_results],
+    }
+    if surface is not None:
+        s = surface.surface
+        colors = surface.colors
+        if targets is not None:
+            colors = overlay(colors, targets.fluorescent, None, options.fluorescence_options, draw_outlines=False)
+        write_ply(out_dir / "mesh.ply", s.mesh(colors))
+        write_ply(out_dir / "mesh_reflectance.ply", s.mesh(surface.colors))
+        d = s.height[s.valid]
+        report["surface"] = {"grid": list(s.height.shape), "step_mm": s.step_mm, "n_vertices": int(s.valid.sum()),
+                             "height_range_mm": float(np.ptp(d)),
+                             "flatness_rms_mm": _flatness_rms(tr.points)}
+        if options.figures:
+            write_image(out_dir / "texture_mosaic.png", _flip_for_view(surface.colors))
+            save_depth_map_png(out_dir / "depth_map.png", s)
+    if targets is not None:
+        report["fluorescence_threshold"] = targets.threshold
+        report["targets"] = [t.as_dict() for t in targets.targets]
+        _write_targets(out_dir, targets.targets, evaluation.get("targets_vs_truth"))
+        if options.figures and surface is not None:
+            write_image(out_dir / "multimodal_mosaic.png",
+                        _flip_for_view(overlay(surface.colors, targets.fluorescent, targets.labels, options.fluorescence_options)))
+    if evaluation:
+        report.update({k: v for k, v in evaluation.items() if not k.startswith("_") and k != "time_s"})
+        if "targets_vs_truth" in evaluation:
+            report["targets_vs_truth"] = evaluation["targets_vs_truth"]
+        if options.figures and "_distances" in evaluation:
+            direct, aligned = evaluation["_distances"]
+            save_error_histogram_png(out_dir / "error_histogram.png", aligned, title="distance to the true surface after ICP")
+            save_error_map_png(out_dir / "error_map.png", tr.points, aligned, title="error map after ICP (mm)")
+    if options.figures:
+        if sparse.bundle_results:
+            sparse.bundle_results[0].plot_convergence(out_dir / "ba_convergence.png",
+                                                      title=f"bundle adjustment ({options.pose_mode})")
+        _matches_figure(options, dataset, frames, features, matching, out_dir / "matches_with_without_prediction.png", report)
+    timings["outputs"] = time.perf_counter() - t0
+    report["timings_s"] = {k: round(v, 4) for k, v in timings.items()}
+    report["time_s"] = round(sum(v for k, v in timings.items() if k != "evaluation"), 4)
+    (out_dir / "report.json").write_text(json.dumps(report, indent=2, default=_json_default) + "\n")
+    return report
+
+
+def _json_default(obj):
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, (np.floating, np.integer)):
+        return obj.item()
+    raise TypeError(f"cannot serialise {type(obj).__name__}")
+
+
+def _bundle_summary(result) -> dict:
+    d = result.to_dict()
+    d.pop("iteration_log", None)
+    d["rms_initial_px"] = float(np.sqrt(2 * result.initial_cost / max(result.problem.num_observations, 1)))
+    d["rms_final_px"] = float(np.sqrt(2 * result.final_cost / max(result.problem.num_observations, 1)))
+    return d
+
+
+def _flatness_rms(points: np.ndarray) -> float:
+    """RMS distance (mm) of the points from their best-fit plane (0 for a perfectly flat sheet)."""
+    c = points - points.mean(axis=0)
+    return float(np.linalg.svd(c, compute_uv=False)[-1] / np.sqrt(len(points)))
+
+
+def _flip_for_view(img: np.ndarray) -> np.ndarray:
+    """Surface rasters have t down the rows; shown as is (the plane's axes are reported in the JSON)."""
+    return img
+
+
+def _write_targets(out_dir: Path, targets: list[Target], vs_truth: list | None) -> None:
+    rows = [t.as_dict() for t in targets]
+    (out_dir / "targets.json").write_text(json.dumps({"targets": rows, "vs_truth": vs_truth}, indent=2) + "\n")
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["label", "shape", "x_mm", "y_mm", "z_mm", "area_mm2", "size_mm"])
+    for t in targets:
+        w.writerow([t.label, t.shape, *(f"{v:.4f}" for v in t.centroid_mm), f"{t.area_mm2:.4f}", f"{t.size_mm:.4f}"])
+    (out_dir / "targets.csv").write_text(buf.getvalue())
+
+
+def _matches_figure(options, dataset, frames, features, matching, path, report) -> None:
+    """Matches of the best-overlapping pair with and without prediction (reference Fig. 3.4 / 4.5)."""
+    if not matching.pairs:
+        return
+    # the pair with the most guided matches among the well-overlapping ones
+    best = max(matching.matches, key=len)
+    i, j = best.i, best.j
+    exh = match_exhaustive(dataset.camera, features[i], features[j], options.matching, i=i, j=j)
+    guided = best if options.matcher == "guided" else None
+    if guided is None:
+        from ..matching import match_guided
+
+        guided = match_guided(dataset.camera, features[i], features[j], dataset.poses[i], dataset.poses[j],
+                              matching.depth_prior, options.matching, i=i, j=j)
+    report["figure_pair"] = {"frames": [i, j], "matches_with_prediction": len(guided), "matches_without_prediction": len(exh)}
+    save_matches_png(path, frames[i], frames[j], features[i], features[j], [exh, guided],
+                     [f"without prediction: {len(exh)} matches", f"with prediction: {len(guided)} matches"])
+
+
+def save_matches_png(path, img_i, img_j, feat_i, feat_j, match_sets, titles, *, max_lines: int = 80) -> None:
+    """Side-by-side pairs with lines for (a random subset of) matches, one row per match set."""
+    import cv2
+
+    rows = []
+    rng = np.random.default_rng(0)
+    for m, title in zip(match_sets, titles):
+        canvas = np.concatenate([img_i, img_j], axis=1).copy()
+        if canvas.ndim == 2:
+            canvas = np.repeat(canvas[..., None], 3, axis=2)
+        w = img_i.shape[1]
+        idx = np.arange(len(m))
+        if len(idx) > max_lines:
+            idx = rng.choice(idx, max_lines, replace=False)
+        for k in idx:
+            p = tuple(int(v) for v in np.rint(feat_i.keypoints[m.idx_i[k]]))
+            q = tuple(int(v) for v in np.rint(feat_j.keypoints[m.idx_j[k]] + [w, 0]))
+            color = tuple(int(c) for c in rng.integers(60, 255, 3))
+            cv2.line(canvas, p, q, color, 1, cv2.LINE_AA)
+            cv2.circle(canvas, p, 3, color, 1)
+            cv2.circle(canvas, q, 3, color, 1)
+        cv2.putText(canvas, title, (10, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (255, 255, 0), 2, cv2.LINE_AA)
+        rows.append(canvas)
+    write_image(path, np.concatenate(rows, axis=0))
+
+
+# --- the pipeline -----------------------------------------------------------------------------
+
+
+def run(options: MapOptions, dataset: Dataset, out_dir: str | Path, *, progress=None) -> MapResult:
+    """Map the surgical field of ``dataset`` into ``out_dir`` (written atomically). See the module docstring.
+
+    progress : optional factory ``progress(total, desc)`` returning an object with ``update(n)`` and
+    ``close()`` (tqdm fits), for per-frame and per-pair progress.
+    """
+    if len(dataset) < 2:
+        raise InputError(f"{dataset.root}: need at least 2 frames to map, found {len(dataset)}")
+    out_dir = Path(out_dir)
+    timings: dict = {}
+    tick = time.perf_counter()
+
+    def lap(name):
+        nonlocal tick
+        now = time.perf_counter()
+        timings[name] = now - tick
+        tick = now
+
+    frames = [dataset.frame(k) for k in range(len(dataset))]
+    lap("load")
+    with _progress(progress, len(frames), "features") as bar:
+        features = detect_features(options, dataset, frames, progress=bar)
+    lap("features")
+    with _progress(progress, None, "matching") as bar:
+        matching = match_frames(options, dataset, features, progress=bar)
+    lap("matching")
+    sparse = reconstruct(options, dataset, features, matching)
+    lap("bundle")
+    surface = build_surface(options, dataset, sparse, frames) if options.surface else None
+    lap("surface")
+    targets = None
+    if options.fluorescence and surface is not None and dataset.fluorescence_paths:
+        targets = map_targets(options, dataset, sparse, surface)
+    lap("fluorescence")
+    evaluation = evaluate_map(options, dataset, sparse, targets)
+    lap("evaluation")
+    with atomic_directory(out_dir) as tmp:
+        report = write_outputs(options, dataset, tmp, frames, features, matching, sparse, surface, targets, evaluation, timings)
+    return MapResult(report, out_dir, features, matching, sparse, surface, targets)
+
+
+class _NullBar:
+    def update(self, n=1):
+        pass
+
+    def close(self):
+        pass
+
+    def __call__(self, n=1):
+        pass
+
+
+class _progress:
+    """Context manager around an optional progress-bar factory; yields a callable ``bar(n)``."""
+
+    def __init__(self, factory, total, desc):
+        self.bar = factory(total, desc) if factory is not None else _NullBar()
+
+    def __enter__(self):
+        return self.bar.update
+
+    def __exit__(self, *exc):
+        self.bar.close()
+        return False
