@@ -14,7 +14,7 @@ Layout shared by all kernels
 * ``jc`` (K, 2, 12): d residual / d (pose block, intrinsic block); ``jp`` (K, 2, 3): d residual /
   d point parameters.
 * The reduced camera matrix is block-sparse with 6x6 blocks in BSR layout (``indptr``, ``indices``,
-  ``data``), both triangles stored.
+  ``data``); S is symmetric and only its upper block triangle (row <= col) is stored.
 """
 from __future__ import annotations
 
@@ -191,19 +191,19 @@ def zero_frozen_columns(jc, jp, cam_blocks, point_index, frozen_c, frozen_p):
 
 @njit(cache=True)
 def block_structure_keys(cam_blocks, point_ptr, n_blocks):
-    """Keys ``row * n_blocks + col`` of every nonzero 6x6 block of the reduced camera matrix."""
+    """Keys ``row * n_blocks + col`` (row <= col) of the nonzero 6x6 blocks of the reduced camera
+    matrix's upper triangle; it is symmetric, so only the upper triangle is stored."""
     n_points = point_ptr.shape[0] - 1
     total = n_blocks
+    max_deg = 0
     for j in range(n_points):
         deg = 2 * (point_ptr[j + 1] - point_ptr[j])
-        total += deg * deg
+        total += deg * (deg + 1) // 2
+        max_deg = max(max_deg, deg)
     keys = np.empty(total, dtype=np.int64)
     for b in range(n_blocks):
         keys[b] = b * n_blocks + b
     pos = n_blocks
-    max_deg = 0
-    for j in range(n_points):
-        max_deg = max(max_deg, 2 * (point_ptr[j + 1] - point_ptr[j]))
     ids = np.empty(max_deg, dtype=np.int64)
     for j in range(n_points):
         count = 0
@@ -220,8 +220,9 @@ def block_structure_keys(cam_blocks, point_ptr, n_blocks):
                     count += 1
         for s in range(count):
             for t in range(count):
-                keys[pos] = ids[s] * n_blocks + ids[t]
-                pos += 1
+                if ids[s] <= ids[t]:
+                    keys[pos] = ids[s] * n_blocks + ids[t]
+                    pos += 1
     return keys[:pos]
 
 
@@ -260,35 +261,81 @@ def _inv3(m, out):
 
 
 @njit(cache=True)
+def pair_slots(cam_blocks, point_ptr, indptr, indices):
+    """Slot in ``data`` of every (observation pair, quadrant) term of S, in the order
+    :func:`assemble_reduced_system` visits them (int32, one binary search each, done once per solve)."""
+    n_points = point_ptr.shape[0] - 1
+    total = 0
+    for j in range(n_points):
+        deg = point_ptr[j + 1] - point_ptr[j]
+        total += 4 * deg * (deg + 1) // 2 - deg
+    out = np.empty(total, dtype=np.int32)
+    pos = 0
+    for j in range(n_points):
+        start = point_ptr[j]
+        stop = point_ptr[j + 1]
+        for oi in range(start, stop):
+            for ok_ in range(oi, stop):
+                for hi in range(2):
+                    bi = cam_blocks[oi, hi]
+                    for hk in range(2):
+                        if oi == ok_ and hk < hi:
+                            continue
+                        bk = cam_blocks[ok_, hk]
+                        if bi <= bk:
+                            out[pos] = _find_block(indptr, indices, bi, bk)
+                        else:
+                            out[pos] = _find_block(indptr, indices, bk, bi)
+                        pos += 1
+    return out
+
+
+@njit(cache=True)
 def assemble_reduced_system(
     residuals, jc, jp, cam_blocks, point_ptr, damp_c, damp_p, indptr, indices, data, rhs, v_inv, gp,
+    used_cols, slots,
 ):
     """Build the damped reduced camera system S dc = rhs of eq. 6.7 applied to eq. 6.13.
 
     damp_c (6 n_blocks,) and damp_p (n, 3) are added to the diagonal of the camera and point blocks
-    (lambda * D for free parameters, the kept diagonal for frozen ones). Outputs, overwritten:
-    data (nnzb, 6, 6) the matrix S, rhs (6 n_blocks,) = -g_c + W V^-1 g_p, v_inv (n, 3, 3) the
-    inverted damped point blocks and gp (n, 3) the point gradients, both reused by the back-substitution.
+    (lambda * D for free parameters, the kept diagonal for frozen ones). used_cols lists the columns of
+    ``jc`` (of 12) that are not zero for every observation (fixed intrinsics are skipped); slots comes
+    from :func:`pair_slots`. Outputs, overwritten: data (nnzb, 6, 6) the upper block triangle of S,
+    rhs (6 n_blocks,) = -g_c + W V^-1 g_p, v_inv (n, 3, 3) the inverted damped point blocks and
+    gp (n, 3) the point gradients, both reused by the back-substitution.
     Returns False if a point block is singular.
     """
     data[:] = 0.0
     rhs[:] = 0.0
     n_points = point_ptr.shape[0] - 1
+    nu = used_cols.shape[0]
+    # used columns split by quadrant (pose block: h = 0, intrinsic block: h = 1)
+    q_count = np.zeros(2, dtype=np.int64)
+    q_pos = np.empty((2, 6), dtype=np.int64)  # index into used_cols
+    q_row = np.empty((2, 6), dtype=np.int64)  # row inside the 6x6 block
+    for s in range(nu):
+        h = used_cols[s] // 6
+        q_pos[h, q_count[h]] = s
+        q_row[h, q_count[h]] = used_cols[s] % 6
+        q_count[h] += 1
     max_deg = 0
     for j in range(n_points):
         max_deg = max(max_deg, point_ptr[j + 1] - point_ptr[j])
-    w = np.empty((max_deg, 12, 3))
-    a = np.empty((max_deg, 12, 3))
+    w = np.empty((max_deg, nu, 3))
+    a = np.empty((max_deg, nu, 3))
+    jcu = np.empty((max_deg, 2, nu))
     v = np.empty((3, 3))
     vi = np.empty((3, 3))
-    blk = np.empty(12)
     ok = True
+    pos = 0
     for j in range(n_points):
         start = point_ptr[j]
         stop = point_ptr[j + 1]
+        deg = stop - start
         v[:] = 0.0
         g0 = 0.0; g1 = 0.0; g2 = 0.0
-        for o in range(start, stop):
+        for i in range(deg):
+            o = start + i
             r0 = residuals[o, 0]
             r1 = residuals[o, 1]
             for s in range(3):
@@ -297,11 +344,12 @@ def assemble_reduced_system(
             g0 += jp[o, 0, 0] * r0 + jp[o, 1, 0] * r1
             g1 += jp[o, 0, 1] * r0 + jp[o, 1, 1] * r1
             g2 += jp[o, 0, 2] * r0 + jp[o, 1, 2] * r1
-            # the -g_c part of the right-hand side
-            for h in range(2):
-                base = 6 * cam_blocks[o, h]
-                for k in range(6):
-                    rhs[base + k] -= jc[o, 0, 6 * h + k] * r0 + jc[o, 1, 6 * h + k] * r1
+            for s in range(nu):
+                c = used_cols[s]
+                jcu[i, 0, s] = jc[o, 0, c]
+                jcu[i, 1, s] = jc[o, 1, c]
+                # the -g_c part of the right-hand side
+                rhs[6 * cam_blocks[o, c // 6] + c % 6] -= jc[o, 0, c] * r0 + jc[o, 1, c] * r1
         for s in range(3):
             v[s, s] += damp_p[j, s]
         gp[j, 0] = g0; gp[j, 1] = g1; gp[j, 2] = g2
@@ -309,35 +357,53 @@ def assemble_reduced_system(
             ok = False
             vi[:] = 0.0
         v_inv[j] = vi
-        deg = stop - start
         for i in range(deg):
             o = start + i
-            for s in range(12):
+            for s in range(nu):
                 for t in range(3):
-                    w[i, s, t] = jc[o, 0, s] * jp[o, 0, t] + jc[o, 1, s] * jp[o, 1, t]
-            for s in range(12):
+                    w[i, s, t] = jcu[i, 0, s] * jp[o, 0, t] + jcu[i, 1, s] * jp[o, 1, t]
+            for s in range(nu):
                 for t in range(3):
                     a[i, s, t] = w[i, s, 0] * vi[0, t] + w[i, s, 1] * vi[1, t] + w[i, s, 2] * vi[2, t]
-                rhs_val = a[i, s, 0] * g0 + a[i, s, 1] * g1 + a[i, s, 2] * g2
-                rhs[6 * cam_blocks[o, s // 6] + s % 6] += rhs_val
+                c = used_cols[s]
+                rhs[6 * cam_blocks[o, c // 6] + c % 6] += a[i, s, 0] * g0 + a[i, s, 1] * g1 + a[i, s, 2] * g2
         for i in range(deg):
             oi = start + i
-            for k in range(deg):
+            for k in range(i, deg):
                 ok_ = start + k
+                # the (i, k) term of S: U_ii - A_i W_k^T (only i <= k: S is symmetric)
                 for hi in range(2):
                     bi = cam_blocks[oi, hi]
                     for hk in range(2):
+                        if i == k and hk < hi:
+                            continue  # the lower quadrant of a diagonal term is the upper's transpose
                         bk = cam_blocks[ok_, hk]
-                        slot = _find_block(indptr, indices, bi, bk)
-                        for s in range(6):
-                            si = 6 * hi + s
-                            for t in range(6):
-                                tk = 6 * hk + t
-                                val = -(a[i, si, 0] * w[k, tk, 0] + a[i, si, 1] * w[k, tk, 1]
-                                        + a[i, si, 2] * w[k, tk, 2])
+                        slot = slots[pos]
+                        pos += 1
+                        if bi < bk or (bi == bk and i == k):
+                            mode = 0
+                        elif bi > bk:
+                            mode = 1
+                        else:
+                            mode = 2  # two observations in one block: add the (k, i) term too
+                        for s_ in range(q_count[hi]):
+                            s = q_pos[hi, s_]
+                            ri = q_row[hi, s_]
+                            a0 = a[i, s, 0]; a1 = a[i, s, 1]; a2 = a[i, s, 2]
+                            u0 = jcu[i, 0, s]; u1 = jcu[i, 1, s]
+                            for t_ in range(q_count[hk]):
+                                t = q_pos[hk, t_]
+                                ck = q_row[hk, t_]
+                                val = -(a0 * w[k, t, 0] + a1 * w[k, t, 1] + a2 * w[k, t, 2])
                                 if i == k:
-                                    val += jc[oi, 0, si] * jc[oi, 0, tk] + jc[oi, 1, si] * jc[oi, 1, tk]
-                                data[slot, s, t] += val
+                                    val += u0 * jcu[i, 0, t] + u1 * jcu[i, 1, t]
+                                if mode == 0:
+                                    data[slot, ri, ck] += val
+                                elif mode == 1:
+                                    data[slot, ck, ri] += val
+                                else:
+                                    data[slot, ri, ck] += val
+                                    data[slot, ck, ri] += val
     n_blocks = indptr.shape[0] - 1
     for b in range(n_blocks):
         slot = _find_block(indptr, indices, b, b)
@@ -396,6 +462,7 @@ def jacobian_step_norm2(jc, jp, cam_blocks, point_index, delta_c, delta_p):
 def bsr_to_dense(indptr, indices, data):
     n_blocks = indptr.shape[0] - 1
     out = np.zeros((6 * n_blocks, 6 * n_blocks))
+    # the upper block triangle is enough for an upper Cholesky factorisation
     for b in range(n_blocks):
         for p in range(indptr[b], indptr[b + 1]):
             c = indices[p]

@@ -297,19 +297,27 @@ def warm_up() -> None:
 class _ReducedSystem:
     """Block structure of the reduced camera matrix and the chosen way of solving it."""
 
-    def __init__(self, problem: BundleProblem, cam_blocks: np.ndarray, method: str) -> None:
+    def __init__(self, problem: BundleProblem, cam_blocks: np.ndarray, method: str, fixed_c: np.ndarray) -> None:
         n_blocks = problem.num_cameras + problem.num_groups
+        m = problem.num_cameras
+        # Jacobian columns fixed in every block are skipped (BAL: fy, cx, cy): fewer flops per pair
+        pose_fixed = fixed_c[: 6 * m].reshape(m, 6).all(axis=0)
+        intr_fixed = fixed_c[6 * m:].reshape(-1, 6).all(axis=0)
+        self.used_cols = np.flatnonzero(~np.concatenate([pose_fixed, intr_fixed])).astype(np.int64)
+        if self.used_cols.size == 0:
+            self.used_cols = np.array([0], dtype=np.int64)
         keys = np.unique(kernels.block_structure_keys(cam_blocks, problem.point_ptr, n_blocks))
         rows = keys // n_blocks
         self.indices = np.ascontiguousarray(keys % n_blocks)
         self.indptr = np.searchsorted(rows, np.arange(n_blocks + 1)).astype(np.int64)
         self.data = np.empty((keys.size, 6, 6))
+        self.slots = kernels.pair_slots(cam_blocks, problem.point_ptr, self.indptr, self.indices)
         self.rhs = np.empty(6 * n_blocks)
         self.size = 6 * n_blocks
         self.method = method
         self.diag_slots = self.indptr[:-1] + np.array(
             [np.searchsorted(self.indices[self.indptr[b]:self.indptr[b + 1]], b) for b in range(n_blocks)]
-        ) if method == "pcg" else None
+        )
 
     def solve(self, options: SolverOptions) -> np.ndarray | None:
         """delta_c of eq. 6.7 or None when the matrix is not positive definite."""
@@ -321,7 +329,11 @@ class _ReducedSystem:
                 return None
             out = scipy.linalg.cho_solve(factor, self.rhs, check_finite=False)
         else:
-            mat = scipy.sparse.bsr_matrix((self.data, self.indices, self.indptr), shape=(self.size, self.size))
+            upper = scipy.sparse.bsr_matrix((self.data, self.indices, self.indptr), shape=(self.size, self.size))
+            off_diagonal = self.data.copy()
+            off_diagonal[self.diag_slots] = 0.0  # diagonal blocks are stored whole, not halved
+            strict = scipy.sparse.bsr_matrix((off_diagonal, self.indices, self.indptr), shape=upper.shape)
+            mat = (upper.tocsr() + strict.T.tocsr()).tocsr()
             if self.method == "sparse":
                 try:
                     lu = scipy.sparse.linalg.splu(mat.tocsc(), permc_spec="MMD_AT_PLUS_A",
@@ -330,7 +342,7 @@ class _ReducedSystem:
                     return None
                 out = lu.solve(self.rhs)
             else:
-                diag = self.data[self.diag_slots]
+                diag = self.data[self.diag_slots]  # full 6x6 blocks (diagonal blocks are stored whole)
                 try:
                     inv_blocks = np.linalg.inv(diag)
                 except np.linalg.LinAlgError:
@@ -396,7 +408,7 @@ def solve(
     cam_blocks = problem.cam_blocks()
     point_index = problem.point_index
     intr_obs = np.ascontiguousarray(problem.intrinsics_index[problem.camera_index])
-    system = _ReducedSystem(problem, cam_blocks, _choose_method(options, 6 * n_blocks))
+    system = _ReducedSystem(problem, cam_blocks, _choose_method(options, 6 * n_blocks), fixed_c)
     k = problem.num_observations
     r = np.empty((k, 2))
     jc = np.empty((k, 2, 12))
@@ -469,7 +481,7 @@ def solve(
         damp_p = np.where(active_p, diag_p * (1.0 + lam), lam * diag_p)
         ok = kernels.assemble_reduced_system(
             r, jc, jp, cam_blocks, problem.point_ptr, damp_c, damp_p, system.indptr, system.indices,
-            system.data, system.rhs, v_inv, gp_buf,
+            system.data, system.rhs, v_inv, gp_buf, system.used_cols, system.slots,
         )
         delta_c = system.solve(options) if ok else None
         step_norm = 0.0
