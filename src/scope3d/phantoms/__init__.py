@@ -1,0 +1,47 @@
+"""The phantom lab: image sequences of the reference's phantoms with exact ground truth, in millimetres.
+
+Scenes (:mod:`.scenes`): ``dome`` (brain-tumour cavity with fluorescent targets), ``sheet`` (flat print),
+``bladder`` (closed cavity with star markers), ``thread`` (ISO internal thread in a blind hole).
+Trajectories (:mod:`.trajectories`): ``grid5x6``, ``grid7x8``, ``axial``, ``quadrants``, ``spiral``.
+Rendering (:mod:`.render`): Embree ray casting refined in double precision, light at the scope tip,
+Blinn-Phong specular, seeded sensor noise. :func:`generate` renders a sequence, :func:`write` saves it
+as a :mod:`scope3d.dataset` folder with ground truth.
+"""
+from .lab import (
+    PhantomSequence,
+    catalogue,
+    contact_sheet,
+    default_camera,
+    generate,
+    measure_poses,
+    write,
+)
+from .raycast import Hits, RayCaster
+from .render import RenderedFrame, RenderOptions, render_frame, sequence_exposure
+from .scenes import (
+    SCENE_TRAJECTORIES,
+    SCENES,
+    THREADS,
+    Material,
+    Scene,
+    Target,
+    build_scene,
+    iso_thread_profile,
+)
+from .trajectories import (
+    TRAJECTORIES,
+    Trajectory,
+    axial_trajectory,
+    build_trajectory,
+    grid_trajectory,
+    quadrant_trajectory,
+    spiral_trajectory,
+)
+
+__all__ = [
+    "Hits", "Material", "PhantomSequence", "RayCaster", "RenderOptions", "RenderedFrame", "SCENES",
+    "SCENE_TRAJECTORIES", "Scene", "THREADS", "TRAJECTORIES", "Target", "Trajectory", "axial_trajectory",
+    "build_scene", "build_trajectory", "catalogue", "contact_sheet", "default_camera", "generate",
+    "grid_trajectory", "iso_thread_profile", "measure_poses", "quadrant_trajectory", "render_frame",
+    "sequence_exposure", "spiral_trajectory", "write",
+]

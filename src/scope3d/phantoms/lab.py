@@ -1,0 +1,238 @@
+"""The phantom lab: render a scene along a trajectory, with exact ground truth, and write it as a dataset.
+
+Typical use (tests, benchmarks, pipelines)::
+
+    from scope3d.phantoms import generate, write
+    seq = generate("dome", seed=0, pose_noise_mm=0.25, size=(160, 160), n_frames=4)
+    write(seq, "out/dome")          # dataset folder + contact_sheet.png
+
+Pose reports. With ``pose_noise_mm = 0`` the reported poses are the true ones, with the tolerance of the
+reference's micro-positioning stage (0.01 mm, sec. 7.3 and 8.3), because a real stage is never exactly
+right and downstream code should see a non-zero box. With ``pose_noise_mm = MM > 0`` every reported camera
+centre is off by a uniform error in [-MM, MM] per axis (the reference's noise model, sec. 6.3) and its
+orientation by a uniform rotation in [-a, a] per axis with ``a = MM * 0.5°/mm``; the tolerance written is
+exactly (MM, a), so the truth always lies inside the reported box.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..camera import Camera
+from ..dataset import write_dataset, write_image
+from ..errors import InputError
+from ..mesh import Mesh
+from ..pose import MICRO_STAGE, MeasuredPose, Pose, perturb_poses_uniform
+from .render import RenderOptions, render_frame, sequence_exposure
+from .scenes import SCENE_TRAJECTORIES, SCENES, THREADS, Scene, build_scene
+from .trajectories import TRAJECTORIES, Trajectory, build_trajectory
+
+ORIENTATION_NOISE_DEG_PER_MM = 0.5
+ENDOSCOPE_SIZE_PX = (608, 608)  # scanning fibre endoscope (sec. 3.1)
+ENDOSCOPE_MASK_FRACTION = 300.0 / 608.0  # circular field of ~300 px radius
+BORESCOPE_SIZE_PX = (1280, 1024)  # Stryker rigid scope (sec. 8.3)
+BORESCOPE_FOV_DEG = 60.0
+
+
+@dataclass
+class PhantomSequence:
+    """A rendered sequence and everything that is known about it.
+
+    camera : intrinsics of every frame. frames : list of (H, W, 3) uint8 RGB reflectance.
+    fluorescence : list of (H, W, 3) uint8 (emission in green) or None when the scene has no targets.
+    true_poses : list of true ``cam_from_world``. measured_poses : as the robot reports them, with tolerances.
+    surface : the true surface (mm). depths : list of (H, W) float32 true z-depth (mm), NaN where none.
+    target_ids : list of (H, W) int16 id of the target seen at each pixel (0 = none).
+    scene_info : JSON-ready ground truth (scene parameters, targets, trajectory, rendering), written to
+        ``ground_truth/scene.json``.
+    """
+
+    scene: Scene
+    camera: Camera
+    frames: list[np.ndarray]
+    fluorescence: list[np.ndarray] | None
+    true_poses: list[Pose]
+    measured_poses: list[MeasuredPose]
+    depths: list[np.ndarray]
+    target_ids: list[np.ndarray]
+    trajectory: Trajectory
+    scene_info: dict = field(default_factory=dict)
+    names: list[str] = field(default_factory=list)
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    @property
+    def surface(self) -> Mesh:
+        return self.scene.mesh
+
+
+def default_camera(
+    scene: Scene, trajectory: str, *, size: tuple[int, int] | None = None, fov_deg: float | None = None,
+    k1: float = 0.0, k2: float = 0.0,
+) -> Camera:
+    """The camera the reference used for this scene and trajectory.
+
+    Endoscope (SFE): 608 x 608, circular field of radius 300 px (scaled with ``size``), FOV 53° for the
+    dome and sheet (the dome experiment), 70° elsewhere (sec. 3.1). Borescope for ``quadrants``: 1280 x 1024,
+    60° FOV, no mask (sec. 8.3). size : (width, height) px; fov_deg : across the width.
+    """
+    if trajectory == "quadrants":
+        w, h = size or BORESCOPE_SIZE_PX
+        return Camera.from_fov(w, h, fov_deg or BORESCOPE_FOV_DEG, k1=k1, k2=k2)
+    w, h = size or ENDOSCOPE_SIZE_PX
+    return Camera.from_fov(w, h, fov_deg or scene.fov_deg, k1=k1, k2=k2,
+                           mask_radius_px=ENDOSCOPE_MASK_FRACTION * min(w, h))
+
+
+def measure_poses(true_poses: list[Pose], pose_noise_mm: float, *, seed: int) -> list[MeasuredPose]:
+    """Reported poses (see the module docstring for the noise model and the tolerances)."""
+    if not np.isfinite(pose_noise_mm) or pose_noise_mm < 0:
+        raise InputError(f"pose noise must be a non-negative number of mm, got {pose_noise_mm}")
+    if pose_noise_mm == 0:
+        return [MeasuredPose(p, MICRO_STAGE) for p in true_poses]
+    orientation_rad = np.deg2rad(pose_noise_mm * ORIENTATION_NOISE_DEG_PER_MM)
+    # A seed stream apart from the sensor noise's, so changing one never changes the other.
+    return perturb_poses_uniform(true_poses, pose_noise_mm, orientation_rad, seed=seed + 7919)
+
+
+def generate(
+    scene: str = "dome",
+    trajectory: str | None = None,
+    *,
+    seed: int = 0,
+    pose_noise_mm: float = 0.0,
+    camera: Camera | None = None,
+    thread: str = "M8x1.25",
+    n_frames: int | None = None,
+    size: tuple[int, int] | None = None,
+    fov_deg: float | None = None,
+    side_view_deg: float = 45.0,
+    dome_radius_mm: float = 17.5,
+    texture_seed: int = 0,
+    options: RenderOptions = RenderOptions(),
+    progress: bool = False,
+) -> PhantomSequence:
+    """Render ``scene`` along ``trajectory`` (the scene's default when None).
+
+    seed : sensor noise (``default_rng([seed, frame])``) and pose noise. The phantom itself (texture,
+        targets) depends only on ``texture_seed``, like a physical phantom that is imaged many times.
+    pose_noise_mm : half-width of the uniform error on reported camera centres (see module docstring).
+    camera : overrides :func:`default_camera`; else ``size`` (width, height) px and ``fov_deg`` adjust it.
+    thread : ``M6x1``, ``M8x1.25`` or ``M10x1.5`` for the ``thread`` scene.
+    n_frames : limit or length of the trajectory (see :func:`~scope3d.phantoms.trajectories.build_trajectory`).
+    side_view_deg : borescope side-view angle for ``quadrants`` (45 or 90 in the reference).
+    progress : show a tqdm progress bar on stderr.
+    """
+    if thread not in THREADS:
+        raise InputError(f"unknown thread size {thread!r} (use one of {', '.join(THREADS)})")
+    if scene not in SCENES:
+        raise InputError(f"unknown scene {scene!r} (use one of {', '.join(SCENES)})")
+    built = build_scene(scene, thread=thread, dome_radius_mm=float(dome_radius_mm), texture_seed=int(texture_seed))
+    name = trajectory or built.default_trajectory
+    if name not in TRAJECTORIES:
+        raise InputError(f"unknown trajectory {name!r} (use one of {', '.join(TRAJECTORIES)})")
+    if name not in built.trajectories:
+        raise InputError(f"trajectory {name!r} does not fit scene {scene!r} (use one of {', '.join(built.trajectories)})")
+    try:
+        traj = build_trajectory(name, n_frames=n_frames, side_view_deg=side_view_deg)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    if camera is None:
+        try:
+            camera = default_camera(built, name, size=size, fov_deg=fov_deg)
+        except ValueError as exc:
+            raise InputError(str(exc)) from None
+    poses = traj.poses
+    exposure = sequence_exposure(built, camera, poses, options)
+    frames, fluo, depths, tids = [], [], [], []
+    iterator = poses
+    if progress:
+        from tqdm import tqdm
+
+        iterator = tqdm(poses, desc=f"phantom {scene}/{name}", unit="frame", leave=False)
+    for i, pose in enumerate(iterator):
+        out = render_frame(built, camera, pose, seed=seed, frame_index=i, exposure=exposure, options=options)
+        frames.append(out.image)
+        fluo.append(out.fluorescence)
+        depths.append(out.depth_mm)
+        tids.append(out.target_id)
+    measured = measure_poses(poses, pose_noise_mm, seed=seed)
+    info = dict(built.info)
+    info.update({
+        "trajectory": {"name": name, **traj.params},
+        "camera": {"kind": "borescope" if name == "quadrants" else "endoscope (scanning fibre endoscope)",
+                   "width": camera.width, "height": camera.height, "fov_deg": camera.fov_deg,
+                   "mask_radius_px": camera.mask_radius_px,
+                   **({"side_view_deg": side_view_deg} if name == "quadrants" else {})},
+        "lighting": "point light at the camera centre; Lambert cos/d^2 plus Blinn-Phong specular",
+        "render": {**options.to_dict(), "exposure_gain": exposure, "seed": seed, "texture_seed": texture_seed},
+        "pose_noise": {
+            "position_mm": pose_noise_mm,
+            "orientation_deg": pose_noise_mm * ORIENTATION_NOISE_DEG_PER_MM,
+            "model": "uniform per axis within the tolerance (reference sec. 6.3)" if pose_noise_mm > 0
+            else "exact poses reported with the micro-positioning stage tolerance (0.01 mm)",
+        },
+    })
+    return PhantomSequence(
+        built, camera, frames, fluo if built.targets else None, list(poses), measured, depths, tids, traj, info,
+        [f"{i:04d}.png" for i in range(len(poses))],
+    )
+
+
+def contact_sheet(images: list[np.ndarray], *, columns: int | None = None, thumb_px: int = 160,
+                  gap_px: int = 2) -> np.ndarray:
+    """Tile images (each (H, W, 3) or (H, W) uint8) as thumbnails ``thumb_px`` wide. -> (H', W', 3) uint8."""
+    import cv2
+
+    if not images:
+        raise ValueError("contact sheet needs at least one image")
+    n = len(images)
+    cols = columns or int(np.ceil(np.sqrt(n * 1.3)))
+    rows = int(np.ceil(n / cols))
+    h0, w0 = images[0].shape[:2]
+    tw, th = thumb_px, max(1, int(round(thumb_px * h0 / w0)))
+    sheet = np.full((rows * (th + gap_px) + gap_px, cols * (tw + gap_px) + gap_px, 3), 40, np.uint8)
+    for k, img in enumerate(images):
+        thumb = cv2.resize(img, (tw, th), interpolation=cv2.INTER_AREA)
+        if thumb.ndim == 2:
+            thumb = np.repeat(thumb[..., None], 3, axis=2)
+        r, c = divmod(k, cols)
+        y, x = gap_px + r * (th + gap_px), gap_px + c * (tw + gap_px)
+        sheet[y:y + th, x:x + tw] = thumb
+    return sheet
+
+
+def write(sequence: PhantomSequence, out_dir: str | Path, *, contact_sheet_px: int = 160) -> Path:
+    """Write the dataset folder (see :mod:`scope3d.dataset`), ground truth included, and
+    ``contact_sheet.png`` (plus ``contact_sheet_fluorescence.png`` when the scene has targets)."""
+    out_dir = Path(out_dir)
+    write_dataset(
+        out_dir, sequence.camera, sequence.frames, sequence.measured_poses, names=sequence.names,
+        fluorescence=sequence.fluorescence, true_poses=sequence.true_poses, true_surface=sequence.surface,
+        true_depths=sequence.depths, scene=sequence.scene_info,
+        metadata={"source": "scope3d phantom lab", "scene_name": sequence.scene.name,
+                  "trajectory": sequence.trajectory.name},
+    )
+    write_image(out_dir / "contact_sheet.png", contact_sheet(sequence.frames, thumb_px=contact_sheet_px))
+    if sequence.fluorescence is not None:
+        write_image(out_dir / "contact_sheet_fluorescence.png",
+                    contact_sheet(sequence.fluorescence, thumb_px=contact_sheet_px))
+    return out_dir
+
+
+def catalogue() -> str:
+    """Human-readable list of scenes, trajectories and their parameters (``scope3d phantom --list``)."""
+    lines = ["scenes (default trajectory first):"]
+    for name, text in SCENES.items():
+        lines.append(f"  {name:8s} {text}")
+        lines.append(f"  {'':8s} trajectories: {', '.join(SCENE_TRAJECTORIES[name])}")
+    lines.append(f"  thread sizes: {', '.join(THREADS)} (ISO 68-1 basic profile)")
+    lines.append("trajectories:")
+    for name, (text, _) in TRAJECTORIES.items():
+        lines.append(f"  {name:9s} {text}")
+    lines.append("cameras: endoscope 608x608, circular field r = 300 px, FOV 53° (dome, sheet) or 70°; "
+                 "borescope 1280x1024, FOV 60°, 45° side view (quadrants)")
+    return "\n".join(lines)

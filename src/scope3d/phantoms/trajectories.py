@@ -1,0 +1,166 @@
+"""Camera paths of the reference's experiments, as lists of true ``cam_from_world`` poses (mm).
+
+* ``grid5x6`` / ``grid7x8``: a raster of cameras looking straight down from 15 mm above the plate top
+  (z = 0), 5 mm apart, visited row by row in serpentine order as a robot would (Fig. 4.6(a): 5x6 grid).
+* ``axial``: a forward-looking camera on the hole axis, stepping 0.25 mm into the hole (sec. 7.3).
+* ``quadrants``: a side-viewing borescope (45° or 90° between its optical axis and the probe axis)
+  moving into the hole in 0.1 mm steps, then re-positioned and rotated by 30° about the hole axis, 12
+  times (sec. 8.3). The camera centre sits a small, fixed offset away from the rotation axis, as in a
+  real set-up where the misalignment is "small and also unknown" (sec. 8.1); the offset is recorded.
+* ``spiral``: a camera near the centre of a closed cavity, looking outwards and sweeping a spherical
+  spiral from top to bottom (bladder scan, ch. 2).
+
+Image orientation: down-looking cameras have world +x to the right and world +y up in the picture;
+cameras in the hole and the cavity have world +z (towards the opening) up in the picture.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import InputError
+from ..geometry import look_at, rotvec_to_matrix
+from ..pose import Pose
+
+GRID_SPACING_MM = 5.0
+GRID_STANDOFF_MM = 15.0
+AXIAL_STEP_MM = 0.25
+QUADRANT_STEP_MM = 0.1
+QUADRANT_COUNT = 12
+QUADRANT_ANGLE_DEG = 30.0
+QUADRANT_AXIS_OFFSET_MM = (0.08, -0.05)
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """poses : true ``cam_from_world`` per frame; params : JSON-ready description (written to scene.json)."""
+
+    name: str
+    poses: list[Pose]
+    params: dict = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.poses)
+
+
+def grid_trajectory(
+    rows: int, cols: int, *, spacing_mm: float = GRID_SPACING_MM, standoff_mm: float = GRID_STANDOFF_MM,
+    centre_mm=(0.0, 0.0, 0.0),
+) -> Trajectory:
+    """``rows`` x ``cols`` cameras looking down (-z) from ``standoff_mm`` above ``centre_mm``, serpentine order."""
+    if rows < 1 or cols < 1 or spacing_mm <= 0 or standoff_mm <= 0:
+        raise ValueError("grid needs rows, cols >= 1 and positive spacing and stand-off")
+    centre = np.asarray(centre_mm, dtype=float)
+    poses = []
+    for r in range(rows):
+        order = range(cols) if r % 2 == 0 else range(cols - 1, -1, -1)
+        for c in order:
+            eye = centre + [(c - (cols - 1) / 2) * spacing_mm, ((rows - 1) / 2 - r) * spacing_mm, standoff_mm]
+            rot = look_at(eye, eye - [0.0, 0.0, 1.0], up=(0.0, -1.0, 0.0))
+            poses.append(Pose.from_centre(rot, eye))
+    params = {"kind": "grid", "rows": rows, "cols": cols, "spacing_mm": spacing_mm, "standoff_mm": standoff_mm,
+              "centre_mm": centre.tolist(), "order": "serpentine rows, from +y to -y", "view": "straight down (-z)"}
+    return Trajectory(f"grid{cols}x{rows}", poses, params)
+
+
+def axial_trajectory(n_frames: int, *, step_mm: float = AXIAL_STEP_MM, start_z_mm: float = 1.0) -> Trajectory:
+    """Forward-looking camera on the z axis, looking down (-z), from ``start_z_mm`` into the hole."""
+    if n_frames < 1 or step_mm <= 0:
+        raise ValueError("axial trajectory needs n_frames >= 1 and a positive step")
+    rot = look_at(np.zeros(3), [0.0, 0.0, -1.0], up=(0.0, -1.0, 0.0))
+    poses = [Pose.from_centre(rot, [0.0, 0.0, start_z_mm - i * step_mm]) for i in range(n_frames)]
+    params = {"kind": "axial", "step_mm": step_mm, "start_z_mm": start_z_mm, "frames": n_frames,
+              "view": "forward along -z, on the hole axis"}
+    return Trajectory("axial", poses, params)
+
+
+def quadrant_trajectory(
+    frames_per_quadrant: int, *, step_mm: float = QUADRANT_STEP_MM, quadrants: int = QUADRANT_COUNT,
+    angle_step_deg: float = QUADRANT_ANGLE_DEG, side_view_deg: float = 45.0, start_z_mm: float = -1.5,
+    axis_offset_mm=QUADRANT_AXIS_OFFSET_MM,
+) -> Trajectory:
+    """Side-view scans: per quadrant ``frames_per_quadrant`` frames moving inwards by ``step_mm``; quadrant q
+    is quadrant 0 rotated by ``q * angle_step_deg`` about the hole axis (world z through the origin).
+
+    side_view_deg : angle between the optical axis and the probe axis (-z); 45 or 90 in the reference.
+    axis_offset_mm : (2,) camera centre's (x, y) offset from the rotation axis in quadrant 0.
+    """
+    if frames_per_quadrant < 1 or quadrants < 1 or step_mm <= 0:
+        raise ValueError("quadrant trajectory needs frames_per_quadrant, quadrants >= 1 and a positive step")
+    if not 0.0 < side_view_deg <= 90.0:
+        raise ValueError(f"side view angle must be in (0, 90] degrees, got {side_view_deg}")
+    a = np.deg2rad(side_view_deg)
+    view = np.array([np.sin(a), 0.0, -np.cos(a)])
+    # Image "down" is towards the hole bottom, so the opening is at the top of the picture.
+    rot0 = look_at(np.zeros(3), view, up=(0.0, 0.0, -1.0))
+    ox, oy = (float(v) for v in axis_offset_mm)
+    poses = []
+    for q in range(quadrants):
+        spin = rotvec_to_matrix(np.array([0.0, 0.0, np.deg2rad(q * angle_step_deg)]))
+        for i in range(frames_per_quadrant):
+            centre0 = np.array([ox, oy, start_z_mm - i * step_mm])
+            poses.append(Pose.from_centre(rot0 @ spin.T, spin @ centre0))
+    params = {"kind": "quadrants", "quadrants": quadrants, "frames_per_quadrant": frames_per_quadrant,
+              "step_mm": step_mm, "angle_step_deg": angle_step_deg, "side_view_deg": side_view_deg,
+              "start_z_mm": start_z_mm, "rotation_axis": "world z through the origin",
+              "axis_offset_mm": [ox, oy],
+              "note": "frame q*frames_per_quadrant + i: quadrant q rotated by q*angle_step about z, step i inwards; "
+                      "axis_offset_mm is the camera centre's (x, y) in quadrant 0"}
+    return Trajectory("quadrants", poses, params)
+
+
+def spiral_trajectory(
+    n_frames: int, *, turns: float = 3.0, radius_mm: float = 8.0, polar_range_deg=(25.0, 155.0),
+    centre_mm=(0.0, 0.0, 0.0),
+) -> Trajectory:
+    """Camera on a sphere of ``radius_mm`` about ``centre_mm``, looking outwards along the radius, its
+    direction sweeping ``turns`` turns of a spiral from polar angle ``polar_range_deg[0]`` (near +z) down
+    to ``polar_range_deg[1]``."""
+    if n_frames < 1:
+        raise ValueError("spiral trajectory needs n_frames >= 1")
+    centre = np.asarray(centre_mm, dtype=float)
+    t = (np.arange(n_frames) + 0.5) / n_frames
+    polar = np.deg2rad(polar_range_deg[0] + (polar_range_deg[1] - polar_range_deg[0]) * t)
+    azimuth = 2 * np.pi * turns * t
+    dirs = np.stack([np.sin(polar) * np.cos(azimuth), np.sin(polar) * np.sin(azimuth), np.cos(polar)], 1)
+    poses = []
+    for d in dirs:
+        eye = centre + radius_mm * d
+        poses.append(Pose.from_centre(look_at(eye, eye + d, up=(0.0, 0.0, -1.0)), eye))
+    params = {"kind": "spiral", "frames": n_frames, "turns": turns, "radius_mm": radius_mm,
+              "polar_range_deg": list(polar_range_deg), "centre_mm": centre.tolist(), "view": "outwards, radial"}
+    return Trajectory("spiral", poses, params)
+
+
+# name -> (description, default number of frames)
+TRAJECTORIES = {
+    "grid5x6": ("5 x 6 raster looking down from 15 mm, 5 mm spacing (30 frames)", 30),
+    "grid7x8": ("7 x 8 raster looking down from 15 mm, 5 mm spacing (56 frames)", 56),
+    "axial": ("forward view on the hole axis from z = +1 mm, 0.25 mm steps inwards (30 frames)", 30),
+    "quadrants": ("45° side view, 0.1 mm steps from z = -1.5 mm, 12 quadrants 30° apart, camera 0.094 mm off "
+                  "the rotation axis (8 frames per quadrant, 96 frames)", 96),
+    "spiral": ("camera 8 mm from the cavity centre looking outwards, 3-turn spherical spiral (36 frames)", 36),
+}
+
+
+def build_trajectory(name: str, *, n_frames: int | None = None, side_view_deg: float = 45.0) -> Trajectory:
+    """Build a named trajectory. ``n_frames`` limits the grids (first frames in scan order), sets the
+    length of ``axial`` and ``spiral``, and for ``quadrants`` gives the total (``n_frames // 12`` per
+    quadrant, at least one)."""
+    if name not in TRAJECTORIES:
+        raise InputError(f"unknown trajectory {name!r} (use one of {', '.join(TRAJECTORIES)})")
+    if n_frames is not None and n_frames < 1:
+        raise InputError(f"number of frames must be at least 1, got {n_frames}")
+    n = n_frames or TRAJECTORIES[name][1]
+    if name.startswith("grid"):
+        cols, rows = (int(v) for v in name[4:].split("x"))
+        traj = grid_trajectory(rows, cols)
+        if n_frames is not None:
+            traj = Trajectory(traj.name, traj.poses[:n_frames], {**traj.params, "frames_used": min(n_frames, len(traj))})
+        return traj
+    if name == "axial":
+        return axial_trajectory(n)
+    if name == "quadrants":
+        return quadrant_trajectory(max(1, n // QUADRANT_COUNT), side_view_deg=side_view_deg)
+    return spiral_trajectory(n)
