@@ -1,0 +1,1 @@
+"""Dense stereo for forward-looking scopes: axial-stereo geometry, matchers, confidence and fusion."""
