@@ -290,7 +290,7 @@ def pair_slots(cam_blocks, point_ptr, indptr, indices):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=True)
 def assemble_reduced_system(
     residuals, jc, jp, cam_blocks, point_ptr, damp_c, damp_p, indptr, indices, data, rhs, v_inv, gp,
     used_cols, slots,
@@ -323,6 +323,8 @@ def assemble_reduced_system(
         max_deg = max(max_deg, point_ptr[j + 1] - point_ptr[j])
     w = np.empty((max_deg, nu, 3))
     a = np.empty((max_deg, nu, 3))
+    wt = np.empty((max_deg, 3, nu))
+    m = np.empty((nu, nu))
     jcu = np.empty((max_deg, 2, nu))
     v = np.empty((3, 3))
     vi = np.empty((3, 3))
@@ -368,10 +370,23 @@ def assemble_reduced_system(
                 c = used_cols[s]
                 rhs[6 * cam_blocks[o, c // 6] + c % 6] += a[i, s, 0] * g0 + a[i, s, 1] * g1 + a[i, s, 2] * g2
         for i in range(deg):
+            for t in range(nu):
+                for c in range(3):
+                    wt[i, c, t] = w[i, t, c]
+        for i in range(deg):
             oi = start + i
             for k in range(i, deg):
                 ok_ = start + k
                 # the (i, k) term of S: U_ii - A_i W_k^T (only i <= k: S is symmetric)
+                for s in range(nu):
+                    a0 = a[i, s, 0]; a1 = a[i, s, 1]; a2 = a[i, s, 2]
+                    for t in range(nu):
+                        m[s, t] = -(a0 * wt[k, 0, t] + a1 * wt[k, 1, t] + a2 * wt[k, 2, t])
+                if i == k:
+                    for s in range(nu):
+                        u0 = jcu[i, 0, s]; u1 = jcu[i, 1, s]
+                        for t in range(nu):
+                            m[s, t] += u0 * jcu[i, 0, t] + u1 * jcu[i, 1, t]
                 for hi in range(2):
                     bi = cam_blocks[oi, hi]
                     for hk in range(2):
@@ -380,30 +395,29 @@ def assemble_reduced_system(
                         bk = cam_blocks[ok_, hk]
                         slot = slots[pos]
                         pos += 1
+                        nq_i = q_count[hi]
+                        nq_k = q_count[hk]
                         if bi < bk or (bi == bk and i == k):
-                            mode = 0
+                            for s_ in range(nq_i):
+                                s = q_pos[hi, s_]
+                                ri = q_row[hi, s_]
+                                for t_ in range(nq_k):
+                                    data[slot, ri, q_row[hk, t_]] += m[s, q_pos[hk, t_]]
                         elif bi > bk:
-                            mode = 1
+                            for s_ in range(nq_i):
+                                s = q_pos[hi, s_]
+                                ri = q_row[hi, s_]
+                                for t_ in range(nq_k):
+                                    data[slot, q_row[hk, t_], ri] += m[s, q_pos[hk, t_]]
                         else:
-                            mode = 2  # two observations in one block: add the (k, i) term too
-                        for s_ in range(q_count[hi]):
-                            s = q_pos[hi, s_]
-                            ri = q_row[hi, s_]
-                            a0 = a[i, s, 0]; a1 = a[i, s, 1]; a2 = a[i, s, 2]
-                            u0 = jcu[i, 0, s]; u1 = jcu[i, 1, s]
-                            for t_ in range(q_count[hk]):
-                                t = q_pos[hk, t_]
-                                ck = q_row[hk, t_]
-                                val = -(a0 * w[k, t, 0] + a1 * w[k, t, 1] + a2 * w[k, t, 2])
-                                if i == k:
-                                    val += u0 * jcu[i, 0, t] + u1 * jcu[i, 1, t]
-                                if mode == 0:
-                                    data[slot, ri, ck] += val
-                                elif mode == 1:
-                                    data[slot, ck, ri] += val
-                                else:
-                                    data[slot, ri, ck] += val
-                                    data[slot, ck, ri] += val
+                            # two observations in one block: add the (k, i) term too
+                            for s_ in range(nq_i):
+                                s = q_pos[hi, s_]
+                                ri = q_row[hi, s_]
+                                for t_ in range(nq_k):
+                                    val = m[s, q_pos[hk, t_]]
+                                    data[slot, ri, q_row[hk, t_]] += val
+                                    data[slot, q_row[hk, t_], ri] += val
     n_blocks = indptr.shape[0] - 1
     for b in range(n_blocks):
         slot = _find_block(indptr, indices, b, b)

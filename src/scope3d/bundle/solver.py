@@ -37,6 +37,7 @@ import scipy.sparse.linalg
 
 from ..errors import InputError
 from . import kernels
+from ._blas import blas_threads
 from .losses import LOSS_NAMES, loss_rho, loss_weight
 from .problem import BundleParameters, BundleProblem
 
@@ -73,6 +74,7 @@ class SolverOptions:
     sparse_max_parameters: int = 30000  # auto: sparse LU up to this many, PCG beyond
     pcg_tolerance: float = 1e-6  # relative residual of the conjugate-gradient solve
     pcg_max_iterations: int = 500
+    blas_threads: int = 1  # OpenBLAS threads for the dense Cholesky (0: library default); see _blas.py
 
     def __post_init__(self) -> None:
         if not (isinstance(self.max_iterations, int) and self.max_iterations >= 0):
@@ -96,6 +98,8 @@ class SolverOptions:
             raise InputError(f"linear_solver must be one of {', '.join(LINEAR_SOLVERS)}, got {self.linear_solver!r}")
         if self.dense_max_parameters < 0 or self.sparse_max_parameters < 0:
             raise InputError("dense_max_parameters and sparse_max_parameters must be >= 0")
+        if not (isinstance(self.blas_threads, int) and self.blas_threads >= 0):
+            raise InputError(f"blas_threads must be an integer >= 0, got {self.blas_threads!r}")
         if not (0 < self.pcg_tolerance < 1) or self.pcg_max_iterations < 1:
             raise InputError("need 0 < pcg_tolerance < 1 and pcg_max_iterations >= 1")
 
@@ -323,11 +327,12 @@ class _ReducedSystem:
         """delta_c of eq. 6.7 or None when the matrix is not positive definite."""
         if self.method == "dense":
             s = kernels.bsr_to_dense(self.indptr, self.indices, self.data)
-            try:
-                factor = scipy.linalg.cho_factor(s, lower=False, overwrite_a=True, check_finite=False)
-            except np.linalg.LinAlgError:
-                return None
-            out = scipy.linalg.cho_solve(factor, self.rhs, check_finite=False)
+            with blas_threads(options.blas_threads):
+                try:
+                    factor = scipy.linalg.cho_factor(s, lower=False, overwrite_a=True, check_finite=False)
+                except np.linalg.LinAlgError:
+                    return None
+                out = scipy.linalg.cho_solve(factor, self.rhs, check_finite=False)
         else:
             upper = scipy.sparse.bsr_matrix((self.data, self.indices, self.indptr), shape=(self.size, self.size))
             off_diagonal = self.data.copy()
