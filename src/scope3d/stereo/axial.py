@@ -253,6 +253,19 @@ class AxialPair:
         local = self.grid.virtual_points() * np.asarray(depth_along_baseline_mm)[..., None]
         return local @ self.virtual_from_world + self.front_centre
 
+    def triangulate_grid(self, coords_front: np.ndarray, disparity: np.ndarray) -> np.ndarray:
+        """World points (N, 3) mm of matches given by fractional front-grid coordinates.
+
+        coords_front : (N, 2) (row, column) on the grid of the front image; disparity : (N,) columns,
+        ``col_front - col_rear``. Closed form of eq. 7.3 in the virtual frame, then to the world.
+        """
+        c = np.asarray(coords_front, dtype=float).reshape(-1, 2)
+        theta = c[:, 0] * (2.0 * np.pi / self.grid.n_angles)
+        rho = np.exp(self.grid.log_rho_min + self.grid.log_rho_step * c[:, 1])
+        z = self.depth_along_baseline(np.asarray(disparity, dtype=float).reshape(-1))
+        local = np.stack([rho * np.cos(theta) * z, rho * np.sin(theta) * z, z], axis=1)
+        return local @ self.virtual_from_world + self.front_centre
+
     def rays_world(self, pose: Pose) -> np.ndarray:
         """(H, W, 3) unit ray directions (world) of every pixel of the camera at ``pose``."""
         rays = self.camera.unproject(self.camera.pixel_grid().reshape(-1, 2))
