@@ -36,9 +36,11 @@ class EvaluationOptions:
         (default 5 deg, 2 mm).
     """
 
-    sample_step_mm: float = 0.1
-    icp_iterations: int = 50
-    icp_tolerance_mm: float = 1e-5
+    sample_step_mm: float = 0.25
+    icp_iterations: int = 30
+    icp_tolerance_mm: float = 1e-4
+    icp_max_points: int = 2000
+    icp_max_distance_mm: float = 5.0
     icp_trim_fraction: float = 0.05
     initial_rotation_deg: float = 5.0
     initial_translation_mm: float = 2.0
@@ -52,6 +54,7 @@ class SampledSurface:
     """A triangle mesh sampled densely with normals, with a KD-tree for nearest queries."""
 
     def __init__(self, mesh: Mesh, step_mm: float = 0.1):
+        self._mesh = mesh
         v, f = mesh.vertices, mesh.faces
         if len(f) == 0:
             raise ValueError("true surface has no faces")
@@ -61,7 +64,7 @@ class SampledSurface:
         normals = cross / np.maximum(area2, 1e-300)[:, None]
         # samples per face ~ area / step², at least the centroid; barycentric grid would be nicer,
         # random-but-seeded barycentric samples are simpler and as good at this density
-        counts = np.maximum(1, np.ceil(0.5 * area2 / step_mm**2)).astype(np.int64)
+        counts = np.ceil(0.5 * area2 / step_mm**2).astype(np.int64)  # small faces: their vertices suffice
         face = np.repeat(np.arange(len(f)), counts)
         rng = np.random.default_rng(0)
         r1, r2 = rng.random(len(face)), rng.random(len(face))
@@ -75,17 +78,30 @@ class SampledSurface:
         self.normals = np.concatenate([normals[face], vn])
         self.tree = cKDTree(self.points)
 
-    def nearest(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(N, 3) -> nearest samples (N, 3), their normals (N, 3), Euclidean distances (N,)."""
-        d, i = self.tree.query(points)
-        return self.points[i], self.normals[i], d
+    def nearest(self, points: np.ndarray, *, eps: float = 0.0, max_distance_mm: float = np.inf):
+        """(N, 3) -> nearest samples (N, 3), their normals (N, 3), Euclidean distances (N,).
+
+        eps > 0: approximate search (within a factor 1 + eps). Points farther than ``max_distance_mm``
+        get distance inf and NaN sample/normal (a KD-tree search far from a dense surface visits a
+        large part of the tree, so bounding it keeps outliers cheap)."""
+        d, i = self.tree.query(points, eps=eps, distance_upper_bound=max_distance_mm)
+        far = ~np.isfinite(d)
+        i = np.where(far, 0, i)
+        q, n = self.points[i], self.normals[i]
+        q[far] = np.nan
+        n[far] = np.nan
+        return q, n, d
 
     def distances(self, points: np.ndarray) -> np.ndarray:
-        """(N, 3) mm -> (N,) unsigned point-to-surface distance (mm), point-to-plane at the nearest
-        sample, never more than the distance to the sample itself."""
-        q, n, d = self.nearest(points)
-        plane = np.abs(np.einsum("ij,ij->i", points - q, n))
-        return np.minimum(plane, d)
+        """(N, 3) mm -> (N,) unsigned point-to-surface distance (mm): point-to-plane at the nearest
+        sample, never more than the distance to the sample itself. Points within 2 mm of the surface
+        are queried first with a bounded search; the few farther ones (outliers) then unbounded."""
+        points = np.asarray(points, float)
+        q, n, d = self.nearest(points, max_distance_mm=2.0)
+        far = ~np.isfinite(d)
+        if far.any():
+            q[far], n[far], d[far] = self.nearest(points[far])
+        return np.minimum(np.abs(np.einsum("ij,ij->i", points - q, n)), d)
 
 
 def surface_distances(points: np.ndarray, truth: Mesh | SampledSurface, options: EvaluationOptions = EvaluationOptions()) -> np.ndarray:
@@ -111,8 +127,8 @@ def distance_summary(distances: np.ndarray) -> dict:
 
 @dataclass
 class IcpResult:
-    """rotation (3, 3), translation (3,) mm: aligned = R @ x + t; mean_distance_mm after alignment;
-    iterations; history of mean distances (mm)."""
+    """rotation (3, 3), translation (3,) mm: aligned = R @ x + t; mean_distance_mm after alignment
+    (over the points within ``icp_max_distance_mm``); iterations; history of mean distances (mm)."""
 
     rotation: np.ndarray
     translation: np.ndarray
@@ -138,22 +154,36 @@ def icp_point_to_plane(
     it = 0
     for it in range(1, options.icp_iterations + 1):
         y = x @ R.T + t
-        q, n, _ = target.nearest(y)
+        # approximate neighbours are enough for a point-to-plane step: the plane of a sample a little
+        # farther away differs by its curvature only (the final distances are exact)
+        q, n, _ = target.nearest(y, eps=0.5, max_distance_mm=options.icp_max_distance_mm)
         r = np.einsum("ij,ij->i", y - q, n)
-        keep = np.abs(r) <= np.quantile(np.abs(r), 1 - options.icp_trim_fraction) if options.icp_trim_fraction else np.ones(len(r), bool)
-        history.append(float(np.mean(np.abs(r))))
+        ok = np.isfinite(r)
+        if ok.sum() < 6:
+            break
+        keep = ok.copy()
+        if options.icp_trim_fraction:
+            keep[ok] = np.abs(r[ok]) <= np.quantile(np.abs(r[ok]), 1 - options.icp_trim_fraction)
+        history.append(float(np.mean(np.abs(r[ok]))))
         c = y[keep].mean(axis=0)
         A = np.hstack([np.cross(y[keep] - c, n[keep]), n[keep]])
-        sol, *_ = np.linalg.lstsq(A, -r[keep], rcond=None)
+        # 6x6 normal equations (tiny Tikhonov term: a rotationally symmetric target leaves a null space)
+        AtA = A.T @ A + 1e-9 * np.eye(6) * max(float(np.trace(A.T @ A)), 1.0)
+        sol = np.linalg.solve(AtA, -A.T @ r[keep])
         dR = rotvec_to_matrix(sol[:3])
         # rotate about the centroid c, then translate
         R = dR @ R
         t = dR @ (t - c) + c + sol[3:]
         step = np.linalg.norm(sol[:3]) * np.sqrt(np.mean(np.sum((y - c) ** 2, axis=1))) + np.linalg.norm(sol[3:])
-        if step < options.icp_tolerance_mm:
+        # stop on a small step, or when the mean residual no longer improves (sliding along a symmetry)
+        stalled = len(history) > 1 and history[-2] - history[-1] < 1e-3 * options.icp_tolerance_mm + 1e-4 * history[-1]
+        if step < options.icp_tolerance_mm or stalled:
             break
-    final = target.distances(x @ R.T + t)
-    return IcpResult(R, t, float(final.mean()), it, history)
+    y = x @ R.T + t
+    q, n, d = target.nearest(y, max_distance_mm=options.icp_max_distance_mm)
+    ok = np.isfinite(d)
+    final = np.minimum(np.abs(np.einsum("ij,ij->i", y[ok] - q[ok], n[ok])), d[ok])
+    return IcpResult(R, t, float(final.mean()) if ok.any() else float("inf"), it, history)
 
 
 def icp_from_initial_poses(points: np.ndarray, target: SampledSurface, options: EvaluationOptions = EvaluationOptions()) -> tuple[IcpResult, list[float]]:
@@ -162,6 +192,8 @@ def icp_from_initial_poses(points: np.ndarray, target: SampledSurface, options: 
     the best result and the eight final mean distances (mm), whose spread shows the alignment does not
     depend on the start."""
     x = np.asarray(points, float)
+    if len(x) > options.icp_max_points:
+        x = x[np.random.default_rng(0).choice(len(x), options.icp_max_points, replace=False)]
     c = x.mean(axis=0)
     a = np.deg2rad(options.initial_rotation_deg)
     d = options.initial_translation_mm

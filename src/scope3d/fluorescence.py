@@ -38,6 +38,9 @@ class FluorescenceOptions:
         0.8; a five-point star with inner/outer radius 0.4 has solidity ~0.6, a disc 1.0).
     star_points : int, points of the star; its outline polygon has twice as many edges (default 5).
     overlay_alpha : float, weight of the fluorescence green in the multimodal overlay (default 0.6).
+    refine_factor : int, each target is re-measured on a grid this many times finer than the surface's
+        (default 4: 0.05 mm cells on the 0.2 mm surface grid, so a 2 mm disc spans 40 cells).
+    refine_margin_mm : float, margin around a target's coarse extent for its fine grid (default 1 mm).
     """
 
     threshold: int | None = None
@@ -49,6 +52,8 @@ class FluorescenceOptions:
     star_solidity: float = 0.8
     star_points: int = 5
     overlay_alpha: float = 0.6
+    refine_factor: int = 4
+    refine_margin_mm: float = 1.0
 
     def __post_init__(self) -> None:
         if self.threshold is not None and not 0 <= self.threshold <= 255:
@@ -59,6 +64,8 @@ class FluorescenceOptions:
             raise ValueError("min_area_mm2 >= 0, star_solidity in (0, 1), star_points >= 3 required")
         if not 0 <= self.overlay_alpha <= 1:
             raise ValueError("overlay_alpha must be in [0, 1]")
+        if self.refine_factor < 1 or self.refine_margin_mm < 0:
+            raise ValueError("refine_factor must be >= 1 and refine_margin_mm >= 0")
 
 
 @dataclass
@@ -66,7 +73,8 @@ class Target:
     """One fluorescent target on the surface.
 
     label : int, 1-based. centroid_mm : (3,) world mm (area-weighted). area_mm2 : float.
-    shape : "star" or "disc". size_mm : float, star: mean outline edge length; disc: diameter.
+    shape : "star", "triangle", "square" or "disc". size_mm : float, star: mean stroke (tip to the tip
+    two along, the pentagram's edge); triangle / square: mean edge; disc: diameter.
     outline_mm : (K, 3) world mm, the outline polygon's vertices.
     """
 
@@ -76,6 +84,30 @@ class Target:
     shape: str
     size_mm: float
     outline_mm: np.ndarray
+    cell_mm: float = 0.0
+
+    def size_in_plane_mm(self, normal: np.ndarray) -> float:
+        """Size measured after projecting the outline along ``normal`` (3,) onto a plane — how a
+        target drawn flat and dropped onto a curved surface along ``normal`` is specified (a disc on
+        a 40 deg slope is 1.3 times longer on the surface than on the drawing)."""
+        n = np.asarray(normal, float) / np.linalg.norm(normal)
+        helper = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        u = np.cross(helper, n)
+        u /= np.linalg.norm(u)
+        v = np.cross(n, u)
+        uv = np.stack([self.outline_mm @ u, self.outline_mm @ v], axis=1)
+        d = 0.5 * self.cell_mm
+        if self.shape == "star":
+            r = np.linalg.norm(uv - uv.mean(axis=0), axis=1)
+            tips = uv[0::2] if r[0::2].mean() > r[1::2].mean() else uv[1::2]
+            return float(np.linalg.norm(np.roll(tips, -2, axis=0) - tips, axis=1).mean())
+        if self.shape in ("triangle", "square"):
+            edges = np.linalg.norm(np.roll(uv, -1, axis=0) - uv, axis=1)
+            return float(edges.mean() + (2.0 * np.sqrt(3.0) if self.shape == "triangle" else 2.0) * d)
+        x, y = uv[:, 0], uv[:, 1]
+        area = 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
+        perimeter = float(np.linalg.norm(np.roll(uv, -1, axis=0) - uv, axis=1).sum())
+        return float(2.0 * np.sqrt((area + d * perimeter) / np.pi))
 
     def as_dict(self) -> dict:
         return {
@@ -188,6 +220,51 @@ def _star_polygon(contour: np.ndarray, n_vertices: int) -> np.ndarray:
     return best
 
 
+def _polygon_with(contour: np.ndarray, n_vertices: int) -> tuple[np.ndarray, float]:
+    """Polygon of ``n_vertices`` corners approximating a closed contour, and its area as a fraction of
+    the contour's (1 = the polygon explains the outline)."""
+    poly = _star_polygon(contour, n_vertices)
+    ratio = cv2.contourArea(poly.astype(np.float32)) / max(cv2.contourArea(contour.astype(np.float32)), 1e-9)
+    return poly, float(ratio)
+
+
+def _shape_and_size(surface: Surface, sel: np.ndarray, area: float, options: FluorescenceOptions):
+    """Classify one target region of the grid and measure its size in 3-D (mm).
+
+    star: area / convex-hull area below ``star_solidity``; size = mean *stroke* of the pentagram, tip to
+    the tip two along (the 10-corner outline's outer corners), the phantom's and reference's "edge".
+    triangle / square: a 3- or 4-corner polygon explains >= 93 % of the outline's area; size = mean
+    edge. disc: otherwise; size = diameter from the area, 2 sqrt(A / pi).
+    """
+    m8 = sel.astype(np.uint8)
+    contours, _ = cv2.findContours(m8, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    contour = max(contours, key=len).reshape(-1, 2)  # (x=col, y=row)
+    if len(contour) < 8:
+        return "disc", float(2.0 * np.sqrt(area / np.pi)), _grid_to_world(surface, contour[:, ::-1].astype(float))
+    hull = cv2.convexHull(contour.astype(np.float32))
+    # pixel count ~ polygon area through pixel centres + half its perimeter: compare like with like
+    solidity = float(m8.sum()) / max(cv2.contourArea(hull) + 0.5 * cv2.arcLength(hull, True) + 1.0, 1.0)
+    if solidity < options.star_solidity and len(contour) >= 4 * options.star_points:
+        poly = _star_polygon(contour, 2 * options.star_points)
+        outline = _grid_to_world(surface, poly[:, ::-1].astype(float))
+        centre = outline.mean(axis=0)
+        r = np.linalg.norm(outline - centre, axis=1)
+        tips = outline[0::2] if r[0::2].mean() > r[1::2].mean() else outline[1::2]
+        strokes = np.linalg.norm(np.roll(tips, -2, axis=0) - tips, axis=1)
+        return "star", float(strokes.mean()), outline
+    for n, name in ((3, "triangle"), (4, "square")):
+        poly, ratio = _polygon_with(contour, n)
+        if len(poly) == n and 0.93 <= ratio <= 1.07:
+            outline = _grid_to_world(surface, poly[:, ::-1].astype(float))
+            edges = np.linalg.norm(np.roll(outline, -1, axis=0) - outline, axis=1)
+            # the outline runs through the centres of the boundary cells, half a cell (d) inside the true
+            # edge; moving a triangle's sides out by d lengthens them by 2 sqrt(3) d, a square's by 2 d
+            d = 0.5 * surface.step_mm
+            return name, float(edges.mean() + (2.0 * np.sqrt(3.0) if n == 3 else 2.0) * d), outline
+    poly = contour[:: max(1, len(contour) // 64)]
+    return "disc", float(2.0 * np.sqrt(area / np.pi)), _grid_to_world(surface, poly[:, ::-1].astype(float))
+
+
 def measure_targets(surface: Surface, on: np.ndarray, options: FluorescenceOptions = FluorescenceOptions()) -> tuple[list[Target], np.ndarray]:
     """Label the fluorescent grid and measure each target in 3-D.
 
@@ -206,29 +283,47 @@ def measure_targets(surface: Surface, on: np.ndarray, options: FluorescenceOptio
         if area < options.min_area_mm2:
             continue
         centroid = (verts[sel] * a[sel][:, None]).sum(axis=0) / area
-        m8 = sel.astype(np.uint8)
-        contours, _ = cv2.findContours(m8, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-        contour = max(contours, key=len).reshape(-1, 2)  # (x=col, y=row)
-        hull = cv2.convexHull(contour.astype(np.float32))
-        # pixel count ~ polygon area through pixel centres + half its perimeter: compare like with like
-        solidity = float(m8.sum()) / max(cv2.contourArea(hull) + 0.5 * cv2.arcLength(hull, True) + 1.0, 1.0)
-        if solidity < options.star_solidity and len(contour) >= 4 * options.star_points:
-            poly = _star_polygon(contour, 2 * options.star_points)
-            outline = _grid_to_world(surface, poly[:, ::-1].astype(float))
-            edges = np.linalg.norm(np.roll(outline, -1, axis=0) - outline, axis=1)
-            shape, size = "star", float(edges.mean())
-        else:
-            poly = contour[:: max(1, len(contour) // 64)]
-            outline = _grid_to_world(surface, poly[:, ::-1].astype(float))
-            shape, size = "disc", float(2.0 * np.sqrt(area / np.pi))
+        shape, size, outline = _shape_and_size(surface, sel, area, options)
         found.append((area, centroid, shape, size, outline, sel))
     found.sort(key=lambda x: -x[0])
     labels = np.zeros(grid.shape, np.int32)
     targets = []
     for idx, (area, centroid, shape, size, outline, sel) in enumerate(found, start=1):
         labels[sel] = idx
-        targets.append(Target(idx, centroid, area, shape, size, outline))
+        targets.append(Target(idx, centroid, area, shape, size, outline, surface.step_mm))
     return targets, labels
+
+
+def map_targets(
+    surface: Surface, camera: Camera, poses: list[Pose], masks, options: FluorescenceOptions = FluorescenceOptions()
+) -> tuple[list[Target], np.ndarray, np.ndarray]:
+    """Targets on the surface: vote the masks onto the surface grid, label, then re-measure each
+    target on a ``refine_factor`` times finer grid around it (votes recast there).
+
+    masks : sequence of (H, W) bool per frame. Returns targets (labels of the coarse grid), the coarse
+    fluorescent grid (GH, GW) bool and its labels (GH, GW) int32.
+    """
+    from dataclasses import replace
+
+    on = carry_to_surface(surface, camera, poses, masks, options)
+    coarse, labels = measure_targets(surface, on, options)
+    if options.refine_factor == 1:
+        return coarse, on, labels
+    m = int(np.ceil(options.refine_margin_mm / surface.step_mm))
+    out = []
+    for t in coarse:  # per-target loop
+        rr, cc = np.nonzero(labels == t.label)
+        rows = slice(max(int(rr.min()) - m, 0), int(rr.max()) + m + 1)
+        cols = slice(max(int(cc.min()) - m, 0), int(cc.max()) + m + 1)
+        patch = surface.refined(rows, cols, options.refine_factor)
+        fine_opts = replace(options, min_area_mm2=options.min_area_mm2)
+        found, _ = measure_targets(patch, carry_to_surface(patch, camera, poses, masks, fine_opts), fine_opts)
+        if not found:
+            out.append(t)
+            continue
+        best = min(found, key=lambda f: np.linalg.norm(f.centroid_mm - t.centroid_mm))
+        out.append(replace(best, label=t.label))
+    return out, on, labels
 
 
 def overlay(reflectance: np.ndarray, on: np.ndarray, labels: np.ndarray | None = None, options: FluorescenceOptions = FluorescenceOptions(), *, draw_outlines: bool = True) -> np.ndarray:
@@ -252,9 +347,11 @@ def overlay(reflectance: np.ndarray, on: np.ndarray, labels: np.ndarray | None =
 def match_targets(found: list[Target], truth: list[dict]) -> list[dict]:
     """Pair found targets with ground-truth targets by nearest centroid (Hungarian assignment).
 
-    truth : list of dicts with ``centre_mm`` (3,), ``size_mm``, and optionally ``shape`` / ``name``.
+    truth : list of dicts with ``centre_mm`` (3,), ``size_mm``, and optionally ``shape``, ``name``,
+    ``area_mm2`` (on the surface) and ``projection_normal`` (the direction along which the target's flat
+    design was dropped onto the surface; its size is then compared in that design plane, like for like).
     Returns one dict per true target: its found label (or None), centroid error (mm), size error (mm
-    and fraction).
+    and fraction), area error fraction.
     """
     from scipy.optimize import linear_sum_assignment
 
@@ -275,11 +372,15 @@ def match_targets(found: list[Target], truth: list[dict]) -> list[dict]:
         j = assign.get(k)
         if j is not None and cost[k, j] < max(2.0 * float(t["size_mm"]), 3.0):
             f = found[j]
+            size = f.size_in_plane_mm(t["projection_normal"]) if t.get("projection_normal") is not None else f.size_mm
+            if t.get("area_mm2"):
+                row["area_error_fraction"] = round((f.area_mm2 - float(t["area_mm2"])) / float(t["area_mm2"]), 4)
             row.update({
                 "found_label": f.label, "found_shape": f.shape, "found_centre_mm": [round(float(v), 4) for v in f.centroid_mm],
-                "found_size_mm": round(f.size_mm, 4), "centroid_error_mm": round(float(cost[k, j]), 4),
-                "size_error_mm": round(f.size_mm - float(t["size_mm"]), 4),
-                "size_error_fraction": round((f.size_mm - float(t["size_mm"])) / float(t["size_mm"]), 4),
+                "found_size_on_surface_mm": round(f.size_mm, 4), "found_size_mm": round(size, 4),
+                "centroid_error_mm": round(float(cost[k, j]), 4),
+                "size_error_mm": round(size - float(t["size_mm"]), 4),
+                "size_error_fraction": round((size - float(t["size_mm"])) / float(t["size_mm"]), 4),
             })
         else:
             row.update({"found_label": None})

@@ -45,8 +45,9 @@ from ..evaluation import (
 )
 from ..features import FEATURE_PRESETS, FeatureOptions, Features, detect
 from ..fluorescence import (
-    FluorescenceOptions, Target, auto_threshold, carry_to_surface, match_targets, measure_targets, overlay, segment,
+    FluorescenceOptions, Target, auto_threshold, match_targets, overlay, segment,
 )
+from ..fluorescence import map_targets as _targets_on_surface
 from ..matching import (
     DepthPrior, MatchOptions, PairMatches, PairOptions, estimate_depth_prior, match_exhaustive, match_pairs,
     select_pairs,
@@ -378,8 +379,7 @@ def map_targets(options: MapOptions, dataset: Dataset, sparse: SparseResult, sur
     threshold = auto_threshold(images, fl)
     valid = sparse.camera.mask()
     masks = [segment(img, threshold, fl, mask=valid) for img in images]
-    on = carry_to_surface(surface.surface, sparse.camera, sparse.poses, masks, fl)
-    targets, labels = measure_targets(surface.surface, on, fl)
+    targets, on, labels = _targets_on_surface(surface.surface, sparse.camera, sparse.poses, masks, fl)
     return TargetResult(targets, on, labels, threshold, time.perf_counter() - t0)
 
 
@@ -390,11 +390,13 @@ def true_targets(scene: dict) -> list[dict]:
     """Ground-truth targets from a phantom's scene description, as ``{name, centre_mm, size_mm, shape}``."""
     out = []
     for k, t in enumerate(scene.get("targets", []) or []):
-        centre = next((t[key] for key in ("centre_mm", "center_mm", "centroid_mm", "position_mm") if key in t), None)
-        size = next((t[key] for key in ("size_mm", "edge_mm", "diameter_mm") if key in t), None)
+        sizes = t.get("size", {}) if isinstance(t.get("size"), dict) else {}
+        centre = next((t[key] for key in ("centroid_mm", "centre_mm", "center_mm", "position_mm") if key in t), None)
+        size = next((sizes[key] for key in ("edge_mm", "diameter_mm") if key in sizes), t.get("size_mm"))
         if centre is None or size is None:
             continue
-        out.append({"name": t.get("name", f"target{k + 1}"), "centre_mm": centre, "size_mm": float(size), "shape": t.get("shape")})
+        out.append({"name": t.get("name", f"#{t.get('id', k + 1)} {t.get('shape', '')}".strip()), "centre_mm": centre, "size_mm": float(size), "shape": t.get("shape"),
+                    "area_mm2": t.get("area_mm2"), "projection_normal": (t.get("projection") or {}).get("n")})
     return out
 
 
