@@ -571,8 +571,9 @@ def build_thread(size: str = "M8x1.25", *, texture_seed: int = 0, mm_per_texel: 
     mesh = _assemble(parts)
 
     circumference = 2 * np.pi * cb_radius
+    mm_per_texel = circumference / round(circumference / mm_per_texel)  # a whole number of texels per turn
     v_lo, v_hi = z_apex - pitch - 1.0, 1.0
-    wall = TextureMap(machined_texture((circumference, v_hi - v_lo), mm_per_texel, texture_seed + 20),
+    wall = TextureMap(machined_texture((circumference, v_hi - v_lo), mm_per_texel, texture_seed + 20, periodic_u=True),
                       (0.0, v_lo), mm_per_texel, wrap_u=True)
     face = TextureMap(machined_texture((22.0, 22.0), 0.01, texture_seed + 21, along_mm=0.6, across_mm=0.03),
                       (-11.0, -11.0), 0.01)
@@ -586,9 +587,9 @@ def build_thread(size: str = "M8x1.25", *, texture_seed: int = 0, mm_per_texel: 
         out = np.empty((len(points), 1), np.float32)
         on_face = z > -1e-9
         inside = ~on_face
-        # Turned surfaces: tool marks follow the helix in the thread and circles in the counterbore.
-        helical = np.where(z[inside] < z_top + 1e-9, z[inside] - lead * ang[inside], z[inside])
-        uv = np.stack([ang[inside] * cb_radius, helical], 1)
+        # Turned and tapped surfaces: tool marks run round the bore (the thread's lead, 0.2 mm per mm of
+        # circumference, is too small to matter for the marks, and a helical coordinate would leave a seam).
+        uv = np.stack([ang[inside] * cb_radius, z[inside]], 1)
         out[inside] = wall.sample(uv, footprint_mm[inside])
         out[on_face] = face.sample(points[on_face, :2], footprint_mm[on_face])
         bore = inside & (z > z_top + 1e-9)

@@ -227,21 +227,30 @@ def printed_texture(size_mm: tuple[float, float], mm_per_texel: float, seed: int
 
 
 def machined_texture(
-    size_mm: tuple[float, float], mm_per_texel: float, seed: int, *, along_mm: float = 2.0, across_mm: float = 0.02
+    size_mm: tuple[float, float], mm_per_texel: float, seed: int, *, along_mm: float = 2.0, across_mm: float = 0.02,
+    periodic_u: bool = False,
 ) -> np.ndarray:
     """Brushed/turned metal: noise stretched along u (the tool path), fine across it. -> (H, W, 1) uint8.
 
     along_mm, across_mm : typical length of a tool mark along and across the cut.
+    periodic_u : make the last column continue into the first (for a texture wrapped round a bore).
     """
     rng = np.random.default_rng(seed)
-    w = int(np.ceil(size_mm[0] / mm_per_texel))
+    w = max(1, int(round(size_mm[0] / mm_per_texel)))  # exactly one period when periodic_u
     h = int(np.ceil(size_mm[1] / mm_per_texel))
-    # Anisotropic noise: generate isotropic noise on a grid squeezed along u, then stretch it back.
+    band = max(2, w // 8) if periodic_u else 0
+    wb = w + band
+    # Anisotropic noise: isotropic noise on a grid squeezed along u, then stretched back.
     ratio = max(along_mm / across_mm, 1.0)
-    squeezed_w = max(int(np.ceil(w / ratio * 4)), 8)
+    squeezed_w = max(int(np.ceil(wb / ratio * 4)), 8)
     marks = smooth_noise((h, squeezed_w), across_mm / mm_per_texel, rng)
-    marks = cv2.resize(marks, (w, h), interpolation=cv2.INTER_LINEAR)
-    blotch = fractal_noise((h, w), 1.0 / mm_per_texel, 4, rng)
-    grain = rng.standard_normal((h, w)).astype(np.float32)
-    grey = 0.58 + 0.09 * marks + 0.05 * blotch + 0.02 * grain
+    marks = cv2.resize(marks, (wb, h), interpolation=cv2.INTER_LINEAR)
+    blotch = fractal_noise((h, wb), 1.0 / mm_per_texel, 4, rng)
+    grain = rng.standard_normal((h, wb)).astype(np.float32)
+    grey = 0.58 + 0.10 * marks + 0.03 * blotch + 0.02 * grain
+    if band:
+        # Cross-fade the first columns with the ones just past the end, so column w-1 runs into column 0.
+        fade = (np.arange(band, dtype=np.float32) / band)[None, :]
+        grey[:, :band] = fade * grey[:, :band] + (1 - fade) * grey[:, w:w + band]
+        grey = grey[:, :w]
     return _to_uint8(grey[..., None])
