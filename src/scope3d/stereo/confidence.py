@@ -130,6 +130,6 @@ def reliability(
         k = 2 * options.erode_px + 1
         mask = cv2.erode(mask.astype(np.uint8), np.ones((k, k), np.uint8), borderType=cv2.BORDER_CONSTANT,
                          borderValue=0).astype(bool)
-    with np.errstate(invalid="ignore"):
+    with np.errstate(invalid="ignore", over="ignore"):
         confidence = np.where(mask, 1.0 / (1.0 + (range_sigma / options.max_range_sigma_mm) ** 2), 0.0)
     return Reliability(mask, confidence.astype(np.float32), range_sigma, reasons)
