@@ -19,7 +19,7 @@ Layout shared by all kernels
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 # --- residuals and Jacobians -------------------------------------------------------------------
 
@@ -263,13 +263,14 @@ def _inv3(m, out):
 @njit(cache=True)
 def pair_slots(cam_blocks, point_ptr, indptr, indices):
     """Slot in ``data`` of every (observation pair, quadrant) term of S, in the order
-    :func:`assemble_reduced_system` visits them (int32, one binary search each, done once per solve)."""
+    :func:`assemble_reduced_system` visits them (int32, one binary search each, done once per solve),
+    and where each point's terms start, (n + 1,) int64."""
     n_points = point_ptr.shape[0] - 1
-    total = 0
+    slot_ptr = np.zeros(n_points + 1, dtype=np.int64)
     for j in range(n_points):
         deg = point_ptr[j + 1] - point_ptr[j]
-        total += 4 * deg * (deg + 1) // 2 - deg
-    out = np.empty(total, dtype=np.int32)
+        slot_ptr[j + 1] = slot_ptr[j] + 4 * deg * (deg + 1) // 2 - deg
+    out = np.empty(slot_ptr[n_points], dtype=np.int32)
     pos = 0
     for j in range(n_points):
         start = point_ptr[j]
@@ -287,15 +288,15 @@ def pair_slots(cam_blocks, point_ptr, indptr, indices):
                         else:
                             out[pos] = _find_block(indptr, indices, bk, bi)
                         pos += 1
-    return out
+    return out, slot_ptr
 
 
-@njit(cache=True, fastmath=True)
+@njit(cache=True)
 def assemble_reduced_system(
     residuals, jc, jp, cam_blocks, point_ptr, damp_c, damp_p, indptr, indices, data, rhs, v_inv, gp,
     used_cols, slots,
 ):
-    """Build the damped reduced camera system S dc = rhs of eq. 6.7 applied to eq. 6.13.
+    """Build the damped reduced camera system S dc = rhs of eq. 6.7 applied to eq. 6.13 (one thread).
 
     damp_c (6 n_blocks,) and damp_p (n, 3) are added to the diagonal of the camera and point blocks
     (lambda * D for free parameters, the kept diagonal for frozen ones). used_cols lists the columns of
@@ -307,7 +308,59 @@ def assemble_reduced_system(
     """
     data[:] = 0.0
     rhs[:] = 0.0
-    n_points = point_ptr.shape[0] - 1
+    ok = _assemble_points(0, point_ptr.shape[0] - 1, 0, residuals, jc, jp, cam_blocks, point_ptr, damp_p,
+                          data, rhs, v_inv, gp, used_cols, slots)
+    _add_diagonal(indptr, indices, data, damp_c)
+    return ok
+
+
+@njit(cache=True, parallel=True)
+def assemble_reduced_system_parallel(
+    residuals, jc, jp, cam_blocks, point_ptr, damp_c, damp_p, indptr, indices, data, rhs, v_inv, gp,
+    used_cols, slots, slot_ptr, chunks, data_t, rhs_t,
+):
+    """:func:`assemble_reduced_system` over point chunks in parallel.
+
+    chunks (T + 1,) point boundaries (balanced by Schur terms); data_t (T, nnzb, 6, 6) and
+    rhs_t (T, 6 n_blocks) are per-chunk accumulators, summed into data and rhs at the end.
+    """
+    n_chunks = chunks.shape[0] - 1
+    oks = np.ones(n_chunks, dtype=np.bool_)
+    for t in prange(n_chunks):
+        data_t[t] = 0.0
+        rhs_t[t] = 0.0
+        oks[t] = _assemble_points(chunks[t], chunks[t + 1], slot_ptr[chunks[t]], residuals, jc, jp, cam_blocks,
+                                  point_ptr, damp_p, data_t[t], rhs_t[t], v_inv, gp, used_cols, slots)
+    nnzb = data.shape[0]
+    for p in prange(nnzb):
+        for s in range(6):
+            for u in range(6):
+                acc = 0.0
+                for t in range(n_chunks):
+                    acc += data_t[t, p, s, u]
+                data[p, s, u] = acc
+    for i in range(rhs.shape[0]):
+        acc = 0.0
+        for t in range(n_chunks):
+            acc += rhs_t[t, i]
+        rhs[i] = acc
+    _add_diagonal(indptr, indices, data, damp_c)
+    return oks.all()
+
+
+@njit(cache=True)
+def _add_diagonal(indptr, indices, data, damp_c):
+    n_blocks = indptr.shape[0] - 1
+    for b in range(n_blocks):
+        slot = _find_block(indptr, indices, b, b)
+        for s in range(6):
+            data[slot, s, s] += damp_c[6 * b + s]
+
+
+@njit(cache=True)
+def _assemble_points(j_start, j_stop, pos, residuals, jc, jp, cam_blocks, point_ptr, damp_p, data, rhs, v_inv, gp,
+                     used_cols, slots):
+    """Add the Schur terms of points [j_start, j_stop) to data and rhs (see assemble_reduced_system)."""
     nu = used_cols.shape[0]
     # used columns split by quadrant (pose block: h = 0, intrinsic block: h = 1)
     q_count = np.zeros(2, dtype=np.int64)
@@ -318,8 +371,8 @@ def assemble_reduced_system(
         q_pos[h, q_count[h]] = s
         q_row[h, q_count[h]] = used_cols[s] % 6
         q_count[h] += 1
-    max_deg = 0
-    for j in range(n_points):
+    max_deg = 1
+    for j in range(j_start, j_stop):
         max_deg = max(max_deg, point_ptr[j + 1] - point_ptr[j])
     w = np.empty((max_deg, nu, 3))
     a = np.empty((max_deg, nu, 3))
@@ -329,8 +382,7 @@ def assemble_reduced_system(
     v = np.empty((3, 3))
     vi = np.empty((3, 3))
     ok = True
-    pos = 0
-    for j in range(n_points):
+    for j in range(j_start, j_stop):
         start = point_ptr[j]
         stop = point_ptr[j + 1]
         deg = stop - start
@@ -418,11 +470,6 @@ def assemble_reduced_system(
                                     val = m[s, q_pos[hk, t_]]
                                     data[slot, ri, q_row[hk, t_]] += val
                                     data[slot, q_row[hk, t_], ri] += val
-    n_blocks = indptr.shape[0] - 1
-    for b in range(n_blocks):
-        slot = _find_block(indptr, indices, b, b)
-        for s in range(6):
-            data[slot, s, s] += damp_c[6 * b + s]
     return ok
 
 

@@ -30,6 +30,7 @@ import warnings
 from dataclasses import asdict, dataclass, field
 from typing import Callable
 
+import numba
 import numpy as np
 import scipy.linalg
 import scipy.sparse
@@ -75,6 +76,7 @@ class SolverOptions:
     pcg_tolerance: float = 1e-6  # relative residual of the conjugate-gradient solve
     pcg_max_iterations: int = 500
     blas_threads: int = 1  # OpenBLAS threads for the dense Cholesky (0: library default); see _blas.py
+    num_threads: int = 0  # threads for the Schur assembly: 0 = all cores (as Ceres's -1), 1 = serial
 
     def __post_init__(self) -> None:
         if not (isinstance(self.max_iterations, int) and self.max_iterations >= 0):
@@ -98,6 +100,8 @@ class SolverOptions:
             raise InputError(f"linear_solver must be one of {', '.join(LINEAR_SOLVERS)}, got {self.linear_solver!r}")
         if self.dense_max_parameters < 0 or self.sparse_max_parameters < 0:
             raise InputError("dense_max_parameters and sparse_max_parameters must be >= 0")
+        if not (isinstance(self.num_threads, int) and self.num_threads >= 0):
+            raise InputError(f"num_threads must be an integer >= 0, got {self.num_threads!r}")
         if not (isinstance(self.blas_threads, int) and self.blas_threads >= 0):
             raise InputError(f"blas_threads must be an integer >= 0, got {self.blas_threads!r}")
         if not (0 < self.pcg_tolerance < 1) or self.pcg_max_iterations < 1:
@@ -135,6 +139,7 @@ class BundleResult:
     linear_solver: str
     clamped_initial_values: int
     options: SolverOptions = field(default_factory=SolverOptions)
+    threads: int = 1  # threads used by the Schur assembly
 
     @property
     def rotations(self) -> np.ndarray:
@@ -177,7 +182,8 @@ class BundleResult:
         return "\n".join([
             "Bundle adjustment (bound-constrained Levenberg-Marquardt, Schur complement)",
             f"  {self.problem.summary()}",
-            f"  linear solver        {self.linear_solver}; loss {self.options.loss}"
+            f"  linear solver        {self.linear_solver} ({self.threads} thread(s) for the Schur complement);"
+            f" loss {self.options.loss}"
             + (f" (scale {self.options.loss_scale_px:g} px)" if self.options.loss != "none" else ""),
             f"  initial cost         {self.initial_cost:.6e}  (RMS {rms_init:.4f} px)",
             f"  final cost           {self.final_cost:.6e}  (RMS {rms_final:.4f} px)",
@@ -197,6 +203,7 @@ class BundleResult:
             "termination": self.termination,
             "solve_time_s": self.solve_time_s,
             "linear_solver": self.linear_solver,
+            "assembly_threads": self.threads,
             "loss": self.options.loss,
             "loss_scale_px": self.options.loss_scale_px,
             "num_cameras": self.problem.num_cameras,
@@ -281,6 +288,12 @@ def _squared_residuals(problem, pose, intrinsics, points, intr_obs, out):
 
 def warm_up() -> None:
     """Load (or compile, the first time) the numba kernels so that timings exclude compilation."""
+    from .synthetic import make_scene
+
+    scene = make_scene(12, 4000, seed=0)
+    problem = BundleProblem(scene.observations_px, scene.camera_index, scene.point_index, scene.rotations,
+                            scene.translations, scene.points, scene.intrinsics)
+    solve(problem, SolverOptions(max_iterations=1, num_threads=2))
     rng = np.random.default_rng(0)
     pts = rng.normal(size=(6, 3)) + [0.0, 0.0, 10.0]
     rot = np.broadcast_to(np.eye(3), (2, 3, 3))
@@ -301,7 +314,8 @@ def warm_up() -> None:
 class _ReducedSystem:
     """Block structure of the reduced camera matrix and the chosen way of solving it."""
 
-    def __init__(self, problem: BundleProblem, cam_blocks: np.ndarray, method: str, fixed_c: np.ndarray) -> None:
+    def __init__(self, problem: BundleProblem, cam_blocks: np.ndarray, method: str, fixed_c: np.ndarray,
+                 num_threads: int) -> None:
         n_blocks = problem.num_cameras + problem.num_groups
         m = problem.num_cameras
         # Jacobian columns fixed in every block are skipped (BAL: fy, cx, cy): fewer flops per pair
@@ -315,13 +329,34 @@ class _ReducedSystem:
         self.indices = np.ascontiguousarray(keys % n_blocks)
         self.indptr = np.searchsorted(rows, np.arange(n_blocks + 1)).astype(np.int64)
         self.data = np.empty((keys.size, 6, 6))
-        self.slots = kernels.pair_slots(cam_blocks, problem.point_ptr, self.indptr, self.indices)
+        self.slots, self.slot_ptr = kernels.pair_slots(cam_blocks, problem.point_ptr, self.indptr, self.indices)
+        threads = num_threads or numba.config.NUMBA_NUM_THREADS
+        # parallel only when there is enough work to pay for the per-thread copies of S
+        if threads > 1 and self.slots.size > 20 * keys.size and self.slots.size > 50_000:
+            targets = np.linspace(0, self.slots.size, threads + 1)
+            self.chunks = np.unique(np.searchsorted(self.slot_ptr, targets)).astype(np.int64)
+            self.chunks[-1] = problem.num_points
+            self.data_t = np.empty((self.chunks.size - 1, keys.size, 6, 6))
+            self.rhs_t = np.empty((self.chunks.size - 1, 6 * n_blocks))
+        else:
+            self.chunks = None
+        self.threads = 1 if self.chunks is None else self.chunks.size - 1
         self.rhs = np.empty(6 * n_blocks)
         self.size = 6 * n_blocks
         self.method = method
         self.diag_slots = self.indptr[:-1] + np.array(
             [np.searchsorted(self.indices[self.indptr[b]:self.indptr[b + 1]], b) for b in range(n_blocks)]
         )
+
+    def assemble(self, r, jc, jp, cam_blocks, point_ptr, damp_c, damp_p, v_inv, gp) -> bool:
+        """Fill data and rhs with the damped reduced camera system (eq. 6.7 with eq. 6.13)."""
+        if self.chunks is None:
+            return kernels.assemble_reduced_system(
+                r, jc, jp, cam_blocks, point_ptr, damp_c, damp_p, self.indptr, self.indices, self.data, self.rhs,
+                v_inv, gp, self.used_cols, self.slots)
+        return kernels.assemble_reduced_system_parallel(
+            r, jc, jp, cam_blocks, point_ptr, damp_c, damp_p, self.indptr, self.indices, self.data, self.rhs,
+            v_inv, gp, self.used_cols, self.slots, self.slot_ptr, self.chunks, self.data_t, self.rhs_t)
 
     def solve(self, options: SolverOptions) -> np.ndarray | None:
         """delta_c of eq. 6.7 or None when the matrix is not positive definite."""
@@ -413,7 +448,7 @@ def solve(
     cam_blocks = problem.cam_blocks()
     point_index = problem.point_index
     intr_obs = np.ascontiguousarray(problem.intrinsics_index[problem.camera_index])
-    system = _ReducedSystem(problem, cam_blocks, _choose_method(options, 6 * n_blocks), fixed_c)
+    system = _ReducedSystem(problem, cam_blocks, _choose_method(options, 6 * n_blocks), fixed_c, options.num_threads)
     k = problem.num_observations
     r = np.empty((k, 2))
     jc = np.empty((k, 2, 12))
@@ -484,10 +519,7 @@ def solve(
         # eq. 6.13: B_hat = H_hat + lambda D_hat; the active scalars keep only their diagonal
         damp_c = np.where(active_c, diag_c * (1.0 + lam), lam * diag_c)
         damp_p = np.where(active_p, diag_p * (1.0 + lam), lam * diag_p)
-        ok = kernels.assemble_reduced_system(
-            r, jc, jp, cam_blocks, problem.point_ptr, damp_c, damp_p, system.indptr, system.indices,
-            system.data, system.rhs, v_inv, gp_buf, system.used_cols, system.slots,
-        )
+        ok = system.assemble(r, jc, jp, cam_blocks, problem.point_ptr, damp_c, damp_p, v_inv, gp_buf)
         delta_c = system.solve(options) if ok else None
         step_norm = 0.0
         accepted = False
@@ -549,4 +581,5 @@ def solve(
         linear_solver=system.method,
         clamped_initial_values=clamped,
         options=options,
+        threads=system.threads,
     )
