@@ -172,10 +172,10 @@ def scipy_solve(bal: BALProblem, max_nfev: int):
 # --- scope3d -----------------------------------------------------------------------------------
 
 
-def scope3d_solve(bal: BALProblem):
+def scope3d_solve(bal: BALProblem, num_threads: int = 0):
     problem = bal_to_problem(bal)
     start = time.perf_counter()
-    result = solve(problem, SolverOptions(**TOLERANCES))
+    result = solve(problem, SolverOptions(**TOLERANCES, num_threads=num_threads))
     elapsed = time.perf_counter() - start
     return {
         "time_s": elapsed,
@@ -185,6 +185,7 @@ def scope3d_solve(bal: BALProblem):
         "final_bal_cost": result_to_bal(bal, result).cost(),
         "termination": result.termination,
         "linear_solver": result.linear_solver,
+        "threads": result.threads,
         "history": [(rec.time_s, rec.cost) for rec in result.log],
     }, result
 
@@ -260,22 +261,36 @@ def main() -> int:
            f"{os.cpu_count()} cores (shared)", "tolerances": TOLERANCES, "repeats": args.repeats, "runs": {}}
     rows = []
     for label, problem in (("ladybug", bal), ("ladybug-front", drop_behind_camera(bal))):
-        ours_runs, ceres_runs = [], []
+        ours_runs, ceres_runs, ours1_runs, ceres1_runs = [], [], [], []
         for _ in range(args.repeats):  # interleaved so that load from other users hits both alike
             ours_runs.append(scope3d_solve(problem)[0])
             ceres_runs.append(ceres_solve(problem, args.ceres_threads))
+            ours1_runs.append(scope3d_solve(problem, 1)[0])
+            ceres1_runs.append(ceres_solve(problem, 1))
         ours = min(ours_runs, key=lambda r: r["time_s"])
         ceres = min(ceres_runs, key=lambda r: r["time_s"])
+        ours1 = min(ours1_runs, key=lambda r: r["time_s"])
+        ceres1 = min(ceres1_runs, key=lambda r: r["time_s"])
         entry = {"num_observations": problem.num_observations, "scope3d": ours, "ceres": ceres,
+                 "scope3d_1_thread": {k: v for k, v in ours1.items() if k != "history"},
+                 "ceres_1_thread": ceres1,
                  "scope3d_times_s": [r["time_s"] for r in ours_runs],
-                 "ceres_times_s": [r["time_s"] for r in ceres_runs]}
+                 "ceres_times_s": [r["time_s"] for r in ceres_runs],
+                 "scope3d_1_thread_times_s": [r["time_s"] for r in ours1_runs],
+                 "ceres_1_thread_times_s": [r["time_s"] for r in ceres1_runs],
+                 "time_ratio_1_thread_scope3d_over_ceres": ours1["time_s"] / ceres1["time_s"]}
         entry["cost_ratio_scope3d_over_ceres_reported"] = ours["final_cost"] / ceres["final_cost_reported"]
         entry["cost_ratio_scope3d_over_ceres_bal"] = ours["final_bal_cost"] / ceres["final_bal_cost"]
         entry["time_ratio_scope3d_over_ceres"] = ours["time_s"] / ceres["time_s"]
         out["runs"][label] = entry
-        rows.append((label, "scope3d", ours["time_s"], ours["iterations"], ours["final_cost"], ours["final_bal_cost"]))
-        rows.append((label, "ceres", ceres["time_s"], ceres["iterations"], ceres["final_cost_reported"],
-                     ceres["final_bal_cost"]))
+        rows.append((label, f"scope3d ({ours['threads']} threads)", ours["time_s"], ours["iterations"],
+                     ours["final_cost"], ours["final_bal_cost"]))
+        rows.append((label, f"ceres ({ceres['num_threads']} threads)", ceres["time_s"], ceres["iterations"],
+                     ceres["final_cost_reported"], ceres["final_bal_cost"]))
+        rows.append((label, "scope3d (1 thread)", ours1["time_s"], ours1["iterations"], ours1["final_cost"],
+                     ours1["final_bal_cost"]))
+        rows.append((label, "ceres (1 thread)", ceres1["time_s"], ceres1["iterations"], ceres1["final_cost_reported"],
+                     ceres1["final_bal_cost"]))
 
     sp = scipy_solve(bal, args.scipy_max_nfev)
     out["runs"]["ladybug"]["scipy"] = {k: v for k, v in sp.items() if k != "history"}
@@ -294,11 +309,12 @@ def main() -> int:
          RESULTS / "bundle_bal_convergence.png")
     (RESULTS / "bundle_bal.json").write_text(json.dumps(out, indent=2, default=str))
 
-    print(f"{'problem':14s} {'solver':22s} {'time [s]':>9s} {'iters':>6s} {'final cost':>13s} {'BAL cost':>13s}")
+    print(f"{'problem':14s} {'solver':24s} {'time [s]':>9s} {'iters':>6s} {'final cost':>13s} {'BAL cost':>13s}")
     for label, name, t, it, cost, bal_cost in rows:
-        print(f"{label:14s} {name:22s} {t:9.3f} {it:6d} {cost:13.6e} {bal_cost:13.6e}")
+        print(f"{label:14s} {name:24s} {t:9.3f} {it:6d} {cost:13.6e} {bal_cost:13.6e}")
     for label, entry in out["runs"].items():
-        print(f"{label}: time scope3d/Ceres {entry['time_ratio_scope3d_over_ceres']:.2f}, cost scope3d/Ceres "
+        print(f"{label}: time scope3d/Ceres {entry['time_ratio_scope3d_over_ceres']:.2f} (1 thread each: "
+              f"{entry['time_ratio_1_thread_scope3d_over_ceres']:.2f}), cost scope3d/Ceres "
               f"{entry['cost_ratio_scope3d_over_ceres_reported']:.5f} (Ceres's own cost), "
               f"{entry['cost_ratio_scope3d_over_ceres_bal']:.5f} (BAL cost)")
     print(f"scipy/scope3d time {out['runs']['ladybug']['time_ratio_scipy_over_scope3d']:.1f}x"

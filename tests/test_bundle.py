@@ -382,3 +382,15 @@ def test_from_measured_poses_bounds_are_measured_plus_minus_tolerance():
     x.pose[:, 1] = 0.01
     rot = problem.camera_state(x.pose)[0]
     np.testing.assert_allclose(rot[0], rotvec_to_matrix([0, 0.01, 0]) @ scene.rotations[0], atol=1e-15)
+
+
+def test_parallel_schur_assembly_matches_serial():
+    scene = make_scene(12, 4000, seed=20, pixel_noise_px=0.5)
+    problem = scene_problem(scene)
+    problem.initial = perturbed(problem, 21)
+    problem.fix("pose", [0])
+    serial = solve(problem, SolverOptions(max_iterations=4, num_threads=1))
+    parallel = solve(problem, SolverOptions(max_iterations=4, num_threads=2))
+    assert serial.threads == 1 and parallel.threads == 2
+    assert parallel.final_cost == pytest.approx(serial.final_cost, rel=1e-10)
+    np.testing.assert_allclose(parallel.points_world, serial.points_world, rtol=0, atol=1e-9)
