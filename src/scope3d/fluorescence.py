@@ -31,7 +31,8 @@ class FluorescenceOptions:
         (default) = Otsu's threshold on the pooled histogram of all frames, floored at ``min_threshold``
         (a frame with no target would otherwise split its own noise in two).
     min_threshold : int, floor of the automatic threshold (default 40).
-    open_px, close_px : int, radius (px) of the opening and closing disc in each frame (default 2, 3).
+    open_px, close_px : int, radius (px) of the opening and closing disc in each frame (default 1, 3;
+        a wider opening rounds off sharp corners: a 36 deg star tip loses r / sin 18 deg = 3.2 r px).
     min_vote : float, fraction of the views seeing a vertex that must call it fluorescent (default 0.5).
     min_area_mm2 : float, smaller components on the surface are noise (default 0.5 mm²).
     star_solidity : float, a target whose area / convex-hull area is below this is a star (default
@@ -45,7 +46,7 @@ class FluorescenceOptions:
 
     threshold: int | None = None
     min_threshold: int = 40
-    open_px: int = 2
+    open_px: int = 1
     close_px: int = 3
     min_vote: float = 0.5
     min_area_mm2: float = 0.5
@@ -98,8 +99,7 @@ class Target:
         uv = np.stack([self.outline_mm @ u, self.outline_mm @ v], axis=1)
         d = 0.5 * self.cell_mm
         if self.shape == "star":
-            r = np.linalg.norm(uv - uv.mean(axis=0), axis=1)
-            tips = uv[0::2] if r[0::2].mean() > r[1::2].mean() else uv[1::2]
+            tips = uv[0::2]
             return float(np.linalg.norm(np.roll(tips, -2, axis=0) - tips, axis=1).mean())
         if self.shape in ("triangle", "square"):
             edges = np.linalg.norm(np.roll(uv, -1, axis=0) - uv, axis=1)
@@ -233,8 +233,8 @@ def _shape_and_size(surface: Surface, sel: np.ndarray, area: float, options: Flu
 
     star: area / convex-hull area below ``star_solidity``; size = mean *stroke* of the pentagram, tip to
     the tip two along (the 10-corner outline's outer corners), the phantom's and reference's "edge".
-    triangle / square: a 3- or 4-corner polygon explains >= 93 % of the outline's area; size = mean
-    edge. disc: otherwise; size = diameter from the area, 2 sqrt(A / pi).
+    triangle / square: a 3- or 4-corner polygon explains >= 88 / 90 % of the outline's area; size =
+    mean edge. disc: otherwise; size = diameter from the area, 2 sqrt(A / pi).
     """
     m8 = sel.astype(np.uint8)
     contours, _ = cv2.findContours(m8, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
@@ -245,16 +245,34 @@ def _shape_and_size(surface: Surface, sel: np.ndarray, area: float, options: Flu
     # pixel count ~ polygon area through pixel centres + half its perimeter: compare like with like
     solidity = float(m8.sum()) / max(cv2.contourArea(hull) + 0.5 * cv2.arcLength(hull, True) + 1.0, 1.0)
     if solidity < options.star_solidity and len(contour) >= 4 * options.star_points:
-        poly = _star_polygon(contour, 2 * options.star_points)
-        outline = _grid_to_world(surface, poly[:, ::-1].astype(float))
-        centre = outline.mean(axis=0)
-        r = np.linalg.norm(outline - centre, axis=1)
-        tips = outline[0::2] if r[0::2].mean() > r[1::2].mean() else outline[1::2]
+        poly = _star_polygon(contour, 2 * options.star_points).astype(float)
+        # approxPolyDP cuts the sharp tips; replace each tip corner by the contour point farthest from
+        # the centre within its sector, pushed out by half a cell (the contour runs through cell centres)
+        centre2 = contour.mean(axis=0)
+        rad = np.linalg.norm(poly - centre2, axis=1)
+        tip_idx = np.arange(0 if rad[0::2].mean() > rad[1::2].mean() else 1, len(poly), 2)
+        ang_c = np.arctan2(contour[:, 1] - centre2[1], contour[:, 0] - centre2[0])
+        r_c = np.linalg.norm(contour - centre2, axis=1)
+        half_sector = np.pi / (2 * options.star_points)
+        for k in tip_idx:
+            a = np.arctan2(poly[k, 1] - centre2[1], poly[k, 0] - centre2[0])
+            near = np.abs(np.angle(np.exp(1j * (ang_c - a)))) < half_sector
+            if near.any():
+                far = np.flatnonzero(near)[np.argmax(r_c[near])]
+                direction = (contour[far] - centre2) / max(r_c[far], 1e-9)
+                poly[k] = contour[far] + 0.5 * direction
+        outline = _grid_to_world(surface, poly[:, ::-1])
+        tips = outline[tip_idx]
         strokes = np.linalg.norm(np.roll(tips, -2, axis=0) - tips, axis=1)
+        # keep tips first-of-pair so that outline[0::2] are the tips for size_in_plane_mm
+        if tip_idx[0] == 1:
+            outline = np.roll(outline, -1, axis=0)
         return "star", float(strokes.mean()), outline
-    for n, name in ((3, "triangle"), (4, "square")):
+    # a 3-corner polygon covering >= 88 % of the outline is a triangle (rounded corners lose a few %);
+    # a disc's best inscribed square covers 64 %, its triangle 41 %
+    for n, name, min_ratio in ((3, "triangle", 0.88), (4, "square", 0.9)):
         poly, ratio = _polygon_with(contour, n)
-        if len(poly) == n and 0.93 <= ratio <= 1.07:
+        if len(poly) == n and min_ratio <= ratio <= 1.1:
             outline = _grid_to_world(surface, poly[:, ::-1].astype(float))
             edges = np.linalg.norm(np.roll(outline, -1, axis=0) - outline, axis=1)
             # the outline runs through the centres of the boundary cells, half a cell (d) inside the true

@@ -44,10 +44,15 @@ class DepthPrior:
 
     near_mm, far_mm : float, 0 < near <= far. The overlap and the matcher's prediction use the
     geometric mean as the "expected" depth (the depth of the plane in the homography case).
+    per_ray : optional callable ``per_ray(pose, rays_cam) -> (near (N,), far (N,))`` giving a tighter
+        z-depth range (mm) for each ray ``rays_cam`` (N, 3) (camera frame, z = 1) of a frame at
+        ``pose`` — e.g. the band around a coarse surface already reconstructed; NaN where it knows
+        nothing (the global range is used there). Ranges are clipped to [near_mm, far_mm].
     """
 
     near_mm: float
     far_mm: float
+    per_ray: object = field(default=None, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.near_mm) and np.isfinite(self.far_mm)) or not 0 < self.near_mm <= self.far_mm:
@@ -70,7 +75,8 @@ class MatchOptions:
     min_matches : int, pairs with fewer verified matches are dropped (default 15; 8 would fit F but
         a pair that weak contributes little and is often wrong).
     base_radius_px : float, guided matcher: the window radius with exact poses — the keypoint
-        localisation error plus the unmodelled distortion of the camera model (default 12 px).
+        localisation error (~1 px), the shift of a keypoint between views under perspective (~1-2 px)
+        and the unmodelled distortion of the camera model (default 4 px).
     max_radius_px : float, guided matcher: cap on the window radius (default 250 px). With tolerances
         so large that the window would exceed it, the prediction carries no information and the
         pair is matched exhaustively instead.
@@ -82,7 +88,7 @@ class MatchOptions:
     ransac_threshold_px: float = 1.5
     ransac_confidence: float = 0.999
     min_matches: int = 15
-    base_radius_px: float = 12.0
+    base_radius_px: float = 4.0
     max_radius_px: float = 250.0
     mutual: bool = True
 
@@ -221,15 +227,23 @@ def predict_segments(
 
     keypoints_i : (N, 2) pixels in frame i. Returns the two ends of each feature's epipolar segment in
     frame j, ``near_px`` and ``far_px``, (N, 2) each: the projections of the feature's ray at z-depths
-    ``depth.near_mm`` and ``depth.far_mm`` (camera i). Ends behind camera j are NaN. With
+    ``depth.near_mm`` and ``depth.far_mm`` (camera i), or the per-ray range of ``depth.per_ray``. Ends
+    behind camera j are NaN. With
     ``near == far`` both ends are the plane-induced homography's prediction ``H = K (R - t n^T / d) K^-1``
     (distortion included).
     """
     kp = np.asarray(keypoints_i, dtype=float).reshape(-1, 2)
+    rays = camera.unproject(kp, np.ones(len(kp)))
+    near = np.full(len(kp), depth.near_mm)
+    far = np.full(len(kp), depth.far_mm)
+    if depth.per_ray is not None:
+        lo, hi = depth.per_ray(pose_i, rays)
+        known = np.isfinite(lo) & np.isfinite(hi)
+        near[known] = np.clip(lo[known], depth.near_mm, depth.far_mm)
+        far[known] = np.clip(hi[known], depth.near_mm, depth.far_mm)
     ends = []
-    for z in (depth.near_mm, depth.far_mm):
-        x_cam_i = camera.unproject(kp, np.full(len(kp), z))
-        x_world = (x_cam_i - pose_i.translation) @ pose_i.rotation
+    for z in (near, far):
+        x_world = (rays * z[:, None] - pose_i.translation) @ pose_i.rotation
         ends.append(camera.project_world(pose_j, x_world))
     return ends[0], ends[1]
 
@@ -356,79 +370,154 @@ def match_guided(
     *,
     i: int = 0,
     j: int = 1,
-    tree_j: cKDTree | None = None,
 ) -> PairMatches:
-    """Pose-guided matching with feature position prediction (reference sec. 4.3.1, 4.4.4).
+    """Pose-guided matching of one pair with feature position prediction (reference sec. 4.3.1, 4.4.4).
 
     Each feature of frame i is predicted in frame j as the epipolar segment of its ray over the depth
-    prior (:func:`predict_segments`); candidates are the features of j within
-    :func:`window_radius_px` of that segment, found with a KD-tree on j's keypoints (pass ``tree_j`` to
-    reuse one across pairs). The ratio test runs among those candidates only; then RANSAC.
-    Falls back to :func:`match_exhaustive` when the window is larger than ``options.max_radius_px``.
+    prior (:func:`predict_segments`); candidates are the features of j within :func:`window_radius_px`
+    of that segment. The ratio test runs among those candidates only; then RANSAC. Falls back to
+    :func:`match_exhaustive` when the window is larger than ``options.max_radius_px``.
+    See :func:`match_guided_many`, which does the same for many pairs at once (faster).
     """
-    radius = window_radius_px(camera, measured_i.tolerance, measured_j.tolerance, depth, options.base_radius_px)
-    if radius > options.max_radius_px:
-        out = match_exhaustive(camera, features_i, features_j, options, i=i, j=j)
-        out.method = "guided->exhaustive"
-        return out
+    return match_guided_many(camera, [features_i, features_j], [measured_i, measured_j], [(0, 1, 1.0)], depth,
+                             options, frame_ids=[i, j])[0]
+
+
+def match_guided_many(
+    camera: Camera,
+    features: list[Features],
+    poses: list[MeasuredPose],
+    pairs: list[tuple[int, int, float]],
+    depth: DepthPrior,
+    options: MatchOptions = MatchOptions(),
+    *,
+    frame_ids: list[int] | None = None,
+    progress=None,
+) -> list[PairMatches]:
+    """Guided matching of all ``pairs`` in one vectorised pass.
+
+    Every pair's segments are sampled every 2 ``radius`` px; for each frame j, the samples of all pairs
+    into j go into one KD-tree and a single fixed-radius tree-against-tree search against j's keypoints
+    (sqrt(2) radius covers every point within ``radius`` of a segment) finds their candidates. Descriptor distances, the ratio test among each feature's
+    candidates and the mutual check are then single array operations; only RANSAC loops over pairs.
+    Batching matters because a pair has only ~10^4 candidates: per-pair array overheads would cost more
+    than the descriptor arithmetic itself.
+
+    frame_ids : optional frame numbers to put in the results (default: indices into ``features``).
+    Returns one :class:`PairMatches` per pair, in order; ``time_s`` is the pair's share of the batch.
+    """
     t0 = time.perf_counter()
+    ids = list(range(len(features))) if frame_ids is None else list(frame_ids)
     empty = np.zeros(0, np.int64)
-    if len(features_i) < 2 or len(features_j) < 2:
-        return PairMatches(i, j, empty, empty, time_s=time.perf_counter() - t0)
-    p0, p1 = predict_segments(camera, measured_i.pose, measured_j.pose, features_i.keypoints, depth)
-    valid = np.all(np.isfinite(p0), axis=1) & np.all(np.isfinite(p1), axis=1)
-    mid = 0.5 * (p0 + p1)
-    half = 0.5 * np.linalg.norm(p1 - p0, axis=1)
-    # a segment that spans most of the image carries no information: drop the feature rather than
-    # searching everywhere (it would only add look-alike candidates)
-    valid &= half < options.max_radius_px
-    # and the feature must be predicted somewhere near frame j's image
-    margin = radius + half
-    valid &= (mid[:, 0] > -margin) & (mid[:, 0] < camera.width + margin)
-    valid &= (mid[:, 1] > -margin) & (mid[:, 1] < camera.height + margin)
-    idx_valid = np.flatnonzero(valid)
-    if len(idx_valid) == 0:
-        return PairMatches(i, j, empty, empty, time_s=time.perf_counter() - t0)
-    # Candidates near each segment: sample the segment every ``radius`` px; one fixed-radius
-    # tree-against-tree search (vectorised output) finds the keypoints of j within 1.12 radius of a
-    # sample, which covers every point within ``radius`` of the segment (sqrt(1 + 0.5^2) < 1.12).
-    n_samples = np.ceil(2.0 * half[idx_valid] / radius).astype(np.int64) + 1
-    owner = np.repeat(idx_valid, n_samples)
-    first = np.repeat(np.cumsum(n_samples) - n_samples, n_samples)
-    sample_k = np.arange(len(owner)) - first
-    last = np.repeat(n_samples - 1, n_samples)
-    frac = sample_k / np.maximum(last, 1)
-    samples = p0[owner] + frac[:, None] * (p1[owner] - p0[owner])
-    tree = tree_j if tree_j is not None else cKDTree(features_j.keypoints)
-    hits = cKDTree(samples).sparse_distance_matrix(tree, 1.12 * radius, output_type="ndarray")
-    if len(hits) == 0:
-        return PairMatches(i, j, empty, empty, time_s=time.perf_counter() - t0)
-    hits = hits[np.argsort(hits["i"], kind="stable")]  # group by sample, hence by feature of i
-    si, b = hits["i"].astype(np.int64), hits["j"].astype(np.int64)
-    a = owner[si]
-    # exact test against the segment, and de-duplication: a keypoint near several samples of one
-    # segment is kept only from the sample nearest to its foot on the segment
-    q = features_j.keypoints[b]
-    s0, s1 = p0[a], p1[a]
-    seg = s1 - s0
-    seg_len2 = np.maximum(np.einsum("ij,ij->i", seg, seg), 1e-12)
-    tpar = np.clip(np.einsum("ij,ij->i", q - s0, seg) / seg_len2, 0.0, 1.0)
-    foot = s0 + tpar[:, None] * seg
-    dist2 = np.einsum("ij,ij->i", q - foot, q - foot)
-    inside = (dist2 <= radius * radius) & (np.rint(tpar * last[si]).astype(np.int64) == sample_k[si])
-    a, b = a[inside], b[inside]
-    n_candidates = len(a)
-    d2 = _pair_d2(features_i.descriptors, features_j.descriptors, a, b)
-    a_m, b_m, d_m = _ratio_select_grouped(a, b, d2, options.ratio)
-    n_putative = len(a_m)
-    if options.mutual and len(a_m):
-        keep = _keep_mutual(a_m, b_m, d_m)
-        a_m, b_m = a_m[keep], b_m[keep]
-    inl = _verify(camera, features_i.keypoints, features_j.keypoints, a_m, b_m, options)
-    a_m, b_m = a_m[inl], b_m[inl]
-    if len(a_m) < options.min_matches:
-        a_m, b_m = a_m[:0], b_m[:0]
-    return PairMatches(i, j, a_m, b_m, n_putative, n_candidates, time.perf_counter() - t0, "guided")
+    results: list[PairMatches | None] = [None] * len(pairs)
+    offsets = np.concatenate([[0], np.cumsum([len(f) for f in features])]).astype(np.int64)
+    seg = {"a": [], "p0": [], "p1": [], "pair": [], "frame_j": [], "radius": []}
+    radii = np.zeros(len(pairs))
+    for k, (i, j, _) in enumerate(pairs):  # per-pair loop: prediction only
+        radius = window_radius_px(camera, poses[i].tolerance, poses[j].tolerance, depth, options.base_radius_px)
+        radii[k] = radius
+        if radius > options.max_radius_px:
+            results[k] = match_exhaustive(camera, features[i], features[j], options, i=ids[i], j=ids[j])
+            results[k].method = "guided->exhaustive"
+            continue
+        if len(features[i]) < 2 or len(features[j]) < 2:
+            results[k] = PairMatches(ids[i], ids[j], empty, empty)
+            continue
+        p0, p1 = predict_segments(camera, poses[i].pose, poses[j].pose, features[i].keypoints, depth)
+        half = 0.5 * np.linalg.norm(p1 - p0, axis=1)
+        mid = 0.5 * (p0 + p1)
+        m = radius + half
+        # a segment spanning most of the image carries no information (it would only add look-alike
+        # candidates); and the feature must be predicted near frame j's image at all
+        valid = np.isfinite(half) & (half < options.max_radius_px)
+        valid &= (mid[:, 0] > -m) & (mid[:, 0] < camera.width + m) & (mid[:, 1] > -m) & (mid[:, 1] < camera.height + m)
+        a = np.flatnonzero(valid)
+        seg["a"].append(a)
+        seg["p0"].append(p0[a])
+        seg["p1"].append(p1[a])
+        seg["pair"].append(np.full(len(a), k))
+        seg["frame_j"].append(np.full(len(a), j))
+        seg["radius"].append(np.full(len(a), radius))
+    todo = [k for k in range(len(pairs)) if results[k] is None]
+    if todo and sum(len(a) for a in seg["a"]):
+        a_loc = np.concatenate(seg["a"]).astype(np.int64)
+        p0 = np.concatenate(seg["p0"])
+        p1 = np.concatenate(seg["p1"])
+        pair_of = np.concatenate(seg["pair"]).astype(np.int64)
+        frame_j = np.concatenate(seg["frame_j"]).astype(np.int64)
+        rad = np.concatenate(seg["radius"])
+        r_max = float(rad.max())
+        # samples along every segment, spaced 2 radius apart: every point within ``radius`` of the
+        # segment is within sqrt(2) radius of its nearest sample
+        n_samples = np.ceil(np.linalg.norm(p1 - p0, axis=1) / (2.0 * rad)).astype(np.int64) + 1
+        owner = np.repeat(np.arange(len(a_loc)), n_samples)
+        first = np.repeat(np.cumsum(n_samples) - n_samples, n_samples)
+        sample_k = np.arange(len(owner)) - first
+        last = np.repeat(n_samples - 1, n_samples)
+        frac = (sample_k / np.maximum(last, 1))[:, None]
+        samples = p0[owner] + frac * (p1[owner] - p0[owner])
+        kp_all = np.concatenate([f.keypoints for f in features])
+        sample_frame = frame_j[owner]
+        order_s = np.argsort(sample_frame, kind="stable")
+        frame_bounds = np.searchsorted(sample_frame[order_s], np.arange(len(features) + 1))
+        si_parts, b_parts = [], []
+        for fj in np.flatnonzero(np.diff(frame_bounds)):  # per-frame loop: one tree search per frame j
+            sel = order_s[frame_bounds[fj]:frame_bounds[fj + 1]]
+            if len(features[fj]) == 0:
+                continue
+            hits = cKDTree(samples[sel]).sparse_distance_matrix(
+                cKDTree(features[fj].keypoints), np.sqrt(2.0) * r_max * 1.0001, output_type="ndarray")
+            si_parts.append(sel[hits["i"]])
+            b_parts.append(offsets[fj] + hits["j"].astype(np.int64))
+        si = np.concatenate(si_parts) if si_parts else np.zeros(0, np.int64)
+        b_glob = np.concatenate(b_parts) if b_parts else np.zeros(0, np.int64)
+        order_h = np.argsort(si, kind="stable")  # grouped by sample, hence by segment
+        si, b_glob = si[order_h], b_glob[order_h]
+        sg = owner[si]
+        # exact distance to the segment, within the pair's own radius; de-duplication: a keypoint near
+        # several samples of one segment is kept from the sample nearest to its foot on the segment
+        q = kp_all[b_glob]
+        s0, d = p0[sg], p1[sg] - p0[sg]
+        tpar = np.clip(np.einsum("ij,ij->i", q - s0, d) / np.maximum(np.einsum("ij,ij->i", d, d), 1e-12), 0.0, 1.0)
+        off = q - s0 - tpar[:, None] * d
+        keep = np.einsum("ij,ij->i", off, off) <= rad[sg] ** 2
+        keep &= np.rint(tpar * last[si]).astype(np.int64) == sample_k[si]
+        sg, b_glob = sg[keep], b_glob[keep]
+        pair_c = pair_of[sg]
+        i_frames = np.array([pairs[k][0] for k in range(len(pairs))], np.int64)
+        a_glob = offsets[i_frames[pair_c]] + a_loc[sg]
+        desc_all = np.concatenate([f.descriptors for f in features])
+        d2 = _pair_d2(desc_all, desc_all, a_glob, b_glob)
+        n_cand = np.bincount(pair_c, minlength=len(pairs))
+        # ratio test among each segment's candidates (sg is sorted: candidates grouped by segment)
+        g_seg, g_b, g_d2 = _ratio_select_grouped(sg, b_glob, d2, options.ratio)
+        n_put = np.bincount(pair_of[g_seg], minlength=len(pairs))
+        g_pair = pair_of[g_seg]
+        if options.mutual and len(g_seg):
+            keep = _keep_mutual(g_seg, g_pair * len(kp_all) + g_b, g_d2)
+            g_seg, g_b, g_pair = g_seg[keep], g_b[keep], g_pair[keep]
+        order = np.argsort(g_pair, kind="stable")
+        g_seg, g_b, g_pair = g_seg[order], g_b[order], g_pair[order]
+        bounds = np.searchsorted(g_pair, np.arange(len(pairs) + 1))
+        t_share = (time.perf_counter() - t0) / max(len(todo), 1)
+        for k in todo:  # per-pair loop: RANSAC
+            t1 = time.perf_counter()
+            i, j, _ = pairs[k]
+            sl = slice(bounds[k], bounds[k + 1])
+            a = a_loc[g_seg[sl]]
+            b = g_b[sl] - offsets[j]
+            inl = _verify(camera, features[i].keypoints, features[j].keypoints, a, b, options)
+            a, b = a[inl], b[inl]
+            if len(a) < options.min_matches:
+                a, b = a[:0], b[:0]
+            results[k] = PairMatches(ids[i], ids[j], a, b, int(n_put[k]), int(n_cand[k]),
+                                     t_share + time.perf_counter() - t1, "guided")
+            if progress is not None:
+                progress(1)
+    for k in range(len(pairs)):
+        if results[k] is None:
+            results[k] = PairMatches(ids[pairs[k][0]], ids[pairs[k][1]], empty, empty, time_s=0.0)
+    return results
 
 
 def match_pairs(
@@ -442,24 +531,19 @@ def match_pairs(
     method: str = "guided",
     progress=None,
 ) -> list[PairMatches]:
-    """Match every listed pair with the guided or exhaustive matcher. KD-trees are built once per frame.
+    """Match every listed pair with the guided (:func:`match_guided_many`) or exhaustive matcher.
 
     progress : optional callable ``progress(n_done)`` called after each pair (e.g. ``tqdm.update``).
     """
     if method not in ("guided", "exhaustive"):
         raise ValueError(f"method must be 'guided' or 'exhaustive', got {method!r}")
-    if method == "guided" and depth is None:
-        raise ValueError("the guided matcher needs a depth prior")
-    trees: dict[int, cKDTree] = {}
+    if method == "guided":
+        if depth is None:
+            raise ValueError("the guided matcher needs a depth prior")
+        return match_guided_many(camera, features, poses, pairs, depth, options, progress=progress)
     out = []
     for i, j, _ in pairs:
-        if method == "guided":
-            if j not in trees:
-                trees[j] = cKDTree(features[j].keypoints) if len(features[j]) else None
-            m = match_guided(camera, features[i], features[j], poses[i], poses[j], depth, options, i=i, j=j, tree_j=trees[j])
-        else:
-            m = match_exhaustive(camera, features[i], features[j], options, i=i, j=j)
-        out.append(m)
+        out.append(match_exhaustive(camera, features[i], features[j], options, i=i, j=j))
         if progress is not None:
             progress(1)
     return out
@@ -472,7 +556,7 @@ def estimate_depth_prior(
     options: MatchOptions = MatchOptions(),
     *,
     percentiles: tuple[float, float] = (2.0, 98.0),
-    margin: float = 0.25,
+    margin: float = 0.1,
     n_pairs: int = 3,
 ) -> DepthPrior:
     """Depth prior from the data: match the ``n_pairs`` closest frame pairs exhaustively, triangulate

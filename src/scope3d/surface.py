@@ -115,6 +115,44 @@ class Surface:
         ht = np.gradient(self.height, self.step_mm, axis=0)
         return self.step_mm**2 * np.sqrt(1.0 + hs * hs + ht * ht)
 
+    def height_at(self, st: np.ndarray) -> np.ndarray:
+        """(N, 2) plane coordinates (s, t) mm -> (N,) height (mm) by bilinear interpolation; NaN
+        outside the surveyed region."""
+        from scipy.ndimage import map_coordinates
+
+        st = np.asarray(st, float)
+        col = (st[:, 0] - self.s[0]) / self.step_mm
+        row = (st[:, 1] - self.t[0]) / self.step_mm
+        return map_coordinates(self.height, [row, col], order=1, mode="constant", cval=np.nan)
+
+    def ray_depths(self, pose: Pose, rays_cam: np.ndarray, *, iterations: int = 6) -> np.ndarray:
+        """z-depth (mm, camera frame) at which each ray meets the surface; NaN where it misses.
+
+        rays_cam : (N, 3) camera-frame directions with z = 1 (so the ray parameter is the z-depth).
+        Fixed-point iteration on the height field (converges while the surface's slope times the ray's
+        obliquity stays below 1, true for a scope looking down into a cavity)."""
+        d = np.asarray(rays_cam, float) @ pose.rotation  # world direction per unit z-depth
+        c = self.to_plane(pose.centre[None])[0]
+        dp = d @ self.axes.T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = (np.nanmedian(self.height) - c[2]) / dp[:, 2]
+            for _ in range(iterations):
+                h = self.height_at(c[:2] + z[:, None] * dp[:, :2])
+                z = (h - c[2]) / dp[:, 2]
+        z[~(z > 0)] = np.nan
+        return z
+
+    def depth_band(self, band_mm: float):
+        """A per-ray depth prior for :class:`scope3d.matching.DepthPrior`: the z-depths at which each
+        ray crosses the surface shifted by ± ``band_mm`` along its normal."""
+        def per_ray(pose: Pose, rays_cam: np.ndarray):
+            z = self.ray_depths(pose, rays_cam)
+            d = np.asarray(rays_cam, float) @ pose.rotation
+            # moving the surface by band along n changes the ray's z-depth by band / |d . n|
+            dz = band_mm / np.maximum(np.abs(d @ self.axes[2]), 1e-3)
+            return z - dz, z + dz
+        return per_ray
+
     def refined(self, rows: slice, cols: slice, factor: int) -> "Surface":
         """The part ``[rows, cols]`` of the grid resampled ``factor`` times finer (bicubic on the
         height; cells next to missing heights stay missing). For measuring small targets."""

@@ -98,6 +98,10 @@ class MapOptions:
         around an object, like Middlebury's temple, is not a height field and turns them off).
     figures : bool, write PNG figures (default True).
     threads : int, threads for per-frame feature detection (default 2, the machine's cores).
+    surface_prior : bool, two-pass guided matching with a coarse-surface depth band (default True;
+        needs a scene that is a height field seen from one side, false for a ring around an object).
+    surface_band_mm : float, added to the band around the coarse surface for the detail it smooths
+        away (default 0.5 mm).
     """
 
     pose_mode: str = "bounded"
@@ -115,6 +119,8 @@ class MapOptions:
     fluorescence: bool = True
     figures: bool = True
     threads: int = 2
+    surface_prior: bool = True
+    surface_band_mm: float = 0.5
 
     def __post_init__(self) -> None:
         if self.pose_mode not in POSE_MODES:
@@ -130,7 +136,7 @@ class MapOptions:
 MAP_PRESETS: dict[str, MapOptions] = {
     "default": MapOptions(),
     "dim_endoscope": MapOptions(features=FEATURE_PRESETS["dim_endoscope"]),
-    "photograph": MapOptions(features=FEATURE_PRESETS["photograph"], surface=False, fluorescence=False,
+    "photograph": MapOptions(features=FEATURE_PRESETS["photograph"], surface=False, fluorescence=False, surface_prior=False,
                              pairs=PairOptions(min_overlap=0.2, max_pairs_per_frame=6)),
 }
 
@@ -226,21 +232,79 @@ def detect_features(options: MapOptions, dataset: Dataset, frames: list[np.ndarr
 
 
 def match_frames(options: MapOptions, dataset: Dataset, features: list[Features], *, progress=None) -> MatchingResult:
-    """Overlapping pairs from the poses and a depth prior, then guided (or exhaustive) matching."""
+    """Overlapping pairs from the poses and a depth prior, then guided (or exhaustive) matching.
+
+    With ``options.surface_prior`` the guided matcher runs in two passes: each frame's best
+    partner first, with the global depth range; a coarse thin-plate surface through those points
+    then narrows every other pair's depth range to a band around it (the reference predicted with a
+    single plane; a surface predicts a curved cavity as well), which shortens the epipolar segments
+    several times.
+    """
     t0 = time.perf_counter()
-    depth = options.depth_prior
-    if depth is None:
-        depth = estimate_depth_prior(dataset.camera, features, dataset.poses, options.matching)
+    # the depth prior also places the frusta for pair selection, so both matchers see the same pairs
+    depth = options.depth_prior or estimate_depth_prior(dataset.camera, features, dataset.poses, options.matching)
     t_depth = time.perf_counter() - t0
-    pairs = select_pairs(dataset.camera, [m.pose for m in dataset.poses], depth, _pair_options(options, dataset, depth))
-    matches = match_pairs(dataset.camera, features, dataset.poses, pairs, depth, options.matching,
-                          method=options.matcher, progress=progress)
-    return MatchingResult(pairs, matches, depth, time.perf_counter() - t0, t_depth)
+    pairs = select_pairs(dataset.camera, [m.pose for m in dataset.poses], depth, options.pairs)
+    if options.matcher == "exhaustive" or not options.surface_prior or len(pairs) < 4:
+        matches = match_pairs(dataset.camera, features, dataset.poses, pairs, depth, options.matching,
+                              method=options.matcher, progress=progress)
+        return MatchingResult(pairs, matches, depth, time.perf_counter() - t0, t_depth)
+    first = _first_neighbour_pairs(pairs, len(dataset), per_frame=1)
+    rest = [k for k in range(len(pairs)) if k not in set(first)]
+    m1 = match_pairs(dataset.camera, features, dataset.poses, [pairs[k] for k in first], depth, options.matching,
+                     progress=progress)
+    depth2 = _surface_depth_prior(options, dataset, features, m1, depth)
+    m2 = match_pairs(dataset.camera, features, dataset.poses, [pairs[k] for k in rest], depth2 or depth,
+                     options.matching, progress=progress)
+    matches: list = [None] * len(pairs)
+    for k, m in zip(first, m1):
+        matches[k] = m
+    for k, m in zip(rest, m2):
+        matches[k] = m
+    return MatchingResult(pairs, matches, depth2 or depth, time.perf_counter() - t0, t_depth)
 
 
-def _pair_options(options: MapOptions, dataset: Dataset, depth: DepthPrior) -> PairOptions:
-    """Widen the overlap test when poses are loose: a frame that may be ``dp`` mm off still overlaps."""
-    return options.pairs
+def _first_neighbour_pairs(pairs: list, n_frames: int, per_frame: int) -> list[int]:
+    """Indices of each frame's ``per_frame`` best-scored pairs (pairs come sorted best first)."""
+    count = np.zeros(n_frames, int)
+    chosen = []
+    for k, (i, j, _) in enumerate(pairs):
+        if count[i] < per_frame or count[j] < per_frame:
+            chosen.append(k)
+            count[i] += 1
+            count[j] += 1
+    return chosen
+
+
+def _surface_depth_prior(options: MapOptions, dataset: Dataset, features, matches, depth: DepthPrior) -> DepthPrior | None:
+    """A per-ray depth band around a coarse surface through the first-pass matches (None if too few)."""
+    camera = dataset.camera
+    tracks = build_tracks(features, matches)
+    if tracks.n_tracks < 50:
+        return None
+    slack = max(_pose_error_px(camera, m.tolerance, depth) for m in dataset.poses)
+    gate = replace(options.tracks, max_reprojection_error_px=options.tracks.max_reprojection_error_px + min(slack, 200.0))
+    tracks = triangulate_tracks(camera, [m.pose for m in dataset.poses], tracks, gate)
+    if tracks.n_tracks < 50:
+        return None
+    coarse = SurfaceOptions(grid_step_mm=max(4 * options.surface_options.grid_step_mm, 0.5),
+                            control_cell_mm=2 * options.surface_options.control_cell_mm, max_control_points=800,
+                            max_extrapolation_mm=3.0)
+    towards = -np.mean([m.pose.optical_axis for m in dataset.poses], axis=0)
+    try:
+        surface = fit_surface(tracks.points, coarse, towards=towards)
+    except ValueError:
+        return None
+    stn = surface.to_plane(tracks.points)
+    resid = stn[:, 2] - surface.height_at(stn[:, :2])
+    resid = resid[np.isfinite(resid)]
+    # band: the spread of the points about the coarse surface (robust, 4 sigma), what a measured pose
+    # may be off along the normal, and the shape detail the coarse fit smooths away
+    pos_tol = max(float(np.linalg.norm(m.tolerance.position_mm)) for m in dataset.poses)
+    band = 4.0 * 1.4826 * float(np.median(np.abs(resid - np.median(resid)))) + pos_tol + options.surface_band_mm
+    if not np.isfinite(band):
+        return None
+    return DepthPrior(depth.near_mm, depth.far_mm, per_ray=surface.depth_band(band))
 
 
 # --- 3. tracks, triangulation, bundle adjustment ------------------------------------------------
