@@ -9,9 +9,9 @@ from ..errors import InputError
 
 # Each module defines ``register(subparsers)`` which adds one or more sub-commands whose handler is
 # stored as ``func`` and returns an exit status.
-from . import commands_axial, commands_bundle, commands_dataset, commands_phantom
+from . import commands_axial, commands_bundle, commands_dataset, commands_phantom, commands_map
 
-COMMAND_MODULES = [commands_phantom, commands_dataset, commands_bundle, commands_axial]
+COMMAND_MODULES = [commands_phantom, commands_dataset, commands_bundle, commands_axial, commands_map]
 
 
 def build_parser() -> argparse.ArgumentParser:

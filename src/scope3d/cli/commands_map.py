@@ -1,0 +1,61 @@
+"""``scope3d map``: the metric, textured, multimodal map of a surgical field (see
+:mod:`scope3d.pipelines.surgical_map`). A thin layer: parse, load, call ``run``, print the summary."""
+from __future__ import annotations
+
+import sys
+
+from ..errors import InputError
+
+
+def register(subparsers) -> None:
+    from ..pipelines.surgical_map import MAP_PRESETS, MATCHERS, POSE_MODES
+
+    p = subparsers.add_parser(
+        "map",
+        help="map a surgical field: points, textured mesh, fluorescent targets, accuracy report",
+        description="Reconstruct a dataset folder into a metric 3D map: SIFT features, pose-guided matching, "
+                    "triangulation, bundle adjustment (poses fixed, free, or bounded by their tolerance), "
+                    "thin-plate-spline surface with texture and fluorescence, targets table, figures, "
+                    "COLMAP text model, and report.json (with errors against ground truth when present).",
+    )
+    p.add_argument("dataset", metavar="DATASET", help="dataset folder (see scope3d.dataset)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder (written atomically, replaced)")
+    p.add_argument("--pose-mode", choices=POSE_MODES, default="bounded",
+                   help="bundle adjustment: poses fixed, free (gauge fixed), or bounded by the pose tolerance "
+                        "(default bounded)")
+    p.add_argument("--matcher", choices=MATCHERS, default="guided",
+                   help="guided = feature position prediction from the poses (default); exhaustive = baseline")
+    p.add_argument("--preset", choices=sorted(MAP_PRESETS), default="default",
+                   help="option preset: default, dim_endoscope (CLAHE, lower SIFT threshold), photograph "
+                        "(calibrated photos around an object: no surface, no targets)")
+    p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from dataclasses import replace
+
+    from ..dataset import load_dataset
+    from ..pipelines.surgical_map import MAP_PRESETS, run as run_map
+
+    dataset = load_dataset(args.dataset)
+    options = replace(MAP_PRESETS[args.preset], pose_mode=args.pose_mode, matcher=args.matcher,
+                      figures=not args.no_figures)
+    progress = None
+    if not args.no_progress:
+        from tqdm import tqdm
+
+        def progress(total, desc):
+            return tqdm(total=total, desc=desc, unit="frame" if desc == "features" else "pair", leave=False,
+                        file=sys.stderr)
+    try:
+        result = run_map(options, dataset, args.out, progress=progress)
+    except ValueError as exc:
+        if isinstance(exc, InputError):
+            raise
+        # a degenerate scene (no overlap, too few points for a surface) is the user's data, not a bug
+        raise InputError(f"{args.dataset}: {exc}") from None
+    print(result.summary())
+    print(f"wrote {args.out}")
+    return 0
