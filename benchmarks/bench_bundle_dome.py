@@ -14,7 +14,9 @@ free in every variant.
                the points are estimated: trusting the robot and the calibration);
 * fixed-poses: camera poses held at the measured values, intrinsics free;
 * BA:          everything free, no bounds (the reference's conventional BA);
-* BCBA:        camera centres bounded to measured ± b, orientation fixed, intrinsics free (the reference's BCBA).
+* BCBA:        camera centres bounded to measured ± b, orientation fixed, intrinsics free (the reference's BCBA);
+* BCBA+shape:  BCBA plus the other prior knowledge the reference lists but did not use: FOV in [50°, 56°]
+               (a box on fx, fy) and point depth below the camera plane in [15, 25] mm (depth bound).
 
 Reported per solve: iterations, time, final cost, estimated FOV, point depth range in the cameras
 (1st-99th percentile), RMS distance of the points to the true dome surface before and after a rigid ICP
@@ -40,7 +42,7 @@ RESULTS = ROOT / "benchmarks" / "results"
 sys.path.insert(0, str(ROOT / "src"))
 
 from scope3d.bundle import BoundsWarning, BundleProblem, SolverOptions, solve, warm_up  # noqa: E402
-from scope3d.camera import fov_from_focal  # noqa: E402
+from scope3d.camera import focal_from_fov, fov_from_focal  # noqa: E402
 from scope3d.geometry import matrix_to_rotvec  # noqa: E402
 from scope3d.phantoms import build_scene, default_camera, grid_trajectory  # noqa: E402
 from scope3d.phantoms.scenes import DOME_DEPTH_MM  # noqa: E402
@@ -53,7 +55,8 @@ R_OPEN = float(np.sqrt(RADIUS_MM**2 - CENTRE[2] ** 2))
 PIXEL_NOISE_PX = 0.5
 N_POINTS = 2250
 VIEWS_PER_POINT = 2.5
-VARIANTS = ("fixed", "fixed-poses", "BA", "BCBA")
+VARIANTS = ("fixed", "fixed-poses", "BA", "BCBA", "BCBA+shape")
+STANDOFF_MM = 15.0
 
 
 def make_features(scene, camera, poses, rng):
@@ -138,10 +141,18 @@ def icp_to_surface(points, iterations=50):
 
 def run_variant(variant, measured, camera, init_points, obs, cam_idx, pt_idx, bound_mm):
     m = len(measured)
-    if variant == "BCBA":
+    if variant.startswith("BCBA"):
         tol = PoseTolerance(position_mm=bound_mm, orientation_rad=0.0)
+        lower = upper = None
+        if variant == "BCBA+shape":
+            f_lo, f_hi = focal_from_fov(camera.width, 56.0), focal_from_fov(camera.width, 50.0)
+            lower = [f_lo, f_lo, -np.inf, -np.inf, -np.inf, -np.inf]
+            upper = [f_hi, f_hi, np.inf, np.inf, np.inf, np.inf]
         problem = BundleProblem.from_measured_poses([MeasuredPose(mp.pose, tol) for mp in measured], camera,
-                                                    init_points, obs, cam_idx, pt_idx)
+                                                    init_points, obs, cam_idx, pt_idx,
+                                                    intrinsics_lower=lower, intrinsics_upper=upper)
+        if variant == "BCBA+shape":
+            problem.bound_point_depth([0.0, 0.0, STANDOFF_MM], [0.0, 0.0, -1.0], 15.0, 25.0)
     else:
         problem = BundleProblem(obs, cam_idx, pt_idx, np.stack([mp.pose.rotation for mp in measured]),
                                 np.stack([mp.pose.translation for mp in measured]), init_points,
@@ -215,11 +226,11 @@ def main() -> int:
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "bundle_dome.json").write_text(json.dumps(out, indent=2))
 
-    print(f"\n{'bound':>6s} {'variant':11s} {'iters':>7s} {'time [s]':>9s} {'cost':>9s} {'FOV [°]':>8s} "
+    print(f"\n{'bound':>6s} {'variant':12s} {'iters':>7s} {'time [s]':>9s} {'cost':>9s} {'FOV [°]':>8s} "
           f"{'surf RMS':>9s} {'after ICP':>10s}   (mean over draws)")
     for bound_mm, by_variant in summary.items():
         for v, stats in by_variant.items():
-            print(f"{bound_mm:>6s} {v:11s} {stats['iterations'][0]:7.1f} {stats['time_s'][0]:9.3f} "
+            print(f"{bound_mm:>6s} {v:12s} {stats['iterations'][0]:7.1f} {stats['time_s'][0]:9.3f} "
                   f"{stats['final_cost'][0]:9.1f} {stats['fov_deg'][0]:8.1f} {stats['surface_rms_mm'][0]:9.3f} "
                   f"{stats['surface_rms_after_icp_mm'][0]:10.3f}")
     print("reference (Table 6.1, b = 0.25): BA 125 it, 57 s, FOV 165.4°, ICP 1.85 mm; "
@@ -232,7 +243,7 @@ def main() -> int:
 
     fig, ax = plt.subplots(figsize=(6, 3.8))
     bounds = [0.05, 0.25, 1.0]
-    for v, style in (("fixed", "s--"), ("fixed-poses", "d:"), ("BA", "x-"), ("BCBA", "o-")):
+    for v, style in (("fixed", "s--"), ("fixed-poses", "d:"), ("BA", "x-"), ("BCBA", "o-"), ("BCBA+shape", "^-")):
         mean = [summary[str(b)][v]["surface_rms_after_icp_mm"][0] for b in bounds]
         std = [summary[str(b)][v]["surface_rms_after_icp_mm"][1] for b in bounds]
         ax.errorbar(bounds, mean, yerr=std, fmt=style, capsize=3, label=v)
