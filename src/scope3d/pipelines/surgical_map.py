@@ -543,7 +543,9 @@ def write_outputs(
         d = s.height[s.valid]
         report["surface"] = {"grid": list(s.height.shape), "step_mm": s.step_mm, "n_vertices": int(s.valid.sum()),
                              "height_range_mm": float(np.ptp(d)),
-                             "flatness_rms_mm": _flatness_rms(tr.points)}
+                             "flatness_rms_mm": _flatness_rms(s.vertices()[s.valid]),
+                             "points_flatness_rms_mm": _flatness_rms(tr.points),
+                             "points_flatness_median_mm": _flatness_median(tr.points)}
         if options.figures:
             write_image(out_dir / "texture_mosaic.png", _flip_for_view(surface.colors))
             save_depth_map_png(out_dir / "depth_map.png", s)
@@ -591,9 +593,16 @@ def _bundle_summary(result) -> dict:
 
 
 def _flatness_rms(points: np.ndarray) -> float:
-    """RMS distance (mm) of the points from their best-fit plane (0 for a perfectly flat sheet)."""
+    """RMS distance (mm) of points (N, 3) from their best-fit plane (0 for a perfectly flat sheet)."""
     c = points - points.mean(axis=0)
     return float(np.linalg.svd(c, compute_uv=False)[-1] / np.sqrt(len(points)))
+
+
+def _flatness_median(points: np.ndarray) -> float:
+    """Median distance (mm) of the points from their best-fit plane (robust to the odd wrong track)."""
+    c = points - points.mean(axis=0)
+    n = np.linalg.svd(c, full_matrices=False)[2][-1]
+    return float(np.median(np.abs(c @ n)))
 
 
 def _flip_for_view(img: np.ndarray) -> np.ndarray:
