@@ -557,7 +557,7 @@ def estimate_depth_prior(
     *,
     percentiles: tuple[float, float] = (2.0, 98.0),
     margin: float = 0.1,
-    n_pairs: int = 3,
+    n_pairs: int = 5,
 ) -> DepthPrior:
     """Depth prior from the data: match the ``n_pairs`` closest frame pairs exhaustively, triangulate
     with the measured poses, take robust depth percentiles and widen them by ``margin`` (fraction).
@@ -578,6 +578,12 @@ def estimate_depth_prior(
     score = dist + 1e9 * (same_way < 0.5) + 1e9 * (dist < 1e-6 * max(float(dist.max()), 1e-9))
     iu, ju = np.triu_indices(n, 1)
     order = np.argsort(score[iu, ju], kind="stable")
+    # among the closest pairs (within 1.5 x the closest distance), take ones spread along the sequence,
+    # so that the prior sees the whole field, not one corner of it
+    close = order[score[iu[order], ju[order]] <= 1.5 * score[iu[order[0]], ju[order[0]]]]
+    close = close[np.argsort(iu[close], kind="stable")]
+    spread = close[np.unique(np.linspace(0, len(close) - 1, min(len(close), n_pairs)).round().astype(int))]
+    order = np.concatenate([spread, order[~np.isin(order, spread)]])
     # loose reprojection gate: measured poses may be off by their tolerance; depths need not be precise
     filters = TrackOptions(max_reprojection_error_px=8.0, min_angle_deg=1.0)
     depths = []

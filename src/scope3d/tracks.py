@@ -38,12 +38,14 @@ class TrackOptions:
     min_angle_deg : float, minimum largest angle between the rays of a track (default 1.0 deg: at
         15 mm working distance a 0.5 px error then moves the point by < 0.3 mm in depth).
     min_track_length : int, observations per track (default 2).
+    max_refine_rounds : int, rounds of dropping each bad track's worst observation (default 3).
     """
 
     method: str = "midpoint"
     max_reprojection_error_px: float = 2.0
     min_angle_deg: float = 1.0
     min_track_length: int = 2
+    max_refine_rounds: int = 3
 
     def __post_init__(self) -> None:
         if self.method not in ("midpoint", "dlt"):
@@ -219,13 +221,14 @@ def _max_ray_angle_deg(camera: Camera, poses: list[Pose], tracks: Tracks, X: np.
 
 
 def triangulate_tracks(camera: Camera, poses: list[Pose], tracks: Tracks, options: TrackOptions = TrackOptions()) -> Tracks:
-    """Triangulate, drop bad observations, re-triangulate once, drop bad tracks. Returns new Tracks with
+    """Triangulate; drop each bad track's worst observation and re-triangulate (a few rounds); then drop
+    the tracks that are still bad. Returns new Tracks with
     ``points`` set; every kept observation reprojects within ``max_reprojection_error_px`` and lies in
     front of its camera, and every kept track spans at least ``min_angle_deg``."""
     if len(poses) <= int(tracks.frame.max(initial=-1)):
         raise ValueError(f"tracks reference frame {int(tracks.frame.max())} but only {len(poses)} poses given")
     current = tracks
-    for _ in range(2):
+    for _ in range(options.max_refine_rounds):
         if current.n_observations == 0:
             break
         X = triangulate_observations(camera, poses, current.track, current.frame, current.pixels, current.n_tracks, options.method)
@@ -234,7 +237,16 @@ def triangulate_tracks(camera: Camera, poses: list[Pose], tracks: Tracks, option
         depth = np.einsum(
             "mi,mi->m", np.stack([p.rotation[2] for p in poses])[current.frame], X[current.track]
         ) + np.stack([p.translation[2] for p in poses])[current.frame]
-        good = np.isfinite(err) & (err <= options.max_reprojection_error_px) & (depth > 0)
+        err = np.where(np.isfinite(err) & (depth > 0), err, np.inf)
+        # one wrong observation pulls its point and so raises the others' errors too: drop only the
+        # worst observation of each bad track per round, then re-triangulate
+        worst = np.full(current.n_tracks, -1.0)
+        np.maximum.at(worst, current.track, err)
+        is_worst = (err == worst[current.track]) & (err > options.max_reprojection_error_px)
+        # (ties: drop them all; they are equally bad)
+        if not is_worst.any():
+            break
+        good = ~is_worst
         length = np.bincount(current.track[good], minlength=current.n_tracks)
         good &= length[current.track] >= options.min_track_length
         current = current.subset(good)

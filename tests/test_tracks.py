@@ -1,0 +1,114 @@
+"""Tracks: union-find over matches, exact multi-view triangulation, filters."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from scope3d.camera import Camera
+from scope3d.features import Features
+from scope3d.geometry import look_at
+from scope3d.matching import PairMatches
+from scope3d.pose import Pose
+from scope3d.tracks import (
+    TrackOptions, Tracks, build_tracks, reprojection_errors, triangulate_observations, triangulate_tracks,
+)
+
+CAM = Camera.from_fov(608, 608, 70.0, k1=-0.12, k2=0.02, mask_radius_px=300.0)
+
+
+def _scene(n=300, seed=0):
+    rng = np.random.default_rng(seed)
+    X = rng.uniform([-6, -6, -4], [6, 6, 2], (n, 3))
+    poses = [Pose.from_centre(look_at(np.array([x, y, 15.0]), np.array([0.0, 0.0, -2.0])), [x, y, 15.0])
+             for x in (-5.0, 0.0, 5.0) for y in (-2.5, 2.5)]
+    return X, poses
+
+
+def _tracks_from(X, poses, noise_px=0.0, seed=1):
+    rng = np.random.default_rng(seed)
+    m = len(poses)
+    track = np.repeat(np.arange(len(X)), m)
+    frame = np.tile(np.arange(m), len(X))
+    px = np.stack([CAM.project_world(p, X) for p in poses], axis=1).reshape(-1, 2)
+    px = px + rng.normal(0, noise_px, px.shape) if noise_px else px
+    return Tracks(track, frame, np.arange(len(track)), px, np.zeros((len(X), 3), np.uint8))
+
+
+@pytest.mark.parametrize("method", ["midpoint", "dlt"])
+def test_triangulation_is_exact_on_noise_free_data_with_distortion(method):
+    X, poses = _scene()
+    t = _tracks_from(X, poses)
+    Y = triangulate_observations(CAM, poses, t.track, t.frame, t.pixels, len(X), method)
+    np.testing.assert_allclose(Y, X, atol=1e-9)
+
+
+def test_triangulate_tracks_keeps_everything_good_and_reprojects_to_zero():
+    X, poses = _scene()
+    out = triangulate_tracks(CAM, poses, _tracks_from(X, poses))
+    assert out.n_tracks == len(X)
+    assert reprojection_errors(CAM, poses, out).max() < 1e-6
+
+
+def test_a_wrong_observation_is_dropped_and_the_point_recovered():
+    X, poses = _scene(n=20)
+    t = _tracks_from(X, poses)
+    t.pixels[0] += [25.0, -10.0]  # point 0 in frame 0: a wrong match
+    out = triangulate_tracks(CAM, poses, t, TrackOptions(max_reprojection_error_px=2.0))
+    assert out.n_observations == t.n_observations - 1
+    np.testing.assert_allclose(out.points[0], X[0], atol=1e-9)
+
+
+def test_noise_gives_sub_pixel_errors_and_depth_error_of_the_expected_size():
+    X, poses = _scene(n=500)
+    sigma = 0.5
+    out = triangulate_tracks(CAM, poses, _tracks_from(X, poses, noise_px=sigma))
+    # 2-D residuals of a 3-parameter fit to 6 views x 2 coordinates: RMS = sigma sqrt(2 (1 - 3/12))
+    rms = np.sqrt(np.mean(reprojection_errors(CAM, poses, out) ** 2))
+    assert rms < sigma * np.sqrt(2.0)
+    # 6 views, baselines 5-10 mm at ~15-19 mm: sigma_z ~ z^2 sigma / (f b) / sqrt(6) < 0.1 mm
+    err = np.linalg.norm(out.points - X, axis=1)
+    assert np.median(err) < 0.1
+
+
+def test_cheirality_and_angle_filters():
+    X, poses = _scene(n=10)
+    t = _tracks_from(X, poses[:2])
+    # two identical cameras: zero parallax, every track must go
+    same = [poses[0], poses[0]]
+    t_same = Tracks(t.track, t.frame, t.feature, np.concatenate([CAM.project_world(poses[0], X)] * 2)[
+        np.argsort(np.r_[np.arange(10) * 2, np.arange(10) * 2 + 1])], t.colors)
+    assert triangulate_tracks(CAM, same, t_same, TrackOptions(min_angle_deg=1.0)).n_tracks == 0
+
+
+def test_build_tracks_joins_chains_and_drops_inconsistent_components():
+    feats = [Features(np.zeros((5, 2)), np.zeros((5, 128), np.float32), np.ones(5, np.float32),
+                      np.full((5, 3), 100, np.uint8)) for _ in range(3)]
+    a = np.array
+    matches = [
+        PairMatches(0, 1, a([0, 1, 2]), a([0, 1, 2])),
+        PairMatches(1, 2, a([0, 1]), a([3, 4])),
+        # frame-0 feature 2 -> frame-2 feature 3, which is already tied to frame-0 feature 0: conflict
+        PairMatches(0, 2, a([2]), a([3])),
+    ]
+    t = build_tracks(feats, matches)
+    lengths = t.lengths()
+    # (0:1, 1:1, 2:4) survives as a 3-track; the component {0:0, 1:0, 2:3, 0:2, 1:2} has two frame-0 features
+    assert t.n_tracks == 1 and lengths.tolist() == [3]
+    assert sorted(zip(t.frame.tolist(), t.feature.tolist())) == [(0, 1), (1, 1), (2, 4)]
+    assert t.colors.tolist() == [[100, 100, 100]]
+
+
+def test_build_tracks_with_no_matches_is_empty():
+    feats = [Features.empty(), Features.empty()]
+    assert build_tracks(feats, []).n_tracks == 0
+
+
+def test_bad_inputs():
+    X, poses = _scene(n=5)
+    t = _tracks_from(X, poses)
+    with pytest.raises(ValueError, match="poses"):
+        triangulate_tracks(CAM, poses[:2], t)
+    with pytest.raises(ValueError):
+        TrackOptions(method="svd")
+    with pytest.raises(ValueError):
+        TrackOptions(min_track_length=1)
