@@ -55,6 +55,7 @@ class SampledSurface:
 
     def __init__(self, mesh: Mesh, step_mm: float = 0.1):
         self._mesh = mesh
+        self.step_mm = float(step_mm)
         v, f = mesh.vertices, mesh.faces
         if len(f) == 0:
             raise ValueError("true surface has no faces")
@@ -71,11 +72,12 @@ class SampledSurface:
         flip = r1 + r2 > 1
         r1[flip], r2[flip] = 1 - r1[flip], 1 - r2[flip]
         self.points = a[face] + r1[:, None] * (b - a)[face] + r2[:, None] * (c - a)[face]
-        self.points = np.concatenate([self.points, v])
         vn = np.zeros_like(v)
         np.add.at(vn, f.ravel(), np.repeat(cross, 3, axis=0))
         vn /= np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-300)
-        self.normals = np.concatenate([normals[face], vn])
+        used = np.unique(f)  # vertices no face refers to are not part of the surface
+        self.points = np.concatenate([self.points, v[used]])
+        self.normals = np.concatenate([normals[face], vn[used]])
         self.tree = cKDTree(self.points)
 
     def nearest(self, points: np.ndarray, *, eps: float = 0.0, max_distance_mm: float = np.inf):
@@ -101,7 +103,11 @@ class SampledSurface:
         far = ~np.isfinite(d)
         if far.any():
             q[far], n[far], d[far] = self.nearest(points[far])
-        return np.minimum(np.abs(np.einsum("ij,ij->i", points - q, n)), d)
+        plane = np.abs(np.einsum("ij,ij->i", points - q, n))
+        # the tangent plane stands for the surface only near its sample: where the perpendicular's
+        # foot is farther than a few sample spacings (beyond a rim, say), the sample itself is nearest
+        tangential = np.sqrt(np.maximum(d * d - plane * plane, 0.0))
+        return np.where(tangential <= 2.0 * self.step_mm, np.minimum(plane, d), d)
 
 
 def surface_distances(points: np.ndarray, truth: Mesh | SampledSurface, options: EvaluationOptions = EvaluationOptions()) -> np.ndarray:

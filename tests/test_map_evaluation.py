@@ -1,0 +1,85 @@
+"""Evaluation against a true surface: distances, ICP from eight starts, summaries, figures."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from scope3d.evaluation import (
+    EvaluationOptions, SampledSurface, distance_summary, icp_from_initial_poses, icp_point_to_plane,
+    save_error_histogram_png, save_error_map_png, surface_distances,
+)
+from scope3d.geometry import rotvec_to_matrix
+from scope3d.mesh import Mesh
+
+
+@pytest.fixture(scope="module")
+def bowl():
+    """An asymmetric bowl (ellipsoid cap) so that ICP has a unique answer."""
+    s = trimesh.creation.icosphere(subdivisions=5, radius=1.0)
+    v = s.vertices * [15.0, 11.0, 8.0]
+    keep = v[:, 2] < 0
+    faces = s.faces[np.all(keep[s.faces], axis=1)]
+    mesh = Mesh(v, faces)
+    return mesh, SampledSurface(mesh, 0.1)
+
+
+def _points_on(mesh, n, seed=0):
+    tm = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
+    pts, _ = trimesh.sample.sample_surface(tm, n, seed=seed)
+    return np.asarray(pts)
+
+
+def test_distance_of_points_on_and_off_the_surface(bowl):
+    mesh, sampled = bowl
+    pts = _points_on(mesh, 2000)
+    assert surface_distances(pts, sampled).max() < 0.01  # sampling error only (faceted mesh vs samples)
+    # moved 0.5 mm along the vertex normals: distance 0.5 mm
+    grad = pts / np.array([15.0, 11.0, 8.0]) ** 2
+    grad /= np.linalg.norm(grad, axis=1, keepdims=True)
+    d = surface_distances(pts + 0.5 * grad, sampled)
+    assert np.median(d) == pytest.approx(0.5, abs=0.02)
+    far = surface_distances(np.array([[0.0, 0.0, 30.0]]), sampled)
+    # beyond the rim the tangent plane of the nearest sample is not the surface: a real distance
+    # (the nearest rim point is at (0, +-11, 0): 31.95 mm), and unreferenced vertices do not count
+    assert far[0] == pytest.approx(np.hypot(30.0, 11.0), rel=0.02)
+
+
+def test_icp_recovers_a_rigid_misplacement_from_any_of_eight_starts(bowl):
+    mesh, sampled = bowl
+    pts = _points_on(mesh, 3000, seed=1)
+    R = rotvec_to_matrix(np.deg2rad([2.0, -1.5, 3.0]))
+    moved = pts @ R.T + [0.8, -0.5, 0.4]
+    assert distance_summary(surface_distances(moved, sampled))["mean"] > 0.3
+    best, spread = icp_from_initial_poses(moved, sampled)
+    assert len(spread) == 8
+    assert max(spread) < 0.02 and max(spread) - min(spread) < 0.01
+    aligned = best.apply(moved)
+    assert distance_summary(surface_distances(aligned, sampled))["mean"] < 0.02
+
+
+def test_icp_from_identity_on_aligned_points_stays_put(bowl):
+    mesh, sampled = bowl
+    pts = _points_on(mesh, 1000, seed=2)
+    r = icp_point_to_plane(pts, sampled)
+    assert np.abs(r.rotation - np.eye(3)).max() < 1e-3 and np.abs(r.translation).max() < 1e-2
+
+
+def test_summary_and_figures(tmp_path):
+    d = np.array([0.1, 0.2, 0.3, 2.0])
+    s = distance_summary(d)
+    assert s["mean"] == pytest.approx(0.65) and s["within_1mm_fraction"] == 0.75 and s["n"] == 4
+    assert distance_summary(np.array([np.nan]))["n"] == 0
+    save_error_histogram_png(tmp_path / "h.png", d)
+    save_error_map_png(tmp_path / "m.png", np.random.default_rng(0).random((4, 3)), d)
+    assert (tmp_path / "h.png").stat().st_size > 1000 and (tmp_path / "m.png").stat().st_size > 1000
+
+
+def test_bad_inputs(bowl):
+    mesh, _ = bowl
+    with pytest.raises(ValueError):
+        surface_distances(np.zeros((3, 2)), mesh)
+    with pytest.raises(ValueError):
+        SampledSurface(Mesh(np.zeros((3, 3)), np.zeros((0, 3), int)))
+    with pytest.raises(ValueError):
+        EvaluationOptions(icp_trim_fraction=0.7)

@@ -1,0 +1,117 @@
+"""Thin-plate-spline surface: fits a cap, keeps a plane flat, rejects wrong points, meshes, textures."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from scope3d.camera import Camera
+from scope3d.geometry import look_at
+from scope3d.pose import Pose
+from scope3d.surface import Surface, SurfaceOptions, depth_map, fit_plane, fit_surface, texture
+
+R_DOME, DEPTH = (15.0**2 + 10.0**2) / 20.0, 10.0
+
+
+def _cap(xy):
+    """Spherical cavity, 10 mm deep, 15 mm rim radius (the reference's dome), bottom at z = -10."""
+    return -np.sqrt(R_DOME**2 - np.sum(xy**2, axis=1)) + R_DOME - DEPTH
+
+
+def _cap_points(n=6000, noise=0.05, seed=0):
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-13, 13, (n, 2))
+    xy = xy[np.hypot(*xy.T) < 13]
+    return np.column_stack([xy, _cap(xy) + rng.normal(0, noise, len(xy))])
+
+
+def test_cap_is_recovered_to_a_fraction_of_the_point_noise():
+    noise = 0.05
+    s = fit_surface(_cap_points(noise=noise), towards=np.array([0, 0, 1.0]))
+    v = s.vertices()[s.valid]
+    inner = np.hypot(v[:, 0], v[:, 1]) < 11
+    err = np.abs(v[inner, 2] - _cap(v[inner, :2]))
+    # the spline averages several points per cell: its error is below a single point's noise
+    assert np.mean(err) < noise
+    assert s.axes[2] @ [0, 0, 1] > 0.99  # normal faces the cameras
+
+
+def test_plane_stays_flat_and_a_wrong_point_is_ignored():
+    rng = np.random.default_rng(1)
+    xy = rng.uniform(-10, 10, (3000, 2))
+    pts = np.column_stack([xy, 0.3 * xy[:, 0] + rng.normal(0, 0.02, len(xy))])
+    pts[0, 2] += 2.0  # a wrong track 2 mm off the sheet
+    s = fit_surface(pts)
+    v = s.vertices()[s.valid]
+    assert np.abs(v[:, 2] - 0.3 * v[:, 0]).max() < 0.05
+
+
+def test_isolated_point_does_not_bend_the_surface():
+    rng = np.random.default_rng(2)
+    xy = rng.uniform(-10, 10, (3000, 2))
+    xy = xy[np.abs(xy[:, 0] - 8) > 2]  # a gap around x = 8
+    pts = np.column_stack([xy, np.zeros(len(xy))])
+    pts = np.vstack([pts, [[8.0, 0.0, -1.5]]])  # alone in the gap, far off
+    s = fit_surface(pts, towards=np.array([0, 0, 1.0]))
+    assert np.nanmax(np.abs(s.height)) < 0.05
+
+
+def test_mesh_faces_wind_towards_the_normal():
+    s = fit_surface(_cap_points(), towards=np.array([0, 0, 1.0]))
+    m = s.mesh()
+    a, b, c = (m.vertices[m.faces[:, k]] for k in range(3))
+    face_n = np.cross(b - a, c - a)
+    assert np.all(face_n @ s.axes[2] > 0)
+    assert len(m.vertices) == int(s.valid.sum())
+
+
+def test_ray_depths_hit_the_surface():
+    s = fit_surface(_cap_points(noise=0.0), towards=np.array([0, 0, 1.0]))
+    pose = Pose.from_centre(look_at(np.array([2.0, 1.0, 15.0]), np.array([2.0, 1.0, 0.0])), [2.0, 1.0, 15.0])
+    cam = Camera.from_fov(200, 200, 50.0)
+    pix = np.array([[100.0, 100.0], [60.0, 140.0], [150.0, 70.0]])
+    rays = cam.unproject(pix, np.ones(3))
+    z = s.ray_depths(pose, rays)
+    world = (rays * z[:, None] - pose.translation) @ pose.rotation
+    np.testing.assert_allclose(world[:, 2], _cap(world[:, :2]), atol=0.01)
+    lo, hi = s.depth_band(0.5)(pose, rays)
+    assert np.all(lo < z) and np.all(z < hi)
+
+
+def test_texture_and_depth_map():
+    s = fit_surface(_cap_points(), towards=np.array([0, 0, 1.0]))
+    cam = Camera.from_fov(160, 160, 70.0)
+    poses = [Pose.from_centre(look_at(np.array([x, 0.0, 15.0]), np.array([x, 0.0, 0.0])), [x, 0.0, 15.0]) for x in (-5.0, 5.0)]
+    images = [np.full((160, 160, 3), 50 + 100 * k, np.uint8) for k in range(2)]
+    colors, view = texture(s, cam, poses, images)
+    seen = view >= 0
+    assert seen.any()
+    # each vertex takes the colour of the frame chosen for it
+    assert np.all(colors[seen & (view == 0)] == 50) and np.all(colors[seen & (view == 1)] == 150)
+    # on a flat field each camera wins the side beneath it (world x: a round cap's in-plane axes are
+    # arbitrary)
+    flat = Surface(s.origin, s.axes, s.s, s.t, np.where(s.valid, 0.0, np.nan))
+    _, view_flat = texture(flat, cam, poses, images)
+    ss = flat.vertices()[..., 0]
+    assert np.all(view_flat[(view_flat >= 0) & (ss < -3)] == 0) and np.all(view_flat[(view_flat >= 0) & (ss > 3)] == 1)
+    d = depth_map(s)
+    assert np.nanmin(d) == 0.0 and np.nanmax(d) == pytest.approx(DEPTH, abs=1.5)
+
+
+def test_refined_grid_interpolates_the_heights():
+    s = fit_surface(_cap_points(noise=0.0), towards=np.array([0, 0, 1.0]))
+    r = s.refined(slice(20, 40), slice(20, 40), 4)
+    assert r.step_mm == pytest.approx(s.step_mm / 4)
+    np.testing.assert_allclose(r.height[::4, ::4], s.height[20:40, 20:40], atol=1e-5)
+
+
+def test_bad_inputs():
+    with pytest.raises(ValueError, match="at least 10"):
+        fit_surface(np.zeros((5, 3)))
+    with pytest.raises(ValueError, match=r"\(N, 3\)"):
+        fit_surface(np.zeros((50, 2)))
+    with pytest.raises(ValueError):
+        fit_plane(np.zeros((2, 3)))
+    with pytest.raises(ValueError):
+        SurfaceOptions(grid_step_mm=0)
+    with pytest.raises(ValueError):
+        SurfaceOptions(smoothing=-1)
