@@ -18,9 +18,7 @@ import numpy as np
 from scope3d import phantoms
 from scope3d.dataset import load_dataset
 from scope3d.evaluation import SampledSurface, distance_summary
-from scope3d.geometry import rotvec_to_matrix
 from scope3d.pipelines.axial import AxialOptions, run, save_depth_png
-from scope3d.pose import Pose
 from scope3d.stereo.matching import SadOptions, SgmOptions, sad_disparity, sgm_disparity
 from scope3d.stereo.two_view import reconstruct_pair, to_image
 
@@ -43,11 +41,32 @@ def phantom_methods(ds_path: Path) -> dict:
                         "surface_error_mm": res.report["surface_error_mm"]}
         if method == "sgm":
             save_depth_png(OUT / "axial_depth.png", res.depths[0], title="axial SGM, M8 phantom: z-depth")
+    rows["sgm_tradeoff"] = tradeoff(ds, mid)
     res = run(AxialOptions(method="multiview"), ds, OUT / "axial_multiview_run")
     rows["multiview"] = {"time_per_pair_s": res.report["time_per_pair_s"], "n_points": res.report["n_points"],
                          "pairs": res.report["pairs"], "surface_error_mm": res.report["surface_error_mm"]}
     save_cloud_picture(res.cloud.points, res.cloud.colors, OUT / "axial_cloud.png")
     return rows
+
+
+def tradeoff(ds, mid: int) -> list[dict]:
+    """Points vs error of two-view SGM as the confidence threshold (predicted range sigma) moves, and the
+    first version's settings (5x5 blocks, 3 refinement iterations, sigma_d floor 0.05, 0.1 mm) for reference."""
+    base = AxialOptions().two_view
+    first = replace(base, sgm=replace(base.sgm, block_size=5, refine_iterations=3),
+                    confidence=replace(base.confidence, disparity_sigma_floor_px=0.05, max_range_sigma_mm=0.1))
+    out = [{"label": "first version (block 5, 3 LK iterations, floor 0.05 col, 0.1 mm)", **_pair_row(ds, mid, first)}]
+    for thr in (0.1, 0.07, 0.05, 0.04, 0.03):
+        opts = replace(base, confidence=replace(base.confidence, max_range_sigma_mm=thr))
+        out.append({"label": f"max_range_sigma_mm {thr}", "max_range_sigma_mm": thr, **_pair_row(ds, mid, opts)})
+    return out
+
+
+def _pair_row(ds, mid, two_view) -> dict:
+    res = run(AxialOptions(method="sgm", frames=(mid - 1, mid), two_view=two_view), ds, None)
+    e = res.report["surface_error_mm"]
+    return {"n_points": res.report["n_points"], "mean_mm": e.get("mean"), "median_mm": e.get("median"),
+            "p95_mm": e.get("p95")}
 
 
 def save_cloud_picture(points, colors, path):
@@ -71,14 +90,15 @@ def save_cloud_picture(points, colors, path):
 
 
 def misalignment(seq_scene, camera, surface: SampledSurface) -> list[dict]:
-    """Two frames rendered with the scope offset sideways and tilted w.r.t. its motion (the hole axis)."""
+    """Two frames with the scope offset sideways and tilted w.r.t. its motion (the hole axis), from the
+    phantom's own ``axial`` trajectory options (``axis_offset_mm``, ``axis_tilt_deg``), starting 1 mm
+    inside the hole."""
     rows = []
-    base = phantoms.axial_trajectory(2, start_z_mm=-1.0).poses
     for offset in (0.0, 0.1, 0.3):
         for tilt in (0.0, 1.0, 3.0):
-            rot = rotvec_to_matrix([np.deg2rad(tilt), 0, 0]) @ base[0].rotation
-            poses = [Pose.from_centre(rot, p.centre + [offset, 0, 0]) for p in base]
-            imgs = [cv2.cvtColor(phantoms.render_frame(seq_scene, camera, p, seed=0, frame_index=k).image,
+            poses = phantoms.axial_trajectory(2, start_z_mm=-1.0, axis_offset_mm=offset, axis_tilt_deg=tilt).poses
+            gain = phantoms.sequence_exposure(seq_scene, camera, poses)
+            imgs = [cv2.cvtColor(phantoms.render_frame(seq_scene, camera, p, seed=0, frame_index=k, exposure=gain).image,
                                  cv2.COLOR_RGB2GRAY) for k, p in enumerate(poses)]
             row = {"offset_mm": offset, "tilt_deg": tilt}
             for label, aligned in (("true_poses", False), ("aligned_model", True)):
@@ -127,14 +147,19 @@ def main() -> int:
         mis = misalignment(seq.scene, seq.camera, surface)
     mb = middlebury()
     result = {"phantom": {"scene": "thread M8x1.25", "size_px": [608, 608], "step_mm": 0.25, "frames": N_FRAMES,
-                          "render_s": render_s, "methods": rows},
+                          "render_s": render_s, "supersample": seq.scene_info["render"]["supersample"],
+                          "methods": rows},
               "reference": {"time_s": 250.0, "icp_error_mm": 0.4333},
               "misalignment": mis, "middlebury_cones": mb}
     (OUT / "axial.json").write_text(json.dumps(result, indent=2) + "\n")
     print(f"{'method':<10} {'s/pair':>8} {'points':>8} {'mean mm':>8} {'p95 mm':>8}")
     for k, r in rows.items():
+        if k == "sgm_tradeoff":
+            continue
         e = r["surface_error_mm"]
         print(f"{k:<10} {r['time_per_pair_s']:>8.2f} {r['n_points']:>8d} {e['mean']:>8.4f} {e['p95']:>8.4f}")
+    for r in rows["sgm_tradeoff"]:
+        print(f"  sgm {r['label']:<60s} {r['n_points']:>7d} pts mean {r['mean_mm']:.4f} p95 {r['p95_mm']:.4f}")
     print("misalignment (mean mm: true poses / aligned model)")
     for r in mis:
         print(f"  offset {r['offset_mm']:.1f} mm tilt {r['tilt_deg']:.0f} deg: "

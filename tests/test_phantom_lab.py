@@ -91,3 +91,25 @@ def test_bad_combinations_are_input_errors():
         generate("dome", "zigzag")
     with pytest.raises(InputError, match="pose noise"):
         generate("sheet", size=(32, 32), n_frames=1, pose_noise_mm=-1.0)
+
+
+def test_axial_axis_offset_and_tilt_are_applied_and_recorded(tmp_path):
+    seq = generate("thread", "axial", n_frames=2, size=(48, 48), axis_offset_mm=0.3, axis_tilt_deg=2.0)
+    centres = np.array([p.centre for p in seq.true_poses])
+    np.testing.assert_allclose(centres[:, 0], 0.3)
+    np.testing.assert_allclose(centres[1] - centres[0], [0.3 - 0.3, 0.0, -0.25], atol=1e-12)  # motion along -z
+    for pose in seq.true_poses:
+        angle = np.degrees(np.arccos(np.dot(pose.optical_axis, [0.0, 0.0, -1.0])))
+        assert abs(angle - 2.0) < 1e-9
+    assert seq.scene_info["trajectory"]["axis_offset_mm"] == 0.3
+    assert seq.scene_info["trajectory"]["axis_tilt_deg"] == 2.0
+    assert seq.scene_info["render"]["supersample"] == 2
+    with pytest.raises(InputError, match="axial"):
+        generate("dome", n_frames=1, size=(32, 32), axis_offset_mm=0.1)
+    with pytest.raises(InputError, match="tilt"):
+        generate("thread", "axial", n_frames=1, size=(32, 32), axis_tilt_deg=30.0)
+    out = tmp_path / "mis"
+    assert main(["phantom", "thread", "--out", str(out), "--frames", "2", "--size", "48x48", "--no-progress",
+                 "--axis-offset", "0.1", "--axis-tilt", "1.5"]) == 0
+    scene = json.loads((out / "ground_truth" / "scene.json").read_text())
+    assert scene["trajectory"]["axis_offset_mm"] == 0.1 and scene["trajectory"]["axis_tilt_deg"] == 1.5

@@ -168,3 +168,52 @@ def test_rendered_star_area_matches_scene_json():
     # Each pixel covers (z / f)^2 mm^2 of the (nearly flat-on) surface at its depth.
     pixel_area = (out.depth_mm[on].astype(float) / cam.fx) ** 2
     assert pixel_area.sum() == pytest.approx(star["flat_area_mm2"], rel=0.03)
+
+
+def test_mip_levels_keep_the_pattern_in_place():
+    """A ramp texture (value = column index) read at level k must return the column of the query point:
+    cv2.pyrDown keeps a linear ramp and centres level k's texel i on level 0's i 2^k."""
+    from scope3d.phantoms.textures import TextureMap
+
+    ramp = np.tile(np.arange(256, dtype=np.uint8), (256, 1))
+    tex = TextureMap(ramp, (0.0, 0.0), 0.01, exact_mip_centres=True)
+    uv = np.stack([np.linspace(0.6, 1.9, 50), np.full(50, 1.2)], axis=1)  # mm, far from the borders
+    for level, footprint in ((0, 0.01), (1, 0.02), (2, 0.04), (3, 0.08)):
+        got = tex.sample(uv, np.full(50, footprint))[:, 0] * 255.0
+        # Bilinear reads of an 8-bit ramp are exact to quantisation (0.5 grey level = 0.5 texel).
+        assert np.max(np.abs(got - uv[:, 0] / 0.01)) < 0.6, level
+    legacy = TextureMap(ramp, (0.0, 0.0), 0.01).sample(uv, np.full(50, 0.04))[:, 0] * 255.0
+    assert np.median(legacy - uv[:, 0] / 0.01) < -1.0  # the old convention displaces level 2 by 1.5 texels
+
+
+def test_supersampling_is_the_box_average_of_a_finer_render():
+    """k x k rays per pixel = a k-times finer render averaged over k x k blocks (noise off, fixed gain)."""
+    scene = build_scene("thread")
+    from scope3d.phantoms import RenderOptions, axial_trajectory, default_camera
+
+    pose = axial_trajectory(1, start_z_mm=-1.0).poses[0]
+    cam = default_camera(scene, "axial", size=(64, 64))
+    fine = Camera(128, 128, 2 * cam.fx, 2 * cam.fy, 2 * cam.cx + 0.5, 2 * cam.cy + 0.5, mask_radius_px=2 * cam.mask_radius_px)
+    quiet = dict(read_noise=0.0, shot_noise=0.0)
+    a = render_frame(scene, cam, pose, exposure=3.0, options=RenderOptions(supersample=2, **quiet))
+    b = render_frame(scene, fine, pose, exposure=3.0, options=RenderOptions(supersample=1, **quiet))
+    boxed = b.image.astype(float).reshape(64, 2, 64, 2, 3).mean(axis=(1, 3))
+    inner = np.hypot(*np.meshgrid(np.arange(64) - cam.cx, np.arange(64) - cam.cy)) < cam.mask_radius_px - 2
+    assert np.abs(a.image[inner] - boxed[inner]).max() <= 1.0  # rounding of the two 8-bit quantisations
+    # Depth stays the centre ray's: identical to a one-ray render.
+    c = render_frame(scene, cam, pose, exposure=3.0, options=RenderOptions(supersample=1, **quiet))
+    np.testing.assert_array_equal(a.depth_mm, c.depth_mm)
+
+
+def test_scene_default_supersampling_leaves_the_dome_unchanged():
+    from scope3d.phantoms import RenderOptions
+
+    scene = build_scene("dome")
+    cam = Camera.from_fov(48, 48, 53.0, mask_radius_px=23.0)
+    pose = Pose.from_centre(np.diag([1.0, -1.0, -1.0]), [0.0, 0.0, 15.0])
+    a = render_frame(scene, cam, pose, options=RenderOptions())
+    b = render_frame(scene, cam, pose, options=RenderOptions(supersample=1))
+    np.testing.assert_array_equal(a.image, b.image)
+    assert build_scene("thread").render_supersample == 2 and scene.render_supersample == 1
+    with pytest.raises(ValueError, match="supersample"):
+        RenderOptions(supersample=0)

@@ -42,6 +42,13 @@ def register(subparsers) -> None:
     p.add_argument("--size", type=_size, metavar="WxH", help="image size in pixels (e.g. 160x160 for tests)")
     p.add_argument("--side-view", type=float, default=45.0, metavar="DEG",
                    help="borescope side-view angle for quadrants (45 or 90 in the reference)")
+    p.add_argument("--axis-offset", type=float, default=0.0, metavar="MM",
+                   help="axial trajectory: scope centre offset from the hole axis along +x, mm (default 0)")
+    p.add_argument("--axis-tilt", type=float, default=0.0, metavar="DEG",
+                   help="axial trajectory: optical axis tilted from the motion about the camera x axis, "
+                        "degrees, within ±15 (default 0)")
+    p.add_argument("--supersample", type=int, metavar="K",
+                   help="anti-aliasing: K x K rays per pixel (default: the scene's, 2 for thread, 1 elsewhere)")
     p.add_argument("--dome-radius", type=float, default=17.5, metavar="MM", help="dome radius, 15-17.5 mm")
     p.add_argument("--blur", type=float, default=0.0, metavar="PX", help="optical blur sigma in pixels")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -61,10 +68,13 @@ def run(args) -> int:
         raise InputError("--out DIR is required")
     if args.blur < 0:
         raise InputError(f"--blur must be non-negative, got {args.blur}")
+    if args.supersample is not None and not 1 <= args.supersample <= 8:
+        raise InputError(f"--supersample must be from 1 to 8, got {args.supersample}")
     seq = generate(
         args.scene, args.trajectory, seed=args.seed, pose_noise_mm=args.pose_noise, thread=args.thread,
         n_frames=args.frames, size=args.size, fov_deg=args.fov, side_view_deg=args.side_view,
-        dome_radius_mm=args.dome_radius, options=RenderOptions(blur_sigma_px=args.blur),
+        axis_offset_mm=args.axis_offset, axis_tilt_deg=args.axis_tilt,
+        dome_radius_mm=args.dome_radius, options=RenderOptions(blur_sigma_px=args.blur, supersample=args.supersample),
         progress=not args.no_progress,
     )
     out = write(seq, args.out)

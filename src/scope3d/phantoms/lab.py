@@ -25,7 +25,7 @@ from ..dataset import write_dataset, write_image
 from ..errors import InputError
 from ..mesh import Mesh
 from ..pose import MICRO_STAGE, MeasuredPose, Pose, perturb_poses_uniform
-from .render import RenderOptions, render_frame, sequence_exposure
+from .render import RenderOptions, render_frame, sequence_exposure, supersample_factor
 from .scenes import SCENE_TRAJECTORIES, SCENES, THREADS, Scene, build_scene
 from .trajectories import TRAJECTORIES, Trajectory, build_trajectory
 
@@ -110,6 +110,8 @@ def generate(
     size: tuple[int, int] | None = None,
     fov_deg: float | None = None,
     side_view_deg: float = 45.0,
+    axis_offset_mm: float = 0.0,
+    axis_tilt_deg: float = 0.0,
     dome_radius_mm: float = 17.5,
     texture_seed: int = 0,
     options: RenderOptions = RenderOptions(),
@@ -124,6 +126,10 @@ def generate(
     thread : ``M6x1``, ``M8x1.25`` or ``M10x1.5`` for the ``thread`` scene.
     n_frames : limit or length of the trajectory (see :func:`~scope3d.phantoms.trajectories.build_trajectory`).
     side_view_deg : borescope side-view angle for ``quadrants`` (45 or 90 in the reference).
+    axis_offset_mm, axis_tilt_deg : misalignment of the ``axial`` trajectory (lateral offset of the scope
+        from the hole axis, mm; tilt of its optical axis from the motion, degrees); recorded in scene.json.
+    options : rendering settings; ``options.supersample`` None takes the scene's anti-aliasing default
+        (2 x 2 rays per pixel for the thread, 1 elsewhere); the value used is recorded in scene.json.
     progress : show a tqdm progress bar on stderr.
     """
     if thread not in THREADS:
@@ -137,7 +143,8 @@ def generate(
     if name not in built.trajectories:
         raise InputError(f"trajectory {name!r} does not fit scene {scene!r} (use one of {', '.join(built.trajectories)})")
     try:
-        traj = build_trajectory(name, n_frames=n_frames, side_view_deg=side_view_deg)
+        traj = build_trajectory(name, n_frames=n_frames, side_view_deg=side_view_deg,
+                                axis_offset_mm=float(axis_offset_mm), axis_tilt_deg=float(axis_tilt_deg))
     except ValueError as exc:
         raise InputError(str(exc)) from None
     if camera is None:
@@ -168,7 +175,7 @@ def generate(
                    "mask_radius_px": camera.mask_radius_px,
                    **({"side_view_deg": side_view_deg} if name == "quadrants" else {})},
         "lighting": "point light at the camera centre; Lambert cos/d^2 plus Blinn-Phong specular",
-        "render": {**options.to_dict(), "exposure_gain": exposure, "seed": seed, "texture_seed": texture_seed},
+        "render": {**options.to_dict(), "supersample": supersample_factor(built, options), "exposure_gain": exposure, "seed": seed, "texture_seed": texture_seed},
         "pose_noise": {
             "position_mm": pose_noise_mm,
             "orientation_deg": pose_noise_mm * ORIENTATION_NOISE_DEG_PER_MM,

@@ -42,6 +42,14 @@ class RenderOptions:
     fluorescence_efficiency : target emission relative to a white Lambertian reflector under the same gain.
     fluorescence_background : autofluorescence of the rest of the scene, same units.
     fluorescence_noise : std of the fluorescence channel's noise (the detector runs at high gain).
+    supersample : int or None, anti-aliasing: each pixel's intensity is the mean radiance of
+        ``supersample x supersample`` rays spread evenly over the pixel square (offsets
+        ``(i + 0.5) / k - 0.5`` px), as a sensor integrates light over its pixel; sharp edges (thread
+        crests, highlights) then no longer alias differently in each view. The textures are read at the
+        sub-ray footprint, so the box average is their only low-pass. Depth and target id stay those of
+        the ray through the pixel centre (exact geometric truth, as with one ray). 1 = one ray per pixel;
+        None = the scene's default (:attr:`~scope3d.phantoms.scenes.Scene.render_supersample`: 2 for the
+        thread, 1 elsewhere, so the other scenes render exactly as before).
     """
 
     read_noise: float = 0.008
@@ -53,8 +61,12 @@ class RenderOptions:
     fluorescence_efficiency: float = 0.9
     fluorescence_background: float = 0.02
     fluorescence_noise: float = 0.015
+    supersample: int | None = None
 
     def __post_init__(self) -> None:
+        if self.supersample is not None and not (isinstance(self.supersample, (int, np.integer))
+                                                 and 1 <= self.supersample <= 8):
+            raise ValueError(f"supersample must be None or an integer from 1 to 8, got {self.supersample!r}")
         for name in ("read_noise", "shot_noise", "blur_sigma_px", "target_reflectance_contrast",
                      "fluorescence_efficiency", "fluorescence_background", "fluorescence_noise"):
             if getattr(self, name) < 0:
@@ -96,24 +108,32 @@ class _Radiance:
     target: np.ndarray  # (M,) int16
 
 
-def _radiance(scene: Scene, camera: Camera, pose: Pose, options: RenderOptions) -> _Radiance:
-    valid = camera.mask()
-    pixels = camera.pixel_grid()[valid]
-    origins, dirs = camera.pixel_rays_world(pose, pixels)
+def _shade(scene: Scene, camera: Camera, pose: Pose, origins: np.ndarray, dirs: np.ndarray, options: RenderOptions,
+           footprint_scale: float = 1.0, *, geometry_only: bool = False):
+    """Cast rays (N, 3) and shade them: (hits, reflect (N, 3) float32, fluor (N,) float32, target (N,) int16).
+
+    footprint_scale : fraction of a pixel each ray stands for (1 / supersample), for the texture's mip level.
+    geometry_only : only the hits and target ids (reflect and fluor stay 0): the supersampled path shades
+        the sub-rays instead of the centre ray.
+    """
     hits = scene.caster.cast(origins, dirs)
     hit = hits.hit
-    m = len(pixels)
+    m = len(dirs)
     reflect = np.zeros((m, 3), np.float32)
     fluor = np.zeros(m, np.float32)
-    depth = np.full(m, np.nan)
     target = np.zeros(m, np.int16)
-    if np.any(hit):
+    if geometry_only and np.any(hit):
+        tid = np.zeros(int(hit.sum()), np.int16)
+        for tgt in scene.targets:
+            tid[tgt.contains(hits.points[hit])] = tgt.id
+        target[hit] = tid
+    elif np.any(hit):
         pts, nrm, d = hits.points[hit], hits.normals[hit], dirs[hit]
         dist = hits.distance_mm[hit]
         cos_i = np.abs(np.einsum("ij,ij->i", nrm, d))
         falloff = (cos_i / dist**2).astype(np.float32)
         # Pixel size on the surface: distance / focal length, widened on oblique surfaces.
-        footprint = dist / np.sqrt(camera.fx * camera.fy) / np.sqrt(np.maximum(cos_i, 0.1))
+        footprint = footprint_scale * dist / np.sqrt(camera.fx * camera.fy) / np.sqrt(np.maximum(cos_i, 0.1))
         albedo = scene.albedo(pts, nrm, footprint)
         tid = np.zeros(len(pts), np.int16)
         for tgt in scene.targets:
@@ -126,8 +146,38 @@ def _radiance(scene: Scene, camera: Camera, pose: Pose, options: RenderOptions) 
             shade += spec.astype(np.float32)[:, None]
         reflect[hit] = shade
         fluor[hit] = falloff * np.where(on_target, options.fluorescence_efficiency, options.fluorescence_background)
-        depth[hit] = (pts - pose.centre) @ pose.optical_axis
         target[hit] = tid
+    return hits, reflect, fluor, target
+
+
+def supersample_factor(scene: Scene, options: RenderOptions) -> int:
+    """Rays per pixel side actually used: ``options.supersample``, or the scene's default when None."""
+    return int(options.supersample if options.supersample is not None else getattr(scene, "render_supersample", 1))
+
+
+def _radiance(scene: Scene, camera: Camera, pose: Pose, options: RenderOptions) -> _Radiance:
+    valid = camera.mask()
+    pixels = camera.pixel_grid()[valid]
+    origins, dirs = camera.pixel_rays_world(pose, pixels)
+    k = supersample_factor(scene, options)
+    # The centre ray gives the geometric truth (depth, target id) and, with one ray per pixel, the shading.
+    hits, reflect, fluor, target = _shade(scene, camera, pose, origins, dirs, options, geometry_only=k > 1)
+    if k > 1:
+        # k x k rays evenly spread over each pixel square; their mean radiance is the pixel's (box filter).
+        # Done in chunks of pixels so the ray arrays stay a few tens of MB at 608 x 608 and k = 3.
+        off = (np.arange(k) + 0.5) / k - 0.5
+        offsets = np.stack(np.meshgrid(off, off), axis=-1).reshape(-1, 2)  # (k^2, 2) px
+        chunk = max(1, 400_000 // (k * k))
+        for s0 in range(0, len(pixels), chunk):
+            sub = (pixels[s0:s0 + chunk, None, :] + offsets[None]).reshape(-1, 2)
+            o, d = camera.pixel_rays_world(pose, sub)
+            _, r, f, _ = _shade(scene, camera, pose, o, d, options, footprint_scale=1.0 / k)
+            n = len(sub) // (k * k)
+            reflect[s0:s0 + n] = r.reshape(n, k * k, 3).mean(axis=1)
+            fluor[s0:s0 + n] = f.reshape(n, k * k).mean(axis=1)
+    hit = hits.hit
+    depth = np.full(len(pixels), np.nan)
+    depth[hit] = (hits.points[hit] - pose.centre) @ pose.optical_axis
     return _Radiance(valid, hit, reflect, fluor, depth, target)
 
 

@@ -122,6 +122,10 @@ class Scene:
     trajectories : names of the trajectories that make sense in this scene, default first.
     camera : ``"endoscope"`` or ``"borescope"``; fov_deg : default field of view across the width.
     info : JSON-ready parameters (written as ground_truth/scene.json).
+    render_supersample : rays per pixel side when :class:`~scope3d.phantoms.render.RenderOptions` leaves
+        ``supersample`` at None. 1 for the painted and printed phantoms (their textures are mip-mapped and
+        their edges soft); 2 for the machined thread, whose sharp crests and specular edges alias badly
+        with one ray per pixel.
     """
 
     name: str
@@ -133,6 +137,7 @@ class Scene:
     camera: str
     fov_deg: float
     info: dict = field(default_factory=dict)
+    render_supersample: int = 1
     _caster: RayCaster | None = field(default=None, repr=False)
 
     @property
@@ -574,9 +579,9 @@ def build_thread(size: str = "M8x1.25", *, texture_seed: int = 0, mm_per_texel: 
     mm_per_texel = circumference / round(circumference / mm_per_texel)  # a whole number of texels per turn
     v_lo, v_hi = z_apex - pitch - 1.0, 1.0
     wall = TextureMap(machined_texture((circumference, v_hi - v_lo), mm_per_texel, texture_seed + 20, periodic_u=True),
-                      (0.0, v_lo), mm_per_texel, wrap_u=True)
+                      (0.0, v_lo), mm_per_texel, wrap_u=True, exact_mip_centres=True)
     face = TextureMap(machined_texture((22.0, 22.0), 0.01, texture_seed + 21, along_mm=0.6, across_mm=0.03),
-                      (-11.0, -11.0), 0.01)
+                      (-11.0, -11.0), 0.01, exact_mip_centres=True)
     score_rng = np.random.default_rng(texture_seed + 22)
     score_levels = score_rng.uniform(0.7, 1.15, 4096)
     score_period = 0.04  # mm between the scored rings of the counterbore
@@ -616,7 +621,7 @@ def build_thread(size: str = "M8x1.25", *, texture_seed: int = 0, mm_per_texel: 
         "targets": [],
     }
     return Scene("thread", mesh, albedo, Material(specular=0.6, shininess=40.0), (), SCENE_TRAJECTORIES["thread"],
-                 "endoscope", 70.0, info)
+                 "endoscope", 70.0, info, render_supersample=2)
 
 
 # --- registry -----------------------------------------------------------------------------------

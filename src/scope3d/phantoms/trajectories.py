@@ -64,14 +64,33 @@ def grid_trajectory(
     return Trajectory(f"grid{cols}x{rows}", poses, params)
 
 
-def axial_trajectory(n_frames: int, *, step_mm: float = AXIAL_STEP_MM, start_z_mm: float = 1.0) -> Trajectory:
-    """Forward-looking camera on the z axis, looking down (-z), from ``start_z_mm`` into the hole."""
+def axial_trajectory(
+    n_frames: int, *, step_mm: float = AXIAL_STEP_MM, start_z_mm: float = 1.0, axis_offset_mm: float = 0.0,
+    axis_tilt_deg: float = 0.0,
+) -> Trajectory:
+    """Forward-looking camera stepping ``step_mm`` along the hole axis (-z) from ``start_z_mm``.
+
+    axis_offset_mm : float, mm, the camera centre's lateral offset from the hole axis, along world +x
+        (a scope mounted off-centre on the stage; the motion stays parallel to the axis).
+    axis_tilt_deg : float, degrees, the optical axis tilted away from the motion by a rotation about the
+        camera's own x axis (image rows), the misalignment the reference's aligned model (eqs. 7.3-7.4)
+        ignores. 0 and 0 give the reference's aligned set-up (sec. 7.3). Limited to 15° (beyond it the
+        epipole leaves the centre of the view and axial stereo no longer applies).
+    """
     if n_frames < 1 or step_mm <= 0:
         raise ValueError("axial trajectory needs n_frames >= 1 and a positive step")
+    if not (np.isfinite(axis_offset_mm) and np.isfinite(axis_tilt_deg) and abs(axis_tilt_deg) <= 15.0):
+        raise ValueError(f"axis offset must be finite and axis tilt within ±15 degrees, got "
+                         f"{axis_offset_mm} mm and {axis_tilt_deg} degrees")
     rot = look_at(np.zeros(3), [0.0, 0.0, -1.0], up=(0.0, -1.0, 0.0))
-    poses = [Pose.from_centre(rot, [0.0, 0.0, start_z_mm - i * step_mm]) for i in range(n_frames)]
+    # Pre-multiplying rotates about the camera's own x axis: the tilt is a property of the mount.
+    rot = rotvec_to_matrix(np.array([np.deg2rad(axis_tilt_deg), 0.0, 0.0])) @ rot
+    poses = [Pose.from_centre(rot, [axis_offset_mm, 0.0, start_z_mm - i * step_mm]) for i in range(n_frames)]
     params = {"kind": "axial", "step_mm": step_mm, "start_z_mm": start_z_mm, "frames": n_frames,
-              "view": "forward along -z, on the hole axis"}
+              "axis_offset_mm": float(axis_offset_mm), "axis_tilt_deg": float(axis_tilt_deg),
+              "view": "forward along -z, on the hole axis" if axis_offset_mm == 0 and axis_tilt_deg == 0 else
+              "forward along -z, moving parallel to the hole axis, offset along +x by axis_offset_mm, optical axis "
+              "tilted by axis_tilt_deg about the camera x axis"}
     return Trajectory("axial", poses, params)
 
 
@@ -144,15 +163,19 @@ TRAJECTORIES = {
 }
 
 
-def build_trajectory(name: str, *, n_frames: int | None = None, side_view_deg: float = 45.0) -> Trajectory:
+def build_trajectory(name: str, *, n_frames: int | None = None, side_view_deg: float = 45.0,
+                     axis_offset_mm: float = 0.0, axis_tilt_deg: float = 0.0) -> Trajectory:
     """Build a named trajectory. ``n_frames`` limits the grids (first frames in scan order), sets the
     length of ``axial`` and ``spiral``, and for ``quadrants`` gives the total (``n_frames // 12`` per
-    quadrant, at least one)."""
+    quadrant, at least one). ``axis_offset_mm`` and ``axis_tilt_deg`` misalign ``axial`` (see
+    :func:`axial_trajectory`); other trajectories reject them."""
     if name not in TRAJECTORIES:
         raise InputError(f"unknown trajectory {name!r} (use one of {', '.join(TRAJECTORIES)})")
     if n_frames is not None and n_frames < 1:
         raise InputError(f"number of frames must be at least 1, got {n_frames}")
     n = n_frames or TRAJECTORIES[name][1]
+    if name != "axial" and (axis_offset_mm != 0 or axis_tilt_deg != 0):
+        raise InputError(f"axis offset and tilt apply to the axial trajectory only, not {name!r}")
     if name.startswith("grid"):
         cols, rows = (int(v) for v in name[4:].split("x"))
         traj = grid_trajectory(rows, cols)
@@ -160,7 +183,7 @@ def build_trajectory(name: str, *, n_frames: int | None = None, side_view_deg: f
             traj = Trajectory(traj.name, traj.poses[:n_frames], {**traj.params, "frames_used": min(n_frames, len(traj))})
         return traj
     if name == "axial":
-        return axial_trajectory(n)
+        return axial_trajectory(n, axis_offset_mm=axis_offset_mm, axis_tilt_deg=axis_tilt_deg)
     if name == "quadrants":
         return quadrant_trajectory(max(1, n // QUADRANT_COUNT), side_view_deg=side_view_deg)
     return spiral_trajectory(n)
