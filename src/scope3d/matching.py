@@ -159,6 +159,39 @@ class PairMatches:
         return len(self.idx_i)
 
 
+def box_depth_prior(box_min_mm: np.ndarray, box_max_mm: np.ndarray, poses: list[Pose], *, margin_mm: float = 0.0) -> DepthPrior:
+    """Depth prior from a bounding box of the scene (world, mm), e.g. a calibrated object's.
+
+    Each ray's range is where it crosses the box (slab test), so the prediction's segments end at the
+    object; the global range spans the box's distance from every camera. ``margin_mm`` enlarges the box.
+    """
+    lo = np.asarray(box_min_mm, float) - margin_mm
+    hi = np.asarray(box_max_mm, float) + margin_mm
+    if lo.shape != (3,) or hi.shape != (3,) or np.any(hi <= lo):
+        raise ValueError(f"bounding box must be two (3,) corners with min < max, got {lo} and {hi}")
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    z = np.concatenate([p.transform(corners)[:, 2] for p in poses])
+    near = max(float(z.min()), 1e-3)
+    far = float(z.max())
+    if far <= near:
+        raise ValueError("the bounding box is behind every camera")
+
+    def per_ray(pose: Pose, rays_cam: np.ndarray):
+        d = np.asarray(rays_cam, float) @ pose.rotation  # world direction per unit z-depth
+        c = pose.centre
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1 = (lo - c) / d
+            t2 = (hi - c) / d
+        t_near = np.nanmax(np.minimum(t1, t2), axis=1)
+        t_far = np.nanmin(np.maximum(t1, t2), axis=1)
+        miss = ~(t_far >= np.maximum(t_near, 0.0))
+        t_near[miss] = np.nan
+        t_far[miss] = np.nan
+        return np.maximum(t_near, 1e-3), t_far
+
+    return DepthPrior(near, far, per_ray=per_ray)
+
+
 # --- which frames overlap --------------------------------------------------------------------
 
 

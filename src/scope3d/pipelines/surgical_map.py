@@ -49,7 +49,7 @@ from ..fluorescence import (
 )
 from ..fluorescence import map_targets as _targets_on_surface
 from ..matching import (
-    DepthPrior, MatchOptions, PairMatches, PairOptions, estimate_depth_prior, match_exhaustive, match_pairs,
+    DepthPrior, MatchOptions, PairMatches, PairOptions, box_depth_prior, estimate_depth_prior, match_exhaustive, match_pairs,
     select_pairs,
 )
 from ..mesh import Mesh, PointCloud, write_ply
@@ -102,6 +102,8 @@ class MapOptions:
         needs a scene that is a height field seen from one side, false for a ring around an object).
     surface_band_mm : float, added to the band around the coarse surface for the detail it smooths
         away (default 0.5 mm).
+    use_bounding_box : bool, bounding_box_margin_mm : float, use the dataset's ``bounding_box_mm``
+        (when its metadata has one) as the depth prior, enlarged by the margin (default True, 5 mm).
     """
 
     pose_mode: str = "bounded"
@@ -121,6 +123,8 @@ class MapOptions:
     threads: int = 2
     surface_prior: bool = True
     surface_band_mm: float = 0.5
+    use_bounding_box: bool = True
+    bounding_box_margin_mm: float = 5.0
 
     def __post_init__(self) -> None:
         if self.pose_mode not in POSE_MODES:
@@ -137,7 +141,7 @@ MAP_PRESETS: dict[str, MapOptions] = {
     "default": MapOptions(),
     "dim_endoscope": MapOptions(features=FEATURE_PRESETS["dim_endoscope"]),
     "photograph": MapOptions(features=FEATURE_PRESETS["photograph"], surface=False, fluorescence=False, surface_prior=False,
-                             pairs=PairOptions(min_overlap=0.2, max_pairs_per_frame=6)),
+                             pairs=PairOptions(min_overlap=0.2, max_pairs_per_frame=4, max_view_angle_deg=35.0)),
 }
 
 
@@ -241,8 +245,14 @@ def match_frames(options: MapOptions, dataset: Dataset, features: list[Features]
     several times.
     """
     t0 = time.perf_counter()
-    # the depth prior also places the frusta for pair selection, so both matchers see the same pairs
-    depth = options.depth_prior or estimate_depth_prior(dataset.camera, features, dataset.poses, options.matching)
+    # the depth prior also places the frusta for pair selection, so both matchers see the same pairs;
+    # a scene bounding box (a calibrated object's, from the dataset) is the tightest prior there is
+    depth = options.depth_prior
+    box = dataset.metadata.get("bounding_box_mm") if options.use_bounding_box else None
+    if depth is None and box is not None:
+        depth = box_depth_prior(box[0], box[1], [m.pose for m in dataset.poses], margin_mm=options.bounding_box_margin_mm)
+    if depth is None:
+        depth = estimate_depth_prior(dataset.camera, features, dataset.poses, options.matching)
     t_depth = time.perf_counter() - t0
     pairs = select_pairs(dataset.camera, [m.pose for m in dataset.poses], depth, options.pairs)
     if options.matcher == "exhaustive" or not options.surface_prior or len(pairs) < 4:
@@ -391,8 +401,8 @@ def reconstruct(options: MapOptions, dataset: Dataset, features: list[Features],
         tracks = triangulate_tracks(camera, poses, tracks, options.tracks)
         if tracks.n_tracks == 0:
             raise InputError(f"{dataset.root}: bundle adjustment left no consistent point")
-        if options.pose_mode == "fixed":
-            break
+        if options.pose_mode == "fixed" or (options.pose_mode == "bounded" and all(m.tolerance.is_exact for m in measured)):
+            break  # poses cannot move: one adjustment of the points is all there is
     err = reprojection_errors(camera, poses, tracks)
     return SparseResult(tracks, poses, camera, results, float(np.mean(err)), time.perf_counter() - t0)
 
