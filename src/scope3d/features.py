@@ -43,6 +43,9 @@ class FeatureOptions:
     clahe_tile_grid : int, CLAHE tiles per image side (default 8).
     mask_margin_px : float, keypoints closer than this to the edge of the circular field of view are
         dropped (default 8 px, about half a descriptor window at the finest scale).
+    precise_upscale : bool, OpenCV's exact 2x upsampling of the first octave (default False: meant to
+        remove a sub-pixel shift of the finest-scale keypoints, it did not lower the reprojection error on
+        the Middlebury temple, 0.351 vs 0.335 px).
     """
 
     max_features: int = 4000
@@ -53,6 +56,7 @@ class FeatureOptions:
     clahe_clip_limit: float = 0.0
     clahe_tile_grid: int = 8
     mask_margin_px: float = 8.0
+    precise_upscale: bool = False
 
     def __post_init__(self) -> None:
         if self.max_features < 0:
@@ -151,6 +155,7 @@ def detect(image: np.ndarray, camera: Camera | None = None, options: FeatureOpti
         contrastThreshold=options.contrast_threshold,
         edgeThreshold=options.edge_threshold,
         sigma=options.sigma,
+        enable_precise_upscale=options.precise_upscale,
     )
     kps, desc = sift.detectAndCompute(grey, mask)
     if not kps:

@@ -65,8 +65,8 @@ MATCHERS = ("guided", "exhaustive")
 class BundleStageOptions:
     """Bundle adjustment as the map uses it.
 
-    max_iterations : int, LM iterations per adjustment (default 30: from triangulated points and
-        measured poses the reference's BCBA converged in ~10).
+    max_iterations : int, LM iterations per adjustment (default 60: exact poses converge in a few,
+        a robot's poses several mm off need ~50 in the first round).
     loss_scale_px : float, Huber loss scale (default 1.0 px: SIFT localisation ~0.3-0.5 px, so a
         residual beyond 1 px is downweighted as a likely wrong match).
     max_points : int, the adjustment uses at most this many tracks, the longest first (default 6000):
@@ -74,12 +74,15 @@ class BundleStageOptions:
         adjusted poses, which is exact for them and costs nothing.
     refine_intrinsics : bool, let the intrinsics move (default False: the scope is calibrated, and
         with a short-baseline survey focal length and depth trade off).
+    align_gauge : bool, after free or bounded BA with inexact poses, move the map to the similarity
+        frame that best fits all measured camera centres (:func:`align_gauge`; default True).
     """
 
-    max_iterations: int = 30
+    max_iterations: int = 60
     loss_scale_px: float = 1.0
     max_points: int = 6000
     refine_intrinsics: bool = False
+    align_gauge: bool = True
 
     def __post_init__(self) -> None:
         if self.max_iterations < 0 or self.loss_scale_px <= 0 or self.max_points < 10:
@@ -136,12 +139,15 @@ class MapOptions:
 
 
 #: Named presets. ``dim_endoscope``: CLAHE and a lower SIFT threshold for dark frames.
-#: ``photograph``: calibrated photographs around an object (no circular mask, no height-field surface).
+#: ``photograph``: calibrated photographs around an object (no circular mask, no height-field surface,
+#: ring neighbours only, a 1 px reprojection gate).
 MAP_PRESETS: dict[str, MapOptions] = {
     "default": MapOptions(),
     "dim_endoscope": MapOptions(features=FEATURE_PRESETS["dim_endoscope"]),
     "photograph": MapOptions(features=FEATURE_PRESETS["photograph"], surface=False, fluorescence=False, surface_prior=False,
-                             pairs=PairOptions(min_overlap=0.2, max_pairs_per_frame=4, max_view_angle_deg=35.0)),
+                             pairs=PairOptions(min_overlap=0.2, max_pairs_per_frame=4, max_view_angle_deg=35.0),
+                             # sharp calibrated photographs, no distortion-model error: 3 sigma of SIFT's ~0.3 px
+                             tracks=TrackOptions(max_reprojection_error_px=1.0)),
 }
 
 
@@ -392,6 +398,8 @@ def reconstruct(options: MapOptions, dataset: Dataset, features: list[Features],
         result = solve(problem, solver)
         results.append(result)
         new_poses = result.poses
+        if options.pose_mode != "fixed" and options.bundle.align_gauge and not all(m.tolerance.is_exact for m in measured):
+            new_poses = align_gauge(new_poses, measured, only_if_significant=options.pose_mode == "bounded")
         if options.bundle.refine_intrinsics:
             camera = camera.with_intrinsics(result.intrinsics[0])
         # the bounds stay those of the *measurement*: carry the tolerance box, centred where it was
@@ -405,6 +413,43 @@ def reconstruct(options: MapOptions, dataset: Dataset, features: list[Features],
             break  # poses cannot move: one adjustment of the points is all there is
     err = reprojection_errors(camera, poses, tracks)
     return SparseResult(tracks, poses, camera, results, float(np.mean(err)), time.perf_counter() - t0)
+
+
+def align_gauge(poses: list[Pose], measured: list[MeasuredPose], *, only_if_significant: bool = False) -> list[Pose]:
+    """Express adjusted poses in the similarity frame that best fits the measured camera centres.
+
+    Images fix a reconstruction only up to a similarity (rotation, translation, scale: the gauge).
+    Free BA pins it to one camera's measurement; bounded BA keeps it inside the tolerance boxes, but
+    where the boxes are wide compared with the trajectory, LM drifts along the scale (on the
+    cable-driven-robot test the map shrank by 9 %, as the reference's Fig. 6.4 shows BA doing).
+    Moving to the least-squares similarity of all measured centres (Umeyama) changes no reprojection
+    error — it is the same map — but uses every measurement, so their random errors average out (a
+    common bias cannot: it is unobservable).
+
+    only_if_significant : for bounded BA. Intersecting the boxes pins the gauge better than a
+        least-squares fit when they are tight, so the similarity is applied only if its scale differs
+        from 1 by more than 2 sigma of what the measurements' noise (uniform within the tolerance,
+        sigma = tolerance / sqrt 3 per axis) would give.
+    """
+    A = np.stack([p.centre for p in poses])
+    B = np.stack([m.pose.centre for m in measured])
+    if len(A) < 3 or np.ptp(A, axis=0).max() <= 0:
+        return poses
+    ca, cb = A.mean(axis=0), B.mean(axis=0)
+    a, b = A - ca, B - cb
+    U, S, Vt = np.linalg.svd(b.T @ a)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    R = U @ D @ Vt
+    scale = float(np.trace(np.diag(S) @ D) / np.sum(a * a))
+    if only_if_significant:
+        tol = np.array([m.tolerance.position_mm for m in measured])
+        sigma_pos = float(np.sqrt(np.mean(np.where(np.isfinite(tol), tol, 0.0) ** 2) / 3.0))
+        sigma_scale = sigma_pos / np.sqrt(np.sum(b * b))
+        if abs(scale - 1.0) <= 2.0 * sigma_scale:
+            return poses
+    t = cb - scale * R @ ca
+    # X' = s R X + t: a camera x_cam = Rc X + tc becomes Rc R^T and s tc - Rc R^T t (x_cam scaled by s)
+    return [Pose(p.rotation @ R.T, scale * p.translation - p.rotation @ R.T @ t) for p in poses]
 
 
 def _remaining_tolerance(measured: MeasuredPose, pose: Pose) -> PoseTolerance:
