@@ -121,6 +121,17 @@ def test_cli_map_runs_and_bad_dataset_fails_in_one_line(dome_dir, tmp_path, caps
     assert not (tmp_path / "x").exists()
 
 
+def test_frames_without_texture_fail_in_one_line(dome_dir, tmp_path, capsys):
+    from scope3d.dataset import write_dataset
+
+    ds = load_dataset(dome_dir)
+    blank = [np.zeros((ds.camera.height, ds.camera.width, 3), np.uint8)] * 3
+    bad = write_dataset(tmp_path / "blank", ds.camera, blank, ds.poses[:3])
+    assert main(["map", str(bad), "--out", str(tmp_path / "z"), "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("scope3d map: error:") and "\n" not in err and "depth prior" in err
+
+
 def test_cli_rejects_unknown_pose_mode(dome_dir, tmp_path):
     with pytest.raises(SystemExit) as exc:
         main(["map", str(dome_dir), "--out", str(tmp_path / "y"), "--pose-mode", "sideways"])
