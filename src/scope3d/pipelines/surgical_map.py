@@ -76,6 +76,8 @@ class BundleStageOptions:
         with a short-baseline survey focal length and depth trade off).
     align_gauge : bool, after free or bounded BA with inexact poses, move the map to the similarity
         frame that best fits all measured camera centres (:func:`align_gauge`; default True).
+    settled_mm : float, no second adjustment round when no camera moved more than this in the first
+        (and turned less than settled_mm / 100 rad; default 0.02 mm, twice a micro-stage's tolerance).
     """
 
     max_iterations: int = 60
@@ -83,6 +85,7 @@ class BundleStageOptions:
     max_points: int = 6000
     refine_intrinsics: bool = False
     align_gauge: bool = True
+    settled_mm: float = 0.02
 
     def __post_init__(self) -> None:
         if self.max_iterations < 0 or self.loss_scale_px <= 0 or self.max_points < 10:
@@ -393,6 +396,7 @@ def reconstruct(options: MapOptions, dataset: Dataset, features: list[Features],
     results = []
     current = measured
     for round_ in range(2):
+        before = [m.pose for m in current]
         sub = _strongest_tracks(tracks, options.bundle.max_points)
         problem = _bundle_problem(options.pose_mode, current, camera, sub, options.bundle.refine_intrinsics)
         result = solve(problem, solver)
@@ -411,6 +415,10 @@ def reconstruct(options: MapOptions, dataset: Dataset, features: list[Features],
             raise InputError(f"{dataset.root}: bundle adjustment left no consistent point")
         if options.pose_mode == "fixed" or (options.pose_mode == "bounded" and all(m.tolerance.is_exact for m in measured)):
             break  # poses cannot move: one adjustment of the points is all there is
+        moved = max(max(p.distance_to(q)[0] for p, q in zip(new_poses, before)), 0.0)
+        turned = max(p.distance_to(q)[1] for p, q in zip(new_poses, before))
+        if moved < options.bundle.settled_mm and turned < options.bundle.settled_mm / 100.0:
+            break  # the poses barely moved (a micro-stage's 0.01 mm box): a second round would change nothing
     err = reprojection_errors(camera, poses, tracks)
     return SparseResult(tracks, poses, camera, results, float(np.mean(err)), time.perf_counter() - t0)
 
