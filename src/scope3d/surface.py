@@ -399,9 +399,12 @@ def texture(surface: Surface, camera: Camera, poses: list[Pose], images) -> tupl
 
 
 def depth_map(surface: Surface) -> np.ndarray:
-    """(H, W) depth (mm) of the surface below its highest point along the normal (the cameras'
-    side): the reference's pseudo-colour depth map (Fig. 4.6(c)). NaN outside the surface."""
-    return np.nanmax(surface.height) - surface.height
+    """(H, W) depth (mm) of the surface below its top along the normal (the cameras' side): the
+    reference's pseudo-colour depth map (Fig. 4.6(c)). The top is the 99.5th percentile of the
+    heights, so that a spline overshoot at the unsurveyed edge does not set the scale; depths are
+    clipped at 0. NaN outside the surface."""
+    top = np.nanpercentile(surface.height, 99.5)
+    return np.maximum(top - surface.height, 0.0)
 
 
 def save_depth_map_png(path, surface: Surface, *, title: str = "depth map") -> None:

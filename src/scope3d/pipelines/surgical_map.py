@@ -28,9 +28,8 @@ import csv
 import io
 import json
 import time
-import tracemalloc
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -52,7 +51,7 @@ from ..matching import (
     DepthPrior, MatchOptions, PairMatches, PairOptions, box_depth_prior, estimate_depth_prior, match_exhaustive, match_pairs,
     select_pairs,
 )
-from ..mesh import Mesh, PointCloud, write_ply
+from ..mesh import PointCloud, write_ply
 from ..pose import MeasuredPose, Pose, PoseTolerance
 from ..surface import Surface, SurfaceOptions, fit_surface, save_depth_map_png, texture
 from ..tracks import TrackOptions, Tracks, build_tracks, reprojection_errors, triangulate_tracks
@@ -610,7 +609,7 @@ def write_outputs(
                              "points_flatness_rms_mm": _flatness_rms(tr.points),
                              "points_flatness_median_mm": _flatness_median(tr.points)}
         if options.figures:
-            write_image(out_dir / "texture_mosaic.png", _flip_for_view(surface.colors))
+            write_image(out_dir / "texture_mosaic.png", _upsample(surface.colors))
             save_depth_map_png(out_dir / "depth_map.png", s)
     if targets is not None:
         report["fluorescence_threshold"] = targets.threshold
@@ -618,7 +617,8 @@ def write_outputs(
         _write_targets(out_dir, targets.targets, evaluation.get("targets_vs_truth"))
         if options.figures and surface is not None:
             write_image(out_dir / "multimodal_mosaic.png",
-                        _flip_for_view(overlay(surface.colors, targets.fluorescent, targets.labels, options.fluorescence_options)))
+                        overlay(_upsample(surface.colors), _upsample(targets.fluorescent), _upsample(targets.labels),
+                                options.fluorescence_options))
     if evaluation:
         report.update({k: v for k, v in evaluation.items() if not k.startswith("_") and k != "time_s"})
         if "targets_vs_truth" in evaluation:
@@ -668,9 +668,18 @@ def _flatness_median(points: np.ndarray) -> float:
     return float(np.median(np.abs(c @ n)))
 
 
-def _flip_for_view(img: np.ndarray) -> np.ndarray:
-    """Surface rasters have t down the rows; shown as is (the plane's axes are reported in the JSON)."""
-    return img
+def _upsample(img: np.ndarray, factor: int = 3) -> np.ndarray:
+    """Surface rasters (one pixel per 0.2 mm grid vertex) enlarged for viewing: colours bilinear,
+    masks and labels nearest."""
+    import cv2
+
+    a = np.asarray(img)
+    size = (a.shape[1] * factor, a.shape[0] * factor)
+    if a.dtype == bool:
+        return cv2.resize(a.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST).astype(bool)
+    if a.dtype != np.uint8:
+        return cv2.resize(a.astype(np.int32), size, interpolation=cv2.INTER_NEAREST)
+    return cv2.resize(a, size, interpolation=cv2.INTER_LINEAR)
 
 
 def _write_targets(out_dir: Path, targets: list[Target], vs_truth: list | None) -> None:
