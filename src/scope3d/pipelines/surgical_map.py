@@ -697,8 +697,12 @@ def _matches_figure(options, dataset, frames, features, matching, path, report) 
     """Matches of the best-overlapping pair with and without prediction (reference Fig. 3.4 / 4.5)."""
     if not matching.pairs:
         return
-    # the pair with the most guided matches among the well-overlapping ones
-    best = max(matching.matches, key=len)
+    # the pair with the most matches among those with a real baseline (a ring can hold two views from
+    # one place: they match perfectly and show nothing)
+    centres = np.stack([m.pose.centre for m in dataset.poses])
+    spread = float(np.ptp(centres, axis=0).max())
+    moved = [m for m in matching.matches if np.linalg.norm(centres[m.i] - centres[m.j]) > 0.01 * spread]
+    best = max(moved or matching.matches, key=len)
     i, j = best.i, best.j
     exh = match_exhaustive(dataset.camera, features[i], features[j], options.matching, i=i, j=j)
     guided = best if options.matcher == "guided" else None
