@@ -25,6 +25,7 @@ their outputs are comparable. Per-pair loops are fine; nothing loops over featur
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import cv2
@@ -81,6 +82,7 @@ class MatchOptions:
         so large that the window would exceed it, the prediction carries no information and the
         pair is matched exhaustively instead.
     mutual : bool, keep a match only if it is also the best for the feature in the other frame.
+    threads : int, threads for the per-pair RANSAC of the guided matcher (default 2, the machine's cores).
     """
 
     ratio: float = 0.8
@@ -91,6 +93,7 @@ class MatchOptions:
     base_radius_px: float = 4.0
     max_radius_px: float = 250.0
     mutual: bool = True
+    threads: int = 2
 
     def __post_init__(self) -> None:
         if not 0 < self.ratio <= 1:
@@ -103,6 +106,8 @@ class MatchOptions:
             raise ValueError("min_matches must be >= 0")
         if self.base_radius_px <= 0 or self.max_radius_px < self.base_radius_px:
             raise ValueError("need 0 < base_radius_px <= max_radius_px")
+        if self.threads < 1:
+            raise ValueError("threads must be >= 1")
 
 
 @dataclass(frozen=True)
@@ -533,7 +538,7 @@ def match_guided_many(
         g_seg, g_b, g_pair = g_seg[order], g_b[order], g_pair[order]
         bounds = np.searchsorted(g_pair, np.arange(len(pairs) + 1))
         t_share = (time.perf_counter() - t0) / max(len(todo), 1)
-        for k in todo:  # per-pair loop: RANSAC
+        def verify(k):  # per-pair RANSAC; OpenCV releases the GIL, so pairs run on both cores
             t1 = time.perf_counter()
             i, j, _ = pairs[k]
             sl = slice(bounds[k], bounds[k + 1])
@@ -543,10 +548,14 @@ def match_guided_many(
             a, b = a[inl], b[inl]
             if len(a) < options.min_matches:
                 a, b = a[:0], b[:0]
-            results[k] = PairMatches(ids[i], ids[j], a, b, int(n_put[k]), int(n_cand[k]),
-                                     t_share + time.perf_counter() - t1, "guided")
-            if progress is not None:
-                progress(1)
+            return PairMatches(ids[i], ids[j], a, b, int(n_put[k]), int(n_cand[k]),
+                               t_share + time.perf_counter() - t1, "guided")
+
+        with ThreadPoolExecutor(max_workers=options.threads) as pool:
+            for k, m in zip(todo, pool.map(verify, todo)):
+                results[k] = m
+                if progress is not None:
+                    progress(1)
     for k in range(len(pairs)):
         if results[k] is None:
             results[k] = PairMatches(ids[pairs[k][0]], ids[pairs[k][1]], empty, empty, time_s=0.0)
