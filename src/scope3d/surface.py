@@ -245,6 +245,17 @@ def _control_points(stn: np.ndarray, cell: float, mad_k: float) -> np.ndarray:
     return np.column_stack([st, med_h[ok]])
 
 
+def _local_plane_residuals(stn: np.ndarray, k: int) -> np.ndarray:
+    """Height (M,) of each point (M, 3) (s, t, h) above the least-squares plane of its ``k`` nearest
+    neighbours in (s, t), the point itself excluded."""
+    _, idx = cKDTree(stn[:, :2]).query(stn[:, :2], k=k + 1)
+    nb = stn[idx[:, 1:]]  # (M, k, 3)
+    A = np.concatenate([nb[:, :, :2] - stn[:, None, :2], np.ones(nb.shape[:2] + (1,))], axis=2)
+    AtA = np.einsum("mki,mkj->mij", A, A) + 1e-9 * np.eye(3)
+    coef = np.linalg.solve(AtA, np.einsum("mki,mk->mi", A, nb[:, :, 2])[..., None])[..., 0]
+    return stn[:, 2] - coef[:, 2]  # plane value at the point itself (offset term)
+
+
 def _reject_local_outliers(ctrl: np.ndarray, k: int, mad_k: float, floor_mm: float) -> np.ndarray:
     """Drop control points (M, 3) (s, t, h) far from the least-squares plane of their ``k`` nearest
     neighbours: the spline would otherwise bend towards a wrong track (smoothing only damps it).
@@ -252,15 +263,39 @@ def _reject_local_outliers(ctrl: np.ndarray, k: int, mad_k: float, floor_mm: flo
     curved field over a neighbourhood, d^2 / 2R = 0.06 mm for 1.5 mm on the 17.5 mm dome)."""
     if k < 3 or len(ctrl) <= k + 3:
         return ctrl
-    _, idx = cKDTree(ctrl[:, :2]).query(ctrl[:, :2], k=k + 1)
-    nb = ctrl[idx[:, 1:]]  # (M, k, 3), the point itself excluded
-    A = np.concatenate([nb[:, :, :2] - ctrl[:, None, :2], np.ones(nb.shape[:2] + (1,))], axis=2)
-    AtA = np.einsum("mki,mkj->mij", A, A) + 1e-9 * np.eye(3)
-    coef = np.linalg.solve(AtA, np.einsum("mki,mk->mi", A, nb[:, :, 2])[..., None])[..., 0]
-    resid = ctrl[:, 2] - coef[:, 2]  # plane value at the point itself (offset term)
+    resid = _local_plane_residuals(ctrl, k)
     mad = 1.4826 * float(np.median(np.abs(resid - np.median(resid))))
     keep = np.abs(resid) <= max(mad_k * mad, floor_mm)
     return ctrl[keep] if keep.sum() >= 10 else ctrl
+
+
+def off_surface_points(points: np.ndarray, *, towards: np.ndarray | None = None, neighbours: int = 10,
+                       mad_k: float = 6.0, floors_mm: tuple[float, ...] = (2.0, 0.5)) -> np.ndarray:
+    """Boolean mask (N,) of points (N, 3) mm that stand off the local surface of their neighbours.
+
+    Each point is compared with the least-squares plane of its ``neighbours`` nearest points in the
+    best-fit plane of the cloud (a height field seen from one side, as :func:`fit_surface` assumes).
+    A wrong two-view match that satisfies the epipolar constraint triangulates at the wrong depth
+    along its ray — millimetres above or below a dense, consistent neighbourhood — which is what this
+    catches. One pass per floor, on the points the previous passes kept: gross errors go first so that
+    they no longer tilt their neighbours' planes. Threshold: ``mad_k`` robust sigmas of all residuals,
+    at least the pass's floor (the last, default 0.5 mm, is above what a plane fitted across a crease
+    such as a cavity's rim leaves on correct points).
+    """
+    pts = np.asarray(points, float)
+    off = ~np.all(np.isfinite(pts), axis=1)
+    if (~off).sum() <= neighbours + 3:
+        return off
+    origin, axes = fit_plane(pts[~off], towards)
+    stn = (pts - origin) @ axes.T
+    for floor_mm in floors_mm:
+        idx = np.flatnonzero(~off)
+        if len(idx) <= neighbours + 3:
+            break
+        resid = _local_plane_residuals(stn[idx], neighbours)
+        mad = 1.4826 * float(np.median(np.abs(resid - np.median(resid))))
+        off[idx[np.abs(resid) > max(mad_k * mad, floor_mm)]] = True
+    return off
 
 
 def fit_surface(points: np.ndarray, options: SurfaceOptions = SurfaceOptions(), *, towards: np.ndarray | None = None) -> Surface:

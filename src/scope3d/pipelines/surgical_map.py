@@ -6,12 +6,14 @@ Method (reference chapters 3, 4 and 6), one stage per function, run top to botto
 2. :func:`match_frames` — frame pairs that overlap, found from the measured poses and a depth prior
    (itself estimated from a few exhaustively matched close pairs); then *feature position prediction*:
    each feature is searched only near the epipolar segment the poses predict, with a window sized by
-   the pose tolerance; ratio test 0.8 and RANSAC.
+   the pose tolerance; ratio test 0.8 and RANSAC. Poses whose tolerance makes that window wide are
+   first adjusted by BCBA on a coarse pass (the reference's "combination algorithm", sec. 3.5).
 3. :func:`reconstruct` — tracks by union-find, multi-view triangulation with the measured poses, then
    bundle adjustment in one of three pose modes: ``fixed`` (poses trusted, points refined — the
    reference's chapter 3-4 method), ``free`` (conventional BA, gauge fixed by the first camera and one
    coordinate of the farthest), ``bounded`` (BCBA, chapter 6: every pose scalar kept within its measured
    tolerance). Observations that still reproject badly are dropped and the adjustment is repeated once.
+   Points that stand off their neighbours' surface (wrong matches along the epipolar line) are dropped.
 4. :func:`build_surface` — a thin-plate-spline height field through the points, meshed on a grid and
    textured from each vertex's best view.
 5. :func:`map_targets` — fluorescence thresholded and cleaned per frame, voted onto the surface,
@@ -49,11 +51,11 @@ from ..fluorescence import (
 from ..fluorescence import map_targets as _targets_on_surface
 from ..matching import (
     DepthPrior, MatchOptions, PairMatches, PairOptions, box_depth_prior, estimate_depth_prior, match_exhaustive, match_pairs,
-    select_pairs,
+    select_pairs, window_radius_px,
 )
 from ..mesh import PointCloud, write_ply
 from ..pose import MeasuredPose, Pose, PoseTolerance
-from ..surface import Surface, SurfaceOptions, fit_surface, save_depth_map_png, texture
+from ..surface import Surface, SurfaceOptions, fit_surface, off_surface_points, save_depth_map_png, texture
 from ..tracks import TrackOptions, Tracks, build_tracks, reprojection_errors, triangulate_tracks
 
 POSE_MODES = ("fixed", "free", "bounded")
@@ -109,6 +111,9 @@ class MapOptions:
         away (default 0.5 mm).
     use_bounding_box : bool, bounding_box_margin_mm : float, use the dataset's ``bounding_box_mm``
         (when its metadata has one) as the depth prior, enlarged by the margin (default True, 5 mm).
+    refine_poses_for_matching : bool, when the pose tolerance widens the search window, adjust the
+        poses by BCBA on the first pass's matches and predict the second pass with them
+        (:func:`refine_poses_for_matching`; default True).
     """
 
     pose_mode: str = "bounded"
@@ -130,6 +135,7 @@ class MapOptions:
     surface_band_mm: float = 0.5
     use_bounding_box: bool = True
     bounding_box_margin_mm: float = 5.0
+    refine_poses_for_matching: bool = True
 
     def __post_init__(self) -> None:
         if self.pose_mode not in POSE_MODES:
@@ -158,13 +164,21 @@ MAP_PRESETS: dict[str, MapOptions] = {
 
 @dataclass
 class MatchingResult:
-    """pairs : (i, j, overlap) selected; matches : per pair; depth_prior : used for prediction."""
+    """pairs : (i, j, overlap) selected; matches : per pair; depth_prior : used for prediction.
+
+    guide_poses : the poses (with the tolerance their windows used) that predicted the second pass,
+        when :func:`refine_poses_for_matching` ran; None when the measured poses were used throughout.
+    n_rematched : second-pass pairs that the refined windows left empty and that were matched again
+        with the measured poses' windows.
+    """
 
     pairs: list
     matches: list[PairMatches]
     depth_prior: DepthPrior | None
     time_s: float
     depth_prior_time_s: float = 0.0
+    guide_poses: list[MeasuredPose] | None = None
+    n_rematched: int = 0
 
     @property
     def n_matches(self) -> int:
@@ -173,7 +187,10 @@ class MatchingResult:
 
 @dataclass
 class SparseResult:
-    """The adjusted sparse model: tracks (observations, points in mm world), poses, BA results."""
+    """The adjusted sparse model: tracks (observations, points in mm world), poses, BA results.
+
+    n_off_surface : points dropped for standing off their neighbours' surface (:func:`_on_surface`).
+    """
 
     tracks: Tracks
     poses: list[Pose]
@@ -181,6 +198,7 @@ class SparseResult:
     bundle_results: list
     mean_reprojection_error_px: float
     time_s: float
+    n_off_surface: int = 0
 
 
 @dataclass
@@ -250,7 +268,8 @@ def match_frames(options: MapOptions, dataset: Dataset, features: list[Features]
     partner first, with the global depth range; a coarse thin-plate surface through those points
     then narrows every other pair's depth range to a band around it (the reference predicted with a
     single plane; a surface predicts a curved cavity as well), which shortens the epipolar segments
-    several times.
+    several times. When the pose tolerance widens the windows (a tracker, a surgical arm), the poses
+    are first adjusted by BCBA on a coarse exhaustive pass (:func:`_match_with_refined_poses`).
     """
     t0 = time.perf_counter()
     # the depth prior also places the frusta for pair selection, so both matchers see the same pairs;
@@ -263,15 +282,21 @@ def match_frames(options: MapOptions, dataset: Dataset, features: list[Features]
         depth = estimate_depth_prior(dataset.camera, features, dataset.poses, options.matching)
     t_depth = time.perf_counter() - t0
     pairs = select_pairs(dataset.camera, [m.pose for m in dataset.poses], depth, options.pairs)
-    if options.matcher == "exhaustive" or not options.surface_prior or len(pairs) < 4:
+    guided = options.matcher == "guided" and len(pairs) >= 4
+    if guided and options.refine_poses_for_matching and _tolerance_widens_window(options, dataset, depth):
+        refined = _match_with_refined_poses(options, dataset, features, pairs, depth, progress)
+        if refined is not None:
+            matches, guide, depth2, n_rematched = refined
+            return MatchingResult(pairs, matches, depth2 or depth, time.perf_counter() - t0, t_depth, guide, n_rematched)
+    if not guided or not options.surface_prior:
         matches = match_pairs(dataset.camera, features, dataset.poses, pairs, depth, options.matching,
                               method=options.matcher, progress=progress)
         return MatchingResult(pairs, matches, depth, time.perf_counter() - t0, t_depth)
-    first = _first_neighbour_pairs(pairs, len(dataset), per_frame=1)
+    first = _first_pass_pairs(pairs, len(dataset))
     rest = [k for k in range(len(pairs)) if k not in set(first)]
     m1 = match_pairs(dataset.camera, features, dataset.poses, [pairs[k] for k in first], depth, options.matching,
                      progress=progress)
-    depth2 = _surface_depth_prior(options, dataset, features, m1, depth)
+    depth2 = _surface_depth_prior(options, dataset, features, m1, depth, dataset.poses)
     m2 = match_pairs(dataset.camera, features, dataset.poses, [pairs[k] for k in rest], depth2 or depth,
                      options.matching, progress=progress)
     matches: list = [None] * len(pairs)
@@ -280,6 +305,59 @@ def match_frames(options: MapOptions, dataset: Dataset, features: list[Features]
     for k, m in zip(rest, m2):
         matches[k] = m
     return MatchingResult(pairs, matches, depth2 or depth, time.perf_counter() - t0, t_depth)
+
+
+def _match_with_refined_poses(options: MapOptions, dataset: Dataset, features, pairs, depth: DepthPrior, progress):
+    """Coarse pass, BCBA, fine pass: for poses whose tolerance makes the search window wide.
+
+    1. the first-pass pairs (a connected set of best partners) are matched exhaustively: with a window of
+       tens of pixels around a long segment a feature has hundreds of candidates, and OpenCV's brute
+       force beats a windowed search;
+    2. :func:`refine_poses_for_matching` adjusts the poses on those tracks, inside the tolerance boxes;
+    3. every pair is matched with prediction from the adjusted poses, in the narrow windows they allow,
+       with the coarse surface's depth band (``options.surface_prior``). A pair the narrow windows leave empty (a frame the coarse
+       pass pinned poorly) is matched again exhaustively.
+
+    Returns (matches, guide poses, depth band, number of pairs matched again), or None when the coarse
+    pass gives too few points to adjust on (the caller then searches the wide windows).
+    """
+    first = _first_pass_pairs(pairs, len(dataset))
+    coarse = match_pairs(dataset.camera, features, dataset.poses, [pairs[k] for k in first], depth, options.matching,
+                         method="exhaustive")
+    guide = refine_poses_for_matching(options, dataset, features, coarse, depth)
+    if guide is None:
+        return None
+    band = _surface_depth_prior(options, dataset, features, coarse, depth, guide) if options.surface_prior else None
+    matches = match_pairs(dataset.camera, features, guide, pairs, band or depth, options.matching, progress=progress)
+    lost = [k for k, m in enumerate(matches) if len(m) == 0]
+    if lost:
+        again = match_pairs(dataset.camera, features, dataset.poses, [pairs[k] for k in lost], depth, options.matching,
+                            method="exhaustive")
+        for k, m in zip(lost, again):
+            matches[k] = m
+    return matches, guide, band, len(lost)
+
+
+def _first_pass_pairs(pairs: list, n_frames: int) -> list[int]:
+    """Indices of the first pass's pairs: each frame's best partner, plus the best-scored pairs that
+    join what those leave apart (a maximum spanning forest, Kruskal), so that one adjustment of the
+    first pass's tracks ties every frame to every other. Pairs come sorted best first."""
+    chosen = set(_first_neighbour_pairs(pairs, n_frames, per_frame=1))
+    parent = list(range(n_frames))
+
+    def root(x):
+        while parent[x] != x:
+            parent[x] = parent[parent[x]]
+            x = parent[x]
+        return x
+
+    for k in sorted(chosen):
+        parent[root(pairs[k][0])] = root(pairs[k][1])
+    for k, (i, j, _) in enumerate(pairs):
+        if root(i) != root(j):
+            parent[root(i)] = root(j)
+            chosen.add(k)
+    return sorted(chosen)
 
 
 def _first_neighbour_pairs(pairs: list, n_frames: int, per_frame: int) -> list[int]:
@@ -294,15 +372,17 @@ def _first_neighbour_pairs(pairs: list, n_frames: int, per_frame: int) -> list[i
     return chosen
 
 
-def _surface_depth_prior(options: MapOptions, dataset: Dataset, features, matches, depth: DepthPrior) -> DepthPrior | None:
-    """A per-ray depth band around a coarse surface through the first-pass matches (None if too few)."""
+def _surface_depth_prior(options: MapOptions, dataset: Dataset, features, matches, depth: DepthPrior,
+                         poses: list[MeasuredPose]) -> DepthPrior | None:
+    """A per-ray depth band around a coarse surface through the first-pass matches, triangulated with
+    ``poses`` (the ones the second pass predicts with); None if too few points."""
     camera = dataset.camera
     tracks = build_tracks(features, matches)
     if tracks.n_tracks < 50:
         return None
-    slack = max(_pose_error_px(camera, m.tolerance, depth) for m in dataset.poses)
+    slack = max(_pose_error_px(camera, m.tolerance, depth) for m in poses)
     gate = replace(options.tracks, max_reprojection_error_px=options.tracks.max_reprojection_error_px + min(slack, 200.0))
-    tracks = triangulate_tracks(camera, [m.pose for m in dataset.poses], tracks, gate)
+    tracks = triangulate_tracks(camera, [m.pose for m in poses], tracks, gate)
     if tracks.n_tracks < 50:
         return None
     coarse = SurfaceOptions(grid_step_mm=max(4 * options.surface_options.grid_step_mm, 0.5),
@@ -318,11 +398,64 @@ def _surface_depth_prior(options: MapOptions, dataset: Dataset, features, matche
     resid = resid[np.isfinite(resid)]
     # band: the spread of the points about the coarse surface (robust, 4 sigma), what a measured pose
     # may be off along the normal, and the shape detail the coarse fit smooths away
-    pos_tol = max(float(np.linalg.norm(m.tolerance.position_mm)) for m in dataset.poses)
+    pos_tol = max(float(np.linalg.norm(m.tolerance.position_mm)) for m in poses)
     band = 4.0 * 1.4826 * float(np.median(np.abs(resid - np.median(resid)))) + pos_tol + options.surface_band_mm
     if not np.isfinite(band):
         return None
     return DepthPrior(depth.near_mm, depth.far_mm, per_ray=surface.depth_band(band))
+
+
+def _tolerance_widens_window(options: MapOptions, dataset: Dataset, depth: DepthPrior) -> bool:
+    """True when some pair's window is more than twice what exact poses would give."""
+    radius = max(window_radius_px(dataset.camera, m.tolerance, m.tolerance, depth, options.matching.base_radius_px)
+                 for m in dataset.poses)
+    return radius > 2.0 * options.matching.base_radius_px
+
+
+def refine_poses_for_matching(options: MapOptions, dataset: Dataset, features: list[Features],
+                              matches: list[PairMatches], depth: DepthPrior) -> list[MeasuredPose] | None:
+    """Poses for predicting the second matching pass: BCBA on the first pass's tracks.
+
+    The reference's "combination algorithm" (sec. 3.5): narrow the search with the robot's poses, but
+    treat them as constrained unknowns rather than truth. An optical tracker's +-0.5 mm is a ~70 px
+    window at 14 mm, and every feature then has hundreds of candidates; after bound-constrained
+    adjustment on the first pass's matches the poses agree with the images to their reprojection
+    error. Each adjusted pose carries the tolerance the images leave it: the camera shift that moves a
+    point at the nearest depth by 3 sigma of that frame's reprojection error (at least the measured
+    tolerance's 1 %, at most the measured tolerance). Frames the first pass did not reach keep their
+    measurement. Returns None when the first pass gives too few points to adjust on.
+    """
+    from ..bundle import SolverOptions, solve
+
+    camera, measured = dataset.camera, dataset.poses
+    tracks = build_tracks(features, matches, min_track_length=options.tracks.min_track_length)
+    slack = max(_pose_error_px(camera, m.tolerance, depth) for m in measured)
+    gate = replace(options.tracks, max_reprojection_error_px=options.tracks.max_reprojection_error_px + min(slack, 200.0),
+                   min_angle_deg=0.5 * options.tracks.min_angle_deg)
+    tracks = triangulate_tracks(camera, [m.pose for m in measured], tracks, gate)
+    if tracks.n_tracks < 50:
+        return None
+    sub = _strongest_tracks(tracks, options.bundle.max_points)
+    problem = _bundle_problem("bounded", measured, camera, sub, refine_intrinsics=False)
+    result = solve(problem, SolverOptions(max_iterations=options.bundle.max_iterations, loss="huber",
+                                          loss_scale_px=options.bundle.loss_scale_px))
+    err = result.reprojection_errors_px()
+    n_obs = np.bincount(sub.frame, minlength=len(measured))
+    # robust per-frame sigma: the median of a 2-D Gaussian error's norm is 1.1774 sigma; wrong matches
+    # the coarse pass let through would inflate an RMS
+    sigma = np.array([np.median(err[sub.frame == k]) / 1.1774 if n_obs[k] else np.inf for k in range(len(measured))])
+    f = max(camera.fx, camera.fy)
+    guide = []
+    for k, (m, pose) in enumerate(zip(measured, result.poses)):
+        if n_obs[k] < 10 or m.tolerance.is_exact:
+            guide.append(m)
+            continue
+        # per axis, so that the box's half-diagonal is the shift: f * |dp| / z_near = 3 sigma
+        shift = 3.0 * max(sigma[k], 0.1) * depth.near_mm / f / np.sqrt(3.0)
+        position = np.clip(shift, 0.01 * m.tolerance.position_mm, m.tolerance.position_mm)
+        orientation = np.minimum(0.01 * m.tolerance.orientation_rad, m.tolerance.orientation_rad)
+        guide.append(MeasuredPose(pose, PoseTolerance(position, orientation)))
+    return guide
 
 
 # --- 3. tracks, triangulation, bundle adjustment ------------------------------------------------
@@ -418,8 +551,24 @@ def reconstruct(options: MapOptions, dataset: Dataset, features: list[Features],
         turned = max(p.distance_to(q)[1] for p, q in zip(new_poses, before))
         if moved < options.bundle.settled_mm and turned < options.bundle.settled_mm / 100.0:
             break  # the poses barely moved (a micro-stage's 0.01 mm box): a second round would change nothing
+    n_off_surface = 0
+    if options.surface:  # the surface stage's assumption: a height field seen from one side
+        keep = _on_surface(tracks, poses)
+        n_off_surface = int((~keep).sum())
+        tracks = tracks.subset(keep[tracks.track])
     err = reprojection_errors(camera, poses, tracks)
-    return SparseResult(tracks, poses, camera, results, float(np.mean(err)), time.perf_counter() - t0)
+    return SparseResult(tracks, poses, camera, results, float(np.mean(err)), time.perf_counter() - t0, n_off_surface)
+
+
+def _on_surface(tracks: Tracks, poses: list[Pose]) -> np.ndarray:
+    """Mask (n_tracks,) of points consistent with their neighbours' local surface.
+
+    A wrong match that happens to lie on the epipolar line passes RANSAC and the reprojection gate
+    and triangulates millimetres off the surface (on the dome: 2 % of the points, all two-view tracks,
+    2-13 mm off); :func:`scope3d.surface.off_surface_points` finds them.
+    """
+    towards = -np.mean([p.optical_axis for p in poses], axis=0)
+    return ~off_surface_points(tracks.points, towards=towards)
 
 
 def align_gauge(poses: list[Pose], measured: list[MeasuredPose], *, only_if_significant: bool = False) -> list[Pose]:
@@ -591,6 +740,9 @@ def write_outputs(
         "n_features": int(sum(len(f) for f in features)), "n_pairs": len(matching.pairs), "n_matches": matching.n_matches,
         "depth_prior_mm": None if matching.depth_prior is None else [matching.depth_prior.near_mm, matching.depth_prior.far_mm],
         "n_points": int(tr.n_tracks), "n_observations": int(tr.n_observations),
+        "n_points_off_surface_dropped": sparse.n_off_surface,
+        "matching": {"poses_refined_for_matching": matching.guide_poses is not None,
+                     "pairs_rematched_exhaustively": matching.n_rematched},
         "mean_track_length": float(tr.n_observations / max(tr.n_tracks, 1)),
         "mean_reprojection_error_px": float(np.mean(err)), "median_reprojection_error_px": float(np.median(err)),
         "bundle": [_bundle_summary(r) for r in sparse.bundle_results],
