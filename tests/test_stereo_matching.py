@@ -71,10 +71,8 @@ def test_bad_inputs():
 
 
 def _cones():
-    left = cv2.imread(str(DATA / "im2.ppm"), cv2.IMREAD_GRAYSCALE)
-    right = cv2.imread(str(DATA / "im6.ppm"), cv2.IMREAD_GRAYSCALE)
-    gt2 = cv2.imread(str(DATA / "disp2.pgm"), cv2.IMREAD_GRAYSCALE).astype(float) / 4.0
-    gt6 = cv2.imread(str(DATA / "disp6.pgm"), cv2.IMREAD_GRAYSCALE).astype(float) / 4.0
+    left, right, gt2, gt6 = (_read_grey(DATA / name) for name in ("im2.ppm", "im6.ppm", "disp2.pgm", "disp6.pgm"))
+    gt2, gt6 = gt2.astype(float) / 4.0, gt6.astype(float) / 4.0
     h, w = gt2.shape
     # Non-occluded: known in view 2 and its partner in view 6 sees the same disparity (within 1 px).
     xr = np.clip(np.round(np.arange(w)[None, :] - gt2).astype(int), 0, w - 1)
@@ -112,3 +110,10 @@ def test_fusion_rejects_an_outlier_and_shrinks_sigma():
     lonely = fuse_ranges(np.array([10.0, np.nan]).reshape(2, 1, 1), np.full((2, 1, 1), 0.05),
                          MultiViewOptions(min_consistent=2, baseline_offsets=(1, 2)))[0]
     assert np.isnan(lonely[0, 0])
+
+
+def _read_grey(path: Path) -> np.ndarray:
+    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if img is None:
+        pytest.fail(f"real data missing or unreadable: {path} (the shared data folder sits beside the repository)")
+    return img
