@@ -232,7 +232,8 @@ class MapResult:
 
     def summary(self) -> str:
         r = self.report
-        lines = [f"{r['n_frames']} frames, {r['n_points']} points, {r['n_observations']} observations, "
+        lines = [f"{r['n_frames']} frames, {r['n_points']} points ({r['n_points_off_surface_dropped']} off-surface "
+                 f"dropped), {r['n_observations']} observations, "
                  f"mean reprojection error {r['mean_reprojection_error_px']:.3f} px, {r['time_s']:.2f} s"]
         if "surface_error_mm" in r:
             d, i = r["surface_error_mm"]["direct"], r["surface_error_mm"]["after_icp"]
