@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
-from numba import njit, prange
+from numba import njit
 from scipy.spatial import cKDTree
 
 from .camera import Camera
@@ -363,11 +363,11 @@ def _pair_d2(desc_a: np.ndarray, desc_b: np.ndarray, a: np.ndarray, b: np.ndarra
     return out
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True)
 def _candidate_d2(desc_a, desc_b, a, b, out):
     # Reads the two descriptor rows in place: gathering them first (desc[a], desc[b]) moved
     # 2 x 512 bytes per candidate through memory and cost 10x the arithmetic.
-    for k in prange(a.shape[0]):
+    for k in range(a.shape[0]):
         ra, rb = a[k], b[k]
         acc = np.float32(0.0)
         for c in range(desc_a.shape[1]):
