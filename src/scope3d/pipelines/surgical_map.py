@@ -316,8 +316,8 @@ def _match_with_refined_poses(options: MapOptions, dataset: Dataset, features, p
        force beats a windowed search;
     2. :func:`refine_poses_for_matching` adjusts the poses on those tracks, inside the tolerance boxes;
     3. every pair is matched with prediction from the adjusted poses, in the narrow windows they allow,
-       with the coarse surface's depth band (``options.surface_prior``). A pair the narrow windows leave empty (a frame the coarse
-       pass pinned poorly) is matched again exhaustively.
+       with the coarse surface's depth band (``options.surface_prior``). A pair the narrow windows leave
+       empty (a frame the coarse pass pinned poorly) is matched again exhaustively.
 
     Returns (matches, guide poses, depth band, number of pairs matched again), or None when the coarse
     pass gives too few points to adjust on (the caller then searches the wide windows).
@@ -381,9 +381,7 @@ def _surface_depth_prior(options: MapOptions, dataset: Dataset, features, matche
     tracks = build_tracks(features, matches)
     if tracks.n_tracks < 50:
         return None
-    slack = max(_pose_error_px(camera, m.tolerance, depth) for m in poses)
-    gate = replace(options.tracks, max_reprojection_error_px=options.tracks.max_reprojection_error_px + min(slack, 200.0))
-    tracks = triangulate_tracks(camera, [m.pose for m in poses], tracks, gate)
+    tracks = triangulate_tracks(camera, [m.pose for m in poses], tracks, _tolerant_gate(options, camera, poses, depth))
     if tracks.n_tracks < 50:
         return None
     coarse = SurfaceOptions(grid_step_mm=max(4 * options.surface_options.grid_step_mm, 0.5),
@@ -404,6 +402,13 @@ def _surface_depth_prior(options: MapOptions, dataset: Dataset, features, matche
     if not np.isfinite(band):
         return None
     return DepthPrior(depth.near_mm, depth.far_mm, per_ray=surface.depth_band(band))
+
+
+def _tolerant_gate(options: MapOptions, camera: Camera, poses: list[MeasuredPose], depth: DepthPrior) -> TrackOptions:
+    """The track options with the reprojection gate widened by what the poses' tolerance can cause
+    (capped at 200 px), for triangulating with poses that are not yet adjusted."""
+    slack = max(_pose_error_px(camera, m.tolerance, depth) for m in poses)
+    return replace(options.tracks, max_reprojection_error_px=options.tracks.max_reprojection_error_px + min(slack, 200.0))
 
 
 def _tolerance_widens_window(options: MapOptions, dataset: Dataset, depth: DepthPrior) -> bool:
@@ -430,9 +435,7 @@ def refine_poses_for_matching(options: MapOptions, dataset: Dataset, features: l
 
     camera, measured = dataset.camera, dataset.poses
     tracks = build_tracks(features, matches, min_track_length=options.tracks.min_track_length)
-    slack = max(_pose_error_px(camera, m.tolerance, depth) for m in measured)
-    gate = replace(options.tracks, max_reprojection_error_px=options.tracks.max_reprojection_error_px + min(slack, 200.0),
-                   min_angle_deg=0.5 * options.tracks.min_angle_deg)
+    gate = replace(_tolerant_gate(options, camera, measured, depth), min_angle_deg=0.5 * options.tracks.min_angle_deg)
     tracks = triangulate_tracks(camera, [m.pose for m in measured], tracks, gate)
     if tracks.n_tracks < 50:
         return None
@@ -454,8 +457,7 @@ def refine_poses_for_matching(options: MapOptions, dataset: Dataset, features: l
         # per axis, so that the box's half-diagonal is the shift: f * |dp| / z_near = 3 sigma
         shift = 3.0 * max(sigma[k], 0.1) * depth.near_mm / f / np.sqrt(3.0)
         position = np.clip(shift, 0.01 * m.tolerance.position_mm, m.tolerance.position_mm)
-        orientation = np.minimum(0.01 * m.tolerance.orientation_rad, m.tolerance.orientation_rad)
-        guide.append(MeasuredPose(pose, PoseTolerance(position, orientation)))
+        guide.append(MeasuredPose(pose, PoseTolerance(position, 0.01 * m.tolerance.orientation_rad)))
     return guide
 
 
