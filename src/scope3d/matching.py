@@ -204,7 +204,7 @@ def box_depth_prior(box_min_mm: np.ndarray, box_max_mm: np.ndarray, poses: list[
 # --- which frames overlap --------------------------------------------------------------------
 
 
-def _fov_samples(camera: Camera, n: int) -> np.ndarray:
+def fov_samples(camera: Camera, n: int) -> np.ndarray:
     """(K, 2) pixels on an n x n grid inside the valid image (circular mask respected)."""
     u = np.linspace(0, camera.width - 1, n)
     v = np.linspace(0, camera.height - 1, n)
@@ -221,7 +221,7 @@ def frame_overlap(camera: Camera, poses: list[Pose], depth: DepthPrior, *, sampl
     """
     if not poses:
         raise ValueError("no poses given")
-    pix = _fov_samples(camera, samples_per_side)
+    pix = fov_samples(camera, samples_per_side)
     pts_cam = camera.unproject(pix, np.full(len(pix), depth.mid_mm))
     n = len(poses)
     rot = np.stack([p.rotation for p in poses])
@@ -518,7 +518,6 @@ def match_guided_many(
         pair_of = np.concatenate(seg["pair"]).astype(np.int64)
         frame_j = np.concatenate(seg["frame_j"]).astype(np.int64)
         rad = np.concatenate(seg["radius"])
-        r_max = float(rad.max())
         # samples along every segment (fewer samples, larger query: 4 radii measured fastest)
         n_samples = np.ceil(np.linalg.norm(p1 - p0, axis=1) / (_SAMPLE_SPACING * rad)).astype(np.int64) + 1
         owner = np.repeat(np.arange(len(a_loc)), n_samples)
@@ -528,14 +527,19 @@ def match_guided_many(
         frac = (sample_k / np.maximum(last, 1))[:, None]
         samples = p0[owner] + frac * (p1[owner] - p0[owner])
         kp_all = np.concatenate([f.keypoints for f in features])
-        sample_frame = frame_j[owner]
-        order_s = np.argsort(sample_frame, kind="stable")
-        frame_bounds = np.searchsorted(sample_frame[order_s], np.arange(len(features) + 1))
+        # one tree search per frame j and window size (radii within a factor of 2): a query radius set by
+        # one wide window would make every narrow segment's many samples hit most of the image
+        group = frame_j * 64 + np.ceil(np.log2(np.maximum(rad, 1.0))).astype(np.int64)
+        sample_group = group[owner]
+        order_s = np.argsort(sample_group, kind="stable")
+        starts = np.flatnonzero(np.r_[True, np.diff(sample_group[order_s]) != 0])
         si_parts, b_parts = [], []
-        for fj in np.flatnonzero(np.diff(frame_bounds)):  # per-frame loop: one tree search per frame j
-            sel = order_s[frame_bounds[fj]:frame_bounds[fj + 1]]
+        for lo, hi in zip(starts, np.r_[starts[1:], len(order_s)]):  # per (frame, window size) loop
+            sel = order_s[lo:hi]
+            fj = int(frame_j[owner[sel[0]]])
             if len(features[fj]) == 0:
                 continue
+            r_max = float(rad[owner[sel]].max())
             hits = cKDTree(samples[sel]).sparse_distance_matrix(
                 cKDTree(features[fj].keypoints), np.sqrt(1.0 + 0.25 * _SAMPLE_SPACING**2) * r_max * 1.0001, output_type="ndarray")
             si_parts.append(sel[hits["i"]])

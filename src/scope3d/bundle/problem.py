@@ -40,7 +40,7 @@ import numpy as np
 
 from ..camera import INTRINSIC_NAMES, Camera
 from ..errors import InputError
-from ..geometry import rotvec_to_matrix, so3_left_jacobian
+from ..geometry import matrix_to_rotvec, rotvec_to_matrix, so3_left_jacobian
 from ..pose import MeasuredPose, Pose
 
 POSE_NAMES = ("wx", "wy", "wz", "px", "py", "pz")
@@ -267,6 +267,20 @@ class BundleProblem:
             hi = np.full(6, np.inf) if intrinsics_upper is None else np.asarray(intrinsics_upper, float)
             problem.set_bounds("intrinsics", None, None, lo, hi)
         return problem
+
+    def start_from(self, poses: Sequence[Pose]) -> None:
+        """Start the adjustment from ``poses`` (m ``cam_from_world``) instead of the poses the problem was
+        built with, keeping every bound and fixed scalar where it is. Each start is clipped into its box,
+        and fixed scalars keep their value: a start is a guess, the bounds are the measurement."""
+        if len(poses) != self.num_cameras:
+            raise InputError(f"{len(poses)} start poses for {self.num_cameras} cameras")
+        w = matrix_to_rotvec(np.stack([p.rotation for p in poses]) @ np.swapaxes(self.reference_rotations, 1, 2))
+        if self.position_parameter == "centre":
+            position = np.stack([p.centre for p in poses])
+        else:
+            position = np.stack([p.translation for p in poses])
+        start = np.clip(np.concatenate([w, position], axis=1), self.pose_lower, self.pose_upper)
+        self.initial.pose[:] = np.where(self.pose_fixed, self.initial.pose, start)
 
     # --- fixing and bounding -------------------------------------------------------------------
     def _block(self, kind: str):

@@ -38,6 +38,7 @@ import numpy as np
 
 from ..atomic import atomic_directory
 from ..camera import Camera
+from ..coarse_poses import CoarseOptions, CoarseResult, coarse_poses
 from ..dataset import Dataset, write_image
 from ..errors import InputError
 from ..evaluation import (
@@ -50,9 +51,12 @@ from ..fluorescence import (
 )
 from ..fluorescence import map_targets as _targets_on_surface
 from ..matching import (
-    DepthPrior, MatchOptions, PairMatches, PairOptions, box_depth_prior, estimate_depth_prior, match_exhaustive, match_pairs,
+    DepthPrior, MatchOptions, PairMatches, PairOptions, box_depth_prior, estimate_depth_prior, fov_samples, match_exhaustive,
+    match_pairs,
     select_pairs, window_radius_px,
 )
+from ..averaging import gauge_from_measurements
+from ..geometry import rotvec_to_matrix
 from ..mesh import PointCloud, write_ply
 from ..pose import MeasuredPose, Pose, PoseTolerance
 from ..surface import Surface, SurfaceOptions, fit_surface, off_surface_points, save_depth_map_png, texture
@@ -77,8 +81,9 @@ class BundleStageOptions:
         with a short-baseline survey focal length and depth trade off).
     align_gauge : bool, after free or bounded BA with inexact poses, move the map to the similarity
         frame that best fits all measured camera centres (:func:`align_gauge`; default True).
-    settled_mm : float, no second adjustment round when no camera moved more than this in the first
-        (and turned less than settled_mm / 100 rad; default 0.02 mm, twice a micro-stage's tolerance).
+    settled_mm, settled_rad : no second adjustment round when no camera moved more than ``settled_mm``
+        in the first and none turned more than ``settled_rad`` (defaults 0.02 mm, twice a micro-stage's
+        tolerance, and 2e-4 rad, which moves a point by a tenth of a pixel at a focal length of 600 px).
     """
 
     max_iterations: int = 60
@@ -87,6 +92,7 @@ class BundleStageOptions:
     refine_intrinsics: bool = False
     align_gauge: bool = True
     settled_mm: float = 0.02
+    settled_rad: float = 2e-4
 
     def __post_init__(self) -> None:
         if self.max_iterations < 0 or self.loss_scale_px <= 0 or self.max_points < 10:
@@ -111,9 +117,10 @@ class MapOptions:
         away (default 0.5 mm).
     use_bounding_box : bool, bounding_box_margin_mm : float, use the dataset's ``bounding_box_mm``
         (when its metadata has one) as the depth prior, enlarged by the margin (default True, 5 mm).
-    refine_poses_for_matching : bool, when the pose tolerance widens the search window, adjust the
-        poses by BCBA on the first pass's matches and predict the second pass with them
-        (:func:`refine_poses_for_matching`; default True).
+    refine_poses_for_matching : bool, when the pose tolerance widens the search window, find overlap
+        and poses from the images first (the coarse pass, ``coarse``), adjust the poses by BCBA on its
+        matches and predict the fine pass with them (:func:`_match_with_image_poses`; default True).
+        False: the measured poses guide matching whatever their tolerance (the baseline).
     """
 
     pose_mode: str = "bounded"
@@ -122,6 +129,7 @@ class MapOptions:
     features: FeatureOptions = field(default_factory=FeatureOptions)
     pairs: PairOptions = field(default_factory=PairOptions)
     matching: MatchOptions = field(default_factory=MatchOptions)
+    coarse: CoarseOptions = field(default_factory=CoarseOptions)
     tracks: TrackOptions = field(default_factory=TrackOptions)
     bundle: BundleStageOptions = field(default_factory=BundleStageOptions)
     surface_options: SurfaceOptions = field(default_factory=SurfaceOptions)
@@ -166,10 +174,12 @@ MAP_PRESETS: dict[str, MapOptions] = {
 class MatchingResult:
     """pairs : (i, j, overlap) selected; matches : per pair; depth_prior : used for prediction.
 
-    guide_poses : the poses (with the tolerance their windows used) that predicted the second pass,
-        when :func:`refine_poses_for_matching` ran; None when the measured poses were used throughout.
-    n_rematched : second-pass pairs that the refined windows left empty and that were matched again
-        with the measured poses' windows.
+    guide_poses : the poses (with the tolerance their windows used) that predicted the fine pass,
+        when the coarse pass and :func:`refine_poses_for_matching` ran; None when the measured poses
+        guided matching throughout.
+    n_rematched : fine-pass pairs that the refined windows left empty and that were matched again
+        exhaustively.
+    coarse : the coarse pass's result, when it ran.
     """
 
     pairs: list
@@ -179,6 +189,7 @@ class MatchingResult:
     depth_prior_time_s: float = 0.0
     guide_poses: list[MeasuredPose] | None = None
     n_rematched: int = 0
+    coarse: CoarseResult | None = None
 
     @property
     def n_matches(self) -> int:
@@ -263,33 +274,45 @@ def detect_features(options: MapOptions, dataset: Dataset, frames: list[np.ndarr
 
 
 def match_frames(options: MapOptions, dataset: Dataset, features: list[Features], *, progress=None) -> MatchingResult:
-    """Overlapping pairs from the poses and a depth prior, then guided (or exhaustive) matching.
+    """Overlapping pairs and their matches, guided by the poses as far as their tolerance allows.
 
-    With ``options.surface_prior`` the guided matcher runs in two passes: each frame's best
-    partner first, with the global depth range; a coarse thin-plate surface through those points
-    then narrows every other pair's depth range to a band around it (the reference predicted with a
-    single plane; a surface predicts a curved cavity as well), which shortens the epipolar segments
-    several times. When the pose tolerance widens the windows (a tracker, a surgical arm), the poses
-    are first adjusted by BCBA on a coarse exhaustive pass (:func:`_match_with_refined_poses`).
+    Poses good enough to predict (a micro-stage; :func:`_poses_predict_matches`) select the pairs from
+    their frusta at a depth prior and guide the matcher directly. With ``options.surface_prior`` the
+    guided matcher runs in two passes: each frame's best partner first, with the global depth range; a
+    coarse thin-plate surface through those points then narrows every other pair's depth range to a band
+    around it (the reference predicted with a single plane; a surface predicts a curved cavity as well).
+
+    Poses whose tolerance widens the search (a tracker, a surgical arm) go through the reference's
+    "combination algorithm" (sec. 3.5) instead, :func:`_match_with_image_poses`: overlap and poses from
+    the images first, BCBA inside the measured boxes, then guided matching around the adjusted poses.
     """
     t0 = time.perf_counter()
-    # the depth prior also places the frusta for pair selection, so both matchers see the same pairs;
     # a scene bounding box (a calibrated object's, from the dataset) is the tightest prior there is
     depth = options.depth_prior
     box = dataset.metadata.get("bounding_box_mm") if options.use_bounding_box else None
     if depth is None and box is not None:
         depth = box_depth_prior(box[0], box[1], [m.pose for m in dataset.poses], margin_mm=options.bounding_box_margin_mm)
+    guided = options.matcher == "guided" and len(dataset) >= 3
+    if guided and options.refine_poses_for_matching and not all(m.tolerance.is_exact for m in dataset.poses):
+        estimate = depth or _depth_prior_if_poses_predict(options, dataset, features)
+        if estimate is None:
+            return _match_with_image_poses(options, dataset, features, depth, progress, t0)
+        depth = estimate
+        if not _poses_predict_matches(options, dataset, depth):
+            t_depth = time.perf_counter() - t0
+            pairs = select_pairs(dataset.camera, [m.pose for m in dataset.poses], depth, options.pairs)
+            if len(pairs) >= 4:
+                refined = _match_with_refined_poses(options, dataset, features, pairs, depth, progress)
+                if refined is not None:
+                    matches, guide, band, n_rematched = refined
+                    return MatchingResult(pairs, matches, band or depth, time.perf_counter() - t0, t_depth, guide,
+                                          n_rematched)
     if depth is None:
         depth = estimate_depth_prior(dataset.camera, features, dataset.poses, options.matching)
     t_depth = time.perf_counter() - t0
+    # the depth prior also places the frusta for pair selection, so both matchers see the same pairs
     pairs = select_pairs(dataset.camera, [m.pose for m in dataset.poses], depth, options.pairs)
-    guided = options.matcher == "guided" and len(pairs) >= 4
-    if guided and options.refine_poses_for_matching and _tolerance_widens_window(options, dataset, depth):
-        refined = _match_with_refined_poses(options, dataset, features, pairs, depth, progress)
-        if refined is not None:
-            matches, guide, depth2, n_rematched = refined
-            return MatchingResult(pairs, matches, depth2 or depth, time.perf_counter() - t0, t_depth, guide, n_rematched)
-    if not guided or not options.surface_prior:
+    if options.matcher != "guided" or len(pairs) < 4 or not options.surface_prior:
         matches = match_pairs(dataset.camera, features, dataset.poses, pairs, depth, options.matching,
                               method=options.matcher, progress=progress)
         return MatchingResult(pairs, matches, depth, time.perf_counter() - t0, t_depth)
@@ -308,10 +331,63 @@ def match_frames(options: MapOptions, dataset: Dataset, features: list[Features]
     return MatchingResult(pairs, matches, depth2 or depth, time.perf_counter() - t0, t_depth)
 
 
+def _depth_prior_if_poses_predict(options: MapOptions, dataset: Dataset, features) -> DepthPrior | None:
+    """The data's depth prior (:func:`estimate_depth_prior`), or None when the measured poses are too far
+    off to triangulate the closest pairs at all (then they certainly cannot predict matches)."""
+    try:
+        return estimate_depth_prior(dataset.camera, features, dataset.poses, options.matching)
+    except ValueError:
+        return None
+
+
+def _poses_predict_matches(options: MapOptions, dataset: Dataset, depth: DepthPrior) -> bool:
+    """True when every frame's search window is at most twice what exact poses give (a micro-stage):
+    beyond that the window holds many look-alike candidates, and adjusting the poses first pays."""
+    radius = max(window_radius_px(dataset.camera, m.tolerance, m.tolerance, depth, options.matching.base_radius_px)
+                 for m in dataset.poses)
+    return radius <= 2.0 * options.matching.base_radius_px
+
+
+def _match_with_image_poses(options: MapOptions, dataset: Dataset, features, depth: DepthPrior | None, progress,
+                            t0: float) -> MatchingResult:
+    """The combination algorithm for poses whose tolerance widens the search window.
+
+    1. :func:`scope3d.coarse_poses.coarse_poses`: pairs by image similarity, exhaustive matching verified
+       by the essential matrix, poses by rotation and position averaging anchored to the measurements;
+    2. :func:`refine_poses_for_matching`: BCBA on those tracks inside the measured boxes, and the tolerance
+       the images leave each adjusted pose;
+    3. the depth prior from the adjusted points (unless the dataset gave one), pairs from the adjusted
+       frusta, and guided matching of every pair in the narrow windows the adjusted poses allow, with the
+       coarse surface's depth band. A pair the narrow windows leave empty is matched exhaustively; a
+       verified coarse pair the frusta did not select is kept.
+    """
+    camera = dataset.camera
+    coarse = coarse_poses(camera, features, dataset.poses, options.matching, options.coarse, progress=progress)
+    guide, points_depth = refine_poses_for_matching(options, dataset, features, coarse.matches, coarse.poses)
+    depth = depth or points_depth
+    t_depth = time.perf_counter() - t0
+    pairs = select_pairs(camera, [m.pose for m in guide], depth, options.pairs)
+    band = _surface_depth_prior(options, dataset, features, coarse.matches, depth, guide) if options.surface_prior else None
+    matches = match_pairs(camera, features, guide, pairs, band or depth, options.matching, progress=progress)
+    lost = [k for k, m in enumerate(matches) if len(m) == 0]
+    if lost:
+        again = match_pairs(camera, features, guide, [pairs[k] for k in lost], depth, options.matching,
+                            method="exhaustive")
+        for k, m in zip(lost, again):
+            matches[k] = m
+    selected = {(i, j) for i, j, _ in pairs}
+    for m in coarse.matches:
+        if (m.i, m.j) not in selected:
+            pairs.append((m.i, m.j, float(coarse.similarity[m.i, m.j])))
+            matches.append(m)
+    return MatchingResult(pairs, matches, band or depth, time.perf_counter() - t0, t_depth, guide, len(lost), coarse)
+
+
 def _match_with_refined_poses(options: MapOptions, dataset: Dataset, features, pairs, depth: DepthPrior, progress):
     """Coarse pass, BCBA, fine pass: for poses whose tolerance makes the search window wide.
 
-    1. the first-pass pairs (a connected set of best partners) are matched exhaustively: with a window of
+    1. the first-pass pairs (a connected set of best partners, by the measured frusta) are matched
+       exhaustively: with a window of
        tens of pixels around a long segment a feature has hundreds of candidates, and OpenCV's brute
        force beats a windowed search;
     2. :func:`refine_poses_for_matching` adjusts the poses on those tracks, inside the tolerance boxes;
@@ -325,7 +401,7 @@ def _match_with_refined_poses(options: MapOptions, dataset: Dataset, features, p
     first = _first_pass_pairs(pairs, len(dataset))
     coarse = match_pairs(dataset.camera, features, dataset.poses, [pairs[k] for k in first], depth, options.matching,
                          method="exhaustive")
-    guide = refine_poses_for_matching(options, dataset, features, coarse, depth)
+    guide = _refine_measured_poses_for_matching(options, dataset, features, coarse, depth)
     if guide is None:
         return None
     band = _surface_depth_prior(options, dataset, features, coarse, depth, guide) if options.surface_prior else None
@@ -411,14 +487,7 @@ def _tolerant_gate(options: MapOptions, camera: Camera, poses: list[MeasuredPose
     return replace(options.tracks, max_reprojection_error_px=options.tracks.max_reprojection_error_px + min(slack, 200.0))
 
 
-def _tolerance_widens_window(options: MapOptions, dataset: Dataset, depth: DepthPrior) -> bool:
-    """True when some pair's window is more than twice what exact poses would give."""
-    radius = max(window_radius_px(dataset.camera, m.tolerance, m.tolerance, depth, options.matching.base_radius_px)
-                 for m in dataset.poses)
-    return radius > 2.0 * options.matching.base_radius_px
-
-
-def refine_poses_for_matching(options: MapOptions, dataset: Dataset, features: list[Features],
+def _refine_measured_poses_for_matching(options: MapOptions, dataset: Dataset, features: list[Features],
                               matches: list[PairMatches], depth: DepthPrior) -> list[MeasuredPose] | None:
     """Poses for predicting the second matching pass: BCBA on the first pass's tracks.
 
@@ -461,6 +530,91 @@ def refine_poses_for_matching(options: MapOptions, dataset: Dataset, features: l
     return guide
 
 
+def refine_poses_for_matching(options: MapOptions, dataset: Dataset, features: list[Features],
+                              matches: list[PairMatches], start: list[Pose]) -> tuple[list[MeasuredPose], DepthPrior]:
+    """Poses for predicting the fine matching pass: BCBA on the coarse pass's tracks.
+
+    The reference's "combination algorithm" (sec. 3.5): treat the robot's poses as constrained unknowns
+    rather than truth. The coarse tracks are triangulated with the ``start`` poses (the coarse pass's
+    averaging), with a reprojection gate of 3 robust sigma of their own errors (the start is good to a
+    fraction of a millimetre, not to a pixel); BCBA inside the measured boxes, starting there, adjusts
+    poses and points; the tracks are triangulated again with the strict gate and adjusted once more.
+
+    Each adjusted pose carries the tolerance the images leave it: its covariance relative to the other
+    cameras (:func:`scope3d.bundle.covariance.relative_pose_covariances`; a frame tied to the rest by one
+    small patch reprojects well and is still poorly fixed) carried into the image
+    (:func:`_projection_sigma_px`), 3 sigma, expressed as the camera shift that moves a point at the
+    nearest depth that far; at most the measured tolerance. Frames the coarse pass did not reach keep
+    their measurement.
+    Returns the guide poses and the depth prior of the adjusted points (2nd-98th depth percentile of
+    every observation, widened by 10 %). Raises InputError when the coarse pass left too few points.
+    """
+    from ..bundle.covariance import relative_pose_covariances
+
+    camera, measured = dataset.camera, dataset.poses
+    tracks = build_tracks(features, matches, min_track_length=options.tracks.min_track_length)
+    loose = replace(options.tracks, max_reprojection_error_px=1e6, min_angle_deg=0.5 * options.tracks.min_angle_deg)
+    tracks = triangulate_tracks(camera, start, tracks, loose)
+    if tracks.n_tracks < 50:
+        raise InputError(f"{dataset.root}: the frames share too few features to map "
+                         f"({tracks.n_tracks} points from {len(matches)} verified pairs)")
+    err = reprojection_errors(camera, start, tracks)
+    gate = max(options.tracks.max_reprojection_error_px, 3.0 * float(np.median(err)) / 1.1774)
+    tracks = triangulate_tracks(camera, start, tracks, replace(loose, max_reprojection_error_px=gate))
+    fixed_intrinsics = replace(options, bundle=replace(options.bundle, refine_intrinsics=False))
+    poses = start
+    for strict in (False, True):
+        if strict:
+            tracks = triangulate_tracks(camera, poses, tracks, replace(options.tracks, min_angle_deg=loose.min_angle_deg))
+        problem, result = _adjust(fixed_intrinsics, "bounded", measured, camera, tracks, poses)
+        poses = result.poses
+    tracks = triangulate_tracks(camera, poses, tracks, replace(options.tracks, min_angle_deg=loose.min_angle_deg))
+    z = np.einsum("mi,mi->m", np.stack([p.rotation[2] for p in poses])[tracks.frame], tracks.points[tracks.track]) \
+        + np.stack([p.translation[2] for p in poses])[tracks.frame]
+    z = z[z > 0]
+    near, far = np.percentile(z, [2.0, 98.0])
+    depth = DepthPrior(max(0.9 * near, 1e-3), 1.1 * far)
+    # what the images leave each pose free to do relative to the others, as pixels of reprojection
+    covariances = relative_pose_covariances(problem, result.parameters, loss_scale_px=options.bundle.loss_scale_px)
+    f = max(camera.fx, camera.fy)
+    guide = []
+    for m, pose, cov in zip(measured, poses, covariances):
+        if m.tolerance.is_exact or not np.all(np.isfinite(cov)):
+            guide.append(m)
+            continue
+        # the camera shift that moves a point at the nearest depth by 3 sigma (per axis, so that the box's
+        # half-diagonal is the shift: f * |dp| / z_near = 3 sigma); the orientation is then part of it
+        shift = 3.0 * _projection_sigma_px(camera, pose, cov, depth) * depth.near_mm / f / np.sqrt(3.0)
+        guide.append(MeasuredPose(pose, PoseTolerance(np.minimum(shift, m.tolerance.position_mm),
+                                                      np.zeros(3))))
+    return guide, depth
+
+
+def _projection_sigma_px(camera: Camera, pose: Pose, covariance: np.ndarray, depth: DepthPrior, *,
+                         samples_per_side: int = 5) -> float:
+    """The largest standard deviation (px) with which a pose of covariance (6, 6) over ``(w, centre)``
+    (w: a left rotation ``exp(w) R``) moves the image of a point, over a grid of pixels at the depth
+    prior's near and far ends. Correlated rotation and translation errors partly cancel in the image,
+    which is what matters to a matcher; their separate sigmas would not say so."""
+    pix = fov_samples(camera, samples_per_side)
+    world = np.concatenate([(camera.unproject(pix, np.full(len(pix), z)) - pose.translation) @ pose.rotation
+                            for z in (depth.near_mm, depth.far_mm)])
+    base = camera.project_world(pose, world)
+    step = 1e-6
+    jac = np.empty((len(world), 2, 6))
+    for a in range(6):  # central differences along each pose scalar
+        ends = []
+        for sign in (1.0, -1.0):
+            d = np.zeros(6)
+            d[a] = sign * step
+            moved = Pose.from_centre(rotvec_to_matrix(d[:3]) @ pose.rotation, pose.centre + d[3:])
+            ends.append(camera.project_world(moved, world))
+        jac[:, :, a] = (ends[0] - ends[1]) / (2 * step)
+    cov_px = jac @ covariance @ np.swapaxes(jac, 1, 2)
+    ok = np.all(np.isfinite(base), axis=1)
+    return float(np.sqrt(np.linalg.eigvalsh(cov_px[ok])[:, -1].max())) if ok.any() else np.inf
+
+
 # --- 3. tracks, triangulation, bundle adjustment ------------------------------------------------
 
 
@@ -473,42 +627,68 @@ def _pose_error_px(camera: Camera, tolerance: PoseTolerance, depth: DepthPrior |
     return float(2.0 * (f * dp / depth.near_mm + f * dw)) if np.isfinite(dp + dw) else np.inf
 
 
-def _bundle_problem(mode: str, poses: list[MeasuredPose], camera: Camera, tracks: Tracks, refine_intrinsics: bool):
+def _bundle_problem(mode: str, measured: list[MeasuredPose], camera: Camera, tracks: Tracks, refine_intrinsics: bool,
+                    start: list[Pose] | None = None):
+    """The bundle problem of ``mode`` on ``tracks``.
+
+    bounded : the measured boxes, starting from ``start`` (clipped into them) when given;
+    free : conventional BA from ``start`` (default: the measured poses), gauge fixed on the start;
+    fixed : the measured poses held.
+    """
     from ..bundle import BundleProblem
 
     pts = tracks.points
     if mode == "bounded":
         problem = BundleProblem.from_measured_poses(
-            poses, camera, pts, tracks.pixels, tracks.frame, tracks.track, refine_intrinsics=refine_intrinsics)
-        if all(not np.isfinite(m.tolerance.position_mm).all() for m in poses):
-            _fix_gauge(problem, poses)
+            measured, camera, pts, tracks.pixels, tracks.frame, tracks.track, refine_intrinsics=refine_intrinsics)
+        if all(not np.isfinite(m.tolerance.position_mm).all() for m in measured):
+            _fix_gauge(problem, [m.pose for m in measured])
+        if start is not None:
+            problem.start_from(start)
         return problem
-    rot = np.stack([m.pose.rotation for m in poses])
-    trans = np.stack([m.pose.translation for m in poses])
+    base = [m.pose for m in measured] if mode == "fixed" or start is None else start
+    rot = np.stack([p.rotation for p in base])
+    trans = np.stack([p.translation for p in base])
     problem = BundleProblem(tracks.pixels, tracks.frame, tracks.track, rot, trans, pts, camera.intrinsics)
     if not refine_intrinsics:
         problem.fix("intrinsics")
     if mode == "fixed":
         problem.fix("pose")
     else:
-        _fix_gauge(problem, poses)
+        _fix_gauge(problem, base)
     return problem
 
 
-def _fix_gauge(problem, poses: list[MeasuredPose]) -> None:
+def _fix_gauge(problem, poses: list[Pose]) -> None:
     """Conventional BA's gauge: the first camera's pose, and the scale through one position coordinate
     of the camera farthest from it (along the axis where they differ most)."""
     problem.fix("pose", [0])
-    centres = np.stack([m.pose.centre for m in poses])
+    centres = np.stack([p.centre for p in poses])
     d = np.abs(centres - centres[0])
     far = int(np.argmax(d.max(axis=1)))
     if far != 0:
         problem.fix("pose", [far], [("px", "py", "pz")[int(np.argmax(d[far]))]])
 
 
-def reconstruct(options: MapOptions, dataset: Dataset, features: list[Features], matching: MatchingResult) -> SparseResult:
-    """Tracks, triangulation with the measured poses, bundle adjustment in ``options.pose_mode``."""
+def _adjust(options: MapOptions, mode: str, measured: list[MeasuredPose], camera: Camera, tracks: Tracks,
+            start: list[Pose]):
+    """One bundle adjustment of the strongest tracks in ``mode`` from ``start``; returns (problem, result)."""
     from ..bundle import SolverOptions, solve
+
+    solver = SolverOptions(max_iterations=options.bundle.max_iterations, loss="huber",
+                           loss_scale_px=options.bundle.loss_scale_px)
+    problem = _bundle_problem(mode, measured, camera, _strongest_tracks(tracks, options.bundle.max_points),
+                              options.bundle.refine_intrinsics, start)
+    return problem, solve(problem, solver)
+
+
+def reconstruct(options: MapOptions, dataset: Dataset, features: list[Features], matching: MatchingResult) -> SparseResult:
+    """Tracks, triangulation, bundle adjustment in ``options.pose_mode``.
+
+    Triangulation and the adjustment start from the poses that guided matching (the coarse pass's
+    adjusted poses when the tolerance was wide, else the measured ones; always the measured ones in
+    ``fixed`` mode); the bounds are always the measured boxes.
+    """
 
     t0 = time.perf_counter()
     camera = dataset.camera
@@ -516,43 +696,37 @@ def reconstruct(options: MapOptions, dataset: Dataset, features: list[Features],
     tracks = build_tracks(features, matching.matches, min_track_length=options.tracks.min_track_length)
     if tracks.n_tracks == 0:
         raise InputError(f"{dataset.root}: no feature could be matched between frames (do they overlap?)")
-    # With inexact poses and a mode that may move them, keep observations the pose error can explain.
-    loose = options.pose_mode != "fixed"
-    slack = max((_pose_error_px(camera, m.tolerance, matching.depth_prior) for m in measured), default=0.0) if loose else 0.0
+    movable = options.pose_mode != "fixed"
+    start = matching.guide_poses if movable and matching.coarse is not None else measured
+    # with inexact poses and a mode that may move them, keep the observations their error can explain
+    slack = max((_pose_error_px(camera, m.tolerance, matching.depth_prior) for m in start), default=0.0) if movable else 0.0
     if options.pose_mode == "free" and not np.isfinite(slack):
         slack = 50.0
     first = replace(options.tracks, max_reprojection_error_px=options.tracks.max_reprojection_error_px + min(slack, 200.0),
-                    min_angle_deg=options.tracks.min_angle_deg if not loose else 0.5 * options.tracks.min_angle_deg)
-    poses = [m.pose for m in measured]
+                    min_angle_deg=0.5 * options.tracks.min_angle_deg if movable else options.tracks.min_angle_deg)
+    poses = [m.pose for m in start]
     tracks = triangulate_tracks(camera, poses, tracks, first)
     if tracks.n_tracks == 0:
         raise InputError(f"{dataset.root}: no point could be triangulated (poses inconsistent with the images?)")
-    solver = SolverOptions(max_iterations=options.bundle.max_iterations, loss="huber", loss_scale_px=options.bundle.loss_scale_px)
     results = []
-    current = measured
     for round_ in range(2):
-        before = [m.pose for m in current]
-        sub = _strongest_tracks(tracks, options.bundle.max_points)
-        problem = _bundle_problem(options.pose_mode, current, camera, sub, options.bundle.refine_intrinsics)
-        result = solve(problem, solver)
+        before = poses
+        _, result = _adjust(options, options.pose_mode, measured, camera, tracks, poses)
         results.append(result)
-        new_poses = result.poses
-        if options.pose_mode != "fixed" and options.bundle.align_gauge and not all(m.tolerance.is_exact for m in measured):
-            new_poses = align_gauge(new_poses, measured, only_if_significant=options.pose_mode == "bounded")
+        poses = result.poses
+        if movable and options.bundle.align_gauge and not all(m.tolerance.is_exact for m in measured):
+            poses = align_gauge(poses, measured, bounded=options.pose_mode == "bounded")
         if options.bundle.refine_intrinsics:
             camera = camera.with_intrinsics(result.intrinsics[0])
-        # the bounds stay those of the *measurement*: carry the tolerance box, centred where it was
-        current = [MeasuredPose(p, _remaining_tolerance(m, p)) for m, p in zip(measured, new_poses)]
-        poses = new_poses
         tracks = Tracks(tracks.track, tracks.frame, tracks.feature, tracks.pixels, tracks.colors, None)
         tracks = triangulate_tracks(camera, poses, tracks, options.tracks)
         if tracks.n_tracks == 0:
             raise InputError(f"{dataset.root}: bundle adjustment left no consistent point")
-        if options.pose_mode == "fixed" or (options.pose_mode == "bounded" and all(m.tolerance.is_exact for m in measured)):
+        if not movable or (options.pose_mode == "bounded" and all(m.tolerance.is_exact for m in measured)):
             break  # poses cannot move: one adjustment of the points is all there is
-        moved = max(max(p.distance_to(q)[0] for p, q in zip(new_poses, before)), 0.0)
-        turned = max(p.distance_to(q)[1] for p, q in zip(new_poses, before))
-        if moved < options.bundle.settled_mm and turned < options.bundle.settled_mm / 100.0:
+        moved = max(p.distance_to(q)[0] for p, q in zip(poses, before))
+        turned = max(p.distance_to(q)[1] for p, q in zip(poses, before))
+        if moved < options.bundle.settled_mm and turned < options.bundle.settled_rad:
             break  # the poses barely moved (a micro-stage's 0.01 mm box): a second round would change nothing
     n_off_surface = 0
     if options.surface:  # the surface stage's assumption: a height field seen from one side
@@ -574,53 +748,38 @@ def _on_surface(tracks: Tracks, poses: list[Pose]) -> np.ndarray:
     return ~off_surface_points(tracks.points, towards=towards)
 
 
-def align_gauge(poses: list[Pose], measured: list[MeasuredPose], *, only_if_significant: bool = False) -> list[Pose]:
-    """Express adjusted poses in the similarity frame that best fits the measured camera centres.
+def align_gauge(poses: list[Pose], measured: list[MeasuredPose], *, bounded: bool = False) -> list[Pose]:
+    """Express adjusted poses in the similarity frame that best fits the measured poses.
 
     Images fix a reconstruction only up to a similarity (rotation, translation, scale: the gauge).
     Free BA pins it to one camera's measurement; bounded BA keeps it inside the tolerance boxes, but
     where the boxes are wide compared with the trajectory, LM drifts along the scale (on the
     cable-driven-robot test the map shrank by 9 %, as the reference's Fig. 6.4 shows BA doing).
-    Moving to the least-squares similarity of all measured centres (Umeyama) changes no reprojection
-    error — it is the same map — but uses every measurement, so their random errors average out (a
-    common bias cannot: it is unobservable).
+    Moving to the similarity that best fits every measured centre and orientation
+    (:func:`scope3d.averaging.gauge_from_measurements`) changes no reprojection error — it is the same
+    map — but uses every measurement, so their random errors average out (a common bias cannot: it is
+    unobservable).
 
-    only_if_significant : for bounded BA. Intersecting the boxes pins the gauge better than a
-        least-squares fit when they are tight, so the similarity is applied only if its scale differs
-        from 1 by more than 2 sigma of what the measurements' noise (uniform within the tolerance,
-        sigma = tolerance / sqrt 3 per axis) would give.
+    bounded : the poses (in their boxes) must stay in their boxes: the placement is looked for inside
+        them, and if none is found, only as much of it is applied (:meth:`scope3d.geometry.Similarity.fraction`)
+        as keeps every pose inside.
     """
-    A = np.stack([p.centre for p in poses])
-    B = np.stack([m.pose.centre for m in measured])
-    if len(A) < 3 or np.ptp(A, axis=0).max() <= 0:
-        return poses
-    ca, cb = A.mean(axis=0), B.mean(axis=0)
-    a, b = A - ca, B - cb
-    U, S, Vt = np.linalg.svd(b.T @ a)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    R = U @ D @ Vt
-    scale = float(np.trace(np.diag(S) @ D) / np.sum(a * a))
-    if only_if_significant:
-        tol = np.array([m.tolerance.position_mm for m in measured])
-        sigma_pos = float(np.sqrt(np.mean(np.where(np.isfinite(tol), tol, 0.0) ** 2) / 3.0))
-        sigma_scale = sigma_pos / np.sqrt(np.sum(b * b))
-        if abs(scale - 1.0) <= 2.0 * sigma_scale:
-            return poses
-    t = cb - scale * R @ ca
-    # X' = s R X + t: a camera x_cam = Rc X + tc becomes Rc R^T and s tc - Rc R^T t (x_cam scaled by s)
-    return [Pose(p.rotation @ R.T, scale * p.translation - p.rotation @ R.T @ t) for p in poses]
+    similarity = gauge_from_measurements(poses, measured, into_boxes=bounded)
+    if bounded and not _all_in_boxes(_moved(poses, similarity), measured):
+        lo, hi = 0.0, 1.0  # the identity keeps them inside; bisect for the largest step that does
+        for _ in range(30):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if _all_in_boxes(_moved(poses, similarity.fraction(mid)), measured) else (lo, mid)
+        similarity = similarity.fraction(lo)
+    return _moved(poses, similarity)
 
 
-def _remaining_tolerance(measured: MeasuredPose, pose: Pose) -> PoseTolerance:
-    """Tolerance box of the measurement, re-expressed around ``pose`` (shrunk to stay inside the original box)."""
-    tol = measured.tolerance
-    if tol.is_exact:
-        return tol
-    dc = np.abs(pose.centre - measured.pose.centre)
-    from ..geometry import matrix_to_rotvec
+def _moved(poses: list[Pose], similarity) -> list[Pose]:
+    return [Pose(*similarity.apply_to_cam_from_world(p.rotation, p.translation)) for p in poses]
 
-    dw = np.abs(matrix_to_rotvec(pose.rotation @ measured.pose.rotation.T))
-    return PoseTolerance(np.maximum(tol.position_mm - dc, 0.0), np.maximum(tol.orientation_rad - dw, 0.0))
+
+def _all_in_boxes(poses: list[Pose], measured: list[MeasuredPose]) -> bool:
+    return all(m.contains(p) for p, m in zip(poses, measured))
 
 
 def _strongest_tracks(tracks: Tracks, max_points: int) -> Tracks:

@@ -1,0 +1,118 @@
+"""Relative poses, rotation and position averaging, and the gauge fit, on synthetic scenes with known truth.
+
+Bounds come from the construction: exact data must be recovered to numerical precision (the averaging is
+a Gauss-Newton solve that converges to the exact solution), noisy data to a few sigma of the noise put in.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from scope3d.averaging import (
+    RelativePose, average_positions, average_rotations, gauge_from_measurements, relative_pose,
+)
+from scope3d.camera import Camera
+from scope3d.geometry import Similarity, look_at, rotation_angle_between, rotvec_to_matrix
+from scope3d.pose import MeasuredPose, Pose, PoseTolerance, perturb_poses_uniform
+
+
+def _grid_poses(n_side: int = 4, spacing: float = 5.0, height: float = 15.0) -> list[Pose]:
+    """Cameras on a planar grid above the origin, looking down at a point below the grid's centre."""
+    poses = []
+    for x in np.arange(n_side) * spacing - spacing * (n_side - 1) / 2:
+        for y in np.arange(n_side) * spacing - spacing * (n_side - 1) / 2:
+            c = np.array([x, y, height])
+            poses.append(Pose.from_centre(look_at(c, np.array([0.3 * x, 0.3 * y, 0.0])), c))
+    return poses
+
+
+def _exact_pairs(poses: list[Pose], sigma: float = 1e-3) -> list[RelativePose]:
+    out = []
+    for i in range(len(poses)):
+        for j in range(i + 1, len(poses)):
+            if np.linalg.norm(poses[i].centre - poses[j].centre) < 8.0:
+                R = poses[j].rotation @ poses[i].rotation.T
+                t = poses[j].translation - R @ poses[i].translation
+                out.append(RelativePose(i, j, R, t / np.linalg.norm(t), np.ones(1, bool), sigma, sigma))
+    return out
+
+
+def test_relative_pose_recovers_a_known_pose_from_noisy_matches():
+    rng = np.random.default_rng(3)
+    camera = Camera.from_fov(400, 400, 53.0)
+    pose_i, pose_j = _grid_poses(2)[0], _grid_poses(2)[1]
+    X = np.c_[rng.uniform(-6, 6, (300, 2)), rng.uniform(-2, 2, 300)]
+    noise = 0.3
+    px_i = camera.project_world(pose_i, X) + rng.normal(0, noise, (300, 2))
+    px_j = camera.project_world(pose_j, X) + rng.normal(0, noise, (300, 2))
+    ok = camera.in_image(px_i) & camera.in_image(px_j)
+    rel = relative_pose(camera, px_i[ok], px_j[ok], threshold_px=4 * noise, noise_px=noise)
+    R_true = pose_j.rotation @ pose_i.rotation.T
+    t_true = pose_j.translation - R_true @ pose_i.translation
+    assert rel is not None and rel.n_inliers > 0.95 * ok.sum()
+    # within 4 sigma of the estimate's own (covariance-derived) uncertainty
+    assert rotation_angle_between(rel.rotation, R_true) < 4 * rel.rotation_sigma_rad
+    angle = np.arccos(np.clip(rel.direction @ t_true / np.linalg.norm(t_true), -1, 1))
+    assert angle < 4 * rel.direction_sigma_rad
+    assert rel.rotation_sigma_rad < np.deg2rad(0.5)
+
+
+def test_averaging_exact_pairs_recovers_the_shape_and_the_measurements_fix_the_gauge():
+    truth = _grid_poses()
+    measured = perturb_poses_uniform(truth, 2.0, np.deg2rad(1.0), seed=4)
+    pairs = _exact_pairs(truth)
+    rotations, residual = average_rotations(measured, pairs)
+    # the linearisation drops second-order terms in the deviation from the measurement (<= 1 deg per
+    # axis here), so exact pairs are met to that order, (sqrt(3) * 1 deg)^2 ~ 1e-3 rad
+    second_order = 3 * np.deg2rad(1.0) ** 2
+    assert residual.max() < second_order
+    # the relative rotations are exact, so only a common rotation (the gauge) may remain
+    common = [rotations[k].T @ truth[k].rotation for k in range(len(truth))]
+    assert max(rotation_angle_between(common[0], c) for c in common) < second_order
+    # and it is what the measured orientations say on average: within 3 sigma of their mean error
+    mean_err = np.deg2rad(1.0) / np.sqrt(3) / np.sqrt(len(truth))
+    assert rotation_angle_between(common[0], np.eye(3)) < 3 * np.sqrt(3) * mean_err
+    centres, used = average_positions(measured, np.stack([p.rotation for p in truth]), pairs)
+    assert used.all()
+    fit = gauge_from_measurements([Pose.from_centre(p.rotation, c) for p, c in zip(truth, centres)],
+                                  [MeasuredPose(p) for p in truth])
+    shape_error = np.linalg.norm(fit.apply(centres) - np.stack([p.centre for p in truth]), axis=1)
+    # exact directions are soft constraints (sigma 1e-3 rad on baselines <= 8 mm) balanced against the
+    # priors (sigma 1.2 mm): they must hold to a small fraction of their own sigma
+    assert shape_error.max() < 0.1 * 1e-3 * 8.0
+
+
+def test_averaging_downweights_a_wrong_pair():
+    truth = _grid_poses()
+    measured = perturb_poses_uniform(truth, 1.0, np.deg2rad(0.5), seed=5)
+    pairs = _exact_pairs(truth, sigma=np.deg2rad(0.05))
+    bad = pairs[3]
+    pairs[3] = RelativePose(bad.i, bad.j, rotvec_to_matrix([0.0, 0.3, 0.0]) @ bad.rotation, -bad.direction,
+                            bad.inliers, bad.rotation_sigma_rad, bad.direction_sigma_rad)
+    rotations, residual = average_rotations(measured, pairs)
+    assert residual[3] > 0.25  # the wrong pair keeps its disagreement ...
+    others = np.delete(residual, 3)
+    assert others.max() < np.deg2rad(0.1)  # ... instead of spreading it over the others
+    _, used = average_positions(measured, rotations, pairs)
+    assert not used[3] and used.sum() >= len(pairs) - 2
+
+
+@pytest.mark.parametrize("scale", [0.9, 1.0, 1.1])
+def test_gauge_fit_recovers_a_known_similarity_on_a_planar_trajectory(scale):
+    """On a planar grid the centres alone leave the tilt to noise; the orientations fix it."""
+    truth = _grid_poses()
+    sim = Similarity(scale, rotvec_to_matrix([0.02, -0.03, 0.5]), np.zeros(3), np.array([3.0, -2.0, 1.0]))
+    moved = [Pose(*sim.apply_to_cam_from_world(p.rotation, p.translation)) for p in truth]
+    measured = [MeasuredPose(p, PoseTolerance(np.full(3, 0.5), np.full(3, np.deg2rad(0.5)))) for p in truth]
+    back = gauge_from_measurements(moved, measured)
+    restored = [Pose(*back.apply_to_cam_from_world(p.rotation, p.translation)) for p in moved]
+    for p, t in zip(restored, truth):
+        assert np.linalg.norm(p.centre - t.centre) < 1e-6
+        assert rotation_angle_between(p.rotation, t.rotation) < 1e-8
+
+
+def test_similarity_fraction_runs_from_identity_to_the_whole():
+    sim = Similarity(1.2, rotvec_to_matrix([0.1, 0.2, -0.3]), np.array([1.0, 2.0, 3.0]), np.array([0.0, -1.0, 5.0]))
+    X = np.random.default_rng(0).normal(size=(10, 3))
+    assert np.allclose(sim.fraction(0.0).apply(X), X)
+    assert np.allclose(sim.fraction(1.0).apply(X), sim.apply(X))
