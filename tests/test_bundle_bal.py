@@ -108,3 +108,29 @@ def test_cli_reports_bad_files_without_traceback(tmp_path, capsys):
     err = capsys.readouterr().err
     assert status == 2 and "expected" in err and "Traceback" not in err
     assert not (tmp_path / "r.json").exists()
+
+
+def _tiny_bal(path: Path, observation0: str = "0 0", camera1_rx: str = "0.1") -> Path:
+    """2 cameras, 1 point, 2 observations; one number per line after the observations, as BAL files are."""
+    cameras = ["0", "0", "0", "0", "0", "-5", "500", "0", "0", camera1_rx, "0", "0", "1", "0", "-5", "500", "0", "0"]
+    path.write_text("\n".join(["2 1 2", f"{observation0} 1.0 2.0", "1 0 3.0 4.0", *cameras, "0", "0", "0"]) + "\n")
+    return path
+
+
+@pytest.mark.parametrize(
+    "kwargs, fragments",
+    [
+        ({"camera1_rx": "nan"}, ["camera 1 (0-based)", "NaN or infinite"]),
+        ({"camera1_rx": "inf"}, ["camera 1 (0-based)", "NaN or infinite"]),
+        ({"observation0": "0.5 0"}, ["observation 0 (0-based)", "integers"]),
+    ],
+)
+def test_read_bal_refuses_garbage_naming_the_file(tmp_path, kwargs, fragments):
+    path = _tiny_bal(tmp_path / "p.txt", **kwargs)
+    with pytest.raises(InputError) as info:
+        read_bal(path)
+    assert str(info.value).startswith(f"{path}: ") and "\n" not in str(info.value)
+    for f in fragments:
+        assert f in str(info.value), str(info.value)
+    # the same file with good numbers is read
+    assert read_bal(_tiny_bal(tmp_path / "good.txt")).cameras.shape == (2, 9)

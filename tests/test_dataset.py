@@ -11,7 +11,7 @@ from scope3d.camera import Camera
 from scope3d.cli.main import main
 from scope3d.dataset import load_dataset, read_image, write_dataset
 from scope3d.errors import InputError
-from scope3d.geometry import look_at
+from scope3d.geometry import look_at, rotation_angle_between
 from scope3d.mesh import Mesh
 from scope3d.pose import MeasuredPose, Pose, PoseTolerance
 
@@ -163,6 +163,27 @@ def test_negative_tolerance(good):
 def test_non_unit_quaternion(good):
     _rewrite_poses(good, lambda rows: rows[1].__setitem__(_col("qw"), str(float(rows[1][_col("qw")]) + 0.1)))
     _expect(good, "poses.csv row 2", "quaternion", "not unit")
+
+
+def test_zero_quaternion(good):
+    _rewrite_poses(good, lambda rows: rows[2].__setitem__(slice(_col("qw"), _col("qz") + 1), ["0"] * 4))
+    _expect(good, "poses.csv row 3", "quaternion", "not unit length (norm 0")
+
+
+def test_quaternion_printed_with_4_digits_is_normalised(good):
+    """A quaternion printed to 4 significant digits is q + e with |e| <= sqrt(4) 0.5e-4 = 1e-4: accepted,
+    normalised, and its rotation within 2 asin(|e| / (1 - |e|)) of the exact one."""
+    exact = load_dataset(good).poses
+
+    def round_quaternions(rows):
+        for row in rows[1:]:
+            row[_col("qw"):_col("qz") + 1] = [f"{float(v):.4g}" for v in row[_col("qw"):_col("qz") + 1]]
+
+    _rewrite_poses(good, round_quaternions)
+    e = 1e-4
+    for got, want in zip(load_dataset(good).poses, exact, strict=True):
+        assert rotation_angle_between(got.pose.rotation, want.pose.rotation) <= 2 * np.arcsin(e / (1 - e))
+        np.testing.assert_allclose(got.pose.centre, want.pose.centre, atol=1e-9)
 
 
 def test_short_row(good):

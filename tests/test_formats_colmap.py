@@ -9,7 +9,7 @@ from scope3d.cli.main import main
 from scope3d.dataset import load_dataset, write_image
 from scope3d.errors import InputError
 from scope3d.formats.colmap import SparseModel, import_colmap, read_colmap_text, write_colmap_text
-from scope3d.geometry import look_at
+from scope3d.geometry import look_at, rotation_angle_between
 from scope3d.pose import Pose
 
 import pycolmap  # the reference reader; a declared "peers" dependency, installed in CI
@@ -154,6 +154,9 @@ def _replace_line(path: Path, number: int, text: str) -> None:
         ("cameras.txt", 5, "2 OPENCV 64 48 58 61 32 24 0.05 0 0.001 0", ["cameras.txt line 5", "non-zero p1"]),
         ("cameras.txt", 4, "1 RADIAL 64 48 60 32 24 0.1", ["cameras.txt line 4", "5 parameters, found 4"]),
         ("images.txt", 5, "1 1.1 0 0 0 0 0 0 1 img_00.png", ["images.txt line 5", "not unit"]),
+        ("images.txt", 5, "1 0 0 0 0 0 0 0 1 img_00.png", ["images.txt line 5", "not unit", "norm 0"]),
+        # beyond the rounding of a quaternion printed to 3 or more digits (norm within 1e-3 of 1)
+        ("images.txt", 7, "2 1.002 0 0 0 0 0 0 2 img_01.png", ["images.txt line 7", "not unit", "1.002"]),
         ("images.txt", 5, "1 1 0 0 0 0 nan 0 1 img_00.png", ["images.txt line 5", "NaN"]),
         ("images.txt", 5, "1 1 0 0 0 0 0 0 7 img_00.png", ["images.txt line 5", "camera 7"]),
         ("images.txt", 6, "1.5 2.5", ["images.txt line 6", "triples"]),
@@ -205,6 +208,41 @@ def test_import_colmap(tmp_path):
         np.testing.assert_allclose(got.pose.matrix, want.matrix, atol=1e-9)
     assert (tmp_path / "ds" / "frames" / "seq_a.png").read_bytes() == (tmp_path / "images/seq/a.png").read_bytes()
     assert ds.metadata["source"]["format"] == "colmap-text"
+
+
+def test_import_colmap_with_rounded_quaternions(tmp_path):
+    """images.txt printed to 7 significant digits, one quaternion to 4: imported within the rounding.
+
+    A quaternion printed to d digits is q + e with |e| <= sqrt(4) 0.5e-d = 1e-d. Normalised, it is at
+    most asin(|e| / (1 - |e|)) from q on the unit sphere, and rotation angles are twice that.
+    """
+    model = _colmap_set(tmp_path)
+    images_txt = tmp_path / "sparse" / "images.txt"
+    lines = images_txt.read_text().splitlines()
+    pose_lines = range(4, len(lines), 2)  # after 4 comment lines, a pose line then its 2D points
+    coarse, digits = 6, {}
+    for i in pose_lines:
+        digits[i] = 4 if i == coarse else 7
+        tokens = lines[i].split()
+        tokens[1:8] = [f"{float(v):.{digits[i]}g}" for v in tokens[1:8]]
+        lines[i] = " ".join(tokens)
+    images_txt.write_text("\n".join(lines) + "\n")
+
+    import_colmap(tmp_path / "sparse", tmp_path / "images", tmp_path / "ds")
+    ds = load_dataset(tmp_path / "ds")
+    for i, got, want in zip(pose_lines, ds.poses, model.poses, strict=True):
+        e = 10.0 ** -digits[i]
+        assert rotation_angle_between(got.pose.rotation, want.rotation) <= 2 * np.arcsin(e / (1 - e))
+        # atol: poses.csv keeps 12 digits of the ~80 mm centre, so a zero component comes back as ~1e-11
+        np.testing.assert_allclose(got.pose.translation, want.translation, rtol=0.5 * 10.0 ** (1 - digits[i]),
+                                   atol=1e-9)
+    # Provenance: the largest normalisation is the coarse line's, |q + e| - 1 = q.e to first order
+    # (second order: |e|^2); the 7-digit lines' are below 1e-7.
+    qx, qy, qz, qw = model.poses[(coarse - 4) // 2].quaternion
+    q = np.array([qw, qx, qy, qz])
+    e = np.array(lines[coarse].split()[1:5], float) - q
+    recorded = ds.metadata["source"]["quaternion_normalised_max"]
+    assert abs(q @ e) > 10 * 1e-7 and abs(recorded - abs(q @ e)) <= e @ e, (recorded, q @ e)
 
 
 def test_cli_import_colmap_with_tolerance(tmp_path, capsys):

@@ -12,6 +12,7 @@ from scope3d.cli.main import main
 from scope3d.dataset import load_dataset
 from scope3d.errors import InputError
 from scope3d.formats.middlebury import import_middlebury, read_middlebury_par
+from scope3d.geometry import rotation_angle_between
 from scope3d.pose import PoseTolerance
 
 REPO = Path(__file__).resolve().parents[1]
@@ -112,15 +113,117 @@ def test_bad_par_file(tmp_path, edit, fragments):
     assert not (tmp_path / "out").exists()
 
 
-def test_non_rotation_is_rejected(tmp_path):
-    def scale_r(lines):
-        tokens = lines[2].split()
-        tokens[10] = str(2.0 * float(tokens[10]))  # r11 doubled
-        lines[2] = " ".join(tokens)
+# --- rotations printed with few digits ---------------------------------------------------------------
+# A line's tokens: name, K (1-9), R (10-18), t (19-21). Printed to d significant digits, an entry |r| <= 1
+# is off by at most 0.5e-d, and any number x by at most 0.5e(1-d) |x|.
+R_TOKENS = slice(10, 19)
 
+
+def _rounding(digits: int) -> float:
+    return 0.5 * 10.0 ** -digits
+
+
+def _print_rounded(digits: int, coarse: dict[tuple[int, int], int] | None = None):
+    """An edit printing every number to ``digits`` significant digits, (line index, token) in ``coarse``
+    to the digits given there."""
+    def edit(lines):
+        for i in range(1, len(lines)):
+            tokens = lines[i].split()
+            lines[i] = " ".join([tokens[0]] + [f"{float(v):.{(coarse or {}).get((i, j), digits)}g}"
+                                               for j, v in enumerate(tokens[1:], start=1)])
+    return edit
+
+
+def test_par_file_with_7_digit_rotations_imports_within_its_rounding(tmp_path):
+    """As dinoSparseRing's par file: R printed to ~7 digits, R R^T off I by ~1e-6; and one entry to 5 digits.
+
+    With R = R_exact + E, the nearest rotation Q is within |E|_F of R, so |Q - R_exact|_F <= 2 |E|_F,
+    i.e. 2 sqrt(2) sin(angle / 2) <= 2 |E|_F: angle <= sqrt(2) |E|_F (to first order), with
+    |E|_F <= sqrt(9) 0.5e-7 = 1.5e-7 on a 7-digit line.
+    """
+    coarse_entry = (1, 11)  # r12 of templeSR0001, 0.98329680886... -> 0.9833: off by 3.2e-6
     (tmp_path / "in").mkdir()
-    with pytest.raises(InputError, match="line 3: R is not a rotation"):
-        read_middlebury_par(_par_copy(tmp_path / "in", scale_r))
+    par = _par_copy(tmp_path / "in", _print_rounded(7, {coarse_entry: 5}))
+    text = par.read_text().splitlines()
+    # The file is as rounded as claimed: |R R^T - I| <= 2 sqrt(3) 0.5e-7 on 7-digit lines, and the
+    # coarse line is beyond the 1e-6 that used to be refused.
+    deviation = [np.abs(r @ r.T - np.eye(3)).max() for r in
+                 (np.array(line.split()[R_TOKENS], float).reshape(3, 3) for line in text[1:])]
+    assert deviation[0] > 1e-6 and 1e-9 < max(deviation[1:]) <= 2 * np.sqrt(3.0) * _rounding(7)
+    exact_names, exact_ks, exact_poses, exact_corrections = read_middlebury_par(PAR)
+    assert max(exact_corrections) < 1e-14  # the published temple file is exact to double precision
+
+    ds = load_dataset(import_middlebury(par, tmp_path / "out"))
+    assert ds.names == exact_names
+    cam = ds.camera
+    np.testing.assert_array_equal([cam.fx, cam.fy, cam.cx, cam.cy], exact_ks[0][[0, 1, 0, 1], [0, 1, 2, 2]])
+    entry_error = 0.5 * 10.0 ** -5  # the bound for the 5-digit entry
+    for i, (got, want) in enumerate(zip(ds.poses, exact_poses), start=1):
+        per_entry = np.full(9, _rounding(7))
+        if i == coarse_entry[0]:
+            per_entry[coarse_entry[1] - R_TOKENS.start] = entry_error
+        bound = np.sqrt(2.0) * np.linalg.norm(per_entry)
+        r = got.pose.rotation
+        assert np.abs(r @ r.T - np.eye(3)).max() < 1e-12  # orthonormalised (to double precision)
+        assert rotation_angle_between(r, want.rotation) <= bound
+        np.testing.assert_allclose(got.pose.translation, want.translation, rtol=0.5e-6, atol=0)
+
+    # Provenance: the largest correction is the coarse entry's. A perturbation e of entry (i, j) of a
+    # rotation is sqrt((1 + r_ij^2) / 2) |e| from SO(3) to first order; the line's 7-digit entries move
+    # that by at most their Frobenius norm, sqrt(8) 0.5e-7.
+    r_exact = float(PAR.read_text().splitlines()[1].split()[coarse_entry[1]])
+    e = abs(float(text[1].split()[coarse_entry[1]]) - r_exact)
+    expected = np.sqrt((1.0 + r_exact**2) / 2.0) * e
+    recorded = ds.metadata["source"]["rotation_orthonormalised_max"]
+    assert abs(recorded - expected) <= np.sqrt(8.0) * _rounding(7), (recorded, expected)
+
+
+def test_par_file_with_4_digit_rotations_is_accepted(tmp_path):
+    """4 digits: |E|_F <= 1.5e-4 per line, well inside the rounding tolerance (1e-3)."""
+    (tmp_path / "in").mkdir()
+    _, _, poses, corrections = read_middlebury_par(_par_copy(tmp_path / "in", _print_rounded(4)))
+    _, _, exact_poses, _ = read_middlebury_par(PAR)
+    frobenius_bound = 3.0 * _rounding(4)
+    assert 0 < max(corrections) <= frobenius_bound
+    for got, want in zip(poses, exact_poses):
+        assert rotation_angle_between(got.rotation, want.rotation) <= np.sqrt(2.0) * frobenius_bound
+
+
+def _edit_r(line: int, change):
+    """An edit replacing R of ``line`` (1-based) by ``change(R)``, printed to 7 digits as a real file is."""
+    def edit(lines):
+        tokens = lines[line - 1].split()
+        r = change(np.array([float(v) for v in tokens[R_TOKENS]]).reshape(3, 3))
+        tokens[R_TOKENS] = [f"{v:.7g}" for v in r.ravel()]
+        lines[line - 1] = " ".join(tokens)
+    return edit
+
+
+def _shear(r):
+    r = r.copy()
+    r[0, 0] += 3e-3  # 2e-3 from SO(3): twice the tolerance, 20 times 4-digit rounding
+    return r
+
+
+@pytest.mark.parametrize(
+    "line, change, reason",
+    [
+        (3, lambda r: r * np.array([[2.0, 1, 1], [1, 1, 1], [1, 1, 1]]), "from the nearest rotation"),
+        (5, lambda r: 1.01 * r, "from the nearest rotation"),
+        (7, lambda r: r * np.array([[1.0], [1.0], [-1.0]]), "reflection"),
+        (9, lambda r: r[:, [1, 0, 2]], "reflection"),
+        (11, _shear, "from the nearest rotation"),
+    ],
+    ids=["r11-doubled", "scaled-1.01", "row-negated", "columns-swapped", "sheared-3e-3"],
+)
+def test_non_rotation_is_refused_in_one_line(tmp_path, capsys, line, change, reason):
+    (tmp_path / "in").mkdir()
+    par = _par_copy(tmp_path / "in", _edit_r(line, change))
+    code = main(["import", "middlebury", str(par), "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1, err
+    assert f"{par} line {line}: R is not a rotation matrix" in err and reason in err, err
+    assert not (tmp_path / "out").exists()
 
 
 def test_corrupt_last_image_leaves_no_output(tmp_path, capsys):

@@ -47,7 +47,7 @@ import numpy as np
 from .atomic import atomic_directory, atomic_file
 from .camera import Camera, fov_from_focal
 from .errors import InputError
-from .geometry import matrix_to_quaternion, quaternion_to_matrix
+from .geometry import matrix_to_quaternion, normalised_quaternion, quaternion_to_matrix
 from .mesh import Mesh, read_ply, write_ply
 from .pose import MeasuredPose, Pose, PoseTolerance
 
@@ -57,7 +57,6 @@ POSE_COLUMNS = (
 )
 LENGTH_UNITS_TO_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "um": 1e-3}
 CAMERA_KEYS = ("width", "height", "fx", "fy", "cx", "cy", "k1", "k2")
-_QUATERNION_NORM_TOLERANCE = 1e-3
 
 
 @dataclass(frozen=True)
@@ -289,10 +288,12 @@ def _read_pose_rows(path: Path, length_scale_to_mm: float) -> tuple[list[str], l
                 raise InputError(f"{where}: {column} is {text} (NaN or infinite)")
             if column.startswith("tol_") and values[column] < 0:
                 raise InputError(f"{where}: {column} = {text} is negative (lower bound above upper bound)")
-        q = np.array([values["qx"], values["qy"], values["qz"], values["qw"]])
-        if abs(np.linalg.norm(q) - 1.0) > _QUATERNION_NORM_TOLERANCE:
-            raise InputError(f"{where}: quaternion (qw, qx, qy, qz) is not unit length (norm {np.linalg.norm(q):.4g})")
-        world_from_cam = quaternion_to_matrix(q / np.linalg.norm(q))
+        # A robot's or a spreadsheet's quaternion may be printed with few digits: rounding is normalised away.
+        try:
+            q, _ = normalised_quaternion([values["qx"], values["qy"], values["qz"], values["qw"]])
+        except ValueError as exc:
+            raise InputError(f"{where}: quaternion (qw, qx, qy, qz) is {exc}") from None
+        world_from_cam = quaternion_to_matrix(q)
         centre = np.array([values["x_mm"], values["y_mm"], values["z_mm"]]) * length_scale_to_mm
         tolerance = PoseTolerance.from_degrees(
             np.array([values["tol_x_mm"], values["tol_y_mm"], values["tol_z_mm"]]) * length_scale_to_mm,

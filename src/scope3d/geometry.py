@@ -15,6 +15,15 @@ from scipy.spatial.transform import Rotation, Slerp
 
 _SMALL_ANGLE_RAD = 1e-8
 
+# Rotations and quaternions read from text files carry the file's rounding. An entry |r| <= 1 printed to
+# d significant digits is off by at most eps = 0.5e-d, so a printed rotation matrix lies within
+# sqrt(9) eps = 1.5e-d (Frobenius) of the true rotation, hence at most that far from the nearest one, and
+# a printed quaternion's norm is within sqrt(4) eps = 1e-d of 1. 1e-3 accepts every matrix printed with 4
+# or more digits (and typical 3-digit ones) and every quaternion with 3 or more, with room for the
+# rounding of whatever computed them. A matrix farther than that from every rotation is not a rounded
+# rotation but something else: scaled, sheared, a mistyped entry, columns of another matrix.
+ROTATION_ROUNDING_TOLERANCE = 1e-3
+
 
 def hat(v: np.ndarray) -> np.ndarray:
     """Skew-symmetric matrices ``[v]x`` such that ``hat(v) @ x == cross(v, x)``.
@@ -66,6 +75,48 @@ def matrix_to_quaternion(matrix: np.ndarray) -> np.ndarray:
     q = Rotation.from_matrix(matrix.reshape(-1, 3, 3)).as_quat()
     q = np.where(q[:, 3:4] < 0, -q, q)
     return q.reshape(matrix.shape[:-2] + (4,))
+
+
+def nearest_rotation(matrix: np.ndarray) -> tuple[np.ndarray, float]:
+    """The rotation nearest to a (3, 3) matrix that should be one but was rounded, and how far it was.
+
+    Returns ``(R, distance)``: ``R`` orthonormal with det +1 (the orthogonal polar factor, from the SVD),
+    ``distance = ||matrix - R||_F``. Raises ValueError, saying why, when ``matrix`` has NaN or infinite
+    entries, is a reflection (det < 0), or is farther than :data:`ROTATION_ROUNDING_TOLERANCE` from every
+    rotation. Messages
+    start with "not a rotation matrix", to follow e.g. "R is".
+    """
+    m = np.asarray(matrix, dtype=float).reshape(3, 3)
+    if not np.all(np.isfinite(m)):
+        raise ValueError("not a rotation matrix: it has NaN or infinite entries")
+    det = float(np.linalg.det(m))
+    if det < 0:
+        raise ValueError(f"not a rotation matrix: it is a reflection (determinant {det:.4g})")
+    u, sigma, vt = np.linalg.svd(m)
+    # det(m) >= 0, so det(u @ vt) = +1 unless m is singular; the last singular value then takes the sign.
+    d = np.array([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
+    distance = float(np.linalg.norm(sigma - d))
+    if distance > ROTATION_ROUNDING_TOLERANCE:
+        raise ValueError(f"not a rotation matrix: it is {distance:.3g} from the nearest rotation "
+                         f"(Frobenius norm; rounding explains at most {ROTATION_ROUNDING_TOLERANCE:g})")
+    return (u * d) @ vt, distance
+
+
+def normalised_quaternion(quat: np.ndarray) -> tuple[np.ndarray, float]:
+    """A (4,) quaternion that should be unit but was rounded, scaled to unit length, and ``| |q| - 1 |``.
+
+    The component order is kept. Raises ValueError, saying why, when ``quat`` has NaN or infinite
+    components or its norm is farther than :data:`ROTATION_ROUNDING_TOLERANCE` from 1 (a zero
+    quaternion, a typo). Messages start with "not", to follow e.g. "quaternion is".
+    """
+    q = np.asarray(quat, dtype=float).reshape(4)
+    if not np.all(np.isfinite(q)):
+        raise ValueError("not finite (NaN or infinite components)")
+    norm = float(np.linalg.norm(q))
+    if abs(norm - 1.0) > ROTATION_ROUNDING_TOLERANCE:
+        raise ValueError(f"not unit length (norm {norm:.4g}; rounding explains 1 +- "
+                         f"{ROTATION_ROUNDING_TOLERANCE:g})")
+    return q / norm, abs(norm - 1.0)
 
 
 def so3_left_jacobian(rotvec: np.ndarray) -> np.ndarray:

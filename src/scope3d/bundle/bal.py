@@ -84,7 +84,11 @@ class BALProblem:
 
 
 def read_bal(path: str | os.PathLike) -> BALProblem:
-    """Read a BAL text file (uncompressed). Raises InputError on a malformed file."""
+    """Read a BAL text file (uncompressed). Raises InputError, naming the file, on a malformed file.
+
+    Rotations are rotation vectors: any finite one is a rotation however few digits it is printed
+    with, so unlike a printed matrix or quaternion there is no rounding to absorb.
+    """
     with open(path, "r") as handle:
         text = handle.read()
     try:
@@ -103,6 +107,13 @@ def read_bal(path: str | os.PathLike) -> BALProblem:
     obs = values[3:3 + 4 * k].reshape(k, 4)
     cams = values[3 + 4 * k:3 + 4 * k + 9 * m].reshape(m, 9)
     pts = values[3 + 4 * k + 9 * m:].reshape(n, 3)
+    for what, block in (("observation", obs), ("camera", cams), ("point", pts)):
+        bad = np.flatnonzero(~np.all(np.isfinite(block), axis=1))
+        if bad.size:
+            raise InputError(f"{path}: {what} {bad[0]} (0-based) has NaN or infinite values")
+    bad = np.flatnonzero(np.any(obs[:, :2] != np.round(obs[:, :2]), axis=1))
+    if bad.size:
+        raise InputError(f"{path}: observation {bad[0]} (0-based): camera and point indices must be integers")
     return BALProblem(obs[:, 0].astype(np.int64), obs[:, 1].astype(np.int64), obs[:, 2:].copy(), cams, pts)
 
 

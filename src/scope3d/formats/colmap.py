@@ -15,6 +15,9 @@ scope3d's:
 * The reader accepts ``SIMPLE_PINHOLE``, ``PINHOLE``, ``SIMPLE_RADIAL``, ``RADIAL``, and ``OPENCV`` /
   ``FULL_OPENCV`` whose extra terms are zero; anything else cannot be represented by
   :class:`scope3d.camera.Camera` and is an InputError.
+* Quaternions may be printed with few digits: one whose norm is within rounding of 1
+  (:data:`scope3d.geometry.ROTATION_ROUNDING_TOLERANCE`) is normalised, and ``import_colmap`` records the
+  largest normalisation in ``dataset.json`` (``source.quaternion_normalised_max``); others are refused.
 * IDs are 1-based in the files and become 0-based list indices in :class:`SparseModel` (in file order
   for cameras and points, in image-ID order for images).
 """
@@ -30,14 +33,13 @@ from ..atomic import atomic_directory
 from ..camera import Camera
 from ..dataset import read_image, write_dataset
 from ..errors import InputError
-from ..geometry import matrix_to_quaternion, quaternion_to_matrix
+from ..geometry import matrix_to_quaternion, normalised_quaternion, quaternion_to_matrix
 from ..pose import MeasuredPose, Pose, PoseTolerance
 
 # COLMAP's pixel origin is the image corner; scope3d's is the centre of the top-left pixel.
 _COLMAP_PIXEL_OFFSET = 0.5
 # Extra distortion terms (p1, p2, k3...) below this are treated as zero when reading OPENCV models.
 _NEGLIGIBLE_DISTORTION = 1e-12
-_QUATERNION_NORM_TOLERANCE = 1e-3
 
 
 @dataclass
@@ -240,14 +242,18 @@ def read_colmap_text(model_dir: str | Path, *, length_scale_to_mm: float = 1.0) 
     length_scale_to_mm : the model's length unit in mm (1 if it was written by scope3d; 1000 for a
     model in metres). Problems are InputErrors naming the file and line.
     """
-    model_dir = Path(model_dir)
+    return _read_model(Path(model_dir), length_scale_to_mm)[0]
+
+
+def _read_model(model_dir: Path, length_scale_to_mm: float) -> tuple[SparseModel, float]:
+    """:func:`read_colmap_text`, also returning the largest ``| |q| - 1 |`` of the quaternions it normalised."""
     if not model_dir.is_dir():
         raise InputError(f"{model_dir}: COLMAP model folder does not exist")
     if not (model_dir / "cameras.txt").is_file() and (model_dir / "cameras.bin").is_file():
         raise InputError(f"{model_dir}: binary COLMAP model; convert it first with "
                          "'colmap model_converter --output_type TXT'")
     cameras, camera_index = _read_cameras(model_dir / "cameras.txt")
-    names, poses, image_cameras, keypoints, _, image_index = _read_images(
+    names, poses, image_cameras, keypoints, _, image_index, normalised = _read_images(
         model_dir / "images.txt", camera_index, length_scale_to_mm
     )
     points_path = model_dir / "points3D.txt"
@@ -256,9 +262,10 @@ def read_colmap_text(model_dir: str | Path, *, length_scale_to_mm: float = 1.0) 
         points, colors, errors, tracks, _ = _read_points(points_path, image_index, keypoints,
                                                                  length_scale_to_mm)
     try:
-        return SparseModel(cameras, names, poses, np.array(image_cameras), points, colors, errors, keypoints, tracks)
+        model = SparseModel(cameras, names, poses, np.array(image_cameras), points, colors, errors, keypoints, tracks)
     except ValueError as exc:
         raise InputError(f"{points_path}: {exc}") from None
+    return model, normalised
 
 
 def _data_lines(path: Path):
@@ -342,14 +349,15 @@ def _read_images(path: Path, camera_index: dict[int, int], scale: float):
         except ValueError:
             raise InputError(f"{where}: IMAGE_ID and CAMERA_ID must be integers") from None
         qw, qx, qy, qz, tx, ty, tz = _floats(path, number, tokens[1:8], "QW QX QY QZ TX TY TZ")
-        q = np.array([qx, qy, qz, qw])
-        if abs(np.linalg.norm(q) - 1.0) > _QUATERNION_NORM_TOLERANCE:
-            raise InputError(f"{where}: quaternion is not unit length (norm {np.linalg.norm(q):.4g})")
+        try:
+            q, normalised = normalised_quaternion([qx, qy, qz, qw])
+        except ValueError as exc:
+            raise InputError(f"{where}: quaternion is {exc}") from None
         if camera_id not in camera_index:
             raise InputError(f"{where}: camera {camera_id} is not in cameras.txt")
         # The name is the rest of the line (COLMAP writes it last; it cannot contain white space).
         name = " ".join(tokens[9:])
-        pose = Pose(quaternion_to_matrix(q / np.linalg.norm(q)), np.array([tx, ty, tz]) * scale)
+        pose = Pose(quaternion_to_matrix(q), np.array([tx, ty, tz]) * scale)
         # The next line holds the 2D points, and may be empty: it is read whatever it holds.
         points_line = lines[i][1].strip() if i < len(lines) else ""
         points_number = lines[i][0] if i < len(lines) else number + 1
@@ -362,7 +370,7 @@ def _read_images(path: Path, camera_index: dict[int, int], scale: float):
         if np.any(arr[:, 2] != np.round(arr[:, 2])):
             raise InputError(f"{path} line {points_number}: POINT3D_ID must be integers")
         entries.append((image_id, name, pose, camera_index[camera_id], arr[:, :2] - _COLMAP_PIXEL_OFFSET,
-                        arr[:, 2].astype(np.int64), number))
+                        arr[:, 2].astype(np.int64), number, normalised))
     if not entries:
         raise InputError(f"{path}: no images")
     ids = [e[0] for e in entries]
@@ -372,7 +380,7 @@ def _read_images(path: Path, camera_index: dict[int, int], scale: float):
     entries.sort(key=lambda e: e[0])
     image_index = {e[0]: j for j, e in enumerate(entries)}
     return ([e[1] for e in entries], [e[2] for e in entries], [e[3] for e in entries],
-            [e[4] for e in entries], [e[5] for e in entries], image_index)
+            [e[4] for e in entries], [e[5] for e in entries], image_index, max(e[7] for e in entries))
 
 
 def _read_points(path: Path, image_index: dict[int, int], keypoints: list[np.ndarray], scale: float):
@@ -423,12 +431,13 @@ def import_colmap(
     reported with ``tolerance`` (default exact: COLMAP's poses are taken as given). The model must have
     one camera (or several identical ones): a scope3d dataset has one. Image names with sub-folders are
     flattened (``a/b.png`` -> ``a_b.png``); images that are not PNG are re-encoded as PNG (lossless).
-    The 3D points are not part of a dataset and are not imported.
+    The 3D points are not part of a dataset and are not imported. ``dataset.json`` records the
+    provenance, with the largest normalisation ``| |q| - 1 |`` of a rounded quaternion.
     """
     model_dir, images_dir = Path(model_dir), Path(images_dir)
     if not images_dir.is_dir():
         raise InputError(f"{images_dir}: image folder does not exist")
-    model = read_colmap_text(model_dir, length_scale_to_mm=length_scale_to_mm)
+    model, normalised = _read_model(model_dir, length_scale_to_mm)
     used = sorted(set(model.image_cameras.tolist()))
     camera = model.cameras[used[0]]
     for c in used[1:]:
@@ -459,6 +468,7 @@ def import_colmap(
             "images": str(images_dir.resolve()),
             "length_scale_to_mm": length_scale_to_mm,
             "num_points3D": int(len(model.points3d)),
+            "quaternion_normalised_max": normalised,
             "original_names": list(model.image_names),
         }
     }

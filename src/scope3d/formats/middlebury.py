@@ -9,6 +9,11 @@ origin top-left, x right, y down. We take the calibration's pixel coordinates to
 the centre of the top-left pixel); if they meant the pixel corner the principal point is off by 0.5 px,
 which no downstream use of this data can resolve. The set's ``README.txt`` gives the object's bounding
 box, which is kept in ``dataset.json`` (``bounding_box_mm``) when found.
+
+Published par files print R with anything from ~7 to ~20 digits, so ``R`` is a rotation only up to the
+printing's rounding: each R is replaced by the nearest rotation (:func:`scope3d.geometry.nearest_rotation`,
+which refuses matrices farther from every rotation than rounding explains), and ``dataset.json`` records
+the largest correction (``source.rotation_orthonormalised_max``, Frobenius norm).
 """
 from __future__ import annotations
 
@@ -22,19 +27,22 @@ from .. import __version__
 from ..camera import Camera
 from ..dataset import read_image, write_dataset
 from ..errors import InputError
+from ..geometry import nearest_rotation
 from ..pose import MeasuredPose, Pose, PoseTolerance
 
 MM_PER_M = 1000.0
-# K and R come with ~15 digits; these only catch wrong files, not rounding.
-_ROTATION_TOLERANCE = 1e-6
+# K's structural zeros and ones print exactly at any precision, and one K printed by one program gives the
+# same text on every line: this tolerance catches a different camera model or calibration, not rounding.
 _INTRINSICS_TOLERANCE = 1e-9
 
 
-def read_middlebury_par(par_path: str | Path) -> tuple[list[str], list[np.ndarray], list[Pose]]:
+def read_middlebury_par(par_path: str | Path) -> tuple[list[str], list[np.ndarray], list[Pose], list[float]]:
     """Parse a ``*_par.txt`` file.
 
-    Returns image names, calibration matrices (3, 3) in pixels, and poses ``cam_from_world`` with
-    translations converted from metres to mm. Problems are InputErrors naming the file and line.
+    Returns image names, calibration matrices (3, 3) in pixels, poses ``cam_from_world`` with
+    translations converted from metres to mm, and for each pose the Frobenius distance between the
+    file's R and the rotation used (the rounding of the file). Problems are InputErrors naming the file
+    and line.
     """
     path = Path(par_path)
     if not path.is_file():
@@ -52,7 +60,7 @@ def read_middlebury_par(par_path: str | Path) -> tuple[list[str], list[np.ndarra
     count = int(first[0])
     if len(rows) - 1 != count:
         raise InputError(f"{path} line {first_line}: says {count} images, the file lists {len(rows) - 1}")
-    names, ks, poses = [], [], []
+    names, ks, poses, corrections = [], [], [], []
     for number, tokens in rows[1:]:
         where = f"{path} line {number}"
         if len(tokens) != 22:
@@ -67,16 +75,17 @@ def read_middlebury_par(par_path: str | Path) -> tuple[list[str], list[np.ndarra
         if abs(k[0, 1]) > _INTRINSICS_TOLERANCE or np.abs(k[1:, 0]).max() > _INTRINSICS_TOLERANCE \
                 or np.abs(k[2] - [0, 0, 1]).max() > _INTRINSICS_TOLERANCE:
             raise InputError(f"{where}: K must be [[fx 0 cx] [0 fy cy] [0 0 1]] (no skew)")
-        if np.abs(r @ r.T - np.eye(3)).max() > _ROTATION_TOLERANCE or np.linalg.det(r) < 0:
-            raise InputError(f"{where}: R is not a rotation matrix")
+        try:
+            rotation, correction = nearest_rotation(r)
+        except ValueError as exc:
+            raise InputError(f"{where}: R is {exc}") from None
         if tokens[0] in names:
             raise InputError(f"{where}: image {tokens[0]} is listed twice")
-        # Re-orthonormalise: the file's 15-digit R is within 1e-15 of a rotation, Pose checks 1e-6.
-        u, _, vt = np.linalg.svd(r)
         names.append(tokens[0])
         ks.append(k)
-        poses.append(Pose(u @ vt, t * MM_PER_M))
-    return names, ks, poses
+        poses.append(Pose(rotation, t * MM_PER_M))
+        corrections.append(correction)
+    return names, ks, poses, corrections
 
 
 def import_middlebury(
@@ -89,11 +98,12 @@ def import_middlebury(
 
     tolerance : reported with every pose; default exact (0), since the gantry calibration is the
     reference. All images must share one K and one size. ``dataset.json`` records the provenance
-    (file, its SHA-256, the scope3d version) and, when ``README.txt`` gives it, the object's bounding
-    box in mm. Written atomically: on any error ``out_dir`` is left as it was.
+    (file, its SHA-256, the scope3d version, the largest correction that made a printed R a rotation)
+    and, when ``README.txt`` gives it, the object's bounding box in mm. Written atomically: on any
+    error ``out_dir`` is left as it was.
     """
     par_path = Path(par_path)
-    names, ks, poses = read_middlebury_par(par_path)
+    names, ks, poses, corrections = read_middlebury_par(par_path)
     k0 = ks[0]
     for name, k in zip(names[1:], ks[1:]):
         if np.abs(k - k0).max() > _INTRINSICS_TOLERANCE * max(1.0, np.abs(k0).max()):
@@ -116,6 +126,7 @@ def import_middlebury(
             "sha256": hashlib.sha256(par_path.read_bytes()).hexdigest(),
             "world_unit": "m",
             "scale_to_mm": MM_PER_M,
+            "rotation_orthonormalised_max": max(corrections),
             "imported_by": f"scope3d {__version__}",
             "reference": "Seitz, Curless, Diebel, Scharstein, Szeliski: A comparison and evaluation of "
                          "multi-view stereo reconstruction algorithms, CVPR 2006",
