@@ -84,7 +84,10 @@ class MatchOptions:
         and the unmodelled distortion of the camera model (default 4 px).
     max_radius_px : float, guided matcher: cap on the window radius (default 250 px). With tolerances
         so large that the window would exceed it, the prediction carries no information and the
-        pair is matched exhaustively instead.
+        pair is matched exhaustively instead. The cap is also never more than the radius of a disc of a
+        sixteenth of the image: beyond it every feature has a sixteenth of the other frame's features or
+        more as candidates, so the windowed search holds ~N^2/16 candidates per pair in memory (on a
+        30-frame survey with 1 mm-wide windows, 271 million) for what brute force does in place.
     mutual : bool, keep a match only if it is also the best for the feature in the other frame.
     threads : int, threads for the per-pair RANSAC of the guided matcher (default 2, the machine's cores).
     """
@@ -483,10 +486,11 @@ def match_guided_many(
     seg = {"a": [], "p0": [], "p1": [], "pair": [], "frame_j": [], "radius": []}
     radii = np.zeros(len(pairs))
     ray_ranges: dict[int, tuple] = {}
+    radius_limit = min(options.max_radius_px, np.sqrt(camera.width * camera.height / (16.0 * np.pi)))
     for k, (i, j, _) in enumerate(pairs):  # per-pair loop: prediction only
         radius = window_radius_px(camera, poses[i].tolerance, poses[j].tolerance, depth, options.base_radius_px)
         radii[k] = radius
-        if radius > options.max_radius_px:
+        if radius > radius_limit:
             results[k] = match_exhaustive(camera, features[i], features[j], options, i=ids[i], j=ids[j])
             results[k].method = "guided->exhaustive"
             continue
