@@ -684,11 +684,12 @@ def align_gauge(poses: list[Pose], measured: list[MeasuredPose], *, bounded: boo
     map — but uses every measurement, so their random errors average out (a common bias cannot: it is
     unobservable).
 
-    bounded : the poses (in their boxes) must stay in their boxes. Then the placement is the one that puts
-        every camera deepest inside its box (:func:`scope3d.averaging.gauge_centred_in_boxes`): with
-        uniform errors the boxes' intersection says more than a least-squares fit (on the dome at +-3 mm
-        the centres' least-squares scale was 7 % off where the boxes allow 3.6 %); and only as much of it
-        is applied (:meth:`scope3d.geometry.Similarity.fraction`) as keeps every pose inside.
+    bounded : the poses (in their boxes) must stay in their boxes. Then the placement is the
+        least-squares one among those that keep every camera well inside its box
+        (:func:`scope3d.averaging.gauge_centred_in_boxes`): with uniform errors the boxes' intersection
+        says more than a least-squares fit alone (on the dome at +-3 mm the centres' least-squares scale
+        was 7 % off); and only as much of it is applied (:meth:`scope3d.geometry.Similarity.fraction`)
+        as keeps every pose inside.
     """
     if not bounded:
         return _moved(poses, gauge_from_measurements(poses, measured))
