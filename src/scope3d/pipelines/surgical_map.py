@@ -479,12 +479,13 @@ def refine_poses_for_matching(options: MapOptions, dataset: Dataset, features: l
     tracks = build_tracks(features, matches, min_track_length=options.tracks.min_track_length)
     loose = replace(options.tracks, max_reprojection_error_px=1e6, min_angle_deg=0.5 * options.tracks.min_angle_deg)
     tracks = triangulate_tracks(camera, start, tracks, loose)
+    if tracks.n_tracks >= 50:
+        err = reprojection_errors(camera, start, tracks)
+        gate = max(options.tracks.max_reprojection_error_px, 3.0 * float(np.median(err)) / 1.1774)
+        tracks = triangulate_tracks(camera, start, tracks, replace(loose, max_reprojection_error_px=gate))
     if tracks.n_tracks < 50:
         raise InputError(f"{dataset.root}: the frames share too few features to map "
                          f"({tracks.n_tracks} points from {len(matches)} verified pairs)")
-    err = reprojection_errors(camera, start, tracks)
-    gate = max(options.tracks.max_reprojection_error_px, 3.0 * float(np.median(err)) / 1.1774)
-    tracks = triangulate_tracks(camera, start, tracks, replace(loose, max_reprojection_error_px=gate))
     fixed_intrinsics = replace(options, bundle=replace(options.bundle, refine_intrinsics=False))
     poses = start
     for strict in (False, True):
