@@ -13,7 +13,9 @@ def register(subparsers) -> None:
     p = subparsers.add_parser(
         "map",
         help="map a surgical field: points, textured mesh, fluorescent targets, accuracy report",
-        description="Reconstruct a dataset folder into a metric 3D map: SIFT features, pose-guided matching, "
+        description="Reconstruct a dataset folder into a metric 3D map: SIFT features, pose-guided matching "
+                    "(poses whose tolerance is too wide to guide it are first re-estimated from the images: "
+                    "similar frames, essential matrices, rotation and position averaging, BCBA), "
                     "triangulation, bundle adjustment (poses fixed, free, or bounded by their tolerance), "
                     "thin-plate-spline surface with texture and fluorescence, targets table, figures, "
                     "COLMAP text model, and report.json (with errors against ground truth when present).",
