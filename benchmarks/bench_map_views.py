@@ -36,10 +36,10 @@ from scope3d import phantoms
 from scope3d.camera import Camera
 from scope3d.cli.main import main as cli
 from scope3d.dataset import load_dataset, write_dataset
-from scope3d.geometry import look_at
 from scope3d.matching import PairOptions
 from scope3d.pipelines.surgical_map import MAP_PRESETS, MapOptions, run
-from scope3d.pose import MICRO_STAGE, MeasuredPose, Pose
+from scope3d.phantoms.trajectories import ring_poses
+from scope3d.pose import MICRO_STAGE, MeasuredPose
 
 from bench_map_middlebury import _known_pose_reconstruction
 
@@ -79,13 +79,7 @@ def render_dome_ring(n: int, out: Path, *, size_px: int = RING_SIZE_PX) -> Path:
     looking at the middle of the cavity (5 mm below the plate top), exact poses, no circular mask."""
     scene = phantoms.build_scene("dome")
     camera = Camera.from_fov(size_px, size_px, scene.fov_deg)
-    target = np.array([0.0, 0.0, -5.0])
-    a = np.deg2rad(RING_TILT_DEG)
-    poses = []
-    for k in range(n):
-        phi = 2.0 * np.pi * k / n
-        eye = target + RING_DISTANCE_MM * np.array([np.sin(a) * np.cos(phi), np.sin(a) * np.sin(phi), np.cos(a)])
-        poses.append(Pose.from_centre(look_at(eye, target, up=(0.0, 0.0, 1.0)), eye))
+    poses = ring_poses(n, tilt_deg=RING_TILT_DEG, distance_mm=RING_DISTANCE_MM, target=(0.0, 0.0, -5.0))
     exposure = phantoms.sequence_exposure(scene, camera, poses)
     frames = [phantoms.render_frame(scene, camera, p, seed=0, frame_index=i, exposure=exposure).image
               for i, p in enumerate(poses)]

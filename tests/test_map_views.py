@@ -25,27 +25,15 @@ import pytest
 from scope3d import phantoms
 from scope3d.camera import Camera
 from scope3d.dataset import load_dataset, write_dataset
-from scope3d.geometry import look_at, rotvec_to_matrix
+from scope3d.geometry import rotvec_to_matrix
 from scope3d.matching import DepthPrior, PairOptions, select_pairs
 from scope3d.pipelines.surgical_map import MAP_PRESETS, run
+from scope3d.phantoms.trajectories import ring_poses
 from scope3d.pose import MICRO_STAGE, MeasuredPose, Pose
 from scope3d.tracks import build_tracks
 
 RING_VIEWS = 36
 RING_SIZE_PX = 200
-
-
-def ring_poses(n: int, *, tilt_deg: float, distance_mm: float, target=(0.0, 0.0, 0.0)) -> list[Pose]:
-    """``n`` cameras evenly spaced on a cone ``tilt_deg`` off the z axis, ``distance_mm`` from ``target``,
-    all looking at it (90 deg: a horizontal ring around an object, like Middlebury's)."""
-    t = np.asarray(target, float)
-    a = np.deg2rad(tilt_deg)
-    poses = []
-    for k in range(n):
-        phi = 2.0 * np.pi * k / n
-        eye = t + distance_mm * np.array([np.sin(a) * np.cos(phi), np.sin(a) * np.sin(phi), np.cos(a)])
-        poses.append(Pose.from_centre(look_at(eye, t, up=(0.0, 0.0, 1.0)), eye))
-    return poses
 
 
 def _pair_set(pairs) -> set:

@@ -163,6 +163,20 @@ TRAJECTORIES = {
 }
 
 
+def ring_poses(n: int, *, tilt_deg: float, distance_mm: float, target=(0.0, 0.0, 0.0)) -> list[Pose]:
+    """``n`` cameras evenly spaced on a cone ``tilt_deg`` off the world z axis, ``distance_mm`` from
+    ``target`` (mm), all looking at it, image up towards +z (90 deg: a horizontal ring around an object,
+    like Middlebury's)."""
+    t = np.asarray(target, float)
+    a = np.deg2rad(tilt_deg)
+    poses = []
+    for k in range(n):
+        phi = 2.0 * np.pi * k / n
+        eye = t + distance_mm * np.array([np.sin(a) * np.cos(phi), np.sin(a) * np.sin(phi), np.cos(a)])
+        poses.append(Pose.from_centre(look_at(eye, t, up=(0.0, 0.0, 1.0)), eye))
+    return poses
+
+
 def build_trajectory(name: str, *, n_frames: int | None = None, side_view_deg: float = 45.0,
                      axis_offset_mm: float = 0.0, axis_tilt_deg: float = 0.0) -> Trajectory:
     """Build a named trajectory. ``n_frames`` limits the grids (first frames in scan order), sets the
