@@ -12,7 +12,7 @@ $(BIN)/python:
 	$(BIN)/python -m pip install --quiet --upgrade pip
 
 # The numba kernels compile once here (cached beside the sources), not in the first map's timings.
-WARM_UP := $(BIN)/python -c "import scope3d.bundle as b; b.warm_up()"
+WARM_UP := $(BIN)/python -c "import scope3d.estimators.bundle as b; b.warm_up()"
 
 $(STAMP_CORE): pyproject.toml | $(BIN)/python
 	$(BIN)/python -m pip install --quiet -e .

@@ -16,11 +16,12 @@ import cv2
 import numpy as np
 
 from scope3d import phantoms
-from scope3d.dataset import load_dataset
-from scope3d.evaluation import SampledSurface, distance_summary
+from scope3d.io.dataset import load_dataset
+from scope3d.metrology.evaluation import distance_summary
+from scope3d.mvs.dense_matching import SadOptions, SgmOptions, sad_disparity, sgm_disparity
+from scope3d.mvs.two_view import reconstruct_pair, to_image
 from scope3d.pipelines.axial import AxialOptions, run, save_depth_png
-from scope3d.stereo.matching import SadOptions, SgmOptions, sad_disparity, sgm_disparity
-from scope3d.stereo.two_view import reconstruct_pair, to_image
+from scope3d.scene.mesh import SampledSurface
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "results"

@@ -32,8 +32,16 @@ DATA = ROOT.parent / "shared" / "data" / "bal_ladybug_49_7776" / "problem-49-777
 RESULTS = ROOT / "benchmarks" / "results"
 sys.path.insert(0, str(ROOT / "src"))
 
-from scope3d.bundle import BALProblem, SolverOptions, bal_to_problem, read_bal, result_to_bal, solve, warm_up  # noqa: E402
-from scope3d.geometry import matrix_to_rotvec, rotvec_to_matrix  # noqa: E402
+from scope3d.estimators.bundle import (  # noqa: E402
+    BALProblem,
+    SolverOptions,
+    bal_to_problem,
+    read_bal,
+    result_to_bal,
+    solve,
+    warm_up,
+)
+from scope3d.geometry.rotation import matrix_to_rotvec, rotvec_to_matrix  # noqa: E402
 
 FLIP = np.array([1.0, -1.0, -1.0])
 TOLERANCES = dict(function_tolerance=1e-6, gradient_tolerance=1e-10, parameter_tolerance=1e-8, max_iterations=100)

@@ -7,13 +7,13 @@ per run**; every noise draw reuses them and changes only the reported poses.
 
 Features and matches are the map pipeline's public functions, used read-only:
 
-* ``scope3d.features.detect`` — OpenCV SIFT inside the circular field (default ``FeatureOptions``);
-* ``scope3d.matching.match_exhaustive`` on **all 120 frame pairs** (ratio 0.8, mutual check, RANSAC on
+* ``scope3d.feature.detection.detect`` — OpenCV SIFT inside the circular field (default ``FeatureOptions``);
+* ``scope3d.feature.matching.match_exhaustive`` on **all 120 frame pairs** (ratio 0.8, mutual check, RANSAC on
   the fundamental matrix, pairs with < 15 verified matches dropped). The exhaustive matcher uses no pose
   at all, so the matches (and tracks) are identical for every draw and every noise bound; only the
   triangulation and the adjustment see the noisy poses. (The pose-guided matcher would re-match per draw
   with a window widened by the tolerance; not used here.)
-* ``scope3d.tracks.build_tracks`` (union-find, inconsistent tracks dropped) and, per draw,
+* ``scope3d.feature.tracks.build_tracks`` (union-find, inconsistent tracks dropped) and, per draw,
   ``triangulate_tracks`` (midpoint) **from the noisy poses**, with the reprojection gate widened by the
   image shift the pose noise can cause (``2 px + f·b·√3 / 15 mm``), then a working-range gate: a track
   is dropped if its point lies more than ``MAX_DEPTH_MM`` (4 × the stand-off) in front of any camera
@@ -39,7 +39,7 @@ Methods (plain least squares, eq. 6.2, as the reference; at most ``MAX_ITERATION
 Reported per solve: iterations, time, final cost (0.5 Σ r², px²), FOV across the width from fx (and fy),
 Q_z (z-depth of the observed points in their cameras: 1st–99th percentile and the fraction in [15, 25] mm),
 camera-centre error against the truth, and the distance of the points to the true dome mesh
-(``scope3d.evaluation``: point-to-plane on the densely sampled mesh) — mean, median and 95th percentile,
+(``scope3d.metrology.evaluation``: point-to-plane on the densely sampled mesh) — mean, median and 95th percentile,
 both directly (the poses are metric, so the map should be) and after rigid ICP
 (``evaluation.icp_from_initial_poses`` with its default options — as the reference aligned to the CAD
 model; if its result is worse than no alignment on the mean over all points, the identity is kept and
@@ -68,14 +68,22 @@ ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
 sys.path.insert(0, str(ROOT / "src"))
 
-from scope3d.bundle import BoundsWarning, BundleProblem, SolverOptions, solve, warm_up  # noqa: E402
-from scope3d.camera import Camera, focal_from_fov, fov_from_focal  # noqa: E402
-from scope3d.evaluation import EvaluationOptions, SampledSurface, distance_summary, icp_from_initial_poses  # noqa: E402
-from scope3d.features import FeatureOptions, Features, detect  # noqa: E402
-from scope3d.matching import MatchOptions, PairMatches, match_exhaustive  # noqa: E402
+from scope3d.estimators.bundle import BoundsWarning, BundleProblem, SolverOptions, solve, warm_up  # noqa: E402
+from scope3d.estimators.triangulation import TrackOptions, triangulate_tracks
+from scope3d.feature.detection import FeatureOptions, Features, detect  # noqa: E402
+from scope3d.feature.matching import MatchOptions, PairMatches, match_exhaustive  # noqa: E402
+from scope3d.feature.tracks import build_tracks  # noqa: E402
+from scope3d.geometry.pose import Pose  # noqa: E402
+from scope3d.metrology.evaluation import (  # noqa: E402
+    EvaluationOptions,
+    distance_summary,
+    icp_from_initial_poses,
+)
 from scope3d.phantoms import build_scene, default_camera, grid_trajectory, render_frame, sequence_exposure  # noqa: E402
-from scope3d.pose import MeasuredPose, Pose, PoseTolerance, perturb_poses_uniform  # noqa: E402
-from scope3d.tracks import TrackOptions, Tracks, build_tracks, triangulate_tracks  # noqa: E402
+from scope3d.scene.mesh import SampledSurface
+from scope3d.scene.tracks import Tracks
+from scope3d.sensor.camera import Camera, focal_from_fov, fov_from_focal  # noqa: E402
+from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance, perturb_poses_uniform
 
 DOME_RADIUS_MM = 17.5
 STANDOFF_MM = 15.0  # camera plane above the plate top (z = 0); the dome's bottom is 10 mm lower
@@ -277,8 +285,8 @@ def main() -> int:
                                               f"{STANDOFF_MM} mm above the plate, looking down",
         "image_px": [camera.width, camera.height], "fov_deg": camera.fov_deg, "fx_px": camera.fx,
         "pixel_footprint_mm": [STANDOFF_MM / camera.fx, (STANDOFF_MM + 10.0) / camera.fx],
-        "features": "scope3d.features.detect (OpenCV SIFT, default FeatureOptions, inside the circular field)",
-        "matcher": "scope3d.matching.match_exhaustive on all 120 pairs (ratio 0.8, mutual, RANSAC F 1.5 px, >= 15 "
+        "features": "scope3d.feature.detection.detect (OpenCV SIFT, default FeatureOptions, inside the circular field)",
+        "matcher": "scope3d.feature.matching.match_exhaustive on all 120 pairs (ratio 0.8, mutual, RANSAC F 1.5 px, >= 15 "
                    "matches); pose-free, so identical for every draw",
         "features_per_frame": [len(f) for f in survey.features],
         "pairs_with_matches": int(sum(len(m) > 0 for m in survey.matches)),
@@ -289,7 +297,7 @@ def main() -> int:
                                           "note": "points triangulated from the TRUE poses, no adjustment: "
                                                   "the accuracy the matches allow"},
         "pose_noise": "uniform in [-b, b] mm per axis on the camera centre, orientation exact",
-        "solver": f"scope3d.bundle.solve, plain least squares (loss none), max_iterations {MAX_ITERATIONS}, "
+        "solver": f"scope3d.estimators.bundle.solve, plain least squares (loss none), max_iterations {MAX_ITERATIONS}, "
                   "Ceres-like tolerances (function 1e-6)",
         "gates": {"reprojection_px": f"{4 * SIFT_SIGMA_PX} + f*b*sqrt(3)/{STANDOFF_MM}",
                   "max_depth_mm": MAX_DEPTH_MM, "prior_gate_margin_mm (d only)": PRIOR_GATE_MARGIN_MM},

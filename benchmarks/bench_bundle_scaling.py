@@ -32,8 +32,8 @@ ITERATIONS = 5
 
 
 def run_single(name: str) -> dict:
-    from scope3d.bundle import BundleProblem, SolverOptions, solve, warm_up
-    from scope3d.bundle.synthetic import make_scene
+    from scope3d.estimators.bundle import BundleProblem, SolverOptions, solve, warm_up
+    from scope3d.estimators.bundle.synthetic import make_scene
 
     warm_up()
     m, n = SIZES[name]

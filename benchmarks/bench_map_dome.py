@@ -28,9 +28,9 @@ from pathlib import Path
 import numpy as np
 
 from scope3d import phantoms
-from scope3d.dataset import load_dataset
+from scope3d.io.dataset import load_dataset
 from scope3d.pipelines.surgical_map import MapOptions, detect_features, match_frames, run
-from scope3d.pose import perturb_poses_biased, perturb_poses_uniform
+from scope3d.sensor.pose_tolerance import perturb_poses_biased, perturb_poses_uniform
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "results"

@@ -24,10 +24,10 @@ from pathlib import Path
 import numpy as np
 
 from scope3d.cli.main import main as cli
-from scope3d.dataset import load_dataset, write_dataset
-from scope3d.geometry import matrix_to_quaternion
+from scope3d.geometry.rotation import matrix_to_quaternion
+from scope3d.io.dataset import load_dataset, write_dataset
 from scope3d.pipelines.surgical_map import MAP_PRESETS, run
-from scope3d.pose import perturb_poses_uniform
+from scope3d.sensor.pose_tolerance import perturb_poses_uniform
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "results"

@@ -95,10 +95,18 @@ import numpy as np
 
 from scope3d import __version__ as scope3d_version
 from scope3d import phantoms
-from scope3d.dataset import load_dataset, write_dataset
-from scope3d.evaluation import EvaluationOptions, SampledSurface, distance_summary, icp_from_initial_poses
+from scope3d.geometry.pose import Pose
+from scope3d.io.dataset import load_dataset, write_dataset
+from scope3d.metrology.evaluation import EvaluationOptions, distance_summary, icp_from_initial_poses
 from scope3d.pipelines.surgical_map import MAP_PRESETS, MapOptions, run
-from scope3d.pose import MeasuredPose, Pose, PoseTolerance, perturb_poses_biased, perturb_poses_drift, perturb_poses_uniform
+from scope3d.scene.mesh import SampledSurface
+from scope3d.sensor.pose_tolerance import (
+    MeasuredPose,
+    PoseTolerance,
+    perturb_poses_biased,
+    perturb_poses_drift,
+    perturb_poses_uniform,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "results"
@@ -455,7 +463,7 @@ def read_model(out: Path, names: list[str]):
     """From the COLMAP text model the map writes: observations of model points per frame (n_frames,),
     the adjusted camera centres (n_frames, 3) in ``names`` order, and the points (N, 3) mm;
     (None, None, None) if unreadable."""
-    from scope3d.formats.colmap import read_colmap_text
+    from scope3d.io.colmap import read_colmap_text
 
     try:
         model = read_colmap_text(out / "sparse")

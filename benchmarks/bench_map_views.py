@@ -31,17 +31,16 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+from bench_map_middlebury import _known_pose_reconstruction
 
 from scope3d import phantoms
-from scope3d.camera import Camera
 from scope3d.cli.main import main as cli
-from scope3d.dataset import load_dataset, write_dataset
-from scope3d.matching import PairOptions
-from scope3d.pipelines.surgical_map import MAP_PRESETS, MapOptions, run
+from scope3d.feature.pairs import PairOptions
+from scope3d.io.dataset import load_dataset, write_dataset
 from scope3d.phantoms.trajectories import ring_poses
-from scope3d.pose import MICRO_STAGE, MeasuredPose
-
-from bench_map_middlebury import _known_pose_reconstruction
+from scope3d.pipelines.surgical_map import MAP_PRESETS, MapOptions, run
+from scope3d.sensor.camera import Camera
+from scope3d.sensor.pose_tolerance import MICRO_STAGE, MeasuredPose
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "results"

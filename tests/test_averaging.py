@@ -8,12 +8,18 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from scope3d.averaging import (
-    RelativePose, average_positions, average_rotations, gauge_from_measurements, relative_pose,
+from scope3d.estimators.averaging import (
+    RelativePose,
+    average_positions,
+    average_rotations,
+    gauge_from_measurements,
+    relative_pose,
 )
-from scope3d.camera import Camera
-from scope3d.geometry import Similarity, look_at, rotation_angle_between, rotvec_to_matrix
-from scope3d.pose import MeasuredPose, Pose, PoseTolerance, perturb_poses_uniform
+from scope3d.geometry.pose import Pose
+from scope3d.geometry.rotation import look_at, rotation_angle_between, rotvec_to_matrix
+from scope3d.geometry.similarity import Similarity
+from scope3d.sensor.camera import Camera
+from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance, perturb_poses_uniform
 
 
 def _grid_poses(n_side: int = 4, spacing: float = 5.0, height: float = 15.0) -> list[Pose]:

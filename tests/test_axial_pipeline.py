@@ -6,9 +6,9 @@ import pytest
 
 from scope3d import phantoms
 from scope3d.cli.main import main
-from scope3d.dataset import load_dataset
+from scope3d.io.dataset import load_dataset
+from scope3d.mvs.axial import make_axial_pair
 from scope3d.pipelines.axial import AxialOptions, run
-from scope3d.stereo.axial import make_axial_pair
 
 
 @pytest.fixture(scope="module")

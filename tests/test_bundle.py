@@ -4,15 +4,21 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from scope3d.bundle import (
-    BoundsWarning, BundleParameters, BundleProblem, SolverOptions, evaluate, solve,
-)
-from scope3d.bundle import kernels
-from scope3d.bundle.synthetic import make_scene
-from scope3d.camera import Camera, project_with_jacobians
 from scope3d.errors import InputError
-from scope3d.geometry import matrix_to_rotvec, rotvec_to_matrix, so3_left_jacobian
-from scope3d.pose import MeasuredPose, Pose, PoseTolerance
+from scope3d.estimators.bundle import (
+    BoundsWarning,
+    BundleParameters,
+    BundleProblem,
+    SolverOptions,
+    evaluate,
+    kernels,
+    solve,
+)
+from scope3d.estimators.bundle.synthetic import make_scene
+from scope3d.geometry.pose import Pose
+from scope3d.geometry.rotation import matrix_to_rotvec, rotvec_to_matrix, so3_left_jacobian
+from scope3d.sensor.camera import Camera, project_with_jacobians
+from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance
 
 
 def scene_problem(scene, **kw) -> BundleProblem:

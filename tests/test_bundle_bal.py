@@ -7,11 +7,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from scope3d.bundle import (
-    BALProblem, SolverOptions, apply_bounds_file, bal_to_problem, read_bal, result_to_bal, solve, write_bal,
-)
 from scope3d.cli.main import main
 from scope3d.errors import InputError
+from scope3d.estimators.bundle import (
+    BALProblem,
+    SolverOptions,
+    apply_bounds_file,
+    bal_to_problem,
+    read_bal,
+    result_to_bal,
+    solve,
+    write_bal,
+)
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 LADYBUG = DATA / "bal_ladybug_49_7776" / "problem-49-7776-pre.txt"

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from scope3d.pose import perturb_poses_uniform
+from scope3d.sensor.pose_tolerance import perturb_poses_uniform
 
 BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_bundle_dome.py"
 BOUND_MM = 0.25

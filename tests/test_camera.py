@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from scope3d.camera import Camera, focal_from_fov, fov_from_focal, project_with_jacobians
-from scope3d.pose import Pose
+from scope3d.geometry.pose import Pose
+from scope3d.sensor.camera import Camera, focal_from_fov, fov_from_focal, project_with_jacobians
 
 
 def _scene(seed=0, n=40):
@@ -11,7 +11,7 @@ def _scene(seed=0, n=40):
     rotvecs = rng.normal(scale=0.3, size=(n, 3))
     translations = rng.normal(scale=1.0, size=(n, 3))
     # keep points in front: express in camera, then shift world points accordingly
-    from scope3d.geometry import rotvec_to_matrix
+    from scope3d.geometry.rotation import rotvec_to_matrix
 
     r = rotvec_to_matrix(rotvecs)
     world = np.einsum("nji,nj->ni", r, points - translations)

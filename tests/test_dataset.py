@@ -7,13 +7,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from scope3d.camera import Camera
 from scope3d.cli.main import main
-from scope3d.dataset import load_dataset, read_image, write_dataset
 from scope3d.errors import InputError
-from scope3d.geometry import look_at, rotation_angle_between
-from scope3d.mesh import Mesh
-from scope3d.pose import MeasuredPose, Pose, PoseTolerance
+from scope3d.geometry.pose import Pose
+from scope3d.geometry.rotation import look_at, rotation_angle_between
+from scope3d.io.dataset import load_dataset, write_dataset
+from scope3d.io.images import read_image
+from scope3d.scene.mesh import Mesh
+from scope3d.sensor.camera import Camera
+from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance
 
 REPO = Path(__file__).resolve().parents[1]
 W, H = 32, 24
@@ -47,7 +49,7 @@ def _rewrite_poses(root: Path, edit) -> None:
 
 
 def _col(name):
-    from scope3d.dataset import POSE_COLUMNS
+    from scope3d.io.poses_csv import POSE_COLUMNS
 
     return POSE_COLUMNS.index(name)
 

@@ -5,8 +5,8 @@ import cv2
 import numpy as np
 import pytest
 
-from scope3d.camera import Camera
-from scope3d.features import FEATURE_PRESETS, FeatureOptions, Features, detect, detection_mask
+from scope3d.feature.detection import FEATURE_PRESETS, FeatureOptions, Features, detect, detection_mask
+from scope3d.sensor.camera import Camera
 
 
 def _textured(size=320, seed=0, gain=1.0):

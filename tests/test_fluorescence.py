@@ -5,13 +5,20 @@ import cv2
 import numpy as np
 import pytest
 
-from scope3d.camera import Camera
-from scope3d.fluorescence import (
-    FluorescenceOptions, auto_threshold, carry_to_surface, map_targets, match_targets, measure_targets, overlay, segment,
+from scope3d.geometry.pose import Pose
+from scope3d.geometry.rotation import look_at
+from scope3d.metrology.fluorescence import (
+    FluorescenceOptions,
+    auto_threshold,
+    carry_to_surface,
+    map_targets,
+    match_targets,
+    measure_targets,
+    overlay,
+    segment,
 )
-from scope3d.geometry import look_at
-from scope3d.pose import Pose
-from scope3d.surface import Surface
+from scope3d.scene.surface import Surface
+from scope3d.sensor.camera import Camera
 
 STEP = 0.05
 

@@ -2,17 +2,17 @@
 from pathlib import Path
 
 import numpy as np
+import pycolmap  # the reference reader; a declared "peers" dependency, installed in CI
 import pytest
 
-from scope3d.camera import Camera
 from scope3d.cli.main import main
-from scope3d.dataset import load_dataset, write_image
 from scope3d.errors import InputError
-from scope3d.formats.colmap import SparseModel, import_colmap, read_colmap_text, write_colmap_text
-from scope3d.geometry import look_at, rotation_angle_between
-from scope3d.pose import Pose
-
-import pycolmap  # the reference reader; a declared "peers" dependency, installed in CI
+from scope3d.geometry.pose import Pose
+from scope3d.geometry.rotation import look_at, rotation_angle_between
+from scope3d.io.colmap import SparseModel, import_colmap, read_colmap_text, write_colmap_text
+from scope3d.io.dataset import load_dataset
+from scope3d.io.images import write_image
+from scope3d.sensor.camera import Camera
 
 
 def _model(seed=0) -> SparseModel:

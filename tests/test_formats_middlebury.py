@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 from scope3d.cli.main import main
-from scope3d.dataset import load_dataset
 from scope3d.errors import InputError
-from scope3d.formats.middlebury import import_middlebury, read_middlebury_par
-from scope3d.geometry import rotation_angle_between
-from scope3d.pose import PoseTolerance
+from scope3d.geometry.rotation import rotation_angle_between
+from scope3d.io.dataset import load_dataset
+from scope3d.io.middlebury import import_middlebury, read_middlebury_par
+from scope3d.sensor.pose_tolerance import PoseTolerance
 
 REPO = Path(__file__).resolve().parents[1]
 TEMPLE = REPO.parent / "shared" / "data" / "middlebury_templeSparseRing"

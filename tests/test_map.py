@@ -19,10 +19,10 @@ import pytest
 
 from scope3d import phantoms
 from scope3d.cli.main import main
-from scope3d.dataset import load_dataset
-from scope3d.evaluation import EvaluationOptions
+from scope3d.io.dataset import load_dataset
+from scope3d.metrology.evaluation import EvaluationOptions
 from scope3d.pipelines.surgical_map import MAP_PRESETS, MapOptions, detect_features, match_frames, run
-from scope3d.pose import perturb_poses_uniform
+from scope3d.sensor.pose_tolerance import perturb_poses_uniform
 
 SIZE = (400, 400)
 SIFT_SIGMA_PX = 0.5
@@ -174,7 +174,7 @@ def test_cli_map_runs_and_bad_dataset_fails_in_one_line(dome_dir, tmp_path, caps
 
 
 def test_frames_without_texture_fail_in_one_line(dome_dir, tmp_path, capsys):
-    from scope3d.dataset import write_dataset
+    from scope3d.io.dataset import write_dataset
 
     ds = load_dataset(dome_dir)
     blank = [np.zeros((ds.camera.height, ds.camera.width, 3), np.uint8)] * 3
@@ -215,8 +215,9 @@ def _scale_information_floor(ds, points) -> float:
     best fits the true centres to the reported ones: with known intrinsics the images fix the shape and
     the poses only the similarity, so no method that takes its scale from the centres can do better (in
     expectation)."""
-    from scope3d.evaluation import SampledSurface, icp_from_initial_poses
-    from scope3d.geometry import fit_similarity
+    from scope3d.geometry.similarity import fit_similarity
+    from scope3d.metrology.evaluation import icp_from_initial_poses
+    from scope3d.scene.mesh import SampledSurface
 
     truth = SampledSurface(ds.ground_truth.surface(), 0.1)
     true_c = np.stack([p.centre for p in ds.ground_truth.poses])
@@ -242,7 +243,7 @@ def test_robot_grade_poses_map_every_frame_near_the_scale_limit(robot_map):
 
 
 def test_bounded_poses_stay_in_their_boxes_in_memory_and_on_disk(robot_map):
-    from scope3d.formats.colmap import read_colmap_text
+    from scope3d.io.colmap import read_colmap_text
 
     ds, result = robot_map
     for measured, pose in zip(ds.poses, result.sparse.poses):

@@ -5,12 +5,17 @@ import numpy as np
 import pytest
 import trimesh
 
-from scope3d.evaluation import (
-    EvaluationOptions, SampledSurface, distance_summary, icp_from_initial_poses, icp_point_to_plane,
-    save_error_histogram_png, save_error_map_png, surface_distances,
+from scope3d.estimators.icp import icp_point_to_plane
+from scope3d.geometry.rotation import rotvec_to_matrix
+from scope3d.metrology.evaluation import (
+    EvaluationOptions,
+    distance_summary,
+    icp_from_initial_poses,
+    save_error_histogram_png,
+    save_error_map_png,
+    surface_distances,
 )
-from scope3d.geometry import rotvec_to_matrix
-from scope3d.mesh import Mesh
+from scope3d.scene.mesh import Mesh, SampledSurface
 
 
 @pytest.fixture(scope="module")

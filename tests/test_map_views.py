@@ -1,10 +1,10 @@
 """More views of the same object must give the map more points, not fewer.
 
 Tracks are joined by union-find over the pairwise matches, and a track holding two features of one frame
-is dropped whole (:func:`scope3d.tracks.build_tracks`). Every pair adds a few wrong matches that can glue
+is dropped whole (:func:`scope3d.feature.tracks.build_tracks`). Every pair adds a few wrong matches that can glue
 two tracks together, so with a fixed number of partners per frame the loss grows with the density of
 views (on a dense ring the partners all see the same points). The ``photograph`` preset therefore keeps
-one partner per direction of camera motion (:class:`scope3d.matching.PairOptions`). The checks follow from
+one partner per direction of camera motion (:class:`scope3d.feature.pairs.PairOptions`). The checks follow from
 that geometry, not from tuning:
 
 * pair selection: on a ring each view is paired with its two neighbours only, on a raster with its four
@@ -23,14 +23,16 @@ import numpy as np
 import pytest
 
 from scope3d import phantoms
-from scope3d.camera import Camera
-from scope3d.dataset import load_dataset, write_dataset
-from scope3d.geometry import rotvec_to_matrix
-from scope3d.matching import DepthPrior, PairOptions, select_pairs
-from scope3d.pipelines.surgical_map import MAP_PRESETS, run
+from scope3d.feature.depth_prior import DepthPrior
+from scope3d.feature.pairs import PairOptions, select_pairs
+from scope3d.feature.tracks import build_tracks
+from scope3d.geometry.pose import Pose
+from scope3d.geometry.rotation import rotvec_to_matrix
+from scope3d.io.dataset import load_dataset, write_dataset
 from scope3d.phantoms.trajectories import ring_poses
-from scope3d.pose import MICRO_STAGE, MeasuredPose, Pose
-from scope3d.tracks import build_tracks
+from scope3d.pipelines.surgical_map import MAP_PRESETS, run
+from scope3d.sensor.camera import Camera
+from scope3d.sensor.pose_tolerance import MICRO_STAGE, MeasuredPose
 
 RING_VIEWS = 36
 RING_SIZE_PX = 200

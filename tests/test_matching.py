@@ -5,13 +5,13 @@ import numpy as np
 import pytest
 
 from scope3d import phantoms
-from scope3d.features import detect
-from scope3d.matching import (
-    DepthPrior, MatchOptions, PairOptions, _ratio_select_grouped, estimate_depth_prior, frame_overlap,
-    match_exhaustive, match_guided, match_pairs, predict_segments, select_pairs, true_match_error_px,
-    window_radius_px,
-)
-from scope3d.pose import OPTICAL_TRACKER, PoseTolerance
+from scope3d.feature.depth_prior import DepthPrior, predict_segments, window_radius_px
+from scope3d.feature.detection import detect
+from scope3d.feature.matching import MatchOptions, _ratio_select_grouped, match_exhaustive, match_guided, match_pairs
+from scope3d.feature.pairs import PairOptions, frame_overlap, select_pairs
+from scope3d.metrology.evaluation import true_match_error_px
+from scope3d.sensor.pose_tolerance import OPTICAL_TRACKER, PoseTolerance
+from scope3d.sfm.depth_priors import estimate_depth_prior
 
 CORRECT_PX = 3.0  # a match is correct when the true depth sends its keypoint within 3 px of its partner
 
@@ -66,7 +66,7 @@ def test_homography_limit_when_the_depth_range_is_thin(pair):
 
 
 def test_window_radius_follows_the_tolerance():
-    from scope3d.camera import Camera
+    from scope3d.sensor.camera import Camera
 
     cam = Camera.from_fov(608, 608, 53.0)
     depth = DepthPrior(15.0, 25.0)

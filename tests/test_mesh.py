@@ -4,7 +4,8 @@ import pytest
 import trimesh
 
 from scope3d.errors import InputError
-from scope3d.mesh import Mesh, PointCloud, read_ply, write_ply
+from scope3d.io.ply import read_ply, write_ply
+from scope3d.scene.mesh import Mesh, PointCloud
 
 
 def _cloud(n=50, seed=0):
@@ -170,7 +171,7 @@ def test_failed_write_leaves_no_file(tmp_path, monkeypatch):
     """A write that fails after the header (a full disk, say) leaves neither the file nor a temporary."""
     import builtins
 
-    import scope3d.atomic
+    import scope3d.utils.atomic
 
     class FailsOnSecondWrite:
         def __init__(self, handle):
@@ -188,7 +189,7 @@ def test_failed_write_leaves_no_file(tmp_path, monkeypatch):
         def __exit__(self, *exc):
             return self.handle.__exit__(*exc)
 
-    monkeypatch.setattr(scope3d.atomic, "open", lambda *a, **k: FailsOnSecondWrite(builtins.open(*a, **k)),
+    monkeypatch.setattr(scope3d.utils.atomic, "open", lambda *a, **k: FailsOnSecondWrite(builtins.open(*a, **k)),
                         raising=False)
     with pytest.raises(OSError, match="No space"):
         write_ply(tmp_path / "m.ply", _tetrahedron())

@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 
 from scope3d.cli.main import main
-from scope3d.dataset import load_dataset
 from scope3d.errors import InputError
+from scope3d.io.dataset import load_dataset
 from scope3d.phantoms import generate
-from scope3d.pose import MICRO_STAGE
+from scope3d.sensor.pose_tolerance import MICRO_STAGE
 
 
 def test_pose_noise_stays_within_the_reported_tolerance():

@@ -3,10 +3,10 @@ import cv2
 import numpy as np
 import pytest
 
-from scope3d.camera import Camera
+from scope3d.geometry.pose import Pose
 from scope3d.phantoms import build_scene, generate, render_frame
 from scope3d.phantoms.scenes import DOME_DEPTH_MM
-from scope3d.pose import Pose
+from scope3d.sensor.camera import Camera
 
 SIZE = (200, 200)
 
@@ -135,7 +135,7 @@ def test_fluorescent_targets_are_bright_in_fluorescence_and_nearly_invisible_in_
     star = next(t for t in scene.info["targets"] if t["shape"] == "star")
     centre = np.asarray(star["centroid_mm"])
     cam = Camera.from_fov(240, 240, 40.0)
-    from scope3d.geometry import look_at
+    from scope3d.geometry.rotation import look_at
 
     eye = centre + [0.0, 0.0, 14.0]
     pose = Pose.from_centre(look_at(eye, centre, up=(0.0, -1.0, 0.0)), eye)
@@ -160,7 +160,7 @@ def test_rendered_star_area_matches_scene_json():
     centre = np.asarray(star["centroid_mm"])
     cam = Camera.from_fov(400, 400, 30.0)
     eye = centre + [0.0, 0.0, 12.0]
-    from scope3d.geometry import look_at
+    from scope3d.geometry.rotation import look_at
 
     pose = Pose.from_centre(look_at(eye, centre, up=(0.0, -1.0, 0.0)), eye)
     out = render_frame(scene, cam, pose, seed=0)

@@ -1,10 +1,10 @@
 import numpy as np
 import pytest
 
-from scope3d.geometry import look_at, matrix_to_rotvec, rotvec_to_matrix, so3_left_jacobian
-from scope3d.pose import (
+from scope3d.geometry.pose import Pose
+from scope3d.geometry.rotation import look_at, matrix_to_rotvec, rotvec_to_matrix, so3_left_jacobian
+from scope3d.sensor.pose_tolerance import (
     MeasuredPose,
-    Pose,
     PoseTolerance,
     perturb_poses_biased,
     perturb_poses_drift,

@@ -3,11 +3,10 @@ import cv2
 import numpy as np
 import pytest
 
-from scope3d.camera import Camera
 from scope3d.errors import InputError
-from scope3d.geometry import look_at, rotvec_to_matrix
-from scope3d.pose import Pose
-from scope3d.stereo.axial import (
+from scope3d.geometry.pose import Pose
+from scope3d.geometry.rotation import look_at, rotvec_to_matrix
+from scope3d.mvs.axial import (
     PolarGridOptions,
     aligned_poses,
     aligned_triangulate,
@@ -15,6 +14,7 @@ from scope3d.stereo.axial import (
     make_axial_pair,
     triangulate_rays,
 )
+from scope3d.sensor.camera import Camera
 
 CAM = Camera.from_fov(320, 320, 70.0, mask_radius_px=158.0)
 DOWN = look_at(np.zeros(3), [0.0, 0.0, -1.0])  # looking down -z like the phantom's axial trajectory
@@ -165,7 +165,7 @@ def _zoom_pair(z_mm, step_mm=0.25, seed=0):
 def test_polar_sgm_has_no_disparity_bias_on_a_radial_zoom(z_mm):
     """Catches any half-pixel slip between the log-polar maps, cv2.remap (pixel centres at integers), the
     SGBM sign convention and the sub-pixel refinement: a shift of the whole chain shows as a median bias."""
-    from scope3d.stereo.matching import SgmOptions, sgm_disparity
+    from scope3d.mvs.dense_matching import SgmOptions, sgm_disparity
 
     rear_img, front_img, s = _zoom_pair(z_mm)
     rear = Pose.from_centre(DOWN, [0, 0, 0.0])

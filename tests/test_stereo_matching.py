@@ -5,8 +5,8 @@ import cv2
 import numpy as np
 import pytest
 
-from scope3d.stereo.matching import SadOptions, SgmOptions, refine_subpixel, sad_disparity, sgm_disparity
-from scope3d.stereo.multiview import MultiViewOptions, fuse_ranges
+from scope3d.mvs.dense_matching import SadOptions, SgmOptions, refine_subpixel, sad_disparity, sgm_disparity
+from scope3d.mvs.multiview import MultiViewOptions, fuse_ranges
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "middlebury2003_cones"
 

@@ -4,10 +4,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from scope3d.camera import Camera
-from scope3d.geometry import look_at
-from scope3d.pose import Pose
-from scope3d.surface import off_surface_points, Surface, SurfaceOptions, depth_map, fit_plane, fit_surface, texture
+from scope3d.geometry.plane import fit_plane
+from scope3d.geometry.pose import Pose
+from scope3d.geometry.rotation import look_at
+from scope3d.scene.surface import Surface, SurfaceOptions, depth_map, fit_surface, off_surface_points, texture
+from scope3d.sensor.camera import Camera
 
 R_DOME, DEPTH = (15.0**2 + 10.0**2) / 20.0, 10.0
 

@@ -4,14 +4,19 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from scope3d.camera import Camera
-from scope3d.features import Features
-from scope3d.geometry import look_at
-from scope3d.matching import PairMatches
-from scope3d.pose import Pose
-from scope3d.tracks import (
-    TrackOptions, Tracks, build_tracks, reprojection_errors, triangulate_observations, triangulate_tracks,
+from scope3d.estimators.triangulation import (
+    TrackOptions,
+    reprojection_errors,
+    triangulate_observations,
+    triangulate_tracks,
 )
+from scope3d.feature.detection import Features
+from scope3d.feature.matching import PairMatches
+from scope3d.feature.tracks import build_tracks
+from scope3d.geometry.pose import Pose
+from scope3d.geometry.rotation import look_at
+from scope3d.scene.tracks import Tracks
+from scope3d.sensor.camera import Camera
 
 CAM = Camera.from_fov(608, 608, 70.0, k1=-0.12, k2=0.02, mask_radius_px=300.0)
 

@@ -4,9 +4,10 @@ Layers, lowest first (a lower layer never imports a higher one):
 ``geometry`` -> ``pose``, ``camera`` -> ``dataset``/``formats``, ``phantoms`` -> features, bundle adjustment
 -> stereo, registration, metrology -> ``pipelines`` -> ``cli``.
 """
-from .camera import Camera
-from .errors import InputError
-from .pose import MeasuredPose, Pose, PoseTolerance
+from scope3d.errors import InputError
+from scope3d.geometry.pose import Pose
+from scope3d.sensor.camera import Camera
+from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance
 
 __version__ = "0.1.0"
 

@@ -26,9 +26,9 @@ def register(subparsers) -> None:
 def _run(args) -> int:
     from dataclasses import replace
 
-    from ..dataset import load_dataset
-    from ..errors import InputError
-    from ..pipelines.axial import AxialOptions, run
+    from scope3d.errors import InputError
+    from scope3d.io.dataset import load_dataset
+    from scope3d.pipelines.axial import AxialOptions, run
 
     if args.frames is not None and args.method == "multiview":
         raise InputError("--frames selects a two-view pair; multiview uses every frame")

@@ -53,8 +53,16 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..atomic import atomic_file
-    from ..bundle import SolverOptions, apply_bounds_file, bal_to_problem, read_bal, result_to_bal, solve, write_bal
+    from scope3d.estimators.bundle import (
+        SolverOptions,
+        apply_bounds_file,
+        bal_to_problem,
+        read_bal,
+        result_to_bal,
+        solve,
+        write_bal,
+    )
+    from scope3d.utils.atomic import atomic_file
 
     options = SolverOptions(
         max_iterations=args.max_iterations, loss=args.loss, loss_scale_px=args.loss_scale_px,

@@ -1,8 +1,8 @@
 """``scope3d check`` and ``scope3d import``: validate datasets and convert other formats into them.
 
 Thin layer: each handler parses its arguments and calls the function a user would import
-(:func:`scope3d.dataset.load_dataset`, :func:`scope3d.formats.import_middlebury`,
-:func:`scope3d.formats.import_colmap`). Problems are raised as InputError; ``main`` prints them on one
+(:func:`scope3d.io.dataset.load_dataset`, :func:`scope3d.io.import_middlebury`,
+:func:`scope3d.io.import_colmap`). Problems are raised as InputError; ``main`` prints them on one
 line and exits with status 2.
 """
 from __future__ import annotations
@@ -11,9 +11,9 @@ import argparse
 import math
 from pathlib import Path
 
-from ..dataset import LENGTH_UNITS_TO_MM, load_dataset
-from ..errors import InputError
-from ..pose import PoseTolerance
+from scope3d.errors import InputError
+from scope3d.io.dataset import LENGTH_UNITS_TO_MM, load_dataset
+from scope3d.sensor.pose_tolerance import PoseTolerance
 
 
 def register(subparsers) -> None:
@@ -97,7 +97,7 @@ def run_check(args) -> int:
 
 
 def run_import_middlebury(args) -> int:
-    from ..formats.middlebury import import_middlebury
+    from scope3d.io.middlebury import import_middlebury
 
     _check_output(args.out)
     out = import_middlebury(args.par_file, args.out, tolerance=_tolerance(args))
@@ -106,7 +106,7 @@ def run_import_middlebury(args) -> int:
 
 
 def run_import_colmap(args) -> int:
-    from ..formats.colmap import import_colmap
+    from scope3d.io.colmap import import_colmap
 
     _check_output(args.out)
     out = import_colmap(args.model_dir, args.images, args.out, tolerance=_tolerance(args),

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import sys
 
-from ..errors import InputError
+from scope3d.errors import InputError
 
 
 def register(subparsers) -> None:
-    from ..pipelines.surgical_map import MAP_PRESETS, MATCHERS, POSE_MODES
+    from scope3d.pipelines.surgical_map import MAP_PRESETS, MATCHERS, POSE_MODES
 
     p = subparsers.add_parser(
         "map",
@@ -20,7 +20,7 @@ def register(subparsers) -> None:
                     "thin-plate-spline surface with texture and fluorescence, targets table, figures, "
                     "COLMAP text model, and report.json (with errors against ground truth when present).",
     )
-    p.add_argument("dataset", metavar="DATASET", help="dataset folder (see scope3d.dataset)")
+    p.add_argument("dataset", metavar="DATASET", help="dataset folder (see scope3d.io.dataset)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (written atomically, replaced)")
     p.add_argument("--pose-mode", choices=POSE_MODES, default="bounded",
                    help="bundle adjustment: poses fixed, free (gauge fixed), or bounded by the pose tolerance "
@@ -38,8 +38,9 @@ def register(subparsers) -> None:
 def run(args) -> int:
     from dataclasses import replace
 
-    from ..dataset import load_dataset
-    from ..pipelines.surgical_map import MAP_PRESETS, run as run_map
+    from scope3d.io.dataset import load_dataset
+    from scope3d.pipelines.surgical_map import MAP_PRESETS
+    from scope3d.pipelines.surgical_map import run as run_map
 
     dataset = load_dataset(args.dataset)
     options = replace(MAP_PRESETS[args.preset], pose_mode=args.pose_mode, matcher=args.matcher,

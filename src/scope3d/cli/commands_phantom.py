@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from ..errors import InputError
+from scope3d.errors import InputError
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -18,8 +18,8 @@ def _size(text: str) -> tuple[int, int]:
 
 
 def register(subparsers) -> None:
-    from ..phantoms.scenes import SCENES, THREADS
-    from ..phantoms.trajectories import TRAJECTORIES
+    from scope3d.phantoms.scenes import SCENES, THREADS
+    from scope3d.phantoms.trajectories import TRAJECTORIES
 
     p = subparsers.add_parser(
         "phantom",
@@ -56,8 +56,8 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from ..phantoms import catalogue, generate, write
-    from ..phantoms.render import RenderOptions
+    from scope3d.phantoms import catalogue, generate, write
+    from scope3d.phantoms.render import RenderOptions
 
     if args.list:
         print(catalogue())

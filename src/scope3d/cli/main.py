@@ -4,12 +4,12 @@ from __future__ import annotations
 import argparse
 import sys
 
-from .. import __version__
-from ..errors import InputError
+from scope3d import __version__
 
 # Each module defines ``register(subparsers)`` which adds one or more sub-commands whose handler is
 # stored as ``func`` and returns an exit status.
-from . import commands_axial, commands_bundle, commands_dataset, commands_phantom, commands_map
+from scope3d.cli import commands_axial, commands_bundle, commands_dataset, commands_map, commands_phantom
+from scope3d.errors import InputError
 
 COMMAND_MODULES = [commands_phantom, commands_dataset, commands_bundle, commands_axial, commands_map]
 

@@ -5,9 +5,9 @@ Scenes (:mod:`.scenes`): ``dome`` (brain-tumour cavity with fluorescent targets)
 Trajectories (:mod:`.trajectories`): ``grid5x6``, ``grid7x8``, ``axial``, ``quadrants``, ``spiral``.
 Rendering (:mod:`.render`): Embree ray casting refined in double precision, light at the scope tip,
 Blinn-Phong specular, seeded sensor noise. :func:`generate` renders a sequence, :func:`write` saves it
-as a :mod:`scope3d.dataset` folder with ground truth.
+as a :mod:`scope3d.io.dataset` folder with ground truth.
 """
-from .lab import (
+from scope3d.phantoms.lab import (
     PhantomSequence,
     catalogue,
     contact_sheet,
@@ -16,9 +16,9 @@ from .lab import (
     measure_poses,
     write,
 )
-from .raycast import Hits, RayCaster
-from .render import RenderedFrame, RenderOptions, render_frame, sequence_exposure
-from .scenes import (
+from scope3d.phantoms.raycast import Hits, RayCaster
+from scope3d.phantoms.render import RenderedFrame, RenderOptions, render_frame, sequence_exposure
+from scope3d.phantoms.scenes import (
     SCENE_TRAJECTORIES,
     SCENES,
     THREADS,
@@ -28,7 +28,7 @@ from .scenes import (
     build_scene,
     iso_thread_profile,
 )
-from .trajectories import (
+from scope3d.phantoms.trajectories import (
     TRAJECTORIES,
     Trajectory,
     axial_trajectory,

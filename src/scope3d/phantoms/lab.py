@@ -20,14 +20,16 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera import Camera
-from ..dataset import write_dataset, write_image
-from ..errors import InputError
-from ..mesh import Mesh
-from ..pose import MICRO_STAGE, MeasuredPose, Pose, perturb_poses_uniform
-from .render import RenderOptions, render_frame, sequence_exposure, supersample_factor
-from .scenes import SCENE_TRAJECTORIES, SCENES, THREADS, Scene, build_scene
-from .trajectories import TRAJECTORIES, Trajectory, build_trajectory
+from scope3d.errors import InputError
+from scope3d.geometry.pose import Pose
+from scope3d.io.dataset import write_dataset
+from scope3d.io.images import write_image
+from scope3d.phantoms.render import RenderOptions, render_frame, sequence_exposure, supersample_factor
+from scope3d.phantoms.scenes import SCENE_TRAJECTORIES, SCENES, THREADS, Scene, build_scene
+from scope3d.phantoms.trajectories import TRAJECTORIES, Trajectory, build_trajectory
+from scope3d.scene.mesh import Mesh
+from scope3d.sensor.camera import Camera
+from scope3d.sensor.pose_tolerance import MICRO_STAGE, MeasuredPose, perturb_poses_uniform
 
 ORIENTATION_NOISE_DEG_PER_MM = 0.5
 ENDOSCOPE_SIZE_PX = (608, 608)  # scanning fibre endoscope (sec. 3.1)
@@ -213,7 +215,7 @@ def contact_sheet(images: list[np.ndarray], *, columns: int | None = None, thumb
 
 
 def write(sequence: PhantomSequence, out_dir: str | Path, *, contact_sheet_px: int = 160) -> Path:
-    """Write the dataset folder (see :mod:`scope3d.dataset`), ground truth included, and
+    """Write the dataset folder (see :mod:`scope3d.io.dataset`), ground truth included, and
     ``contact_sheet.png`` (plus ``contact_sheet_fluorescence.png`` when the scene has targets)."""
     out_dir = Path(out_dir)
     write_dataset(

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..mesh import Mesh
+from scope3d.scene.mesh import Mesh
 
 
 @dataclass(frozen=True)
@@ -40,7 +40,7 @@ class Hits:
 class RayCaster:
     """First-hit ray casting against one mesh.
 
-    mesh : :class:`~scope3d.mesh.Mesh` in mm; its ``vertex_normals`` (if any) are used for shading.
+    mesh : :class:`~scope3d.scene.mesh.Mesh` in mm; its ``vertex_normals`` (if any) are used for shading.
     backend : ``"auto"`` (Embree when available), ``"embree"`` or ``"numpy"``.
     """
 

@@ -23,9 +23,9 @@ from dataclasses import asdict, dataclass
 import cv2
 import numpy as np
 
-from ..camera import Camera
-from ..pose import Pose
-from .scenes import Scene
+from scope3d.geometry.pose import Pose
+from scope3d.phantoms.scenes import Scene
+from scope3d.sensor.camera import Camera
 
 
 @dataclass(frozen=True)

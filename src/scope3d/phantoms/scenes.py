@@ -24,10 +24,10 @@ from typing import Callable
 
 import numpy as np
 
-from ..errors import InputError
-from ..mesh import Mesh
-from .raycast import RayCaster
-from .textures import TextureMap, machined_texture, printed_texture, tissue_texture
+from scope3d.errors import InputError
+from scope3d.phantoms.raycast import RayCaster
+from scope3d.phantoms.textures import TextureMap, machined_texture, printed_texture, tissue_texture
+from scope3d.scene.mesh import Mesh
 
 REFERENCE = "dissertation (reference)"
 DOME_RADIUS_RANGE_MM = (15.0, 17.5)

@@ -19,9 +19,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import InputError
-from ..geometry import look_at, rotvec_to_matrix
-from ..pose import Pose
+from scope3d.errors import InputError
+from scope3d.geometry.pose import Pose
+from scope3d.geometry.rotation import look_at, rotvec_to_matrix
 
 GRID_SPACING_MM = 5.0
 GRID_STANDOFF_MM = 15.0

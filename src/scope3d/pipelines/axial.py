@@ -20,15 +20,16 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_file, atomic_path
-from ..dataset import Dataset
-from ..errors import InputError
-from ..mesh import Mesh, PointCloud, write_ply
-from ..stereo.multiview import MultiViewOptions, reconstruct_reference, reference_frames
-from ..stereo.axial import PolarGridOptions
-from ..stereo.confidence import ConfidenceOptions
-from ..stereo.matching import SgmOptions
-from ..stereo.two_view import ImageDepth, TwoViewOptions, grid_mesh_faces, reconstruct_pair, to_image
+from scope3d.errors import InputError
+from scope3d.io.dataset import Dataset
+from scope3d.io.ply import write_ply
+from scope3d.mvs.axial import PolarGridOptions
+from scope3d.mvs.confidence import ConfidenceOptions
+from scope3d.mvs.dense_matching import SgmOptions
+from scope3d.mvs.multiview import MultiViewOptions, reconstruct_reference, reference_frames
+from scope3d.mvs.two_view import ImageDepth, TwoViewOptions, grid_mesh_faces, reconstruct_pair, to_image
+from scope3d.scene.mesh import Mesh, PointCloud
+from scope3d.utils.atomic import atomic_file, atomic_path
 
 METHODS = ("sgm", "sad", "multiview")
 
@@ -178,7 +179,8 @@ def evaluate(cloud: PointCloud, dataset: Dataset, step_mm: float) -> tuple[dict 
     gt = dataset.ground_truth
     if gt is None or gt.surface_path is None or len(cloud) == 0:
         return None, None
-    from ..evaluation import SampledSurface, distance_summary
+    from scope3d.metrology.evaluation import distance_summary
+    from scope3d.scene.mesh import SampledSurface
 
     distances = SampledSurface(gt.surface(), step_mm).distances(cloud.points)
     return distance_summary(distances), distances
@@ -231,7 +233,7 @@ def run(options: AxialOptions, dataset: Dataset, out_dir: str | Path | None) -> 
         write_ply(out / "mesh.ply", mesh)
         save_depth_png(out / "depth.png", depths[len(depths) // 2], title=f"axial {options.method}: depth")
         if distances is not None:
-            from ..evaluation import save_error_histogram_png
+            from scope3d.metrology.evaluation import save_error_histogram_png
 
             save_error_histogram_png(out / "error_histogram.png", distances,
                                      title=f"axial {options.method}: distance to the true surface")

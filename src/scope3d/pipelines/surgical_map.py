@@ -36,31 +36,37 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_directory
-from ..camera import Camera
-from ..coarse_poses import CoarseOptions, CoarseResult, coarse_poses
-from ..dataset import Dataset, write_image
-from ..errors import InputError
-from ..evaluation import (
-    EvaluationOptions, SampledSurface, distance_summary, icp_from_initial_poses, save_error_histogram_png,
+from scope3d.errors import InputError
+from scope3d.estimators.averaging import gauge_centred_in_boxes, gauge_from_measurements
+from scope3d.estimators.triangulation import TrackOptions, reprojection_errors, triangulate_tracks
+from scope3d.feature.depth_prior import DepthPrior, window_radius_px
+from scope3d.feature.detection import FEATURE_PRESETS, FeatureOptions, Features, detect
+from scope3d.feature.matching import MatchOptions, PairMatches, match_exhaustive, match_pairs
+from scope3d.feature.pairs import PairOptions, fov_samples, select_pairs
+from scope3d.feature.tracks import build_tracks
+from scope3d.geometry.pose import Pose
+from scope3d.geometry.rotation import rotvec_to_matrix
+from scope3d.io.dataset import Dataset
+from scope3d.io.images import write_image
+from scope3d.io.ply import write_ply
+from scope3d.metrology.evaluation import (
+    EvaluationOptions,
+    distance_summary,
+    icp_from_initial_poses,
+    save_error_histogram_png,
     save_error_map_png,
 )
-from ..features import FEATURE_PRESETS, FeatureOptions, Features, detect
-from ..fluorescence import (
-    FluorescenceOptions, Target, auto_threshold, match_targets, overlay, segment,
-)
-from ..fluorescence import map_targets as _targets_on_surface
-from ..matching import (
-    DepthPrior, MatchOptions, PairMatches, PairOptions, box_depth_prior, estimate_depth_prior, fov_samples, match_exhaustive,
-    match_pairs,
-    select_pairs, window_radius_px,
-)
-from ..averaging import gauge_centred_in_boxes, gauge_from_measurements
-from ..geometry import rotvec_to_matrix
-from ..mesh import PointCloud, write_ply
-from ..pose import MeasuredPose, Pose, PoseTolerance
-from ..surface import Surface, SurfaceOptions, fit_surface, off_surface_points, save_depth_map_png, texture
-from ..tracks import TrackOptions, Tracks, build_tracks, reprojection_errors, triangulate_tracks
+from scope3d.metrology.fluorescence import FluorescenceOptions, Target, auto_threshold
+from scope3d.metrology.fluorescence import map_targets as _targets_on_surface
+from scope3d.metrology.fluorescence import match_targets, overlay, segment
+from scope3d.scene.mesh import PointCloud, SampledSurface
+from scope3d.scene.surface import Surface, SurfaceOptions, fit_surface, off_surface_points, save_depth_map_png, texture
+from scope3d.scene.tracks import Tracks
+from scope3d.sensor.camera import Camera
+from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance
+from scope3d.sfm.coarse_poses import CoarseOptions, CoarseResult, coarse_poses
+from scope3d.sfm.depth_priors import box_depth_prior, estimate_depth_prior
+from scope3d.utils.atomic import atomic_directory
 
 POSE_MODES = ("fixed", "free", "bounded")
 MATCHERS = ("guided", "exhaustive")
@@ -351,7 +357,7 @@ def _match_with_image_poses(options: MapOptions, dataset: Dataset, features, dep
                             t0: float) -> MatchingResult:
     """The combination algorithm for poses whose tolerance widens the search window.
 
-    1. :func:`scope3d.coarse_poses.coarse_poses`: pairs by image similarity, exhaustive matching verified
+    1. :func:`scope3d.sfm.coarse_poses.coarse_poses`: pairs by image similarity, exhaustive matching verified
        by the essential matrix, poses by rotation and position averaging anchored to the measurements;
     2. :func:`refine_poses_for_matching`: BCBA on those tracks inside the measured boxes, and the tolerance
        the images leave each adjusted pose;
@@ -465,7 +471,7 @@ def refine_poses_for_matching(options: MapOptions, dataset: Dataset, features: l
     poses and points; the tracks are triangulated again with the strict gate and adjusted once more.
 
     Each adjusted pose carries the tolerance the images leave it: its covariance relative to the other
-    cameras (:func:`scope3d.bundle.covariance.relative_pose_covariances`; a frame tied to the rest by one
+    cameras (:func:`scope3d.estimators.bundle.covariance.relative_pose_covariances`; a frame tied to the rest by one
     small patch reprojects well and is still poorly fixed) carried into the image
     (:func:`_projection_sigma_px`), 3 sigma, expressed as the camera shift that moves a point at the
     nearest depth that far; at most the measured tolerance. Frames the coarse pass did not reach keep
@@ -473,7 +479,7 @@ def refine_poses_for_matching(options: MapOptions, dataset: Dataset, features: l
     Returns the guide poses and the depth prior of the adjusted points (2nd-98th depth percentile of
     every observation, widened by 10 %). Raises InputError when the coarse pass left too few points.
     """
-    from ..bundle.covariance import relative_pose_covariances
+    from scope3d.estimators.bundle.covariance import relative_pose_covariances
 
     camera, measured = dataset.camera, dataset.poses
     tracks = build_tracks(features, matches, min_track_length=options.tracks.min_track_length)
@@ -560,7 +566,7 @@ def _bundle_problem(mode: str, measured: list[MeasuredPose], camera: Camera, tra
     free : conventional BA from ``start`` (default: the measured poses), gauge fixed on the start;
     fixed : the measured poses held.
     """
-    from ..bundle import BundleProblem
+    from scope3d.estimators.bundle import BundleProblem
 
     pts = tracks.points
     if mode == "bounded":
@@ -598,7 +604,7 @@ def _fix_gauge(problem, poses: list[Pose]) -> None:
 def _adjust(options: MapOptions, mode: str, measured: list[MeasuredPose], camera: Camera, tracks: Tracks,
             start: list[Pose]):
     """One bundle adjustment of the strongest tracks in ``mode`` from ``start``; returns (problem, result)."""
-    from ..bundle import SolverOptions, solve
+    from scope3d.estimators.bundle import SolverOptions, solve
 
     solver = SolverOptions(max_iterations=options.bundle.max_iterations, loss="huber",
                            loss_scale_px=options.bundle.loss_scale_px)
@@ -667,7 +673,7 @@ def _on_surface(tracks: Tracks, poses: list[Pose]) -> np.ndarray:
 
     A wrong match that happens to lie on the epipolar line passes RANSAC and the reprojection gate
     and triangulates millimetres off the surface (on the dome: 2 % of the points, all two-view tracks,
-    2-13 mm off); :func:`scope3d.surface.off_surface_points` finds them.
+    2-13 mm off); :func:`scope3d.scene.surface.off_surface_points` finds them.
     """
     towards = -np.mean([p.optical_axis for p in poses], axis=0)
     return ~off_surface_points(tracks.points, towards=towards)
@@ -681,15 +687,15 @@ def align_gauge(poses: list[Pose], measured: list[MeasuredPose], *, bounded: boo
     where the boxes are wide compared with the trajectory, LM drifts along the scale (on the
     cable-driven-robot test the map shrank by 9 %, as the reference's Fig. 6.4 shows BA doing).
     Moving to the similarity that best fits every measured centre and orientation
-    (:func:`scope3d.averaging.gauge_from_measurements`) changes no reprojection error — it is the same
+    (:func:`scope3d.estimators.averaging.gauge_from_measurements`) changes no reprojection error — it is the same
     map — but uses every measurement, so their random errors average out (a common bias cannot: it is
     unobservable).
 
     bounded : the poses (in their boxes) must stay in their boxes. Then the placement is the
         least-squares one among those that keep every camera well inside its box
-        (:func:`scope3d.averaging.gauge_centred_in_boxes`): with uniform errors the boxes' intersection
+        (:func:`scope3d.estimators.averaging.gauge_centred_in_boxes`): with uniform errors the boxes' intersection
         says more than a least-squares fit alone (on the dome at +-3 mm the centres' least-squares scale
-        was 7 % off); and only as much of it is applied (:meth:`scope3d.geometry.Similarity.fraction`)
+        was 7 % off); and only as much of it is applied (:meth:`scope3d.geometry.similarity.Similarity.fraction`)
         as keeps every pose inside.
     """
     if not bounded:
@@ -803,7 +809,7 @@ def evaluate_map(options: MapOptions, dataset: Dataset, sparse: SparseResult, ta
 
 
 def _rotvec(R: np.ndarray) -> np.ndarray:
-    from ..geometry import matrix_to_rotvec
+    from scope3d.geometry.rotation import matrix_to_rotvec
 
     return matrix_to_rotvec(R)
 
@@ -817,7 +823,7 @@ def write_outputs(
     evaluation: dict, timings: dict,
 ) -> dict:
     """Write every output file into ``out_dir`` (already a temporary folder) and return the report."""
-    from ..formats.colmap import SparseModel, write_colmap_text
+    from scope3d.io.colmap import SparseModel, write_colmap_text
 
     t0 = time.perf_counter()
     tr = sparse.tracks
@@ -951,7 +957,7 @@ def _matches_figure(options, dataset, frames, features, matching, path, report) 
     exh = match_exhaustive(dataset.camera, features[i], features[j], options.matching, i=i, j=j)
     guided = best if options.matcher == "guided" else None
     if guided is None:
-        from ..matching import match_guided
+        from scope3d.feature.matching import match_guided
 
         guided = match_guided(dataset.camera, features[i], features[j], dataset.poses[i], dataset.poses[j],
                               matching.depth_prior, options.matching, i=i, j=j)

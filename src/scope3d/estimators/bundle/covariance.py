@@ -1,0 +1,94 @@
+"""How well the images fix each camera relative to the others, after an adjustment.
+
+A frame seen in one pair with a hundred matches on a small patch can reproject to a tenth of a pixel and
+still be half a millimetre off: the two-view geometry trades rotation against translation along directions
+the residuals barely see. Its reprojection error says nothing of that; the curvature of the cost does. The
+covariance of the poses is the inverse of the reduced camera system (the Hessian with the points
+eliminated, Schur complement), scaled by the keypoints' noise.
+
+Images fix a reconstruction only up to a similarity, so that matrix is singular along the 7 gauge
+directions (a common rotation, translation and scale of every camera and point), and what a matcher needs
+is how far a camera may be off *relative to the others*: the covariance is taken in the complement of the
+gauge (the minimum-norm inverse, "inner constraints"), so a common shift of everything costs nothing.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from scope3d.estimators.bundle.problem import BundleParameters, BundleProblem
+from scope3d.estimators.bundle.solver import evaluate
+from scope3d.geometry.rotation import hat
+
+
+def relative_pose_covariances(problem: BundleProblem, parameters: BundleParameters, *, loss_scale_px: float = 1.0,
+                              noise_px: float | None = None) -> np.ndarray:
+    """Covariance (m, 6, 6) of each camera's pose scalars ``(w (rad), centre (mm))``, gauge removed.
+
+    The Hessian uses the observations' Huber weights at ``loss_scale_px`` (as the adjustment did); the
+    noise is ``noise_px`` or, by default, estimated from the residuals (median norm / 1.1774, the median of
+    a 2-D Gaussian's norm). Intrinsics and fixed pose scalars are held (zero sigma); a camera with no
+    observation gets infinity. Needs positions parametrised as centres (``from_measured_poses``).
+    """
+    if problem.position_parameter != "centre":
+        raise ValueError("relative_pose_sigmas needs poses parametrised by their centres")
+    m = problem.num_cameras
+    r, jc, jp = evaluate(problem, parameters)
+    norm = np.linalg.norm(r, axis=1)
+    sigma = noise_px if noise_px is not None else max(float(np.median(norm)) / 1.1774, 1e-3)
+    w = np.where(norm <= loss_scale_px, 1.0, loss_scale_px / np.maximum(norm, 1e-300))
+    cam, pt = problem.camera_index, problem.point_index
+    jpose = jc[:, :, :6] * np.sqrt(w)[:, None, None]
+    jpt = jp * np.sqrt(w)[:, None, None]
+    # blocks of J^T J: U (cameras), V (points), W (one per observation)
+    U = np.zeros((m, 6, 6))
+    np.add.at(U, cam, np.einsum("kai,kaj->kij", jpose, jpose))
+    V = np.zeros((problem.num_points, 3, 3))
+    np.add.at(V, pt, np.einsum("kai,kaj->kij", jpt, jpt))
+    V += 1e-12 * np.eye(3)  # a point seen along one ray only
+    W = np.einsum("kai,kaj->kij", jpose, jpt)
+    S = np.zeros((6 * m, 6 * m))
+    for c in range(m):
+        S[6 * c:6 * c + 6, 6 * c:6 * c + 6] = U[c]
+    # S -= sum over each point's pairs of observations of W_a V^-1 W_b^T (observations are sorted by point)
+    WV = W @ np.linalg.inv(V)[pt]
+    ptr = problem.point_ptr
+    lengths = np.diff(ptr)
+    for length in np.unique(lengths):  # vectorised over all points with tracks of the same length
+        starts = ptr[:-1][lengths == length]
+        if length == 0:
+            continue
+        idx = starts[:, None] + np.arange(length)  # (P, L) observations
+        for a in range(length):
+            for b in range(length):
+                block = np.einsum("pij,pkj->pik", WV[idx[:, a]], W[idx[:, b]])
+                ca, cb = cam[idx[:, a]], cam[idx[:, b]]
+                rows = (6 * ca[:, None, None] + np.arange(6)[None, :, None]).repeat(6, axis=2)
+                cols = (6 * cb[:, None, None] + np.arange(6)[None, None, :]).repeat(6, axis=1)
+                np.subtract.at(S, (rows, cols), block)
+    seen = np.bincount(cam, minlength=m) > 0
+    free = ~problem.pose_fixed.ravel() & np.repeat(seen, 6)
+    gauge = _gauge_basis(problem, parameters)[free]
+    Sf = S[np.ix_(free, free)]
+    q, _ = np.linalg.qr(gauge)
+    lam = max(float(np.trace(Sf)) / max(len(Sf), 1), 1e-12)
+    projector = np.eye(len(Sf)) - q @ q.T
+    cov = projector @ np.linalg.inv(Sf + lam * q @ q.T) @ projector
+    full = np.zeros((6 * m, 6 * m))
+    full[np.ix_(free, free)] = cov * sigma**2
+    out = np.stack([full[6 * c:6 * c + 6, 6 * c:6 * c + 6] for c in range(m)])
+    out[~seen] = np.diag(np.full(6, np.inf))
+    return out
+
+
+def _gauge_basis(problem: BundleProblem, parameters: BundleParameters) -> np.ndarray:
+    """(6m, 7) directions in pose space of a common rotation, translation and scale of the whole scene."""
+    rot, _, _ = problem.camera_state(parameters.pose)
+    centres = parameters.pose[:, 3:]
+    m = len(rot)
+    G = np.zeros((m, 6, 7))
+    # world rotation by omega: R_k exp(-omega) = exp(-R_k omega) R_k, and C_k + omega x C_k
+    G[:, :3, :3] = -rot
+    G[:, 3:, :3] = -hat(centres - centres.mean(axis=0))
+    G[:, 3:, 3:6] = np.eye(3)
+    G[:, 3:, 6] = centres - centres.mean(axis=0)
+    return G.reshape(6 * m, 7)

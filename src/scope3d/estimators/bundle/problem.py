@@ -1,0 +1,545 @@
+"""What a bundle adjustment estimates: observations, parameters, and which are fixed, free or bounded.
+
+Parameters (every scalar is fixed, free, or bounded by a box ``[lower, upper]``, reference eq. 6.2)
+-----------------------------------------------------------------------------------------------------
+* **Pose** of camera ``c``, 6 scalars ``(w_x, w_y, w_z, p_x, p_y, p_z)``:
+
+  - ``w`` (rad) is a rotation applied on the left of the camera's *reference* orientation,
+    ``R = exp([w]x) @ R_ref`` (cam_from_world). ``R_ref`` is the measured (or initial) orientation, so
+    ``w = 0`` initially and an orientation tolerance of ``±a`` rad is the box ``|w_i| <= a``; this is the
+    convention of :class:`scope3d.sensor.pose_tolerance.PoseTolerance`.
+  - ``p`` (mm) is either the camera centre ``C`` in the world (``position_parameter="centre"``, the
+    default: a robot's position tolerance is a box on ``C`` per world axis) or the translation ``t`` of
+    cam_from_world (``position_parameter="translation"``: ``P = R X + t``, as Ceres and the BAL files
+    use; used for generic problems where no bound is put on positions).
+* **Intrinsics** ``(fx, fy, cx, cy, k1, k2)`` of each intrinsic group (pixels, pixels, pixels, pixels,
+  unitless, unitless); one group shared by all cameras, or one per camera, or any mapping
+  ``intrinsics_index``. With ``square_pixels=True`` fy is tied to fx (the BAL and COLMAP RADIAL model)
+  and fy is held fixed and ignored.
+* **Points**, 3 scalars each, in one of two parameterisations chosen per point:
+
+  - linear (default): ``X = o + Q y`` with an origin ``o`` and an orthonormal frame ``Q``. With
+    ``o = 0, Q = I`` (the default) ``y`` is the world coordinates. With ``Q[:, 2]`` an axis, ``y_2`` is
+    the depth along that axis, so a depth bound is a box bound (:meth:`BundleProblem.bound_point_depth`).
+  - spherical: ``X = o + Q (r u(theta, phi))``, ``u = (sin theta cos phi, sin theta sin phi, cos theta)``:
+    ``y = (r, theta, phi)``, so a spherical shell ``r_min <= |X - o| <= r_max`` is a box bound on ``r``
+    (:meth:`BundleProblem.bound_points_to_shell`).
+
+Bounds on a point are stated in its parameterisation; changing the parameterisation resets the point's
+bounds. Initial values outside their box are clamped onto it by the solver, with a warning.
+
+Observations are stored sorted by point (the Schur complement eliminates points one by one);
+``observation_order[i]`` is the input row of stored observation ``i``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from scope3d.errors import InputError
+from scope3d.geometry.pose import Pose
+from scope3d.geometry.rotation import matrix_to_rotvec, rotvec_to_matrix, so3_left_jacobian
+from scope3d.sensor.camera import INTRINSIC_NAMES, Camera
+from scope3d.sensor.pose_tolerance import MeasuredPose
+
+POSE_NAMES = ("wx", "wy", "wz", "px", "py", "pz")
+POINT_LINEAR = 0
+POINT_SPHERICAL = 1
+POSITION_PARAMETERS = ("centre", "translation")
+
+
+@dataclass
+class BundleParameters:
+    """Values of all parameters.
+
+    pose : (m, 6) float, ``(w rad, position mm)`` per camera, see the module docstring.
+    intrinsics : (g, 6) float, ``(fx, fy, cx, cy, k1, k2)`` per intrinsic group.
+    points : (n, 3) float, each point in its own parameterisation.
+    """
+
+    pose: np.ndarray
+    intrinsics: np.ndarray
+    points: np.ndarray
+
+    def copy(self) -> "BundleParameters":
+        return BundleParameters(self.pose.copy(), self.intrinsics.copy(), self.points.copy())
+
+    def camera_vector(self) -> np.ndarray:
+        """(6 (m + g),) the camera side of the parameter vector: poses then intrinsics."""
+        return np.concatenate([self.pose.ravel(), self.intrinsics.ravel()])
+
+
+def _as_index_list(items, count: int, what: str) -> np.ndarray:
+    if items is None:
+        return np.arange(count)
+    idx = np.atleast_1d(np.asarray(items, dtype=np.int64))
+    if idx.size and (idx.min() < -count or idx.max() >= count):
+        raise InputError(f"{what} index out of range [0, {count}): {idx[(idx < -count) | (idx >= count)][0]}")
+    return idx % count if count else idx
+
+
+def _components(names: Sequence[str] | str | None, table: Sequence[str], what: str) -> np.ndarray:
+    if names is None:
+        return np.arange(len(table))
+    if isinstance(names, str):
+        names = [names]
+    out = []
+    for name in names:
+        if name not in table:
+            raise InputError(f"unknown {what} component {name!r}; expected one of {', '.join(table)}")
+        out.append(table.index(name))
+    return np.array(out, dtype=np.int64)
+
+
+class BundleProblem:
+    """A bundle adjustment problem: observations, initial parameters and per-scalar bounds (eq. 6.2).
+
+    Parameters
+    ----------
+    observations_px : (K, 2) float, observed pixels (u right, v down, origin at the top-left pixel's
+        centre, or any origin consistent with cx, cy).
+    camera_index : (K,) int, camera of each observation, in [0, m).
+    point_index : (K,) int, point of each observation, in [0, n).
+    rotations : (m, 3, 3) float, initial (or measured) cam_from_world rotations; they become the
+        reference orientations ``R_ref``.
+    translations : (m, 3) float, mm, initial cam_from_world translations.
+    points_world : (n, 3) float, mm, initial points.
+    intrinsics : (6,) or (g, 6) float, ``(fx, fy, cx, cy, k1, k2)``.
+    intrinsics_index : (m,) int or None. None means one shared group when ``intrinsics`` has one row,
+        one group per camera when it has m rows.
+    position_parameter : "centre" (camera centre C, mm, world axes) or "translation" (t of cam_from_world).
+    square_pixels : bool, tie fy to fx.
+
+    Every parameter starts free. Use :meth:`fix`, :meth:`set_bounds` and the convenience methods to
+    constrain them, or :meth:`from_measured_poses` to build the reference's BCBA problem.
+    """
+
+    def __init__(
+        self,
+        observations_px: np.ndarray,
+        camera_index: np.ndarray,
+        point_index: np.ndarray,
+        rotations: np.ndarray,
+        translations: np.ndarray,
+        points_world: np.ndarray,
+        intrinsics: np.ndarray,
+        *,
+        intrinsics_index: np.ndarray | None = None,
+        position_parameter: str = "centre",
+        square_pixels: bool = False,
+    ) -> None:
+        obs = np.asarray(observations_px, dtype=float)
+        cam = np.asarray(camera_index)
+        pt = np.asarray(point_index)
+        rot = np.asarray(rotations, dtype=float)
+        trans = np.asarray(translations, dtype=float)
+        pts = np.asarray(points_world, dtype=float)
+        intr = np.atleast_2d(np.asarray(intrinsics, dtype=float))
+        if position_parameter not in POSITION_PARAMETERS:
+            raise InputError(f"position_parameter must be one of {POSITION_PARAMETERS}, got {position_parameter!r}")
+        if obs.ndim != 2 or obs.shape[1] != 2:
+            raise InputError(f"observations must have shape (K, 2), got {obs.shape}")
+        if obs.shape[0] == 0:
+            raise InputError("the problem is empty: there are no observations")
+        if cam.shape != (obs.shape[0],) or pt.shape != (obs.shape[0],):
+            raise InputError(
+                f"camera_index and point_index must have shape ({obs.shape[0]},), got {cam.shape} and {pt.shape}"
+            )
+        if not (np.issubdtype(cam.dtype, np.integer) and np.issubdtype(pt.dtype, np.integer)):
+            raise InputError("camera_index and point_index must be integers")
+        if rot.ndim != 3 or rot.shape[1:] != (3, 3) or rot.shape[0] == 0:
+            raise InputError(f"rotations must have shape (m, 3, 3) with m >= 1, got {rot.shape}")
+        m = rot.shape[0]
+        if trans.shape != (m, 3):
+            raise InputError(f"translations must have shape ({m}, 3), got {trans.shape}")
+        if pts.ndim != 2 or pts.shape[1] != 3 or pts.shape[0] == 0:
+            raise InputError(f"points must have shape (n, 3) with n >= 1, got {pts.shape}")
+        n = pts.shape[0]
+        if intr.shape[1] != 6:
+            raise InputError(f"intrinsics must have shape (6,) or (g, 6), got {np.shape(intrinsics)}")
+        g = intr.shape[0]
+        if intrinsics_index is None:
+            if g == 1:
+                intr_idx = np.zeros(m, dtype=np.int64)
+            elif g == m:
+                intr_idx = np.arange(m)
+            else:
+                raise InputError(f"{g} intrinsic groups for {m} cameras: give intrinsics_index")
+        else:
+            intr_idx = np.asarray(intrinsics_index, dtype=np.int64)
+            if intr_idx.shape != (m,) or intr_idx.min() < 0 or intr_idx.max() >= g:
+                raise InputError(f"intrinsics_index must have shape ({m},) with values in [0, {g})")
+        for name, arr in (("observations", obs), ("rotations", rot), ("translations", trans),
+                          ("points", pts), ("intrinsics", intr)):
+            bad = ~np.isfinite(arr)
+            if bad.any():
+                row = int(np.argwhere(bad)[0][0])
+                raise InputError(f"{name} row {row} has NaN or infinite values")
+        for name, idx, count in (("camera", cam, m), ("point", pt, n)):
+            bad = (idx < 0) | (idx >= count)
+            if bad.any():
+                row = int(np.flatnonzero(bad)[0])
+                raise InputError(f"observation row {row}: {name} index {int(idx[row])} out of range [0, {count})")
+        ortho = np.abs(rot @ np.swapaxes(rot, 1, 2) - np.eye(3)).max(axis=(1, 2))
+        if np.any(ortho > 1e-6) or np.any(np.linalg.det(rot) < 0):
+            c = int(np.flatnonzero((ortho > 1e-6) | (np.linalg.det(rot) < 0))[0])
+            raise InputError(f"rotation of camera {c} is not a proper rotation matrix")
+
+        order = np.lexsort((cam, pt))
+        self.observation_order = order
+        self.observations_px = np.ascontiguousarray(obs[order])
+        self.camera_index = np.ascontiguousarray(cam[order], dtype=np.int64)
+        self.point_index = np.ascontiguousarray(pt[order], dtype=np.int64)
+        self.point_ptr = np.concatenate([[0], np.cumsum(np.bincount(self.point_index, minlength=n))]).astype(np.int64)
+        self.intrinsics_index = intr_idx
+        self.position_parameter = position_parameter
+        self.square_pixels = bool(square_pixels)
+        self.reference_rotations = rot.copy()
+        self.num_cameras, self.num_points, self.num_groups = m, n, g
+
+        position = -np.einsum("mji,mj->mi", rot, trans) if position_parameter == "centre" else trans.copy()
+        self.initial = BundleParameters(
+            np.concatenate([np.zeros((m, 3)), position], axis=1), intr.copy(), pts.copy()
+        )
+        self.pose_lower = np.full((m, 6), -np.inf)
+        self.pose_upper = np.full((m, 6), np.inf)
+        self.pose_fixed = np.zeros((m, 6), dtype=bool)
+        self.intrinsics_lower = np.full((g, 6), -np.inf)
+        self.intrinsics_upper = np.full((g, 6), np.inf)
+        self.intrinsics_fixed = np.zeros((g, 6), dtype=bool)
+        if self.square_pixels:
+            self.intrinsics_fixed[:, 1] = True
+        self.point_lower = np.full((n, 3), -np.inf)
+        self.point_upper = np.full((n, 3), np.inf)
+        self.point_fixed = np.zeros((n, 3), dtype=bool)
+        self.point_kind = np.zeros(n, dtype=np.int8)
+        self.point_origin = np.zeros((n, 3))
+        self.point_frame = np.broadcast_to(np.eye(3), (n, 3, 3)).copy()
+
+    # --- construction from robot measurements --------------------------------------------------
+    @classmethod
+    def from_measured_poses(
+        cls,
+        measured_poses: Sequence[MeasuredPose],
+        camera: Camera | np.ndarray,
+        points_world: np.ndarray,
+        observations_px: np.ndarray,
+        camera_index: np.ndarray,
+        point_index: np.ndarray,
+        *,
+        refine_intrinsics: bool | Sequence[str] = True,
+        intrinsics_lower: np.ndarray | None = None,
+        intrinsics_upper: np.ndarray | None = None,
+    ) -> "BundleProblem":
+        """The reference's BCBA problem (sec. 6.2.2): poses bounded by measured ± tolerance.
+
+        Camera centres are bounded per world axis by ``tolerance.position_mm`` and orientations by
+        ``|w_i| <= tolerance.orientation_rad[i]``; a zero tolerance fixes the scalar, an infinite one
+        leaves it free. One intrinsic group is shared by all frames (a single scope).
+
+        measured_poses : m MeasuredPose. camera : Camera or (6,) intrinsics.
+        points_world : (n, 3) mm initial points. observations_px : (K, 2). camera_index, point_index : (K,).
+        refine_intrinsics : True (all six), False, or names from ``("fx", ..., "k2")`` to refine.
+        intrinsics_lower, intrinsics_upper : (6,) optional box on the intrinsics (e.g. from an FOV range).
+        """
+        if len(measured_poses) == 0:
+            raise InputError("the problem is empty: there are no cameras")
+        rotations = np.stack([mp.pose.rotation for mp in measured_poses])
+        translations = np.stack([mp.pose.translation for mp in measured_poses])
+        intr = camera.intrinsics if isinstance(camera, Camera) else np.asarray(camera, dtype=float)
+        problem = cls(observations_px, camera_index, point_index, rotations, translations, points_world, intr,
+                      position_parameter="centre")
+        for c, mp in enumerate(measured_poses):
+            half = np.concatenate([mp.tolerance.orientation_rad, mp.tolerance.position_mm])
+            value = problem.initial.pose[c]
+            exact = half == 0
+            problem.pose_fixed[c] = exact
+            problem.pose_lower[c] = np.where(exact, -np.inf, value - half)
+            problem.pose_upper[c] = np.where(exact, np.inf, value + half)
+        if refine_intrinsics is False:
+            problem.fix("intrinsics")
+        elif refine_intrinsics is not True:
+            keep = set(refine_intrinsics)
+            problem.fix("intrinsics", components=[n for n in INTRINSIC_NAMES if n not in keep])
+        if intrinsics_lower is not None or intrinsics_upper is not None:
+            lo = np.full(6, -np.inf) if intrinsics_lower is None else np.asarray(intrinsics_lower, float)
+            hi = np.full(6, np.inf) if intrinsics_upper is None else np.asarray(intrinsics_upper, float)
+            problem.set_bounds("intrinsics", None, None, lo, hi)
+        return problem
+
+    def start_from(self, poses: Sequence[Pose]) -> None:
+        """Start the adjustment from ``poses`` (m ``cam_from_world``) instead of the poses the problem was
+        built with, keeping every bound and fixed scalar where it is. Each start is clipped into its box,
+        and fixed scalars keep their value: a start is a guess, the bounds are the measurement."""
+        if len(poses) != self.num_cameras:
+            raise InputError(f"{len(poses)} start poses for {self.num_cameras} cameras")
+        w = matrix_to_rotvec(np.stack([p.rotation for p in poses]) @ np.swapaxes(self.reference_rotations, 1, 2))
+        if self.position_parameter == "centre":
+            position = np.stack([p.centre for p in poses])
+        else:
+            position = np.stack([p.translation for p in poses])
+        start = np.clip(np.concatenate([w, position], axis=1), self.pose_lower, self.pose_upper)
+        self.initial.pose[:] = np.where(self.pose_fixed, self.initial.pose, start)
+
+    # --- fixing and bounding -------------------------------------------------------------------
+    def _block(self, kind: str):
+        if kind == "pose":
+            return self.pose_lower, self.pose_upper, self.pose_fixed, POSE_NAMES, self.num_cameras
+        if kind == "intrinsics":
+            return self.intrinsics_lower, self.intrinsics_upper, self.intrinsics_fixed, INTRINSIC_NAMES, self.num_groups
+        if kind == "point":
+            return self.point_lower, self.point_upper, self.point_fixed, ("y0", "y1", "y2"), self.num_points
+        raise InputError(f"unknown parameter kind {kind!r}; expected pose, intrinsics or point")
+
+    def fix(self, kind: str, items: Iterable[int] | None = None, components: Sequence[str] | None = None) -> None:
+        """Hold parameters at their initial values.
+
+        kind : "pose", "intrinsics" or "point". items : indices (cameras, groups, points), None for all.
+        components : names (pose: wx wy wz px py pz; intrinsics: fx fy cx cy k1 k2; point: y0 y1 y2),
+        None for all.
+        """
+        _, _, fixed, names, count = self._block(kind)
+        rows = _as_index_list(items, count, kind)
+        cols = _components(components, names, kind)
+        fixed[np.ix_(rows, cols)] = True
+
+    def free(self, kind: str, items: Iterable[int] | None = None, components: Sequence[str] | None = None) -> None:
+        """Undo :meth:`fix` and drop bounds: the parameters become unconstrained."""
+        lower, upper, fixed, names, count = self._block(kind)
+        rows = _as_index_list(items, count, kind)
+        cols = _components(components, names, kind)
+        if kind == "intrinsics" and self.square_pixels:
+            cols = cols[cols != 1]
+        fixed[np.ix_(rows, cols)] = False
+        lower[np.ix_(rows, cols)] = -np.inf
+        upper[np.ix_(rows, cols)] = np.inf
+
+    def set_bounds(self, kind: str, items, components, lower, upper) -> None:
+        """Box ``lower <= value <= upper`` (eq. 6.2) on the selected scalars, broadcast to (items, components).
+
+        Use -inf / inf for a one-sided bound. Raises InputError if lower > upper or a bound is NaN.
+        """
+        lo_arr, up_arr, _, names, count = self._block(kind)
+        rows = _as_index_list(items, count, kind)
+        cols = _components(components, names, kind)
+        shape = (rows.size, cols.size)
+        lo = np.broadcast_to(np.asarray(lower, dtype=float), shape)
+        up = np.broadcast_to(np.asarray(upper, dtype=float), shape)
+        if np.isnan(lo).any() or np.isnan(up).any():
+            raise InputError(f"{kind} bounds contain NaN")
+        if np.any(lo > up):
+            r, c = np.argwhere(lo > up)[0]
+            raise InputError(
+                f"{kind} {rows[r]} {names[cols[c]]}: lower bound {lo[r, c]:g} > upper bound {up[r, c]:g}"
+            )
+        lo_arr[np.ix_(rows, cols)] = lo
+        up_arr[np.ix_(rows, cols)] = up
+
+    def bound_poses(
+        self,
+        cameras: Iterable[int] | None = None,
+        *,
+        position_mm: float | np.ndarray | None = None,
+        orientation_rad: float | np.ndarray | None = None,
+    ) -> None:
+        """Bound poses to their initial values ± half-widths (per axis, broadcast to (3,)).
+
+        position_mm : half-width on the position parameter (camera centre or translation), mm.
+        orientation_rad : half-width on each component of ``w``, rad.
+        """
+        rows = _as_index_list(cameras, self.num_cameras, "camera")
+        for offset, half in ((3, position_mm), (0, orientation_rad)):
+            if half is None:
+                continue
+            h = np.broadcast_to(np.asarray(half, dtype=float), (3,))
+            if np.any(~(h >= 0)):
+                raise InputError(f"pose half-widths must be non-negative, got {h}")
+            value = self.initial.pose[rows, offset:offset + 3]
+            self.set_bounds("pose", rows, list(POSE_NAMES[offset:offset + 3]), value - h, value + h)
+
+    def bound_point_depth(
+        self,
+        origin_mm: np.ndarray,
+        axis: np.ndarray,
+        min_mm: float,
+        max_mm: float,
+        points: Iterable[int] | None = None,
+    ) -> None:
+        """Bound the depth ``axis . (X - origin)`` of points to ``[min_mm, max_mm]``.
+
+        The points are re-parameterised as ``X = origin + Q y`` with ``Q[:, 2] = axis`` (unit), so the
+        depth is the box bound ``min_mm <= y_2 <= max_mm`` and ``y_0, y_1`` are free. For the depth
+        along a camera's optical axis use ``origin = pose.centre`` and ``axis = pose.rotation[2]``.
+        origin_mm : (3,) or (n_sel, 3); axis : (3,) or (n_sel, 3), need not be unit.
+        """
+        rows = _as_index_list(points, self.num_points, "point")
+        if not min_mm <= max_mm:
+            raise InputError(f"depth bound: min {min_mm:g} mm > max {max_mm:g} mm")
+        origin = np.broadcast_to(np.asarray(origin_mm, dtype=float), (rows.size, 3))
+        ax = np.broadcast_to(np.asarray(axis, dtype=float), (rows.size, 3))
+        norm = np.linalg.norm(ax, axis=1)
+        if not np.all(norm > 0) or not np.all(np.isfinite(origin)):
+            raise InputError("depth bound: the axis must be a non-zero finite vector and the origin finite")
+        z = ax / norm[:, None]
+        frame = _frames_with_z(z)
+        world = self.points_world(self.initial.points)[rows]
+        self.point_kind[rows] = POINT_LINEAR
+        self.point_origin[rows] = origin
+        self.point_frame[rows] = frame
+        self.initial.points[rows] = np.einsum("nji,nj->ni", frame, world - origin)
+        self.point_lower[rows] = [-np.inf, -np.inf, min_mm]
+        self.point_upper[rows] = [np.inf, np.inf, max_mm]
+
+    def bound_points_to_shell(
+        self,
+        centre_mm: np.ndarray,
+        r_min_mm: float,
+        r_max_mm: float,
+        points: Iterable[int] | None = None,
+        *,
+        pole_axis: np.ndarray | None = None,
+    ) -> None:
+        """Keep points in the spherical shell ``r_min_mm <= |X - centre| <= r_max_mm``.
+
+        The points are re-parameterised in spherical coordinates ``(r, theta, phi)`` about the centre,
+        so the shell is the box bound on ``r`` and the angles are free. The coordinates are singular at
+        the poles (theta = 0, pi); by default the pole axis is chosen perpendicular to the mean
+        direction of the points from the centre, which keeps a cap of up to ±80° clear of them.
+        """
+        rows = _as_index_list(points, self.num_points, "point")
+        if not 0 <= r_min_mm <= r_max_mm:
+            raise InputError(f"shell bound: need 0 <= r_min <= r_max, got r_min={r_min_mm:g}, r_max={r_max_mm:g} mm")
+        centre = np.asarray(centre_mm, dtype=float).reshape(3)
+        world = self.points_world(self.initial.points)[rows]
+        rel = world - centre
+        if pole_axis is None:
+            mean_dir = rel.mean(axis=0)
+            if np.linalg.norm(mean_dir) < 1e-12:
+                mean_dir = np.array([1.0, 0.0, 0.0])
+            mean_dir /= np.linalg.norm(mean_dir)
+            helper = np.eye(3)[np.argmin(np.abs(mean_dir))]
+            pole = np.cross(mean_dir, helper)
+        else:
+            pole = np.asarray(pole_axis, dtype=float).reshape(3)
+        if not np.linalg.norm(pole) > 0:
+            raise InputError("shell bound: the pole axis must be non-zero")
+        frame = _frames_with_z(pole[None] / np.linalg.norm(pole))[0]
+        local = rel @ frame
+        r = np.linalg.norm(local, axis=1)
+        theta = np.arccos(np.clip(local[:, 2] / np.where(r > 0, r, 1.0), -1.0, 1.0))
+        phi = np.arctan2(local[:, 1], local[:, 0])
+        self.point_kind[rows] = POINT_SPHERICAL
+        self.point_origin[rows] = centre
+        self.point_frame[rows] = frame
+        self.initial.points[rows] = np.stack([r, theta, phi], axis=1)
+        self.point_lower[rows] = [r_min_mm, -np.inf, -np.inf]
+        self.point_upper[rows] = [r_max_mm, np.inf, np.inf]
+
+    # --- parameter decoding --------------------------------------------------------------------
+    def camera_state(self, pose_params: np.ndarray):
+        """Rotations (m, 3, 3), translations (m, 3) mm and SO(3) left Jacobians (m, 3, 3) of the poses."""
+        w = pose_params[:, :3]
+        rot = rotvec_to_matrix(w) @ self.reference_rotations
+        if self.position_parameter == "centre":
+            trans = -np.einsum("mij,mj->mi", rot, pose_params[:, 3:])
+        else:
+            trans = pose_params[:, 3:].copy()
+        return np.ascontiguousarray(rot), np.ascontiguousarray(trans), np.ascontiguousarray(so3_left_jacobian(w))
+
+    def points_world(self, point_params: np.ndarray, with_jacobian: bool = False):
+        """World points (n, 3) mm from point parameters (n, 3); optionally also d X / d y (n, 3, 3)."""
+        y = np.asarray(point_params, dtype=float)
+        sph = self.point_kind == POINT_SPHERICAL
+        local = y.copy()
+        jac_local = np.broadcast_to(np.eye(3), y.shape + (3,)).copy() if with_jacobian else None
+        if sph.any():
+            r, th, ph = y[sph, 0], y[sph, 1], y[sph, 2]
+            st, ct, sp, cp = np.sin(th), np.cos(th), np.sin(ph), np.cos(ph)
+            u = np.stack([st * cp, st * sp, ct], axis=1)
+            local[sph] = r[:, None] * u
+            if with_jacobian:
+                du_dth = np.stack([ct * cp, ct * sp, -st], axis=1)
+                du_dph = np.stack([-st * sp, st * cp, np.zeros_like(st)], axis=1)
+                jac_local[sph] = np.stack([u, r[:, None] * du_dth, r[:, None] * du_dph], axis=2)
+        world = self.point_origin + np.einsum("nij,nj->ni", self.point_frame, local)
+        if not with_jacobian:
+            return world
+        return world, np.ascontiguousarray(self.point_frame @ jac_local)
+
+    def poses(self, pose_params: np.ndarray) -> list[Pose]:
+        rot, trans, _ = self.camera_state(pose_params)
+        return [Pose(r, t) for r, t in zip(rot, trans)]
+
+    # --- flat views used by the solver ---------------------------------------------------------
+    def camera_bounds(self):
+        """lower, upper (6 (m + g),) and fixed (6 (m + g),) bool on the camera side."""
+        lower = np.concatenate([self.pose_lower.ravel(), self.intrinsics_lower.ravel()])
+        upper = np.concatenate([self.pose_upper.ravel(), self.intrinsics_upper.ravel()])
+        fixed = np.concatenate([self.pose_fixed.ravel(), self.intrinsics_fixed.ravel()])
+        return lower, upper, fixed
+
+    def cam_blocks(self) -> np.ndarray:
+        """(K, 2) int64: per stored observation its pose block and its intrinsic block."""
+        return np.ascontiguousarray(
+            np.stack([self.camera_index, self.num_cameras + self.intrinsics_index[self.camera_index]], axis=1)
+        )
+
+    @property
+    def num_observations(self) -> int:
+        return int(self.observations_px.shape[0])
+
+    @property
+    def num_parameters(self) -> int:
+        return 6 * (self.num_cameras + self.num_groups) + 3 * self.num_points
+
+    def num_free_parameters(self) -> int:
+        _, _, fixed_c = self.camera_bounds()
+        return int((~fixed_c).sum() + (~self.point_fixed).sum())
+
+    def validate(self) -> None:
+        """Check bounds and that every non-fixed point is seen by at least two cameras (InputError)."""
+        for kind in ("pose", "intrinsics", "point"):
+            lower, upper, _, names, _ = self._block(kind)
+            if np.isnan(lower).any() or np.isnan(upper).any():
+                raise InputError(f"{kind} bounds contain NaN")
+            bad = lower > upper
+            if bad.any():
+                r, c = np.argwhere(bad)[0]
+                raise InputError(f"{kind} {r} {names[c]}: lower bound {lower[r, c]:g} > upper bound {upper[r, c]:g}")
+        counts = np.diff(self.point_ptr)
+        distinct = np.ones(self.num_observations, dtype=bool)
+        same = (self.point_index[1:] == self.point_index[:-1]) & (self.camera_index[1:] == self.camera_index[:-1])
+        distinct[1:] = ~same
+        n_cams = np.bincount(self.point_index[distinct], minlength=self.num_points)
+        weak = (n_cams < 2) & ~self.point_fixed.all(axis=1)
+        if weak.any():
+            j = int(np.flatnonzero(weak)[0])
+            seen = np.unique(self.camera_index[self.point_ptr[j]:self.point_ptr[j + 1]]).tolist()
+            raise InputError(
+                f"point {j} is observed by {len(seen)} camera(s) {seen} (of {int(weak.sum())} such points); "
+                "a point needs at least two cameras unless it is fixed"
+                + ("" if counts[j] else ": it has no observations")
+            )
+
+    def summary(self) -> str:
+        _, _, fixed_c = self.camera_bounds()
+        lower_c, upper_c, _ = self.camera_bounds()
+        bounded_c = int((np.isfinite(lower_c) | np.isfinite(upper_c))[~fixed_c].sum())
+        bounded_p = int((np.isfinite(self.point_lower) | np.isfinite(self.point_upper))[~self.point_fixed].sum())
+        return (
+            f"BundleProblem: {self.num_cameras} cameras, {self.num_points} points, {self.num_observations} "
+            f"observations, {self.num_groups} intrinsic group(s); {self.num_free_parameters()} of "
+            f"{self.num_parameters} parameters free ({bounded_c + bounded_p} bounded); positions as "
+            f"{self.position_parameter}"
+        )
+
+
+def _frames_with_z(z: np.ndarray) -> np.ndarray:
+    """(n, 3) unit vectors -> (n, 3, 3) right-handed orthonormal frames whose third column is z."""
+    helper = np.eye(3)[np.argmin(np.abs(z), axis=1)]
+    x = np.cross(helper, z)
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    y = np.cross(z, x)
+    return np.stack([x, y, z], axis=2)

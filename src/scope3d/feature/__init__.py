@@ -1,0 +1,4 @@
+"""Sparse features and their correspondences: detection (:mod:`.detection`), image retrieval
+(:mod:`.retrieval`), which frames overlap (:mod:`.pairs`), the depth prior that predicts where a feature
+reappears (:mod:`.depth_prior`), sparse matching (:mod:`.matching`) and tracks from matches (:mod:`.tracks`).
+"""

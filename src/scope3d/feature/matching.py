@@ -1,0 +1,423 @@
+"""Which features correspond between two frames (reference sec. 3.3, 4.3.1, 4.4.4): sparse feature matching.
+
+* :func:`match_guided` — *feature position prediction* (reference sec. 4.3.1): each feature of frame a
+  is predicted in frame b from the two measured poses and the depth prior
+  (:mod:`scope3d.feature.depth_prior`), and its match is searched only in a window around the
+  prediction. The reference used a plane-induced homography and a fixed 100-px window; here the
+  prediction is the **epipolar segment** swept by the feature's ray between the prior's near and far
+  depths, which degenerates to the homography's single point when the depth range is thin (a
+  near-planar scene). The window's radius follows the physics: a pose error of ``dp`` mm moves a point
+  at depth ``z`` by ``f dp / z`` px and an orientation error of ``dw`` rad by about ``f dw`` px. The
+  ratio test (0.8) is applied among the candidates inside the window only, which is why prediction
+  finds *more* matches than exhaustive search: look-alike features elsewhere in the image no longer
+  spoil the ratio.
+* :func:`match_exhaustive` — the conventional baseline: every feature against every feature, ratio
+  test 0.8.
+
+Both matchers end with the same RANSAC (fundamental matrix on undistorted pixels, or a homography) so
+their outputs are comparable. Per-pair loops are fine; nothing loops over features in Python. Which
+frames to pair is :mod:`scope3d.feature.pairs`; dense stereo matching is :mod:`scope3d.mvs.dense_matching`.
+"""
+from __future__ import annotations
+
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numba import njit
+from scipy.spatial import cKDTree
+
+from scope3d.feature.depth_prior import DepthPrior, _project_ray_ranges, _ray_depth_ranges, window_radius_px
+from scope3d.feature.detection import Features
+from scope3d.sensor.camera import Camera
+from scope3d.sensor.pose_tolerance import MeasuredPose
+
+_GEOMETRIC_MODELS = ("fundamental", "homography", "none")
+
+
+# segments are sampled every _SAMPLE_SPACING window radii; a point within a radius of the segment is then
+# within sqrt(1 + spacing^2 / 4) radii of its nearest sample
+_SAMPLE_SPACING = 4.0
+
+
+@dataclass(frozen=True)
+class MatchOptions:
+    """Options shared by both matchers.
+
+    ratio : float, Lowe's ratio test, best/second-best descriptor distance (reference: 0.8).
+    geometric_model : "fundamental" (general scenes), "homography" (planar scenes) or "none".
+    ransac_threshold_px : float, RANSAC inlier threshold on undistorted pixels (default 1.5 px: SIFT
+        keypoints are good to ~0.5 px; the margin covers residual distortion-model error).
+    ransac_confidence : float, RANSAC confidence (default 0.999).
+    min_matches : int, pairs with fewer verified matches are dropped (default 15; 8 would fit F but
+        a pair that weak contributes little and is often wrong).
+    base_radius_px : float, guided matcher: the window radius with exact poses — the keypoint
+        localisation error (~1 px), the shift of a keypoint between views under perspective (~1-2 px)
+        and the unmodelled distortion of the camera model (default 4 px).
+    max_radius_px : float, guided matcher: cap on the window radius (default 250 px). With tolerances
+        so large that the window would exceed it, the prediction carries no information and the
+        pair is matched exhaustively instead. The cap is also never more than the radius of a disc of a
+        sixteenth of the image: beyond it every feature has a sixteenth of the other frame's features or
+        more as candidates, so the windowed search holds ~N^2/16 candidates per pair in memory (on a
+        30-frame survey with 1 mm-wide windows, 271 million) for what brute force does in place.
+    mutual : bool, keep a match only if it is also the best for the feature in the other frame.
+    threads : int, threads for the per-pair RANSAC of the guided matcher (default 2, the machine's cores).
+    """
+
+    ratio: float = 0.8
+    geometric_model: str = "fundamental"
+    ransac_threshold_px: float = 1.5
+    ransac_confidence: float = 0.999
+    min_matches: int = 15
+    base_radius_px: float = 4.0
+    max_radius_px: float = 250.0
+    mutual: bool = True
+    threads: int = 2
+
+    def __post_init__(self) -> None:
+        if not 0 < self.ratio <= 1:
+            raise ValueError(f"ratio must be in (0, 1], got {self.ratio}")
+        if self.geometric_model not in _GEOMETRIC_MODELS:
+            raise ValueError(f"geometric_model must be one of {_GEOMETRIC_MODELS}, got {self.geometric_model!r}")
+        if self.ransac_threshold_px <= 0 or not 0 < self.ransac_confidence < 1:
+            raise ValueError("ransac_threshold_px must be > 0 and ransac_confidence in (0, 1)")
+        if self.min_matches < 0:
+            raise ValueError("min_matches must be >= 0")
+        if self.base_radius_px <= 0 or self.max_radius_px < self.base_radius_px:
+            raise ValueError("need 0 < base_radius_px <= max_radius_px")
+        if self.threads < 1:
+            raise ValueError("threads must be >= 1")
+
+
+@dataclass
+class PairMatches:
+    """Verified matches between frames ``i`` and ``j``.
+
+    idx_i, idx_j : (M,) int64, indices into the frames' :class:`~scope3d.feature.detection.Features`.
+    n_putative : int, matches after the ratio test, before RANSAC.
+    n_candidates : int, descriptor comparisons made (the cost the prediction saves).
+    time_s : float, wall time of this pair (descriptor search + RANSAC).
+    method : "guided", "exhaustive" or "guided->exhaustive" when the window was uninformative.
+    """
+
+    i: int
+    j: int
+    idx_i: np.ndarray
+    idx_j: np.ndarray
+    n_putative: int = 0
+    n_candidates: int = 0
+    time_s: float = 0.0
+    method: str = "guided"
+
+    def __len__(self) -> int:
+        return len(self.idx_i)
+
+
+def _ratio_select_grouped(a: np.ndarray, b: np.ndarray, d2: np.ndarray, ratio: float):
+    """Ratio test among candidates already grouped by ``a`` (equal values contiguous), in O(C).
+
+    Returns matched (a, b, d2) where best < ratio * second-best; a lone candidate passes.
+    """
+    if len(a) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32)
+    start = np.flatnonzero(np.r_[True, a[1:] != a[:-1]])
+    best = np.minimum.reduceat(d2, start)
+    group = np.repeat(np.arange(len(start)), np.diff(np.r_[start, len(a)]))
+    is_best = d2 == best[group]
+    # position of the (first) best in each group
+    pos = np.full(len(start), len(a))
+    np.minimum.at(pos, group[is_best], np.flatnonzero(is_best))
+    masked = d2.copy()
+    masked[pos] = np.inf
+    second = np.minimum.reduceat(masked, start)
+    passed = best < (ratio * ratio) * second
+    chosen = pos[passed]
+    return a[chosen], b[chosen], d2[chosen]
+
+
+def _keep_mutual(a: np.ndarray, b: np.ndarray, d2: np.ndarray) -> np.ndarray:
+    """Boolean mask over (a, b) pairs keeping, for each b, only its closest a."""
+    if len(a) == 0:
+        return np.zeros(0, dtype=bool)
+    order = np.lexsort((d2, b))
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = b[order][1:] != b[order][:-1]
+    keep = np.zeros(len(a), dtype=bool)
+    keep[order[first]] = True
+    return keep
+
+
+def _pair_d2(desc_a: np.ndarray, desc_b: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Squared L2 descriptor distances ``|desc_a[a[k]] - desc_b[b[k]]|^2`` of candidate pairs, (C,) float32."""
+    out = np.empty(len(a), dtype=np.float32)
+    _candidate_d2(np.ascontiguousarray(desc_a, np.float32), np.ascontiguousarray(desc_b, np.float32),
+                  np.ascontiguousarray(a, np.int64), np.ascontiguousarray(b, np.int64), out)
+    return out
+
+
+@njit(cache=True)
+def _candidate_d2(desc_a, desc_b, a, b, out):
+    # Reads the two descriptor rows in place: gathering them first (desc[a], desc[b]) moved
+    # 2 x 512 bytes per candidate through memory and cost 10x the arithmetic.
+    for k in range(a.shape[0]):
+        ra, rb = a[k], b[k]
+        acc = np.float32(0.0)
+        for c in range(desc_a.shape[1]):
+            d = desc_a[ra, c] - desc_b[rb, c]
+            acc += d * d
+        out[k] = acc
+
+
+def _verify(
+    camera: Camera, kp_i: np.ndarray, kp_j: np.ndarray, a: np.ndarray, b: np.ndarray, options: MatchOptions
+) -> np.ndarray:
+    """RANSAC on undistorted pixels; returns an inlier mask over the putative matches."""
+    if options.geometric_model == "none" or len(a) < 8:
+        return np.ones(len(a), dtype=bool) if options.geometric_model == "none" else np.zeros(len(a), bool)
+    # Undistort so that the epipolar / homography model holds exactly for the pinhole part.
+    K = camera.K[:2]
+    ui = camera.pixel_to_normalised(kp_i[a]) @ K[:, :2].T + K[:, 2]
+    uj = camera.pixel_to_normalised(kp_j[b]) @ K[:, :2].T + K[:, 2]
+    mask = None
+    # OpenCV 5's MAGSAC asserts instead of returning no model on some degenerate sets (e.g. matches on a
+    # line); classic RANSAC then decides, and a set neither can fit has no inliers
+    for method in (cv2.USAC_MAGSAC, cv2.RANSAC):
+        try:
+            if options.geometric_model == "homography":
+                _, mask = cv2.findHomography(ui, uj, method, options.ransac_threshold_px, confidence=options.ransac_confidence)
+            else:
+                _, mask = cv2.findFundamentalMat(ui, uj, method, options.ransac_threshold_px, options.ransac_confidence)
+            break
+        except cv2.error:
+            mask = None
+    if mask is None:
+        return np.zeros(len(a), dtype=bool)
+    return mask.ravel().astype(bool)
+
+
+def match_exhaustive(
+    camera: Camera, features_i: Features, features_j: Features, options: MatchOptions = MatchOptions(), *, i: int = 0, j: int = 1
+) -> PairMatches:
+    """Conventional matching: every feature of i against every feature of j (OpenCV brute force, L2),
+    ratio test, optional mutual check, RANSAC. The reference's "previous algorithm"."""
+    t0 = time.perf_counter()
+    ni, nj = len(features_i), len(features_j)
+    if ni < 2 or nj < 2:
+        return PairMatches(i, j, np.zeros(0, np.int64), np.zeros(0, np.int64), time_s=time.perf_counter() - t0, method="exhaustive")
+    knn = cv2.BFMatcher(cv2.NORM_L2).knnMatch(features_i.descriptors, features_j.descriptors, k=2)
+    pairs = np.array([(m[0].queryIdx, m[0].trainIdx, m[0].distance, m[1].distance) for m in knn if len(m) == 2])
+    passed = pairs[:, 2] < options.ratio * pairs[:, 3]
+    a = pairs[passed, 0].astype(np.int64)
+    b = pairs[passed, 1].astype(np.int64)
+    d2 = pairs[passed, 2] ** 2
+    if options.mutual:
+        keep = _keep_mutual(a, b, d2)
+        a, b = a[keep], b[keep]
+    inl = _verify(camera, features_i.keypoints, features_j.keypoints, a, b, options)
+    a, b = a[inl], b[inl]
+    if len(a) < options.min_matches:
+        a, b = a[:0], b[:0]
+    return PairMatches(i, j, a, b, int(passed.sum()), ni * nj, time.perf_counter() - t0, "exhaustive")
+
+
+def match_guided(
+    camera: Camera,
+    features_i: Features,
+    features_j: Features,
+    measured_i: MeasuredPose,
+    measured_j: MeasuredPose,
+    depth: DepthPrior,
+    options: MatchOptions = MatchOptions(),
+    *,
+    i: int = 0,
+    j: int = 1,
+) -> PairMatches:
+    """Pose-guided matching of one pair with feature position prediction (reference sec. 4.3.1, 4.4.4).
+
+    Each feature of frame i is predicted in frame j as the epipolar segment of its ray over the depth
+    prior (:func:`predict_segments`); candidates are the features of j within :func:`window_radius_px`
+    of that segment. The ratio test runs among those candidates only; then RANSAC. Falls back to
+    :func:`match_exhaustive` when the window is larger than ``options.max_radius_px``.
+    See :func:`match_guided_many`, which does the same for many pairs at once (faster).
+    """
+    return match_guided_many(camera, [features_i, features_j], [measured_i, measured_j], [(0, 1, 1.0)], depth,
+                             options, frame_ids=[i, j])[0]
+
+
+def match_guided_many(
+    camera: Camera,
+    features: list[Features],
+    poses: list[MeasuredPose],
+    pairs: list[tuple[int, int, float]],
+    depth: DepthPrior,
+    options: MatchOptions = MatchOptions(),
+    *,
+    frame_ids: list[int] | None = None,
+    progress=None,
+) -> list[PairMatches]:
+    """Guided matching of all ``pairs`` in one vectorised pass.
+
+    Every pair's segments are sampled every ``_SAMPLE_SPACING`` radii; for each frame j, the samples of all pairs
+    into j go into one KD-tree and a single fixed-radius tree-against-tree search against j's keypoints
+    (sqrt(1 + spacing^2 / 4) radii cover every point within ``radius`` of a segment) finds their candidates. Descriptor distances, the ratio test among each feature's
+    candidates and the mutual check are then single array operations; only RANSAC loops over pairs.
+    Batching matters because a pair has only ~10^4 candidates: per-pair array overheads would cost more
+    than the descriptor arithmetic itself.
+
+    frame_ids : optional frame numbers to put in the results (default: indices into ``features``).
+    Returns one :class:`PairMatches` per pair, in order; ``time_s`` is the pair's share of the batch.
+    """
+    t0 = time.perf_counter()
+    ids = list(range(len(features))) if frame_ids is None else list(frame_ids)
+    empty = np.zeros(0, np.int64)
+    results: list[PairMatches | None] = [None] * len(pairs)
+    offsets = np.concatenate([[0], np.cumsum([len(f) for f in features])]).astype(np.int64)
+    seg = {"a": [], "p0": [], "p1": [], "pair": [], "frame_j": [], "radius": []}
+    radii = np.zeros(len(pairs))
+    ray_ranges: dict[int, tuple] = {}
+    radius_limit = min(options.max_radius_px, np.sqrt(camera.width * camera.height / (16.0 * np.pi)))
+    for k, (i, j, _) in enumerate(pairs):  # per-pair loop: prediction only
+        radius = window_radius_px(camera, poses[i].tolerance, poses[j].tolerance, depth, options.base_radius_px)
+        radii[k] = radius
+        if radius > radius_limit:
+            results[k] = match_exhaustive(camera, features[i], features[j], options, i=ids[i], j=ids[j])
+            results[k].method = "guided->exhaustive"
+            continue
+        if len(features[i]) < 2 or len(features[j]) < 2:
+            results[k] = PairMatches(ids[i], ids[j], empty, empty)
+            continue
+        if i not in ray_ranges:
+            ray_ranges[i] = _ray_depth_ranges(camera, poses[i].pose, features[i].keypoints, depth)
+        p0, p1 = _project_ray_ranges(camera, poses[i].pose, poses[j].pose, *ray_ranges[i])
+        half = 0.5 * np.linalg.norm(p1 - p0, axis=1)
+        mid = 0.5 * (p0 + p1)
+        m = radius + half
+        # a segment spanning most of the image carries no information (it would only add look-alike
+        # candidates); and the feature must be predicted near frame j's image at all
+        valid = np.isfinite(half) & (half < options.max_radius_px)
+        valid &= (mid[:, 0] > -m) & (mid[:, 0] < camera.width + m) & (mid[:, 1] > -m) & (mid[:, 1] < camera.height + m)
+        a = np.flatnonzero(valid)
+        seg["a"].append(a)
+        seg["p0"].append(p0[a])
+        seg["p1"].append(p1[a])
+        seg["pair"].append(np.full(len(a), k))
+        seg["frame_j"].append(np.full(len(a), j))
+        seg["radius"].append(np.full(len(a), radius))
+    todo = [k for k in range(len(pairs)) if results[k] is None]
+    if todo and sum(len(a) for a in seg["a"]):
+        a_loc = np.concatenate(seg["a"]).astype(np.int64)
+        p0 = np.concatenate(seg["p0"])
+        p1 = np.concatenate(seg["p1"])
+        pair_of = np.concatenate(seg["pair"]).astype(np.int64)
+        frame_j = np.concatenate(seg["frame_j"]).astype(np.int64)
+        rad = np.concatenate(seg["radius"])
+        # samples along every segment (fewer samples, larger query: 4 radii measured fastest)
+        n_samples = np.ceil(np.linalg.norm(p1 - p0, axis=1) / (_SAMPLE_SPACING * rad)).astype(np.int64) + 1
+        owner = np.repeat(np.arange(len(a_loc)), n_samples)
+        first = np.repeat(np.cumsum(n_samples) - n_samples, n_samples)
+        sample_k = np.arange(len(owner)) - first
+        last = np.repeat(n_samples - 1, n_samples)
+        frac = (sample_k / np.maximum(last, 1))[:, None]
+        samples = p0[owner] + frac * (p1[owner] - p0[owner])
+        kp_all = np.concatenate([f.keypoints for f in features])
+        # one tree search per frame j and window size (radii within a factor of 2): a query radius set by
+        # one wide window would make every narrow segment's many samples hit most of the image
+        group = frame_j * 64 + np.ceil(np.log2(np.maximum(rad, 1.0))).astype(np.int64)
+        sample_group = group[owner]
+        order_s = np.argsort(sample_group, kind="stable")
+        starts = np.flatnonzero(np.r_[True, np.diff(sample_group[order_s]) != 0])
+        si_parts, b_parts = [], []
+        for lo, hi in zip(starts, np.r_[starts[1:], len(order_s)]):  # per (frame, window size) loop
+            sel = order_s[lo:hi]
+            fj = int(frame_j[owner[sel[0]]])
+            if len(features[fj]) == 0:
+                continue
+            r_max = float(rad[owner[sel]].max())
+            hits = cKDTree(samples[sel]).sparse_distance_matrix(
+                cKDTree(features[fj].keypoints), np.sqrt(1.0 + 0.25 * _SAMPLE_SPACING**2) * r_max * 1.0001, output_type="ndarray")
+            si_parts.append(sel[hits["i"]])
+            b_parts.append(offsets[fj] + hits["j"].astype(np.int64))
+        si = np.concatenate(si_parts) if si_parts else np.zeros(0, np.int64)
+        b_glob = np.concatenate(b_parts) if b_parts else np.zeros(0, np.int64)
+        order_h = np.argsort(si, kind="stable")  # grouped by sample, hence by segment
+        si, b_glob = si[order_h], b_glob[order_h]
+        sg = owner[si]
+        # exact distance to the segment, within the pair's own radius; de-duplication: a keypoint near
+        # several samples of one segment is kept from the sample nearest to its foot on the segment
+        q = kp_all[b_glob]
+        s0, d = p0[sg], p1[sg] - p0[sg]
+        tpar = np.clip(np.einsum("ij,ij->i", q - s0, d) / np.maximum(np.einsum("ij,ij->i", d, d), 1e-12), 0.0, 1.0)
+        off = q - s0 - tpar[:, None] * d
+        keep = np.einsum("ij,ij->i", off, off) <= rad[sg] ** 2
+        keep &= np.rint(tpar * last[si]).astype(np.int64) == sample_k[si]
+        sg, b_glob = sg[keep], b_glob[keep]
+        pair_c = pair_of[sg]
+        i_frames = np.array([pairs[k][0] for k in range(len(pairs))], np.int64)
+        a_glob = offsets[i_frames[pair_c]] + a_loc[sg]
+        desc_all = np.concatenate([f.descriptors for f in features])
+        d2 = _pair_d2(desc_all, desc_all, a_glob, b_glob)
+        n_cand = np.bincount(pair_c, minlength=len(pairs))
+        # ratio test among each segment's candidates (sg is sorted: candidates grouped by segment)
+        g_seg, g_b, g_d2 = _ratio_select_grouped(sg, b_glob, d2, options.ratio)
+        n_put = np.bincount(pair_of[g_seg], minlength=len(pairs))
+        g_pair = pair_of[g_seg]
+        if options.mutual and len(g_seg):
+            keep = _keep_mutual(g_seg, g_pair * len(kp_all) + g_b, g_d2)
+            g_seg, g_b, g_pair = g_seg[keep], g_b[keep], g_pair[keep]
+        order = np.argsort(g_pair, kind="stable")
+        g_seg, g_b, g_pair = g_seg[order], g_b[order], g_pair[order]
+        bounds = np.searchsorted(g_pair, np.arange(len(pairs) + 1))
+        t_share = (time.perf_counter() - t0) / max(len(todo), 1)
+        def verify(k):  # per-pair RANSAC; OpenCV releases the GIL, so pairs run on both cores
+            t1 = time.perf_counter()
+            i, j, _ = pairs[k]
+            sl = slice(bounds[k], bounds[k + 1])
+            a = a_loc[g_seg[sl]]
+            b = g_b[sl] - offsets[j]
+            inl = _verify(camera, features[i].keypoints, features[j].keypoints, a, b, options)
+            a, b = a[inl], b[inl]
+            if len(a) < options.min_matches:
+                a, b = a[:0], b[:0]
+            return PairMatches(ids[i], ids[j], a, b, int(n_put[k]), int(n_cand[k]),
+                               t_share + time.perf_counter() - t1, "guided")
+
+        with ThreadPoolExecutor(max_workers=options.threads) as pool:
+            for k, m in zip(todo, pool.map(verify, todo)):
+                results[k] = m
+                if progress is not None:
+                    progress(1)
+    for k in range(len(pairs)):
+        if results[k] is None:
+            results[k] = PairMatches(ids[pairs[k][0]], ids[pairs[k][1]], empty, empty, time_s=0.0)
+    return results
+
+
+def match_pairs(
+    camera: Camera,
+    features: list[Features],
+    poses: list[MeasuredPose],
+    pairs: list[tuple[int, int, float]],
+    depth: DepthPrior | None,
+    options: MatchOptions = MatchOptions(),
+    *,
+    method: str = "guided",
+    progress=None,
+) -> list[PairMatches]:
+    """Match every listed pair with the guided (:func:`match_guided_many`) or exhaustive matcher.
+
+    progress : optional callable ``progress(n_done)`` called after each pair (e.g. ``tqdm.update``).
+    """
+    if method not in ("guided", "exhaustive"):
+        raise ValueError(f"method must be 'guided' or 'exhaustive', got {method!r}")
+    if method == "guided":
+        if depth is None:
+            raise ValueError("the guided matcher needs a depth prior")
+        return match_guided_many(camera, features, poses, pairs, depth, options, progress=progress)
+    out = []
+    for i, j, _ in pairs:
+        out.append(match_exhaustive(camera, features[i], features[j], options, i=i, j=j))
+        if progress is not None:
+            progress(1)
+    return out

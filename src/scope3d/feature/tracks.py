@@ -1,0 +1,54 @@
+"""Tracks from pairwise feature matches.
+
+:func:`build_tracks` joins pairwise matches into tracks as connected components of the graph whose nodes
+are (frame, feature) and whose edges are matches. A component that holds two different features of the
+same frame is inconsistent (a wrong match somewhere along it) and is dropped whole, as COLMAP does.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from scope3d.feature.detection import Features
+from scope3d.feature.matching import PairMatches
+from scope3d.scene.tracks import Tracks
+
+
+def build_tracks(features: list[Features], matches: list[PairMatches], *, min_track_length: int = 2) -> Tracks:
+    """Union-find over pairwise matches. Components with two features in one frame are dropped."""
+    offsets = np.concatenate([[0], np.cumsum([len(f) for f in features])])
+    n_nodes = int(offsets[-1])
+    src = [offsets[m.i] + m.idx_i for m in matches if len(m)]
+    dst = [offsets[m.j] + m.idx_j for m in matches if len(m)]
+    if not src:
+        e = np.zeros(0, np.int64)
+        return Tracks(e, e, e, np.zeros((0, 2)), np.zeros((0, 3), np.uint8), np.zeros((0, 3)))
+    src, dst = np.concatenate(src), np.concatenate(dst)
+    graph = coo_matrix((np.ones(len(src), np.int8), (src, dst)), shape=(n_nodes, n_nodes))
+    _, label = connected_components(graph, directed=False)
+    node = np.unique(np.concatenate([src, dst]))
+    frame = np.searchsorted(offsets, node, side="right") - 1
+    lab = label[node]
+    # inconsistent components: a (label, frame) key seen twice
+    key = lab.astype(np.int64) * len(features) + frame
+    _, inv, cnt = np.unique(key, return_inverse=True, return_counts=True)
+    bad_labels = np.unique(lab[cnt[inv] > 1])
+    size = np.bincount(lab)
+    ok = ~np.isin(lab, bad_labels) & (size[lab] >= min_track_length)
+    node, frame, lab = node[ok], frame[ok], lab[ok]
+    order = np.lexsort((frame, lab))
+    node, frame, lab = node[order], frame[order], lab[order]
+    _, track = np.unique(lab, return_inverse=True)
+    feature = node - offsets[frame]
+    pixels = np.empty((len(node), 2))
+    col = np.empty((len(node), 3))
+    for f in np.unique(frame):  # per-frame loop
+        sel = frame == f
+        pixels[sel] = features[f].keypoints[feature[sel]]
+        col[sel] = features[f].colors[feature[sel]]
+    n_tracks = int(track.max()) + 1 if len(track) else 0
+    counts = np.bincount(track, minlength=n_tracks)[:, None]
+    colors = np.stack([np.bincount(track, col[:, c], n_tracks) for c in range(3)], axis=1) / np.maximum(counts, 1)
+    return Tracks(track.astype(np.int64), frame.astype(np.int64), feature.astype(np.int64), pixels,
+                  np.clip(np.rint(colors), 0, 255).astype(np.uint8))

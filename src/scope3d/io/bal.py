@@ -1,0 +1,116 @@
+"""Bundle Adjustment in the Large (BAL) problem files: read and write."""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+from scope3d.errors import InputError
+from scope3d.geometry.rotation import rotvec_to_matrix
+
+
+@dataclass
+class BALProblem:
+    """A BAL problem as stored in the file.
+
+    camera_index, point_index : (K,) int. observations_px : (K, 2), origin at the image centre, y up.
+    cameras : (m, 9) ``(rx, ry, rz, tx, ty, tz, f, k1, k2)``. points : (n, 3).
+    """
+
+    camera_index: np.ndarray
+    point_index: np.ndarray
+    observations_px: np.ndarray
+    cameras: np.ndarray
+    points: np.ndarray
+
+    @property
+    def num_observations(self) -> int:
+        return int(self.observations_px.shape[0])
+
+    def cost(self) -> float:
+        """0.5 sum |r|^2 in the BAL convention, computed directly from the file's numbers."""
+        cam = self.cameras[self.camera_index]
+        rot = rotvec_to_matrix(cam[:, :3])
+        p = np.einsum("kij,kj->ki", rot, self.points[self.point_index]) + cam[:, 3:6]
+        xy = -p[:, :2] / p[:, 2:3]
+        r2 = np.sum(xy * xy, axis=1)
+        pix = cam[:, 6:7] * (1.0 + cam[:, 7:8] * r2[:, None] + cam[:, 8:9] * r2[:, None] ** 2) * xy
+        return 0.5 * float(np.sum((pix - self.observations_px) ** 2))
+
+
+def read_bal(path: str | os.PathLike) -> BALProblem:
+    """Read a BAL text file (uncompressed). Raises InputError, naming the file, on a malformed file.
+
+    Rotations are rotation vectors: any finite one is a rotation however few digits it is printed
+    with, so unlike a printed matrix or quaternion there is no rounding to absorb.
+    """
+    with open(path, "r") as handle:
+        text = handle.read()
+    try:
+        values = np.array(text.split(), dtype=float)
+    except ValueError as exc:
+        raise InputError(f"{path}: not a BAL file ({exc})") from None
+    if values.size < 3:
+        raise InputError(f"{path}: not a BAL file (no header)")
+    m, n, k = (int(v) for v in values[:3])
+    if values[:3].tolist() != [m, n, k] or min(m, n, k) < 1:
+        raise InputError(f"{path}: bad BAL header {values[:3].tolist()}")
+    expected = 3 + 4 * k + 9 * m + 3 * n
+    if values.size != expected:
+        raise InputError(f"{path}: expected {expected} numbers for {m} cameras, {n} points, {k} observations, "
+                         f"found {values.size}")
+    obs = values[3:3 + 4 * k].reshape(k, 4)
+    cams = values[3 + 4 * k:3 + 4 * k + 9 * m].reshape(m, 9)
+    pts = values[3 + 4 * k + 9 * m:].reshape(n, 3)
+    for what, block in (("observation", obs), ("camera", cams), ("point", pts)):
+        bad = np.flatnonzero(~np.all(np.isfinite(block), axis=1))
+        if bad.size:
+            raise InputError(f"{path}: {what} {bad[0]} (0-based) has NaN or infinite values")
+    bad = np.flatnonzero(np.any(obs[:, :2] != np.round(obs[:, :2]), axis=1))
+    if bad.size:
+        raise InputError(f"{path}: observation {bad[0]} (0-based): camera and point indices must be integers")
+    return BALProblem(obs[:, 0].astype(np.int64), obs[:, 1].astype(np.int64), obs[:, 2:].copy(), cams, pts)
+
+
+def write_bal(path: str | os.PathLike, bal: BALProblem) -> None:
+    """Write a BAL text file (atomically)."""
+    from scope3d.utils.atomic import atomic_file
+
+    with atomic_file(path) as handle:
+        handle.write(f"{bal.cameras.shape[0]} {bal.points.shape[0]} {bal.num_observations}\n")
+        obs = np.column_stack([bal.camera_index, bal.point_index, bal.observations_px])
+        np.savetxt(handle, obs, fmt=["%d", "%d", "%.6e", "%.6e"])
+        np.savetxt(handle, bal.cameras.reshape(-1, 1), fmt="%.16e")
+        np.savetxt(handle, bal.points.reshape(-1, 1), fmt="%.16e")
+
+
+def _parse_indices(token: str, count: int, where: str) -> np.ndarray:
+    if token == "*":
+        return np.arange(count)
+    out = []
+    for part in token.split(","):
+        try:
+            if "-" in part:
+                a, b = (int(v) for v in part.split("-", 1))
+                out.extend(range(a, b + 1))
+            else:
+                out.append(int(part))
+        except ValueError:
+            raise InputError(f"{where}: bad index list {token!r} (use *, 7, 0-9 or 1,4,10-12)") from None
+    idx = np.array(out, dtype=np.int64)
+    if idx.size == 0 or idx.min() < 0 or idx.max() >= count:
+        raise InputError(f"{where}: index out of range [0, {count}) in {token!r}")
+    return idx
+
+
+def _parse_floats(tokens: list[str], count: int, where: str) -> list[float]:
+    if len(tokens) != count:
+        raise InputError(f"{where}: expected {count} numbers, got {len(tokens)}")
+    try:
+        values = [float(t) for t in tokens]
+    except ValueError:
+        raise InputError(f"{where}: expected numbers, got {' '.join(tokens)!r}") from None
+    if any(np.isnan(values)):
+        raise InputError(f"{where}: NaN is not a bound")
+    return values

@@ -1,0 +1,52 @@
+"""Image files: read (colour or grey) and write atomically."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from scope3d.errors import InputError
+from scope3d.utils.atomic import atomic_file
+
+
+def read_image(path: str | Path, *, grey: bool = False) -> np.ndarray:
+    """Read an image as RGB uint8 (H, W, 3), or grey (H, W). A missing or corrupt file is an InputError.
+
+    The file is decoded from its bytes (not ``cv2.imread``) so that non-ASCII paths work and OpenCV's
+    decoder warnings are not printed: the caller reports the problem in one line.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: image file is missing")
+    try:
+        data = np.frombuffer(path.read_bytes(), dtype=np.uint8)
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read image ({exc.strerror})") from None
+    flag = cv2.IMREAD_GRAYSCALE if grey else cv2.IMREAD_COLOR
+    old_level = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+    try:
+        img = cv2.imdecode(data, flag) if data.size else None
+    except cv2.error:
+        img = None
+    finally:
+        cv2.utils.logging.setLogLevel(old_level)
+    if img is None:
+        raise InputError(f"{path}: not a readable image (corrupt or unsupported format)")
+    if img.dtype != np.uint8:
+        img = cv2.convertScaleAbs(img, alpha=255.0 / max(float(img.max()), 1.0))
+    return img if grey else cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def write_image(path: str | Path, image: np.ndarray) -> None:
+    """Write an RGB (H, W, 3) or grey (H, W) uint8 image; the format follows the suffix."""
+    path = Path(path)
+    img = np.asarray(image)
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
+    ok, buf = cv2.imencode(path.suffix or ".png", img)
+    if not ok:
+        raise InputError(f"{path}: cannot encode image")
+    with atomic_file(path, "wb") as fh:
+        fh.write(buf.tobytes())

@@ -1,0 +1,165 @@
+"""Middlebury multi-view stereo sets (Seitz et al., CVPR 2006): ``*_par.txt`` and its images.
+
+``NAME_par.txt`` holds the number of images on its first line, then one line per image::
+
+    imgname.png k11 k12 k13 k21 k22 k23 k31 k32 k33 r11 r12 r13 r21 r22 r23 r31 r32 r33 t1 t2 t3
+
+with projection ``P = K [R | t]``: ``x_cam = R x_world + t`` (``cam_from_world``), world in metres, image
+origin top-left, x right, y down. We take the calibration's pixel coordinates to be scope3d's (origin at
+the centre of the top-left pixel); if they meant the pixel corner the principal point is off by 0.5 px,
+which no downstream use of this data can resolve. The set's ``README.txt`` gives the object's bounding
+box, which is kept in ``dataset.json`` (``bounding_box_mm``) when found.
+
+Published par files print R with anything from ~7 to ~20 digits, so ``R`` is a rotation only up to the
+printing's rounding: each R is replaced by the nearest rotation (:func:`scope3d.geometry.rotation.nearest_rotation`,
+which refuses matrices farther from every rotation than rounding explains), and ``dataset.json`` records
+the largest correction (``source.rotation_orthonormalised_max``, Frobenius norm).
+"""
+from __future__ import annotations
+
+import hashlib
+import re
+from pathlib import Path
+
+import numpy as np
+
+from scope3d import __version__
+from scope3d.errors import InputError
+from scope3d.geometry.pose import Pose
+from scope3d.geometry.rotation import nearest_rotation
+from scope3d.io.dataset import write_dataset
+from scope3d.io.images import read_image
+from scope3d.sensor.camera import Camera
+from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance
+
+MM_PER_M = 1000.0
+# K's structural zeros and ones print exactly at any precision, and one K printed by one program gives the
+# same text on every line: this tolerance catches a different camera model or calibration, not rounding.
+_INTRINSICS_TOLERANCE = 1e-9
+
+
+def read_middlebury_par(par_path: str | Path) -> tuple[list[str], list[np.ndarray], list[Pose], list[float]]:
+    """Parse a ``*_par.txt`` file.
+
+    Returns image names, calibration matrices (3, 3) in pixels, poses ``cam_from_world`` with
+    translations converted from metres to mm, and for each pose the Frobenius distance between the
+    file's R and the rotation used (the rounding of the file). Problems are InputErrors naming the file
+    and line.
+    """
+    path = Path(par_path)
+    if not path.is_file():
+        raise InputError(f"{path}: Middlebury parameter file is missing")
+    try:
+        lines = path.read_text(encoding="ascii").splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: cannot read ({exc})") from None
+    rows = [(i, line.split()) for i, line in enumerate(lines, start=1) if line.strip()]
+    if not rows:
+        raise InputError(f"{path}: file is empty")
+    first_line, first = rows[0]
+    if len(first) != 1 or not first[0].isdigit():
+        raise InputError(f"{path} line {first_line}: expected the number of images")
+    count = int(first[0])
+    if len(rows) - 1 != count:
+        raise InputError(f"{path} line {first_line}: says {count} images, the file lists {len(rows) - 1}")
+    names, ks, poses, corrections = [], [], [], []
+    for number, tokens in rows[1:]:
+        where = f"{path} line {number}"
+        if len(tokens) != 22:
+            raise InputError(f"{where}: expected an image name and 21 numbers (K, R, t), found {len(tokens) - 1}")
+        try:
+            values = np.array([float(t) for t in tokens[1:]])
+        except ValueError:
+            raise InputError(f"{where}: K, R and t must be numbers") from None
+        if not np.all(np.isfinite(values)):
+            raise InputError(f"{where}: NaN or infinite value")
+        k, r, t = values[:9].reshape(3, 3), values[9:18].reshape(3, 3), values[18:]
+        if abs(k[0, 1]) > _INTRINSICS_TOLERANCE or np.abs(k[1:, 0]).max() > _INTRINSICS_TOLERANCE \
+                or np.abs(k[2] - [0, 0, 1]).max() > _INTRINSICS_TOLERANCE:
+            raise InputError(f"{where}: K must be [[fx 0 cx] [0 fy cy] [0 0 1]] (no skew)")
+        try:
+            rotation, correction = nearest_rotation(r)
+        except ValueError as exc:
+            raise InputError(f"{where}: R is {exc}") from None
+        if tokens[0] in names:
+            raise InputError(f"{where}: image {tokens[0]} is listed twice")
+        names.append(tokens[0])
+        ks.append(k)
+        poses.append(Pose(rotation, t * MM_PER_M))
+        corrections.append(correction)
+    return names, ks, poses, corrections
+
+
+def import_middlebury(
+    par_path: str | Path,
+    out_dir: str | Path,
+    *,
+    tolerance: PoseTolerance | None = None,
+) -> Path:
+    """Import a Middlebury multi-view set (images beside ``par_path``) as a scope3d dataset, in mm.
+
+    tolerance : reported with every pose; default exact (0), since the gantry calibration is the
+    reference. All images must share one K and one size. ``dataset.json`` records the provenance
+    (file, its SHA-256, the scope3d version, the largest correction that made a printed R a rotation)
+    and, when ``README.txt`` gives it, the object's bounding box in mm. Written atomically: on any
+    error ``out_dir`` is left as it was.
+    """
+    par_path = Path(par_path)
+    names, ks, poses, corrections = read_middlebury_par(par_path)
+    k0 = ks[0]
+    for name, k in zip(names[1:], ks[1:]):
+        if np.abs(k - k0).max() > _INTRINSICS_TOLERANCE * max(1.0, np.abs(k0).max()):
+            raise InputError(f"{par_path}: image {name} has a different K from {names[0]}; "
+                             "a scope3d dataset has one camera")
+    sources = [par_path.parent / n for n in names]
+    size = None
+    for source in sources:
+        img = read_image(source)
+        if size is None:
+            size = img.shape[:2]
+        elif img.shape[:2] != size:
+            raise InputError(f"{source}: image is {img.shape[1]}x{img.shape[0]}, {names[0]} is {size[1]}x{size[0]}")
+    camera = Camera(size[1], size[0], k0[0, 0], k0[1, 1], k0[0, 2], k0[1, 2])
+    tolerance = PoseTolerance.exact() if tolerance is None else tolerance
+    metadata = {
+        "source": {
+            "format": "middlebury-par",
+            "path": str(par_path.resolve()),
+            "sha256": hashlib.sha256(par_path.read_bytes()).hexdigest(),
+            "world_unit": "m",
+            "scale_to_mm": MM_PER_M,
+            "rotation_orthonormalised_max": max(corrections),
+            "imported_by": f"scope3d {__version__}",
+            "reference": "Seitz, Curless, Diebel, Scharstein, Szeliski: A comparison and evaluation of "
+                         "multi-view stereo reconstruction algorithms, CVPR 2006",
+        }
+    }
+    box = read_middlebury_bounding_box(par_path.parent / "README.txt")
+    if box is not None:
+        metadata["bounding_box_mm"] = (box * MM_PER_M).tolist()
+    measured = [MeasuredPose(p, tolerance) for p in poses]
+    return write_dataset(out_dir, camera, sources, measured, names=names, metadata=metadata)
+
+
+_TRIPLE = re.compile(r"\(\s*([-+0-9.eE]+)\s+([-+0-9.eE]+)\s+([-+0-9.eE]+)\s*\)")
+
+
+def read_middlebury_bounding_box(readme_path: str | Path) -> np.ndarray | None:
+    """(2, 3) min and max corners (metres) of the object from a Middlebury README, or None."""
+    path = Path(readme_path)
+    if not path.is_file():
+        return None
+    text = path.read_text(encoding="latin-1")
+    at = text.lower().find("bounding box")
+    if at < 0:
+        return None
+    triples = _TRIPLE.findall(text[at:])[:2]
+    if len(triples) < 2:
+        return None
+    box = np.array(triples, dtype=float)
+    if not np.all(np.isfinite(box)) or np.any(box[0] > box[1]):
+        return None
+    return box
+
+
+__all__ = ["import_middlebury", "read_middlebury_bounding_box", "read_middlebury_par"]

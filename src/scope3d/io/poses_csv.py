@@ -1,0 +1,115 @@
+"""``poses.csv``: measured camera poses with their tolerances, one row per frame."""
+from __future__ import annotations
+
+import csv
+import io
+import math
+from pathlib import Path
+
+import numpy as np
+
+from scope3d.errors import InputError
+from scope3d.geometry.pose import Pose
+from scope3d.geometry.rotation import matrix_to_quaternion, normalised_quaternion, quaternion_to_matrix
+from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance
+from scope3d.utils.atomic import atomic_file
+
+POSE_COLUMNS = (
+    "image", "x_mm", "y_mm", "z_mm", "qw", "qx", "qy", "qz",
+    "tol_x_mm", "tol_y_mm", "tol_z_mm", "tol_rx_deg", "tol_ry_deg", "tol_rz_deg",
+)
+
+
+def format_poses_csv(names: list[str], poses: list[MeasuredPose]) -> str:
+    out = io.StringIO()
+    writer = csv.writer(out, lineterminator="\n")
+    writer.writerow(POSE_COLUMNS)
+    for name, measured in zip(names, poses):
+        c = measured.pose.centre
+        q = matrix_to_quaternion(measured.pose.rotation.T)  # world_from_cam, (x, y, z, w)
+        tol = measured.tolerance
+        writer.writerow(
+            [name, *(f"{v:.12g}" for v in c), *(f"{v:.12g}" for v in (q[3], q[0], q[1], q[2]))]
+            + [f"{v:.9g}" for v in tol.position_mm]
+            + [f"{v:.9g}" for v in tol.orientation_deg]
+        )
+    return out.getvalue()
+
+
+def write_poses_csv(path: str | Path, names: list[str], poses: list[MeasuredPose]) -> None:
+    with atomic_file(path) as fh:
+        fh.write(format_poses_csv(names, poses))
+
+
+def read_poses_csv(path: str | Path, length_scale_to_mm: float = 1.0) -> tuple[list[str], list[MeasuredPose]]:
+    """Parse ``poses.csv``. Every problem is an InputError naming the file and the row (1 = header).
+
+    length_scale_to_mm : the file's length unit in mm (1 for mm, 1000 for m); positions and position
+    tolerances are returned in mm. Returns the image names and the measured ``cam_from_world`` poses.
+    """
+    names, poses, _ = _read_pose_rows(Path(path), length_scale_to_mm)
+    return names, poses
+
+
+def _read_pose_rows(path: Path, length_scale_to_mm: float) -> tuple[list[str], list[MeasuredPose], list[int]]:
+    """:func:`read_poses_csv`, also returning each pose's row number in the file (for error messages)."""
+    if not path.is_file():
+        raise InputError(f"{path}: pose file is missing")
+    try:
+        # utf-8-sig: spreadsheets often save CSV with a byte-order mark before the first column name.
+        with open(path, newline="", encoding="utf-8-sig") as fh:
+            rows = list(csv.reader(fh))
+    except (UnicodeDecodeError, csv.Error) as exc:
+        raise InputError(f"{path}: not a readable CSV file ({exc})") from None
+    if not rows:
+        raise InputError(f"{path}: pose file is empty")
+    header = [h.strip() for h in rows[0]]
+    missing = [c for c in POSE_COLUMNS if c not in header]
+    if missing:
+        raise InputError(f"{path} row 1: missing column(s) {', '.join(missing)}")
+    col = {name: header.index(name) for name in POSE_COLUMNS}
+    names, poses, row_numbers = [], [], []
+    first_row_of = {}
+    for row_number, row in enumerate(rows[1:], start=2):
+        if not row or all(not cell.strip() for cell in row):
+            continue
+        where = f"{path} row {row_number}"
+        if len(row) < len(header):
+            raise InputError(f"{where}: expected {len(header)} values, found {len(row)}")
+        name = row[col["image"]].strip()
+        if not name:
+            raise InputError(f"{where}: image name is empty")
+        if "/" in name or "\\" in name or name in (".", ".."):
+            raise InputError(f"{where}: image name {name!r} must be a plain file name inside frames/")
+        if name in first_row_of:
+            raise InputError(f"{where}: image {name} is listed twice (also on row {first_row_of[name]})")
+        first_row_of[name] = row_number
+        values = {}
+        for column in POSE_COLUMNS[1:]:
+            text = row[col[column]].strip()
+            try:
+                values[column] = float(text)
+            except ValueError:
+                raise InputError(f"{where}: {column} = {text!r} is not a number") from None
+            # inf is allowed only as a tolerance, where it means "unknown".
+            if math.isnan(values[column]) or (math.isinf(values[column]) and not column.startswith("tol_")):
+                raise InputError(f"{where}: {column} is {text} (NaN or infinite)")
+            if column.startswith("tol_") and values[column] < 0:
+                raise InputError(f"{where}: {column} = {text} is negative (lower bound above upper bound)")
+        # A robot's or a spreadsheet's quaternion may be printed with few digits: rounding is normalised away.
+        try:
+            q, _ = normalised_quaternion([values["qx"], values["qy"], values["qz"], values["qw"]])
+        except ValueError as exc:
+            raise InputError(f"{where}: quaternion (qw, qx, qy, qz) is {exc}") from None
+        world_from_cam = quaternion_to_matrix(q)
+        centre = np.array([values["x_mm"], values["y_mm"], values["z_mm"]]) * length_scale_to_mm
+        tolerance = PoseTolerance.from_degrees(
+            np.array([values["tol_x_mm"], values["tol_y_mm"], values["tol_z_mm"]]) * length_scale_to_mm,
+            [values["tol_rx_deg"], values["tol_ry_deg"], values["tol_rz_deg"]],
+        )
+        names.append(name)
+        poses.append(MeasuredPose(Pose.from_centre(world_from_cam.T, centre), tolerance))
+        row_numbers.append(row_number)
+    if not poses:
+        raise InputError(f"{path}: pose file has a header but no rows")
+    return names, poses, row_numbers

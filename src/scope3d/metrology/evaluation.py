@@ -1,0 +1,189 @@
+"""How far a reconstruction is from the true surface (reference sec. 4.5, Fig. 4.6(e), 4.7; sec. 6.3).
+
+* :func:`surface_distances` — unsigned distance from each reconstructed point to the true mesh. The
+  mesh is sampled densely (``sample_step_mm``) with normals; each point's distance is taken to the
+  tangent plane of its nearest sample (point-to-plane), so the sampling error is second order:
+  below ``step² / (8 R)`` for curvature radius ``R`` (< 1 µm at 0.1 mm on the 15 mm dome).
+* :func:`icp_point_to_plane` — rigid ICP, point-to-plane (Chen & Medioni), linearised small-rotation
+  steps solved by least squares; the reference aligned the reconstruction to the CAD model with ICP
+  from **eight** initial poses (:func:`icp_from_initial_poses`) to show the result does not depend on
+  the start.
+* :func:`distance_summary` — mean, median, 95th percentile and the fraction within 1 mm (reference:
+  0.674 mm mean after ICP, 96.3 % within 1 mm).
+* figures: error histogram and error map PNGs.
+
+Distances are reported both **direct** (the map is metric because the poses are) and **after ICP**
+(the reference's measure, which forgives a rigid misplacement of the whole map).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from scope3d.estimators.icp import IcpOptions, IcpResult, icp_point_to_plane
+from scope3d.geometry.pose import Pose
+from scope3d.geometry.rotation import rotvec_to_matrix
+from scope3d.scene.mesh import Mesh, SampledSurface
+from scope3d.sensor.camera import Camera
+
+
+def true_match_error_px(
+    camera: Camera, true_i: Pose, true_j: Pose, depth_i: np.ndarray, kp_i: np.ndarray, kp_j: np.ndarray
+) -> np.ndarray:
+    """Error (px) of matches judged against the truth: keypoint of i lifted with frame i's true z-depth
+    map (H, W, mm), sent through the true poses into j, compared with the matched keypoint of j.
+    NaN where the depth map has no surface."""
+    iu = np.clip(np.rint(kp_i[:, 0]).astype(int), 0, depth_i.shape[1] - 1)
+    iv = np.clip(np.rint(kp_i[:, 1]).astype(int), 0, depth_i.shape[0] - 1)
+    z = depth_i[iv, iu].astype(float)
+    x_world = (camera.unproject(kp_i, z) - true_i.translation) @ true_i.rotation
+    return np.linalg.norm(camera.project_world(true_j, x_world) - kp_j, axis=1)
+
+
+@dataclass(frozen=True)
+class EvaluationOptions:
+    """sample_step_mm : float, spacing of the dense sampling of the true mesh (default 0.25 mm; with
+        point-to-plane distances the sampling error is below step² / (8 R), 0.5 µm on the dome).
+    icp_iterations : int (default 100); icp_tolerance_mm : float, stop when the step < this (1e-3 mm).
+    icp_max_points : int, ICP runs on at most this many points (a seeded subsample; default 1000), the
+        transform is then applied to all.
+    icp_max_distance_mm : float, correspondences farther than this are ignored by ICP (default 5 mm,
+        more than the initial perturbations; farther points are outliers, not misalignment).
+    icp_trim_fraction : float, ICP ignores this worst fraction of correspondences each iteration
+        (default 0: trimming lets ICP slide along a symmetry by dropping the points that resist).
+    icp_huber_sigmas : float, correspondences are Huber-weighted beyond this many robust sigmas of
+        the residuals (default 2: wrong tracks pull with a bounded force, not quadratically).
+    initial_rotation_deg, initial_translation_mm : size of the eight ICP starting perturbations
+        (default 5 deg, 2 mm).
+    """
+
+    sample_step_mm: float = 0.25
+    icp_iterations: int = 100
+    icp_tolerance_mm: float = 1e-3
+    icp_max_points: int = 1000
+    icp_max_distance_mm: float = 5.0
+    icp_trim_fraction: float = 0.0
+    icp_huber_sigmas: float = 2.0
+    initial_rotation_deg: float = 5.0
+    initial_translation_mm: float = 2.0
+
+    def __post_init__(self) -> None:
+        if self.sample_step_mm <= 0 or self.icp_iterations < 1 or not 0 <= self.icp_trim_fraction < 0.5:
+            raise ValueError("need sample_step_mm > 0, icp_iterations >= 1, icp_trim_fraction in [0, 0.5)")
+        if self.icp_max_points < 10 or not self.icp_huber_sigmas > 0 or not self.icp_max_distance_mm > 0:
+            raise ValueError("need icp_max_points >= 10, icp_huber_sigmas > 0 and icp_max_distance_mm > 0")
+
+    def icp_options(self) -> IcpOptions:
+        """The options of the ICP runs this evaluation makes."""
+        return IcpOptions(iterations=self.icp_iterations, tolerance_mm=self.icp_tolerance_mm,
+                          max_distance_mm=self.icp_max_distance_mm, trim_fraction=self.icp_trim_fraction,
+                          huber_sigmas=self.icp_huber_sigmas)
+
+
+def surface_distances(points: np.ndarray, truth: Mesh | SampledSurface, options: EvaluationOptions = EvaluationOptions()) -> np.ndarray:
+    """points : (N, 3) mm world -> (N,) distance (mm) to the true surface (a Mesh or a SampledSurface)."""
+    pts = np.asarray(points, float)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"points must be (N, 3), got {pts.shape}")
+    sampled = truth if isinstance(truth, SampledSurface) else SampledSurface(truth, options.sample_step_mm)
+    return sampled.distances(pts)
+
+
+def distance_summary(distances: np.ndarray) -> dict:
+    """{mean, median, p95, rms, max, within_1mm_fraction, n} of distances (mm)."""
+    d = np.asarray(distances, float)
+    d = d[np.isfinite(d)]
+    if len(d) == 0:
+        return {"n": 0}
+    return {
+        "n": int(len(d)), "mean": float(d.mean()), "median": float(np.median(d)), "p95": float(np.percentile(d, 95)),
+        "rms": float(np.sqrt(np.mean(d * d))), "max": float(d.max()), "within_1mm_fraction": float(np.mean(d <= 1.0)),
+    }
+
+
+def icp_from_initial_poses(points: np.ndarray, target: SampledSurface, options: EvaluationOptions = EvaluationOptions()) -> tuple[IcpResult, list[float]]:
+    """ICP from eight starting poses around the reconstruction (reference sec. 4.5): the configured
+    rotation about the eight diagonal axes through the centroid, each with a translation along its
+    diagonal; plus the identity. ICP runs on a subsample; each result is then scored by
+    the mean distance of *all* points, and the best is returned with the eight starts' scores (mm),
+    whose spread shows whether the alignment depends on the start. (Scoring on the trimmed subsample
+    alone can prefer a slide along a symmetry — a dome's axis, a plate's plane — that throws the
+    untrimmed points off the surface's edge.)"""
+    x_all = np.asarray(points, float)
+    x = x_all
+    if len(x) > options.icp_max_points:
+        x = x[np.random.default_rng(0).choice(len(x), options.icp_max_points, replace=False)]
+    c = x.mean(axis=0)
+    a = np.deg2rad(options.initial_rotation_deg)
+    d = options.initial_translation_mm
+    starts = []
+    for sx in (-1, 1):
+        for sy in (-1, 1):
+            for sz in (-1, 1):
+                R0 = rotvec_to_matrix(a * np.array([sx, sy, sz]) / np.sqrt(3))
+                t0 = c - R0 @ c + np.array([sx * d, sy * d, sz * d]) / np.sqrt(3)
+                starts.append((R0, t0))
+    starts.append((np.eye(3), np.zeros(3)))
+    icp = options.icp_options()
+    results = [icp_point_to_plane(x, target, icp, rotation=R0, translation=t0) for R0, t0 in starts]
+    scores = [float(np.mean(target.distances(r.apply(x_all)))) for r in results]
+    for r, sc in zip(results, scores):
+        r.mean_distance_mm = sc
+    # ICP must never make things worse than no alignment at all (a badly distorted map can drag every
+    # start away): the untouched map is a candidate too
+    direct = float(np.mean(target.distances(x_all)))
+    candidates = results + [IcpResult(np.eye(3), np.zeros(3), direct, 0, [])]
+    best = min(candidates, key=lambda r: r.mean_distance_mm)
+    return best, scores[:8]
+
+
+def save_error_histogram_png(path, distances: np.ndarray, *, title: str = "distance to the true surface") -> None:
+    """Histogram of distances (mm) with mean and the fraction within 1 mm (reference Fig. 4.7(b))."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from scope3d.utils.atomic import atomic_path
+
+    d = np.asarray(distances, float)
+    d = d[np.isfinite(d)]
+    s = distance_summary(d)
+    fig, ax = plt.subplots(figsize=(5.5, 3.8), dpi=110)
+    ax.hist(d, bins=60, range=(0, max(float(np.percentile(d, 99.5)), 1e-3)) if len(d) else None, color="#3465a4")
+    if len(d):
+        ax.axvline(s["mean"], color="k", ls="--", label=f"mean {s['mean']:.3f} mm")
+        ax.legend(title=f"{100 * s['within_1mm_fraction']:.1f} % within 1 mm")
+    ax.set_xlabel("distance (mm)")
+    ax.set_ylabel("points")
+    ax.set_title(title)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp)
+    plt.close(fig)
+
+
+def save_error_map_png(path, points: np.ndarray, distances: np.ndarray, *, title: str = "error map") -> None:
+    """Points seen from above (world x, y), coloured by distance (mm) (reference Fig. 4.7(a))."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from scope3d.utils.atomic import atomic_path
+
+    p = np.asarray(points, float)
+    d = np.asarray(distances, float)
+    fig, ax = plt.subplots(figsize=(5.5, 4.5), dpi=110)
+    vmax = max(float(np.percentile(d, 98)), 1e-3) if len(d) else 1.0
+    sc = ax.scatter(p[:, 0], p[:, 1], c=d, s=3, cmap="viridis", vmin=0, vmax=vmax)
+    fig.colorbar(sc, ax=ax, label="distance to the true surface (mm)")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (mm)")
+    ax.set_ylabel("y (mm)")
+    ax.set_title(title)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp)
+    plt.close(fig)

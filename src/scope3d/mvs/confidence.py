@@ -1,0 +1,135 @@
+"""Which axial-stereo depths to trust.
+
+Axial stereo fails in three predictable places, and each has a measurable symptom:
+
+* **near the epipole** (image centre) the disparity tends to 0 and depth error grows as
+  ``Z^2 * step / b`` (eq. 7.3 divides by the disparity): masked by ``min_disparity_px`` and, better, by the
+  predicted range standard deviation ``max_range_sigma_mm``;
+* **the dark rim** of the scanning-fibre image (reference sec. 7.4: "a very noisy rim since the outer scans
+  ... were dark"): masked by ``min_intensity`` on the window mean in both images;
+* **low texture / mismatches**: a window whose gradient along the epipolar line is weak cannot fix the
+  shift (``min_gradient``), and a window whose contrast-normalised residual is large did not match
+  (``max_normalised_cost``); left-right inconsistent matches are already removed by the matcher.
+
+All tests are on the polar grid of :mod:`scope3d.mvs.axial` (rows = epipolar lines).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+
+@dataclass(frozen=True)
+class ConfidenceOptions:
+    """Thresholds of the reliability mask; every one is named with its unit.
+
+    min_disparity_px : float, columns. Relative range error is about ``sigma_d / d``; at 1.5 columns and
+        0.1 column of noise it is 7 %.
+    max_range_sigma_mm : float, predicted 1-sigma range error (mm) above which a point is dropped.
+    disparity_sigma_floor_px : float, columns. The refinement's Cramér-Rao sigma ignores interpolation and
+        model error; a floor of 0.05 column (typical sub-pixel accuracy of SGM plus refinement on
+        textured images) keeps the prediction honest.
+    min_intensity : float, grey levels (0-255): mean over the window in both images (the dark rim).
+    min_gradient : float, grey levels per column: RMS row gradient over the window (texture along the
+        epipolar line; 1 grey level per column is at the noise level of 8-bit images).
+    max_normalised_cost : float, mean absolute residual over the window divided by the window's grey
+        standard deviation (0 = perfect match, ~1.1 = unrelated windows).
+    window_px : int, odd, the window of the intensity and gradient statistics.
+    erode_px : int, shrink the valid region by this many pixels: disparities next to holes and
+        occlusion edges are the least reliable.
+    """
+
+    min_disparity_px: float = 1.5
+    max_range_sigma_mm: float = 0.1
+    disparity_sigma_floor_px: float = 0.05
+    min_intensity: float = 20.0
+    min_gradient: float = 1.0
+    max_normalised_cost: float = 0.35
+    window_px: int = 7
+    erode_px: int = 1
+
+    def __post_init__(self) -> None:
+        if self.window_px < 1 or self.window_px % 2 == 0:
+            raise ValueError("ConfidenceOptions.window_px must be a positive odd number")
+        for name in ("min_disparity_px", "max_range_sigma_mm", "disparity_sigma_floor_px", "min_intensity",
+                     "min_gradient", "max_normalised_cost"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"ConfidenceOptions.{name} must be non-negative")
+        if self.erode_px < 0:
+            raise ValueError("ConfidenceOptions.erode_px must be non-negative")
+
+
+@dataclass(frozen=True)
+class Reliability:
+    """Per-cell reliability on the polar grid, each (n_angles, n_radii).
+
+    mask : bool, keep. confidence : float32 in (0, 1], ``1 / (1 + (sigma / max_range_sigma)^2)``, 0 where
+    masked. range_sigma_mm : float32 predicted 1-sigma range error. reasons : dict name -> bool mask of
+    the cells each test rejected (for reports and pictures).
+    """
+
+    mask: np.ndarray
+    confidence: np.ndarray
+    range_sigma_mm: np.ndarray
+    reasons: dict
+
+
+def window_statistics(image: np.ndarray, window_px: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(mean, std, rms row gradient) of an (H, W) grey image over ``window_px`` windows, each (H, W) float32."""
+    img = np.asarray(image, dtype=np.float32)
+    k = (window_px, window_px)
+    mean = cv2.boxFilter(img, cv2.CV_32F, k, borderType=cv2.BORDER_REFLECT)
+    var = cv2.boxFilter(img * img, cv2.CV_32F, k, borderType=cv2.BORDER_REFLECT) - mean * mean
+    gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=1, scale=0.5)
+    grad = np.sqrt(np.maximum(cv2.boxFilter(gx * gx, cv2.CV_32F, k, borderType=cv2.BORDER_REFLECT), 0))
+    return mean, np.sqrt(np.maximum(var, 0)), grad
+
+
+def reliability(
+    front_polar: np.ndarray,
+    rear_polar: np.ndarray,
+    disparity: np.ndarray,
+    cost: np.ndarray,
+    disparity_sigma: np.ndarray,
+    range_sigma_fn,
+    valid: np.ndarray,
+    options: ConfidenceOptions = ConfidenceOptions(),
+) -> Reliability:
+    """Combine the tests of the module docstring into one mask and a confidence.
+
+    front_polar, rear_polar : (A, R) uint8 polar images (front = matcher's left).
+    disparity, cost, disparity_sigma : (A, R) float32 from the matcher (NaN = no match).
+    range_sigma_fn : callable (disparity, disparity_sigma) -> range sigma (mm), e.g.
+        :meth:`scope3d.mvs.axial.AxialPair.range_sigma`.
+    valid : (A, R) bool, grid cells seen by both cameras.
+    """
+    w = options.window_px
+    mean_f, std_f, grad_f = window_statistics(front_polar, w)
+    mean_r, _, _ = window_statistics(rear_polar, w)
+    d = np.asarray(disparity, dtype=np.float32)
+    sigma_d = np.fmax(np.asarray(disparity_sigma, dtype=np.float32), options.disparity_sigma_floor_px)
+    sigma_d = np.where(np.isfinite(sigma_d), sigma_d, options.disparity_sigma_floor_px)
+    range_sigma = np.asarray(range_sigma_fn(d, sigma_d), dtype=np.float32)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        norm_cost = np.asarray(cost, dtype=np.float32) / std_f
+    reasons = {
+        "outside_view": ~valid,
+        "no_match": ~np.isfinite(d),
+        "near_epipole": ~(d >= options.min_disparity_px),
+        "ill_conditioned": ~(range_sigma <= options.max_range_sigma_mm),
+        "dark": ~((mean_f >= options.min_intensity) & (mean_r >= options.min_intensity)),
+        "low_texture": ~(grad_f >= options.min_gradient),
+        "poor_match": np.isfinite(norm_cost) & (norm_cost > options.max_normalised_cost),
+    }
+    mask = np.ones(d.shape, bool)
+    for reject in reasons.values():
+        mask &= ~reject
+    if options.erode_px:
+        k = 2 * options.erode_px + 1
+        mask = cv2.erode(mask.astype(np.uint8), np.ones((k, k), np.uint8), borderType=cv2.BORDER_CONSTANT,
+                         borderValue=0).astype(bool)
+    with np.errstate(invalid="ignore", over="ignore"):
+        confidence = np.where(mask, 1.0 / (1.0 + (range_sigma / options.max_range_sigma_mm) ** 2), 0.0)
+    return Reliability(mask, confidence.astype(np.float32), range_sigma, reasons)

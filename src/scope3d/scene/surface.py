@@ -1,0 +1,453 @@
+"""A smooth surface through the triangulated points, its texture mosaic and its depth map (reference
+sec. 3.2: "a thin plate spline algorithm was applied to generate a smooth 3D surface by fitting these
+feature points"; Fig. 4.6(b, c)).
+
+Why a thin-plate-spline height field over the best-fit plane
+------------------------------------------------------------
+A scope above a surgical cavity sees the surface from one side: every point of the field is a
+function ``h(s, t)`` of its position in the plane the cameras look down on. Writing the surface as a
+height field over the points' best-fit plane (PCA) makes it a 2-D scattered-data fit, and the
+thin-plate spline is the smoothest interpolant of such data: it minimises the bending energy
+``∫∫ h_ss² + 2 h_st² + h_tt²`` (no tuning of a length scale, unlike Gaussian RBFs), reproduces planes
+exactly (a flat sheet stays flat whatever the smoothing) and, with ``smoothing > 0``, becomes the
+smoothing spline that averages out triangulation noise instead of threading through it. It is what the
+reference used, and ``scipy.interpolate.RBFInterpolator(kernel="thin_plate_spline")`` solves it
+exactly. Poisson or ball-pivoting reconstruction would handle closed or overhanging shapes, which a
+single-sided endoscopic survey never sees, at the price of normals and far more points.
+
+The spline is fitted to cell medians of a coarse bin grid (``control_cell_mm``), not to every point:
+this bounds the dense solve (its cost grows as the cube of the number of centres) and makes the fit
+robust to the occasional wrong track. The mesh is then the spline sampled on a regular grid of the
+plane (``grid_step_mm``), kept only where data are near (``max_extrapolation_mm``): the grid *is* a
+raster image of the surface, which the texture, fluorescence and depth-map stages reuse.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.interpolate import RBFInterpolator
+from scipy.spatial import cKDTree
+
+from scope3d.geometry.plane import fit_plane
+from scope3d.geometry.pose import Pose
+from scope3d.scene.mesh import Mesh
+from scope3d.sensor.camera import Camera
+
+
+@dataclass(frozen=True)
+class SurfaceOptions:
+    """Thin-plate-spline surface fitting.
+
+    grid_step_mm : float, spacing of the output mesh grid (default 0.2 mm: finer than the
+        fluorescence targets' ~1 mm features, 40k vertices for a 40 mm field).
+    control_cell_mm : float, points are reduced to one median per cell of this size before the fit
+        (default 0.6 mm, about the point spacing of a 30-frame survey); raised automatically so that
+        at most ``max_control_points`` remain.
+    max_control_points : int, bound on the spline's centres (default 2500; ~1 s dense solve).
+    smoothing : float, the spline's smoothing (scipy's ``smoothing``, in mm² per centre; default 0.5,
+        about the variance of single-point depth errors times the few points merged per cell).
+    outlier_mad : float, points farther than this many median absolute deviations from their cell's
+        median height are ignored (default 4).
+    max_extrapolation_mm : float, grid vertices farther than this from every point are left out of
+        the mesh (default 1.5 mm).
+    robust_passes : int, refits after dropping control points far from the spline (default 2).
+    min_neighbours : int, support_radius_mm : float, points with fewer than ``min_neighbours`` other
+        points within ``support_radius_mm`` in the plane are ignored (default 3 within 1 mm).
+    local_neighbours : int, control points are checked against the plane of this many neighbours
+        (default 8), ``local_passes`` times (default 2); outlier_floor_mm : float, least deviation
+        called an outlier (default 0.15 mm).
+    """
+
+    grid_step_mm: float = 0.2
+    control_cell_mm: float = 0.6
+    max_control_points: int = 2500
+    smoothing: float = 0.5
+    outlier_mad: float = 4.0
+    max_extrapolation_mm: float = 1.5
+    robust_passes: int = 2
+    min_neighbours: int = 3
+    local_neighbours: int = 8
+    local_passes: int = 2
+    outlier_floor_mm: float = 0.15
+    support_radius_mm: float = 1.0
+
+    def __post_init__(self) -> None:
+        for name in ("grid_step_mm", "control_cell_mm", "outlier_mad", "max_extrapolation_mm"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        if self.smoothing < 0 or self.max_control_points < 10:
+            raise ValueError("smoothing must be >= 0 and max_control_points >= 10")
+
+
+@dataclass
+class Surface:
+    """A height field over a plane, sampled on a grid.
+
+    origin : (3,) mm world, the plane's origin. axes : (3, 3), rows e_s, e_t, n (orthonormal, world);
+    ``n`` points towards the cameras. A grid vertex (r, c) is
+    ``origin + s[c] e_s + t[r] e_t + height[r, c] n``.
+    s : (W,) mm; t : (H,) mm; height : (H, W) mm, NaN outside the surveyed region.
+    """
+
+    origin: np.ndarray
+    axes: np.ndarray
+    s: np.ndarray
+    t: np.ndarray
+    height: np.ndarray
+
+    @property
+    def valid(self) -> np.ndarray:
+        """(H, W) bool, grid vertices that are part of the surface."""
+        return np.isfinite(self.height)
+
+    @property
+    def step_mm(self) -> float:
+        return float(self.s[1] - self.s[0]) if len(self.s) > 1 else 0.0
+
+    def vertices(self) -> np.ndarray:
+        """(H, W, 3) mm world; NaN outside the surface."""
+        ss, tt = np.meshgrid(self.s, self.t)
+        return self.origin + ss[..., None] * self.axes[0] + tt[..., None] * self.axes[1] + self.height[..., None] * self.axes[2]
+
+    def to_plane(self, points_world: np.ndarray) -> np.ndarray:
+        """(N, 3) world mm -> (N, 3) plane coordinates (s, t, h) mm."""
+        return (np.asarray(points_world, float) - self.origin) @ self.axes.T
+
+    def normals(self) -> np.ndarray:
+        """(H, W, 3) unit normals (world) from central differences of the height field."""
+        hs = np.gradient(self.height, self.step_mm, axis=1)
+        ht = np.gradient(self.height, self.step_mm, axis=0)
+        n = self.axes[2] - hs[..., None] * self.axes[0] - ht[..., None] * self.axes[1]
+        return n / np.linalg.norm(n, axis=-1, keepdims=True)
+
+    def cell_areas_mm2(self) -> np.ndarray:
+        """(H, W) surface area (mm²) each grid vertex stands for (plane cell area / cos of the slope)."""
+        hs = np.gradient(self.height, self.step_mm, axis=1)
+        ht = np.gradient(self.height, self.step_mm, axis=0)
+        return self.step_mm**2 * np.sqrt(1.0 + hs * hs + ht * ht)
+
+    def height_at(self, st: np.ndarray) -> np.ndarray:
+        """(N, 2) plane coordinates (s, t) mm -> (N,) height (mm) by bilinear interpolation; NaN
+        outside the surveyed region."""
+        from scipy.ndimage import map_coordinates
+
+        st = np.asarray(st, float)
+        col = (st[:, 0] - self.s[0]) / self.step_mm
+        row = (st[:, 1] - self.t[0]) / self.step_mm
+        return map_coordinates(self.height, [row, col], order=1, mode="constant", cval=np.nan)
+
+    def ray_depths(self, pose: Pose, rays_cam: np.ndarray, *, iterations: int = 6) -> np.ndarray:
+        """z-depth (mm, camera frame) at which each ray meets the surface; NaN where it misses.
+
+        rays_cam : (N, 3) camera-frame directions with z = 1 (so the ray parameter is the z-depth).
+        Fixed-point iteration on the height field (converges while the surface's slope times the ray's
+        obliquity stays below 1, true for a scope looking down into a cavity)."""
+        d = np.asarray(rays_cam, float) @ pose.rotation  # world direction per unit z-depth
+        c = self.to_plane(pose.centre[None])[0]
+        dp = d @ self.axes.T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = (np.nanmedian(self.height) - c[2]) / dp[:, 2]
+            for _ in range(iterations):
+                h = self.height_at(c[:2] + z[:, None] * dp[:, :2])
+                z = (h - c[2]) / dp[:, 2]
+        z[~(z > 0)] = np.nan
+        return z
+
+    def depth_band(self, band_mm: float):
+        """A per-ray depth prior for :class:`scope3d.feature.depth_prior.DepthPrior`: the z-depths at which each
+        ray crosses the surface shifted by ± ``band_mm`` along its normal."""
+        def per_ray(pose: Pose, rays_cam: np.ndarray):
+            z = self.ray_depths(pose, rays_cam)
+            d = np.asarray(rays_cam, float) @ pose.rotation
+            # moving the surface by band along n changes the ray's z-depth by band / |d . n|
+            dz = band_mm / np.maximum(np.abs(d @ self.axes[2]), 1e-3)
+            return z - dz, z + dz
+        return per_ray
+
+    def refined(self, rows: slice, cols: slice, factor: int) -> "Surface":
+        """The part ``[rows, cols]`` of the grid resampled ``factor`` times finer (bicubic on the
+        height; cells next to missing heights stay missing). For measuring small targets."""
+        if factor < 1:
+            raise ValueError(f"factor must be >= 1, got {factor}")
+        h = self.height[rows, cols]
+        s, t = self.s[cols], self.t[rows]
+        if factor == 1 or h.size == 0:
+            return Surface(self.origin, self.axes, s, t, h.copy())
+        valid = np.isfinite(h).astype(np.float32)
+        filled = np.where(np.isfinite(h), h, np.nanmean(h) if np.isfinite(h).any() else 0.0).astype(np.float64)
+        n_s, n_t = (len(s) - 1) * factor + 1, (len(t) - 1) * factor + 1
+        s_new = s[0] + np.arange(n_s) * (self.step_mm / factor)
+        t_new = t[0] + np.arange(n_t) * (self.step_mm / factor)
+        # align grid nodes exactly (resize maps pixel centres; use remap on node coordinates instead)
+        mc, mr = np.meshgrid(np.arange(n_s) / factor, np.arange(n_t) / factor)
+        h_new = cv2.remap(filled.astype(np.float32), mc.astype(np.float32), mr.astype(np.float32), cv2.INTER_CUBIC,
+                          borderMode=cv2.BORDER_REPLICATE).astype(float)
+        v_new = cv2.remap(valid, mc.astype(np.float32), mr.astype(np.float32), cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        h_new[v_new < 0.999] = np.nan
+        return Surface(self.origin, self.axes, s_new, t_new, h_new)
+
+    def mesh(self, colors: np.ndarray | None = None) -> Mesh:
+        """Triangle mesh of the valid grid (two triangles per cell whose 4 corners are valid).
+
+        colors : optional (H, W, 3) uint8 per-vertex colours. Faces wind counter-clockwise seen from
+        ``n`` (the camera side).
+        """
+        valid = self.valid
+        index = np.full(valid.shape, -1, dtype=np.int64)
+        index[valid] = np.arange(int(valid.sum()))
+        v00, v01, v10, v11 = index[:-1, :-1], index[:-1, 1:], index[1:, :-1], index[1:, 1:]
+        cell = (v00 >= 0) & (v01 >= 0) & (v10 >= 0) & (v11 >= 0)
+        # (s, t, n) is right-handed, so (v00, v01, v11) winds counter-clockwise about n
+        faces = np.concatenate([np.stack([v00[cell], v01[cell], v11[cell]], 1), np.stack([v00[cell], v11[cell], v10[cell]], 1)])
+        verts = self.vertices()[valid]
+        normals = self.normals()[valid]
+        vc = None if colors is None else np.asarray(colors, np.uint8)[valid]
+        return Mesh(verts, faces, vc, normals)
+
+
+def _control_points(stn: np.ndarray, cell: float, mad_k: float) -> np.ndarray:
+    """Cell medians of (s, t, h) after rejecting points far from their cell's median height."""
+    key = np.floor(stn[:, :2] / cell).astype(np.int64)
+    _, inv = np.unique(key, axis=0, return_inverse=True)
+    inv = inv.ravel()
+    order = np.argsort(inv, kind="stable")
+    inv_s, stn_s = inv[order], stn[order]
+    starts = np.flatnonzero(np.r_[True, inv_s[1:] != inv_s[:-1]])
+    counts = np.diff(np.r_[starts, len(inv_s)])
+    # median height per cell via sorting heights within groups
+    o2 = np.lexsort((stn_s[:, 2], inv_s))
+    h_sorted = stn_s[o2, 2]
+    med_h = 0.5 * (h_sorted[starts + (counts - 1) // 2] + h_sorted[starts + counts // 2])
+    dev = np.abs(stn_s[:, 2] - med_h[inv_s])
+    dev_sorted = np.sort(dev)  # global MAD: robust spread of the whole cloud about the local medians
+    mad = max(float(np.median(dev_sorted)), 1e-3)
+    keep = dev <= mad_k * 1.4826 * mad
+    n_keep = np.bincount(inv_s[keep], minlength=len(starts))
+    ok = n_keep > 0
+    sums = np.stack([np.bincount(inv_s[keep], stn_s[keep, c], len(starts)) for c in range(2)], 1)
+    st = sums[ok] / n_keep[ok, None]
+    return np.column_stack([st, med_h[ok]])
+
+
+def _local_plane_residuals(stn: np.ndarray, k: int) -> np.ndarray:
+    """Height (M,) of each point (M, 3) (s, t, h) above the least-squares plane of its ``k`` nearest
+    neighbours in (s, t), the point itself excluded."""
+    _, idx = cKDTree(stn[:, :2]).query(stn[:, :2], k=k + 1)
+    nb = stn[idx[:, 1:]]  # (M, k, 3)
+    A = np.concatenate([nb[:, :, :2] - stn[:, None, :2], np.ones(nb.shape[:2] + (1,))], axis=2)
+    AtA = np.einsum("mki,mkj->mij", A, A) + 1e-9 * np.eye(3)
+    coef = np.linalg.solve(AtA, np.einsum("mki,mk->mi", A, nb[:, :, 2])[..., None])[..., 0]
+    return stn[:, 2] - coef[:, 2]  # plane value at the point itself (offset term)
+
+
+def _reject_local_outliers(ctrl: np.ndarray, k: int, mad_k: float, floor_mm: float) -> np.ndarray:
+    """Drop control points (M, 3) (s, t, h) far from the least-squares plane of their ``k`` nearest
+    neighbours: the spline would otherwise bend towards a wrong track (smoothing only damps it).
+    Threshold: ``mad_k`` robust sigmas of those residuals, at least ``floor_mm`` (above the sag of a
+    curved field over a neighbourhood, d^2 / 2R = 0.06 mm for 1.5 mm on the 17.5 mm dome)."""
+    if k < 3 or len(ctrl) <= k + 3:
+        return ctrl
+    resid = _local_plane_residuals(ctrl, k)
+    mad = 1.4826 * float(np.median(np.abs(resid - np.median(resid))))
+    keep = np.abs(resid) <= max(mad_k * mad, floor_mm)
+    return ctrl[keep] if keep.sum() >= 10 else ctrl
+
+
+def off_surface_points(points: np.ndarray, *, towards: np.ndarray | None = None, neighbours: int = 10,
+                       mad_k: float = 6.0, floors_mm: tuple[float, ...] = (2.0, 0.5)) -> np.ndarray:
+    """Boolean mask (N,) of points (N, 3) mm that stand off the local surface of their neighbours.
+
+    Each point is compared with the least-squares plane of its ``neighbours`` nearest points in the
+    best-fit plane of the cloud (a height field seen from one side, as :func:`fit_surface` assumes).
+    A wrong two-view match that satisfies the epipolar constraint triangulates at the wrong depth
+    along its ray — millimetres above or below a dense, consistent neighbourhood — which is what this
+    catches. One pass per floor, on the points the previous passes kept: gross errors go first so that
+    they no longer tilt their neighbours' planes. Threshold: ``mad_k`` robust sigmas of all residuals,
+    at least the pass's floor (the last, default 0.5 mm, is above what a plane fitted across a crease
+    such as a cavity's rim leaves on correct points).
+    """
+    pts = np.asarray(points, float)
+    off = ~np.all(np.isfinite(pts), axis=1)
+    if (~off).sum() <= neighbours + 3:
+        return off
+    origin, axes = fit_plane(pts[~off], towards)
+    stn = (pts - origin) @ axes.T
+    for floor_mm in floors_mm:
+        idx = np.flatnonzero(~off)
+        if len(idx) <= neighbours + 3:
+            break
+        resid = _local_plane_residuals(stn[idx], neighbours)
+        mad = 1.4826 * float(np.median(np.abs(resid - np.median(resid))))
+        off[idx[np.abs(resid) > max(mad_k * mad, floor_mm)]] = True
+    return off
+
+
+def fit_surface(points: np.ndarray, options: SurfaceOptions = SurfaceOptions(), *, towards: np.ndarray | None = None) -> Surface:
+    """Fit the thin-plate-spline height field.
+
+    points : (N, 3) mm world, N >= 10 (the triangulated features). towards : (3,) direction the
+    surface's normal should face (towards the cameras). Raises ``ValueError`` for too few points.
+    """
+    pts = np.asarray(points, float)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"points must be (N, 3), got {pts.shape}")
+    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    if len(pts) < 10:
+        raise ValueError(f"need at least 10 points to fit a surface, got {len(pts)}")
+    origin, axes = fit_plane(pts, towards)
+    stn = (pts - origin) @ axes.T
+    # an isolated point cannot be checked against neighbours (the spline would bend to it): keep points
+    # with at least ``min_neighbours`` others within ``support_radius_mm`` in the plane
+    if options.min_neighbours > 0:
+        count = cKDTree(stn[:, :2]).query_ball_point(stn[:, :2], options.support_radius_mm, return_length=True) - 1
+        supported = count >= options.min_neighbours
+        if supported.sum() >= 10:
+            stn = stn[supported]
+    cell = options.control_cell_mm
+    extent = np.ptp(stn[:, 0]) * np.ptp(stn[:, 1])
+    cell = max(cell, np.sqrt(extent / options.max_control_points))
+    ctrl = _control_points(stn, cell, options.outlier_mad)
+    while len(ctrl) > options.max_control_points:
+        cell *= 1.25
+        ctrl = _control_points(stn, cell, options.outlier_mad)
+    # twice: a cluster of two or three wrong points shields itself in its neighbours' plane until the
+    # worst of it is gone (a wrong cell left a 1.4 mm sag in a hole of the flat sheet otherwise)
+    for _ in range(options.local_passes):
+        ctrl = _reject_local_outliers(ctrl, options.local_neighbours, options.outlier_mad, options.outlier_floor_mm)
+    tps = RBFInterpolator(ctrl[:, :2], ctrl[:, 2], kernel="thin_plate_spline", smoothing=options.smoothing)
+    # A cell holding a single wrong track is its own median; catch those against the spline fitted
+    # through their neighbours: drop control points far from the fit (robust MAD, floor 0.3 mm) and refit.
+    for _ in range(options.robust_passes):
+        resid = ctrl[:, 2] - tps(ctrl[:, :2])
+        mad = 1.4826 * float(np.median(np.abs(resid - np.median(resid))))
+        keep = np.abs(resid) <= max(options.outlier_mad * mad, 2.0 * options.outlier_floor_mm)
+        if keep.all() or keep.sum() < 10:
+            break
+        ctrl = ctrl[keep]
+        tps = RBFInterpolator(ctrl[:, :2], ctrl[:, 2], kernel="thin_plate_spline", smoothing=options.smoothing)
+    step = options.grid_step_mm
+    lo = stn[:, :2].min(axis=0)
+    hi = stn[:, :2].max(axis=0)
+    s = np.arange(lo[0], hi[0] + step, step)
+    t = np.arange(lo[1], hi[1] + step, step)
+    ss, tt = np.meshgrid(s, t)
+    grid = np.column_stack([ss.ravel(), tt.ravel()])
+    near = cKDTree(stn[:, :2]).query(grid, distance_upper_bound=options.max_extrapolation_mm)[0] < np.inf
+    # fill holes smaller than the extrapolation distance (closing), so the mesh has no pin-holes
+    near = near.reshape(ss.shape)
+    k = max(1, int(round(options.max_extrapolation_mm / step)))
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * k + 1, 2 * k + 1))
+    near = cv2.morphologyEx(near.astype(np.uint8), cv2.MORPH_CLOSE, kernel).astype(bool)
+    # and fill every hole enclosed by the surveyed region: a fluorescent film or a specular patch has
+    # no features, but the spline interpolates across it (what is not reachable from the border
+    # through unsurveyed cells is inside)
+    outside = np.pad(~near, 1, constant_values=True).astype(np.uint8)
+    cv2.floodFill(outside, None, (0, 0), 2)
+    near |= outside[1:-1, 1:-1] != 2
+    height = np.full(ss.shape, np.nan)
+    height[near] = tps(grid[near.ravel()])
+    return Surface(origin, axes, s, t, height)
+
+
+def best_views(
+    camera: Camera, poses: list[Pose], points: np.ndarray, normals: np.ndarray, *, edge_weight: float = 0.5
+) -> tuple[np.ndarray, np.ndarray]:
+    """For each surface point choose the frame that sees it best.
+
+    points, normals : (V, 3) world mm and unit normals. Score = cos(angle between normal and the ray
+    to the camera) - ``edge_weight`` * (radial image position / image radius)² — facing views near the
+    image centre are sharpest and least distorted. Occlusion is not modelled: a single-sided surgical
+    field seen from above does not hide itself.
+    Returns view (V,) int64 (-1 when no frame sees the point) and pixels (V, 2) in that view.
+    """
+    V = len(points)
+    best = np.full(V, -np.inf)
+    view = np.full(V, -1, dtype=np.int64)
+    pix = np.full((V, 2), np.nan)
+    centre_px = np.array([(camera.width - 1) / 2.0, (camera.height - 1) / 2.0])
+    r_img = camera.mask_radius_px or 0.5 * np.hypot(camera.width, camera.height)
+    for k, pose in enumerate(poses):  # per-frame loop
+        uv = camera.project_world(pose, points)
+        ok = camera.in_image(uv, margin_px=2.0)
+        to_cam = pose.centre - points
+        cosang = np.einsum("vi,vi->v", normals, to_cam) / np.linalg.norm(to_cam, axis=1)
+        rad = np.linalg.norm(uv - centre_px, axis=1) / r_img
+        score = np.where(ok & (cosang > 0.1), cosang - edge_weight * rad * rad, -np.inf)
+        better = score > best
+        best[better] = score[better]
+        view[better] = k
+        pix[better] = uv[better]
+    return view, pix
+
+
+def sample_images(images, view: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+    """Bilinear samples: images : sequence or callable ``images(k)`` -> (H, W[, C]) array; view (V,),
+    pixels (V, 2). Returns (V, C) float (0 where view is -1)."""
+    get = images if callable(images) else (lambda k: images[k])
+    out = None
+    for k in np.unique(view[view >= 0]):
+        sel = view == k
+        img = np.asarray(get(int(k)))
+        if img.ndim == 2:
+            img = img[..., None]
+        if out is None:
+            out = np.zeros((len(view), img.shape[2]), dtype=float)
+        mx = pixels[sel, 0].astype(np.float32).reshape(-1, 1)
+        my = pixels[sel, 1].astype(np.float32).reshape(-1, 1)
+        s = cv2.remap(img.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        out[sel] = s.reshape(-1, img.shape[2])
+    return out if out is not None else np.zeros((len(view), 1))
+
+
+def texture(surface: Surface, camera: Camera, poses: list[Pose], images) -> tuple[np.ndarray, np.ndarray]:
+    """Texture mosaic: every grid vertex coloured from its best view (:func:`best_views`).
+
+    images : sequence or callable ``images(k)`` -> (H, W, 3) uint8 RGB. Returns colours (H, W, 3)
+    uint8 (black outside the surface or where no frame sees it) and the view index map (H, W) int.
+    """
+    valid = surface.valid
+    verts = surface.vertices()[valid]
+    normals = surface.normals()[valid]
+    view, pix = best_views(camera, poses, verts, normals)
+    rgb = sample_images(images, view, pix)
+    if rgb.shape[1] == 1:
+        rgb = np.repeat(rgb, 3, axis=1)
+    colors = np.zeros(valid.shape + (3,), np.uint8)
+    colors[valid] = np.clip(np.rint(rgb), 0, 255).astype(np.uint8)
+    view_map = np.full(valid.shape, -1, dtype=np.int64)
+    view_map[valid] = view
+    return colors, view_map
+
+
+def depth_map(surface: Surface) -> np.ndarray:
+    """(H, W) depth (mm) of the surface below its top along the normal (the cameras' side): the
+    reference's pseudo-colour depth map (Fig. 4.6(c)). The top is the 99.5th percentile of the
+    heights, so that a spline overshoot at the unsurveyed edge does not set the scale; depths are
+    clipped at 0. NaN outside the surface."""
+    top = np.nanpercentile(surface.height, 99.5)
+    return np.maximum(top - surface.height, 0.0)
+
+
+def save_depth_map_png(path, surface: Surface, *, title: str = "depth map") -> None:
+    """Depth map with a colour scale (mm) as a PNG (matplotlib, imported here: plotting is optional)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from scope3d.utils.atomic import atomic_path
+
+    d = depth_map(surface)
+    extent = (surface.s[0], surface.s[-1], surface.t[-1], surface.t[0])
+    fig, ax = plt.subplots(figsize=(5.5, 4.5), dpi=110)
+    im = ax.imshow(d, cmap="turbo", extent=extent)
+    fig.colorbar(im, ax=ax, label="depth below the highest point (mm)")
+    ax.set_xlabel("s (mm)")
+    ax.set_ylabel("t (mm)")
+    ax.set_title(title)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp)
+    plt.close(fig)

@@ -1,0 +1,2 @@
+"""Helpers every layer may use: atomic outputs (:mod:`.atomic`).
+"""
