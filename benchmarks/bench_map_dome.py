@@ -140,7 +140,7 @@ def _short(s: dict) -> dict:
 def sheet(tmp: Path) -> dict:
     seq = phantoms.generate("sheet", "grid5x6", seed=0)
     ds = load_dataset(phantoms.write(seq, tmp / "sheet"))
-    r = run(MapOptions(fluorescence=False, figures=False), ds, tmp / "out_sheet").report
+    r = run(MapOptions(fluorescence=None, figures=False), ds, tmp / "out_sheet").report
     return {"n_points": r["n_points"], "surface_flatness_rms_mm": r["surface"]["flatness_rms_mm"],
             "points_flatness_rms_mm": r["surface"]["points_flatness_rms_mm"],
             "points_flatness_median_mm": r["surface"]["points_flatness_median_mm"],

@@ -168,7 +168,7 @@ class Scene:
 
 
 def make_scene(name: str, seed: int, size: tuple[int, int] | None, tmp: Path) -> Scene:
-    options = replace(MAP_PRESETS["photograph" if name == "temple" else "default"], figures=False, fluorescence=False)
+    options = replace(MAP_PRESETS["photograph" if name == "temple" else "default"], figures=False, fluorescence=None)
     if name == "temple":
         return _temple(options, tmp)
     t0 = time.perf_counter()

@@ -49,7 +49,7 @@ REPEATS = 2  # best of 2: the machine is shared
 PHOTOGRAPH = replace(MAP_PRESETS["photograph"], figures=False)
 # the photograph preset's pairs before this benchmark: the 4 best partners per frame within 35 deg
 PHOTOGRAPH_FIXED4 = replace(PHOTOGRAPH, pairs=PairOptions(min_overlap=0.2, max_pairs_per_frame=4, max_view_angle_deg=35.0))
-GRID = MapOptions(figures=False, fluorescence=False)
+GRID = MapOptions(figures=False, fluorescence=None)
 GRID_PER_DIRECTION = replace(GRID, pairs=replace(GRID.pairs, max_pairs_per_direction=1))
 RING_VIEWS = (8, 16, 24, 48)
 RING_TILT_DEG, RING_DISTANCE_MM, RING_SIZE_PX = 40.0, 25.0, 320

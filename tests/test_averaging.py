@@ -12,9 +12,9 @@ from scope3d.estimators.averaging import (
     RelativePose,
     average_positions,
     average_rotations,
-    gauge_from_measurements,
     relative_pose,
 )
+from scope3d.estimators.gauge import gauge_from_measurements
 from scope3d.geometry.pose import Pose
 from scope3d.geometry.rotation import look_at, rotation_angle_between, rotvec_to_matrix
 from scope3d.geometry.similarity import Similarity

@@ -11,7 +11,7 @@ from scope3d.metrology.fluorescence import (
     FluorescenceOptions,
     auto_threshold,
     carry_to_surface,
-    map_targets,
+    targets_on_surface,
     match_targets,
     measure_targets,
     overlay,
@@ -117,7 +117,7 @@ def test_carry_to_surface_and_refine_through_cameras():
         masks.append(m.astype(bool))
     on = carry_to_surface(s, cam, poses, masks)
     assert on.sum() > 0
-    targets, _, labels = map_targets(s, cam, poses, masks, FluorescenceOptions(refine_factor=4))
+    targets, _, labels = targets_on_surface(s, cam, poses, masks, FluorescenceOptions(refine_factor=4))
     assert len(targets) == 1 and labels.max() == 1
     assert targets[0].size_mm == pytest.approx(3.0, rel=0.05)
     np.testing.assert_allclose(targets[0].centroid_mm, 0.0, atol=0.05)

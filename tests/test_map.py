@@ -141,7 +141,7 @@ def test_refined_poses_narrow_the_search_without_losing_matches(tracker_dir):
 def test_flat_sheet_comes_out_flat(tmp_path):
     seq = phantoms.generate("sheet", "grid5x6", size=SIZE, seed=1, n_frames=12)
     ds = load_dataset(phantoms.write(seq, tmp_path / "sheet"))
-    result = run(MapOptions(fluorescence=False, figures=False), ds, tmp_path / "out")
+    result = run(MapOptions(fluorescence=None, figures=False), ds, tmp_path / "out")
     # single points scatter about the plane by the two-view depth precision at the sheet's 15 mm, 5 mm
     # baseline; the surface averages many of them, so it must be flatter still
     sigma_z = 15.0**2 * SIFT_SIGMA_PX / (ds.camera.fx * 5.0)
@@ -152,7 +152,7 @@ def test_flat_sheet_comes_out_flat(tmp_path):
 
 def test_pose_modes_agree_on_exact_poses(dome_dir, tmp_path):
     ds = load_dataset(dome_dir)
-    quick = MapOptions(surface=False, fluorescence=False, figures=False, evaluation=EvaluationOptions(icp_iterations=3))
+    quick = MapOptions(surface=None, fluorescence=None, figures=False, evaluation=EvaluationOptions(icp_iterations=3))
     fixed = run(replace(quick, pose_mode="fixed"), ds, tmp_path / "f")
     free = run(replace(quick, pose_mode="free"), ds, tmp_path / "g")
     # free BA is fixed in gauge (first camera and one coordinate), so with exact poses it must stay put:

@@ -4,6 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from scope3d.feature.depth_prior import DepthPrior
 from scope3d.geometry.plane import fit_plane
 from scope3d.geometry.pose import Pose
 from scope3d.geometry.rotation import look_at
@@ -74,7 +75,7 @@ def test_ray_depths_hit_the_surface():
     z = s.ray_depths(pose, rays)
     world = (rays * z[:, None] - pose.translation) @ pose.rotation
     np.testing.assert_allclose(world[:, 2], _cap(world[:, :2]), atol=0.01)
-    lo, hi = s.depth_band(0.5)(pose, rays)
+    lo, hi = DepthPrior(1.0, 100.0).with_band(s, 0.5).ray_ranges(pose, rays)
     assert np.all(lo < z) and np.all(z < hi)
 
 

@@ -1,6 +1,7 @@
 """``scope3d axial``: dense axial-stereo metrology of an internal surface (reference ch. 7, sec. 9.2)."""
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 
@@ -37,9 +38,18 @@ def _run(args) -> int:
     dataset = load_dataset(args.dataset)
     base = AxialOptions()
     options = replace(base, method=args.method, frames=tuple(args.frames) if args.frames else None,
-                      use_true_poses=args.true_poses, progress=args.method == "multiview",
+                      use_true_poses=args.true_poses,
                       two_view=replace(base.two_view, min_depth_mm=args.min_depth_mm))
-    result = run(options, dataset, args.out)
+    progress = None
+    if args.method == "multiview":
+        from tqdm import tqdm
+
+        progress = tqdm(unit="frame", leave=False, file=sys.stderr)
+    try:
+        result = run(options, dataset, args.out, progress=progress)
+    finally:
+        if progress is not None:
+            progress.close()
     print(result.summary())
     print(f"wrote {args.out}/ (cloud.ply, mesh.ply, depth.png, report.json)")
     return 0

@@ -49,9 +49,7 @@ def run(args) -> int:
     if not args.no_progress:
         from tqdm import tqdm
 
-        def progress(total, desc):
-            return tqdm(total=total, desc=desc, unit="frame" if desc == "features" else "pair", leave=False,
-                        file=sys.stderr)
+        progress = tqdm(leave=False, file=sys.stderr, unit="step")
     try:
         result = run_map(options, dataset, args.out, progress=progress)
     except ValueError as exc:
@@ -59,6 +57,9 @@ def run(args) -> int:
             raise
         # a degenerate scene (no overlap, too few points for a surface) is the user's data, not a bug
         raise InputError(f"{args.dataset}: {exc}") from None
+    finally:
+        if progress is not None:
+            progress.close()
     print(result.summary())
     print(f"wrote {args.out}")
     return 0

@@ -70,13 +70,22 @@ def run(args) -> int:
         raise InputError(f"--blur must be non-negative, got {args.blur}")
     if args.supersample is not None and not 1 <= args.supersample <= 8:
         raise InputError(f"--supersample must be from 1 to 8, got {args.supersample}")
-    seq = generate(
-        args.scene, args.trajectory, seed=args.seed, pose_noise_mm=args.pose_noise, thread=args.thread,
-        n_frames=args.frames, size=args.size, fov_deg=args.fov, side_view_deg=args.side_view,
-        axis_offset_mm=args.axis_offset, axis_tilt_deg=args.axis_tilt,
-        dome_radius_mm=args.dome_radius, options=RenderOptions(blur_sigma_px=args.blur, supersample=args.supersample),
-        progress=not args.no_progress,
-    )
+    progress = None
+    if not args.no_progress:
+        from tqdm import tqdm
+
+        progress = tqdm(unit="frame", leave=False, file=sys.stderr)
+    try:
+        seq = generate(
+            args.scene, args.trajectory, seed=args.seed, pose_noise_mm=args.pose_noise, thread=args.thread,
+            n_frames=args.frames, size=args.size, fov_deg=args.fov, side_view_deg=args.side_view,
+            axis_offset_mm=args.axis_offset, axis_tilt_deg=args.axis_tilt,
+            dome_radius_mm=args.dome_radius, options=RenderOptions(blur_sigma_px=args.blur, supersample=args.supersample),
+            progress=progress,
+        )
+    finally:
+        if progress is not None:
+            progress.close()
     out = write(seq, args.out)
     print(f"wrote {len(seq)} frames of {args.scene}/{seq.trajectory.name} "
           f"({seq.camera.width}x{seq.camera.height}) to {out}", file=sys.stderr)

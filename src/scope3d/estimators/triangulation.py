@@ -11,7 +11,7 @@ With exact poses and noise-free observations both methods are exact (tested).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -44,6 +44,11 @@ class TrackOptions:
             raise ValueError(f"method must be 'midpoint' or 'dlt', got {self.method!r}")
         if self.max_reprojection_error_px <= 0 or self.min_angle_deg < 0 or self.min_track_length < 2:
             raise ValueError("need max_reprojection_error_px > 0, min_angle_deg >= 0, min_track_length >= 2")
+
+    def widened_by(self, slack_px: float, *, cap_px: float = 200.0) -> "TrackOptions":
+        """These options with the reprojection gate widened by ``slack_px`` (at most ``cap_px``): for
+        triangulating with poses not yet adjusted, whose error moves every observation."""
+        return replace(self, max_reprojection_error_px=self.max_reprojection_error_px + min(slack_px, cap_px))
 
 
 def _rays_world(camera: Camera, poses: list[Pose], frame: np.ndarray, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

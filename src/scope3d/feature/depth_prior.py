@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from scope3d.geometry.pose import Pose
+from scope3d.scene.surface import Surface
 from scope3d.sensor.camera import Camera
 from scope3d.sensor.pose_tolerance import PoseTolerance
 
@@ -14,25 +15,77 @@ from scope3d.sensor.pose_tolerance import PoseTolerance
 class DepthPrior:
     """Range of z-depths (mm, camera frame, along the optical axis) at which the scene may lie.
 
+    Plain data (it pickles, so cluster workers can receive it).
+
     near_mm, far_mm : float, 0 < near <= far. The overlap and the matcher's prediction use the
-    geometric mean as the "expected" depth (the depth of the plane in the homography case).
-    per_ray : optional callable ``per_ray(pose, rays_cam) -> (near (N,), far (N,))`` giving a tighter
-        z-depth range (mm) for each ray ``rays_cam`` (N, 3) (camera frame, z = 1) of a frame at
-        ``pose`` — e.g. the band around a coarse surface already reconstructed; NaN where it knows
-        nothing (the global range is used there). Ranges are clipped to [near_mm, far_mm].
+        geometric mean as the "expected" depth (the depth of the plane in the homography case).
+    box_min_mm, box_max_mm : optional (3,) float, world mm: the scene lies in this box (a calibrated
+        object's); each ray's range is where it crosses the box.
+    band_surface, band_mm : optional :class:`~scope3d.scene.surface.Surface` and float mm: the scene lies
+        within ``band_mm`` of this surface (a coarse one already reconstructed), measured along its normal.
+    Per-ray ranges (:meth:`ray_ranges`) are NaN where the box or the surface says nothing (the global
+    range is used there) and are clipped to [near_mm, far_mm] by the matcher.
     """
 
     near_mm: float
     far_mm: float
-    per_ray: object = field(default=None, compare=False, repr=False)
+    box_min_mm: np.ndarray | None = field(default=None, compare=False)
+    box_max_mm: np.ndarray | None = field(default=None, compare=False)
+    band_surface: Surface | None = field(default=None, compare=False, repr=False)
+    band_mm: float = 0.0
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.near_mm) and np.isfinite(self.far_mm)) or not 0 < self.near_mm <= self.far_mm:
             raise ValueError(f"depth prior must satisfy 0 < near <= far, got [{self.near_mm}, {self.far_mm}] mm")
+        if (self.box_min_mm is None) != (self.box_max_mm is None):
+            raise ValueError("a depth prior's box needs both corners")
+        if self.box_min_mm is not None and self.band_surface is not None:
+            raise ValueError("a depth prior has a box or a surface band, not both")
+        if not (np.isfinite(self.band_mm) and self.band_mm >= 0):
+            raise ValueError(f"band_mm must be finite and >= 0, got {self.band_mm}")
 
     @property
     def mid_mm(self) -> float:
         return float(np.sqrt(self.near_mm * self.far_mm))
+
+    @property
+    def per_ray(self) -> bool:
+        """True when :meth:`ray_ranges` knows more than the global range."""
+        return self.box_min_mm is not None or self.band_surface is not None
+
+    def with_band(self, surface: Surface, band_mm: float) -> "DepthPrior":
+        """The same global range, each ray narrowed to ``band_mm`` about ``surface``."""
+        return DepthPrior(self.near_mm, self.far_mm, band_surface=surface, band_mm=band_mm)
+
+    def ray_ranges(self, pose: Pose, rays_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """z-depth range (near (N,), far (N,), mm) of each ray ``rays_cam`` (N, 3) (camera frame, z = 1)
+        of a frame at ``pose``; NaN where nothing more than the global range is known."""
+        rays = np.asarray(rays_cam, float).reshape(-1, 3)
+        if self.box_min_mm is not None:
+            return _box_ray_ranges(self.box_min_mm, self.box_max_mm, pose, rays)
+        if self.band_surface is not None:
+            z = self.band_surface.ray_depths(pose, rays)
+            d = rays @ pose.rotation
+            # moving the surface by band along n changes the ray's z-depth by band / |d . n|
+            dz = self.band_mm / np.maximum(np.abs(d @ self.band_surface.axes[2]), 1e-3)
+            return z - dz, z + dz
+        nan = np.full(len(rays), np.nan)
+        return nan, nan.copy()
+
+
+def _box_ray_ranges(lo: np.ndarray, hi: np.ndarray, pose: Pose, rays_cam: np.ndarray):
+    """Slab test: the z-depths (N,) at which each ray enters and leaves the box (NaN if it misses)."""
+    d = rays_cam @ pose.rotation  # world direction per unit z-depth
+    c = pose.centre
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1 = (lo - c) / d
+        t2 = (hi - c) / d
+    t_near = np.nanmax(np.minimum(t1, t2), axis=1)
+    t_far = np.nanmin(np.maximum(t1, t2), axis=1)
+    miss = ~(t_far >= np.maximum(t_near, 0.0))
+    t_near[miss] = np.nan
+    t_far[miss] = np.nan
+    return np.maximum(t_near, 1e-3), t_far
 
 
 def predict_segments(
@@ -42,7 +95,7 @@ def predict_segments(
 
     keypoints_i : (N, 2) pixels in frame i. Returns the two ends of each feature's epipolar segment in
     frame j, ``near_px`` and ``far_px``, (N, 2) each: the projections of the feature's ray at z-depths
-    ``depth.near_mm`` and ``depth.far_mm`` (camera i), or the per-ray range of ``depth.per_ray``. Ends
+    ``depth.near_mm`` and ``depth.far_mm`` (camera i), or the per-ray range of :meth:`DepthPrior.ray_ranges`. Ends
     behind camera j are NaN. With
     ``near == far`` both ends are the plane-induced homography's prediction ``H = K (R - t n^T / d) K^-1``
     (distortion included).
@@ -57,8 +110,8 @@ def _ray_depth_ranges(camera: Camera, pose_i: Pose, keypoints_i: np.ndarray, dep
     rays = camera.unproject(kp, np.ones(len(kp)))
     near = np.full(len(kp), depth.near_mm)
     far = np.full(len(kp), depth.far_mm)
-    if depth.per_ray is not None:
-        lo, hi = depth.per_ray(pose_i, rays)
+    if depth.per_ray:
+        lo, hi = depth.ray_ranges(pose_i, rays)
         known = np.isfinite(lo) & np.isfinite(hi)
         near[known] = np.clip(lo[known], depth.near_mm, depth.far_mm)
         far[known] = np.clip(hi[known], depth.near_mm, depth.far_mm)
@@ -74,18 +127,24 @@ def _project_ray_ranges(camera: Camera, pose_i: Pose, pose_j: Pose, rays, near, 
     return ends[0], ends[1]
 
 
-def window_radius_px(
-    camera: Camera, tolerance_i: PoseTolerance, tolerance_j: PoseTolerance, depth: DepthPrior, base_radius_px: float
-) -> float:
-    """Search-window radius (px) that contains the true match given both poses' tolerance boxes.
+def pose_error_px(camera: Camera, tolerance: PoseTolerance, depth_prior: DepthPrior | None) -> float:
+    """How far (px) a pose error within ``tolerance`` can move the image of a point at the nearest depth.
 
-    A centre error ``dp`` (mm, the box's half-diagonal, both frames) shifts a point at the nearest depth
-    by ``f dp / z_near``; an orientation error ``dw`` (rad) by about ``f dw`` (small angles, near the
-    image centre; the distortion-free worst case grows towards the edge, covered by ``base_radius_px``).
+    A centre error ``dp`` (mm, the box's half-diagonal) shifts a point at the nearest depth by
+    ``f dp / z_near``; an orientation error ``dw`` (rad) by about ``f dw`` (small angles, near the image
+    centre). 0 for an exact pose or without a depth prior; inf for an unknown (infinite) tolerance.
     """
+    if depth_prior is None or tolerance.is_exact:
+        return 0.0
     f = max(camera.fx, camera.fy)
-    dp = np.linalg.norm(tolerance_i.position_mm) + np.linalg.norm(tolerance_j.position_mm)
-    dw = np.linalg.norm(tolerance_i.orientation_rad) + np.linalg.norm(tolerance_j.orientation_rad)
-    if not np.isfinite(dp + dw):
-        return float("inf")
-    return float(base_radius_px + f * dp / depth.near_mm + f * dw)
+    dp, dw = np.linalg.norm(tolerance.position_mm), np.linalg.norm(tolerance.orientation_rad)
+    return float(f * dp / depth_prior.near_mm + f * dw) if np.isfinite(dp + dw) else float("inf")
+
+
+def window_radius_px(camera: Camera, tolerance_i: PoseTolerance, tolerance_j: PoseTolerance, depth_prior: DepthPrior,
+                     base_radius_px: float) -> float:
+    """Search-window radius (px) that contains the true match given both poses' tolerance boxes: the base
+    radius plus what each pose's error can move the point (:func:`pose_error_px`; the distortion-free
+    worst case grows towards the image edge, covered by ``base_radius_px``)."""
+    return float(base_radius_px + pose_error_px(camera, tolerance_i, depth_prior)
+                 + pose_error_px(camera, tolerance_j, depth_prior))

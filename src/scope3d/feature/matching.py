@@ -33,6 +33,7 @@ from scope3d.feature.depth_prior import DepthPrior, _project_ray_ranges, _ray_de
 from scope3d.feature.detection import Features
 from scope3d.sensor.camera import Camera
 from scope3d.sensor.pose_tolerance import MeasuredPose
+from scope3d.utils.progress import advance
 
 _GEOMETRIC_MODELS = ("fundamental", "homography", "none")
 
@@ -386,8 +387,7 @@ def match_guided_many(
         with ThreadPoolExecutor(max_workers=options.threads) as pool:
             for k, m in zip(todo, pool.map(verify, todo)):
                 results[k] = m
-                if progress is not None:
-                    progress(1)
+                advance(progress)
     for k in range(len(pairs)):
         if results[k] is None:
             results[k] = PairMatches(ids[pairs[k][0]], ids[pairs[k][1]], empty, empty, time_s=0.0)
@@ -407,7 +407,7 @@ def match_pairs(
 ) -> list[PairMatches]:
     """Match every listed pair with the guided (:func:`match_guided_many`) or exhaustive matcher.
 
-    progress : optional callable ``progress(n_done)`` called after each pair (e.g. ``tqdm.update``).
+    progress : tqdm-like or None, advanced by one per pair (:mod:`scope3d.utils.progress`).
     """
     if method not in ("guided", "exhaustive"):
         raise ValueError(f"method must be 'guided' or 'exhaustive', got {method!r}")
@@ -418,6 +418,5 @@ def match_pairs(
     out = []
     for i, j, _ in pairs:
         out.append(match_exhaustive(camera, features[i], features[j], options, i=i, j=j))
-        if progress is not None:
-            progress(1)
+        advance(progress)
     return out

@@ -10,6 +10,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import minimum_spanning_tree
 
 from scope3d.feature.depth_prior import DepthPrior
 from scope3d.geometry.pose import Pose
@@ -136,3 +138,37 @@ def _motion_direction(pose: Pose, centres: np.ndarray, depth_mm: float) -> np.nd
     cls = 2 * axis + (b[np.arange(len(b)), axis] < 0)
     cls[np.linalg.norm(b, axis=1) < np.tan(np.deg2rad(1.0)) * depth_mm] = 6
     return cls
+
+
+def best_partner_pairs(pairs: list[tuple[int, int, float]], n_frames: int, per_frame: int = 1) -> list[int]:
+    """Indices of each frame's ``per_frame`` best-scored pairs (``pairs`` sorted best first, as
+    :func:`select_pairs` returns them)."""
+    count = np.zeros(n_frames, int)
+    chosen = []
+    for k, (i, j, _) in enumerate(pairs):
+        if count[i] < per_frame or count[j] < per_frame:
+            chosen.append(k)
+            count[i] += 1
+            count[j] += 1
+    return chosen
+
+
+def spanning_pairs(pairs: list[tuple[int, int, float]], n_frames: int) -> list[int]:
+    """Indices (sorted) of each frame's best partner, plus the best-scored pairs that join what those
+    leave apart: a maximum spanning forest grown from the best partners (Kruskal, through
+    :func:`scipy.sparse.csgraph.minimum_spanning_tree` on the pairs' ranks), so that one adjustment of
+    these pairs' tracks ties every frame to every other it can reach. ``pairs`` sorted best first."""
+    chosen = set(best_partner_pairs(pairs, n_frames, per_frame=1))
+    if not pairs:
+        return []
+    ii = np.array([p[0] for p in pairs])
+    jj = np.array([p[1] for p in pairs])
+    # ranks as weights, best partners below every other pair: Kruskal takes them first, then joins the
+    # groups they leave with the best-ranked pairs between them
+    weight = np.arange(len(pairs), dtype=float) + 2.0
+    weight[sorted(chosen)] = 1.0
+    tree = minimum_spanning_tree(coo_matrix((weight, (ii, jj)), shape=(n_frames, n_frames)).tocsr()).tocoo()
+    index = {(int(i), int(j)): k for k, (i, j) in enumerate(zip(ii, jj))}
+    for a, b in zip(tree.row, tree.col):
+        chosen.add(index.get((int(a), int(b)), index.get((int(b), int(a)))))
+    return sorted(chosen)

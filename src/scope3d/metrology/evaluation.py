@@ -23,9 +23,10 @@ import numpy as np
 
 from scope3d.estimators.icp import IcpOptions, IcpResult, icp_point_to_plane
 from scope3d.geometry.pose import Pose
-from scope3d.geometry.rotation import rotvec_to_matrix
+from scope3d.geometry.rotation import matrix_to_rotvec, rotvec_to_matrix
 from scope3d.scene.mesh import Mesh, SampledSurface
 from scope3d.sensor.camera import Camera
+from scope3d.sensor.pose_tolerance import MeasuredPose
 
 
 def true_match_error_px(
@@ -187,3 +188,31 @@ def save_error_map_png(path, points: np.ndarray, distances: np.ndarray, *, title
     with atomic_path(path) as tmp:
         fig.savefig(tmp)
     plt.close(fig)
+
+
+def pose_errors(adjusted: list[Pose], measured: list[MeasuredPose], truth: list[Pose]) -> dict:
+    """Camera errors against the true poses: centre distance (mm) and rotation angle (deg), mean and max,
+    of the ``adjusted`` poses, and the mean centre error of the ``measured`` ones for comparison."""
+    dc = [np.linalg.norm(p.centre - q.centre) for p, q in zip(adjusted, truth)]
+    dr = [np.degrees(p.distance_to(q)[1]) for p, q in zip(adjusted, truth)]
+    dm = [np.linalg.norm(m.pose.centre - q.centre) for m, q in zip(measured, truth)]
+    return {"position_mm_mean": float(np.mean(dc)), "position_mm_max": float(np.max(dc)),
+            "orientation_deg_mean": float(np.mean(dr)), "orientation_deg_max": float(np.max(dr)),
+            "measured_position_mm_mean": float(np.mean(dm))}
+
+
+def surface_errors(points: np.ndarray, truth: SampledSurface, options: EvaluationOptions = EvaluationOptions(),
+                   ) -> tuple[dict, np.ndarray, np.ndarray]:
+    """Distances of ``points`` (N, 3) mm to the true surface, direct and after ICP from eight starts
+    (:func:`icp_from_initial_poses`). Returns the summary dict (``direct``, ``after_icp``, the eight
+    starts' means, the ICP's rotation (deg) and translation (mm)) and the two (N,) distance arrays."""
+    direct = truth.distances(points)
+    best, spread = icp_from_initial_poses(points, truth, options)
+    aligned = truth.distances(best.apply(points))
+    summary = {
+        "direct": distance_summary(direct), "after_icp": distance_summary(aligned),
+        "icp_mean_from_8_starts_mm": [round(v, 6) for v in spread],
+        "icp_rotation_deg": float(np.degrees(np.linalg.norm(matrix_to_rotvec(best.rotation)))),
+        "icp_translation_mm": [float(v) for v in best.translation],
+    }
+    return summary, direct, aligned

@@ -13,7 +13,11 @@ reference: "the average length of the edges was 6.2 mm").
 """
 from __future__ import annotations
 
+import csv
+import io
+import json
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -312,7 +316,7 @@ def measure_targets(surface: Surface, on: np.ndarray, options: FluorescenceOptio
     return targets, labels
 
 
-def map_targets(
+def targets_on_surface(
     surface: Surface, camera: Camera, poses: list[Pose], masks, options: FluorescenceOptions = FluorescenceOptions()
 ) -> tuple[list[Target], np.ndarray, np.ndarray]:
     """Targets on the surface: vote the masks onto the surface grid, label, then re-measure each
@@ -404,3 +408,16 @@ def match_targets(found: list[Target], truth: list[dict]) -> list[dict]:
             row.update({"found_label": None})
         out.append(row)
     return out
+
+
+def write_targets(out_dir: Path, targets: list[Target], vs_truth: list | None = None) -> None:
+    """``out_dir/targets.json`` (targets and, when given, their comparison with the truth) and
+    ``out_dir/targets.csv`` (one row per target: label, shape, centroid mm, area mm², size mm)."""
+    rows = [t.as_dict() for t in targets]
+    (out_dir / "targets.json").write_text(json.dumps({"targets": rows, "vs_truth": vs_truth}, indent=2) + "\n")
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["label", "shape", "x_mm", "y_mm", "z_mm", "area_mm2", "size_mm"])
+    for t in targets:
+        w.writerow([t.label, t.shape, *(f"{v:.4f}" for v in t.centroid_mm), f"{t.area_mm2:.4f}", f"{t.size_mm:.4f}"])
+    (out_dir / "targets.csv").write_text(buf.getvalue())

@@ -14,6 +14,7 @@ from scope3d.phantoms.lab import (
     default_camera,
     generate,
     measure_poses,
+    true_targets,
     write,
 )
 from scope3d.phantoms.raycast import Hits, RayCaster
@@ -43,5 +44,5 @@ __all__ = [
     "SCENE_TRAJECTORIES", "Scene", "THREADS", "TRAJECTORIES", "Target", "Trajectory", "axial_trajectory",
     "build_scene", "build_trajectory", "catalogue", "contact_sheet", "default_camera", "generate",
     "grid_trajectory", "iso_thread_profile", "measure_poses", "quadrant_trajectory", "render_frame",
-    "sequence_exposure", "spiral_trajectory", "write",
+    "sequence_exposure", "spiral_trajectory", "true_targets", "write",
 ]

@@ -30,6 +30,7 @@ from scope3d.phantoms.trajectories import TRAJECTORIES, Trajectory, build_trajec
 from scope3d.scene.mesh import Mesh
 from scope3d.sensor.camera import Camera
 from scope3d.sensor.pose_tolerance import MICRO_STAGE, MeasuredPose, perturb_poses_uniform
+from scope3d.utils.progress import Progress, advance, stage
 
 ORIENTATION_NOISE_DEG_PER_MM = 0.5
 ENDOSCOPE_SIZE_PX = (608, 608)  # scanning fibre endoscope (sec. 3.1)
@@ -117,7 +118,7 @@ def generate(
     dome_radius_mm: float = 17.5,
     texture_seed: int = 0,
     options: RenderOptions = RenderOptions(),
-    progress: bool = False,
+    progress: Progress | None = None,
 ) -> PhantomSequence:
     """Render ``scene`` along ``trajectory`` (the scene's default when None).
 
@@ -132,7 +133,7 @@ def generate(
         from the hole axis, mm; tilt of its optical axis from the motion, degrees); recorded in scene.json.
     options : rendering settings; ``options.supersample`` None takes the scene's anti-aliasing default
         (2 x 2 rays per pixel for the thread, 1 elsewhere); the value used is recorded in scene.json.
-    progress : show a tqdm progress bar on stderr.
+    progress : tqdm-like or None (:mod:`scope3d.utils.progress`), advanced by one per frame rendered.
     """
     if thread not in THREADS:
         raise InputError(f"unknown thread size {thread!r} (use one of {', '.join(THREADS)})")
@@ -157,13 +158,10 @@ def generate(
     poses = traj.poses
     exposure = sequence_exposure(built, camera, poses, options)
     frames, fluo, depths, tids = [], [], [], []
-    iterator = poses
-    if progress:
-        from tqdm import tqdm
-
-        iterator = tqdm(poses, desc=f"phantom {scene}/{name}", unit="frame", leave=False)
-    for i, pose in enumerate(iterator):
+    stage(progress, f"phantom {scene}/{name}", len(poses))
+    for i, pose in enumerate(poses):
         out = render_frame(built, camera, pose, seed=seed, frame_index=i, exposure=exposure, options=options)
+        advance(progress)
         frames.append(out.image)
         fluo.append(out.fluorescence)
         depths.append(out.depth_mm)
@@ -245,3 +243,19 @@ def catalogue() -> str:
     lines.append("cameras: endoscope 608x608, circular field r = 300 px, FOV 53° (dome, sheet) or 70°; "
                  "borescope 1280x1024, FOV 60°, 45° side view (quadrants)")
     return "\n".join(lines)
+
+
+def true_targets(scene: dict) -> list[dict]:
+    """Ground-truth targets from a phantom's scene description (``ground_truth/scene.json``), as dicts
+    ``{name, centre_mm, size_mm, shape, area_mm2, projection_normal}``; targets without a centre or size are skipped."""
+    out = []
+    for k, t in enumerate(scene.get("targets", []) or []):
+        sizes = t.get("size", {}) if isinstance(t.get("size"), dict) else {}
+        centre = next((t[key] for key in ("centroid_mm", "centre_mm", "center_mm", "position_mm") if key in t), None)
+        size = next((sizes[key] for key in ("edge_mm", "diameter_mm") if key in sizes), t.get("size_mm"))
+        if centre is None or size is None:
+            continue
+        name = t.get("name", f"#{t.get('id', k + 1)} {t.get('shape', '')}".strip())
+        out.append({"name": name, "centre_mm": centre, "size_mm": float(size), "shape": t.get("shape"),
+                    "area_mm2": t.get("area_mm2"), "projection_normal": (t.get("projection") or {}).get("n")})
+    return out

@@ -30,6 +30,7 @@ from scope3d.mvs.multiview import MultiViewOptions, reconstruct_reference, refer
 from scope3d.mvs.two_view import ImageDepth, TwoViewOptions, grid_mesh_faces, reconstruct_pair, to_image
 from scope3d.scene.mesh import Mesh, PointCloud
 from scope3d.utils.atomic import atomic_file, atomic_path
+from scope3d.utils.progress import Progress, advance, stage
 
 METHODS = ("sgm", "sad", "multiview")
 
@@ -63,7 +64,6 @@ class AxialOptions:
     max_mesh_edge_ratio : grid triangles with an edge longer than this fraction of the range are depth
         jumps and are dropped.
     evaluation_step_mm : sampling of the true mesh for the error figures.
-    progress : tqdm bar over reference frames (multi-view).
     """
 
     method: str = "sgm"
@@ -73,7 +73,6 @@ class AxialOptions:
     multiview: MultiViewOptions = field(default_factory=MultiViewOptions)
     max_mesh_edge_ratio: float = 0.05
     evaluation_step_mm: float = 0.05
-    progress: bool = False
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -116,8 +115,12 @@ def _check_frame(dataset: Dataset, index: int) -> int:
     return index % len(dataset)
 
 
-def reconstruct(options: AxialOptions, dataset: Dataset) -> tuple[list[ImageDepth], list[np.ndarray], dict]:
-    """The depth stage: returns per-reference ImageDepth, their colour images (H, W, 3) and timings."""
+def reconstruct(options: AxialOptions, dataset: Dataset, *, progress: Progress | None = None,
+                ) -> tuple[list[ImageDepth], list[np.ndarray], dict]:
+    """The depth stage: returns per-reference ImageDepth, their colour images (H, W, 3) and timings.
+
+    progress : tqdm-like or None, advanced by one per multi-view reference frame.
+    """
     poses = _poses(dataset, options.use_true_poses)
     cam = dataset.camera
     t0 = time.perf_counter()
@@ -140,16 +143,13 @@ def reconstruct(options: AxialOptions, dataset: Dataset) -> tuple[list[ImageDept
     refs = reference_frames(len(dataset), mv)
     if not refs:
         raise InputError(f"{dataset.root}: {len(dataset)} frames are too few for multi-view with offsets {mv.baseline_offsets}")
-    iterator = refs
-    if options.progress:
-        from tqdm import tqdm
-
-        iterator = tqdm(refs, desc="axial multiview", unit="ref")
+    stage(progress, "axial multiview", len(refs))
     depths, colours = [], []
-    for ref in iterator:
+    for ref in refs:
         fused = reconstruct_reference(cam, lambda k: dataset.frame(k, grey=True), poses, ref, mv)
         depths.append(fused.depth)
         colours.append(dataset.frame(ref))
+        advance(progress)
     n_pairs = len(refs) * len(mv.baseline_offsets)
     elapsed = time.perf_counter() - t0
     return depths, colours, {"pairs": n_pairs, "references": refs, "time_per_pair_s": elapsed / n_pairs}
@@ -207,10 +207,12 @@ def save_depth_png(path: Path, depth: ImageDepth, *, title: str) -> None:
     plt.close(fig)
 
 
-def run(options: AxialOptions, dataset: Dataset, out_dir: str | Path | None) -> AxialResult:
-    """Reconstruct, evaluate and (when ``out_dir`` is given) write the job's files."""
+def run(options: AxialOptions, dataset: Dataset, out_dir: str | Path | None, *,
+        progress: Progress | None = None) -> AxialResult:
+    """Reconstruct, evaluate and (when ``out_dir`` is given) write the job's files. progress : tqdm-like
+    or None (:mod:`scope3d.utils.progress`)."""
     t0 = time.perf_counter()
-    depths, colours, timing = reconstruct(options, dataset)
+    depths, colours, timing = reconstruct(options, dataset, progress=progress)
     cloud, mesh = build_geometry(depths, colours, options.max_mesh_edge_ratio)
     elapsed = time.perf_counter() - t0
     summary, distances = evaluate(cloud, dataset, options.evaluation_step_mm)

@@ -155,17 +155,6 @@ class Surface:
         z[~(z > 0)] = np.nan
         return z
 
-    def depth_band(self, band_mm: float):
-        """A per-ray depth prior for :class:`scope3d.feature.depth_prior.DepthPrior`: the z-depths at which each
-        ray crosses the surface shifted by ± ``band_mm`` along its normal."""
-        def per_ray(pose: Pose, rays_cam: np.ndarray):
-            z = self.ray_depths(pose, rays_cam)
-            d = np.asarray(rays_cam, float) @ pose.rotation
-            # moving the surface by band along n changes the ray's z-depth by band / |d . n|
-            dz = band_mm / np.maximum(np.abs(d @ self.axes[2]), 1e-3)
-            return z - dz, z + dz
-        return per_ray
-
     def refined(self, rows: slice, cols: slice, factor: int) -> "Surface":
         """The part ``[rows, cols]`` of the grid resampled ``factor`` times finer (bicubic on the
         height; cells next to missing heights stay missing). For measuring small targets."""
@@ -451,3 +440,15 @@ def save_depth_map_png(path, surface: Surface, *, title: str = "depth map") -> N
     with atomic_path(path) as tmp:
         fig.savefig(tmp)
     plt.close(fig)
+
+
+def enlarge_raster(img: np.ndarray, factor: int = 3) -> np.ndarray:
+    """Surface rasters (one pixel per 0.2 mm grid vertex) enlarged for viewing: colours bilinear,
+    masks and labels nearest."""
+    a = np.asarray(img)
+    size = (a.shape[1] * factor, a.shape[0] * factor)
+    if a.dtype == bool:
+        return cv2.resize(a.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST).astype(bool)
+    if a.dtype != np.uint8:
+        return cv2.resize(a.astype(np.int32), size, interpolation=cv2.INTER_NEAREST)
+    return cv2.resize(a, size, interpolation=cv2.INTER_LINEAR)

@@ -47,3 +47,16 @@ class Tracks:
             new_ids.astype(np.int64), self.frame[keep_obs], self.feature[keep_obs], self.pixels[keep_obs],
             self.colors[kept_tracks], None if self.points is None else self.points[kept_tracks],
         )
+
+    def strongest(self, max_tracks: int) -> "Tracks":
+        """The ``max_tracks`` longest tracks (ties: lowest id), with all their observations."""
+        if self.n_tracks <= max_tracks:
+            return self
+        keep_ids = np.argsort(-self.lengths(), kind="stable")[:max_tracks]
+        keep = np.zeros(self.n_tracks, bool)
+        keep[keep_ids] = True
+        return self.subset(keep[self.track])
+
+    def untriangulated(self) -> "Tracks":
+        """The same observations without points (to triangulate again with other poses)."""
+        return Tracks(self.track, self.frame, self.feature, self.pixels, self.colors, None)

@@ -36,6 +36,7 @@ from scope3d.geometry.pose import Pose
 from scope3d.geometry.rotation import rotation_angle_between
 from scope3d.sensor.camera import Camera
 from scope3d.sensor.pose_tolerance import MeasuredPose
+from scope3d.utils.progress import advance
 
 
 @dataclass(frozen=True)
@@ -121,7 +122,7 @@ def _groups(n: int, pairs: list[tuple[int, int]]) -> np.ndarray:
 def coarse_poses(camera: Camera, features: list[Features], measured: list[MeasuredPose],
                  match_options: MatchOptions = MatchOptions(), options: CoarseOptions = CoarseOptions(), *,
                  progress=None) -> CoarseResult:
-    """Run the coarse pass (module docstring). progress : optional callable ``progress(n_pairs_done)``."""
+    """Run the coarse pass (module docstring). progress : tqdm-like or None, advanced by one per pair matched."""
     t0 = time.perf_counter()
     n = len(features)
     similarity = image_similarity(features, options.retrieval)
@@ -158,8 +159,7 @@ def coarse_poses(camera: Camera, features: list[Features], measured: list[Measur
             for out in pool.map(verify, batch):
                 if out is not None:
                     found.append(out)
-                if progress is not None:
-                    progress(1)
+                advance(progress)
 
     run(sorted(_first_pairs(score, options.partners_per_frame)))
     for _ in range(options.connect_rounds):

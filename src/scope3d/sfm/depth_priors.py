@@ -1,12 +1,23 @@
-"""Depth priors built from data: a bounding box, or triangulated closest pairs."""
+"""Depth priors built from data (:class:`scope3d.feature.depth_prior.DepthPrior` is the data itself).
+
+* :func:`box_depth_prior` — a calibrated object's bounding box;
+* :func:`estimate_depth_prior` — the closest frame pairs matched exhaustively and triangulated with the
+  measured poses;
+* :func:`points_depth_prior` — the depths of points already reconstructed;
+* :func:`surface_depth_prior` — a band around a coarse surface through a first matching pass.
+"""
 from __future__ import annotations
 
 import numpy as np
 
-from scope3d.feature.depth_prior import DepthPrior
+from scope3d.estimators.triangulation import TrackOptions, triangulate_tracks
+from scope3d.feature.depth_prior import DepthPrior, pose_error_px
 from scope3d.feature.detection import Features
-from scope3d.feature.matching import MatchOptions, match_exhaustive
+from scope3d.feature.matching import MatchOptions, PairMatches, match_exhaustive
+from scope3d.feature.tracks import build_tracks
 from scope3d.geometry.pose import Pose
+from scope3d.scene.surface import SurfaceOptions, fit_surface
+from scope3d.scene.tracks import Tracks
 from scope3d.sensor.camera import Camera
 from scope3d.sensor.pose_tolerance import MeasuredPose
 
@@ -28,20 +39,7 @@ def box_depth_prior(box_min_mm: np.ndarray, box_max_mm: np.ndarray, poses: list[
     if far <= near:
         raise ValueError("the bounding box is behind every camera")
 
-    def per_ray(pose: Pose, rays_cam: np.ndarray):
-        d = np.asarray(rays_cam, float) @ pose.rotation  # world direction per unit z-depth
-        c = pose.centre
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t1 = (lo - c) / d
-            t2 = (hi - c) / d
-        t_near = np.nanmax(np.minimum(t1, t2), axis=1)
-        t_far = np.nanmin(np.maximum(t1, t2), axis=1)
-        miss = ~(t_far >= np.maximum(t_near, 0.0))
-        t_near[miss] = np.nan
-        t_far[miss] = np.nan
-        return np.maximum(t_near, 1e-3), t_far
-
-    return DepthPrior(near, far, per_ray=per_ray)
+    return DepthPrior(near, far, box_min_mm=lo, box_max_mm=hi)
 
 
 def estimate_depth_prior(
@@ -102,3 +100,53 @@ def estimate_depth_prior(
     z = np.concatenate(depths)
     lo, hi = np.percentile(z, percentiles)
     return DepthPrior(max(lo * (1 - margin), 1e-3), hi * (1 + margin))
+
+
+def points_depth_prior(poses: list[Pose], tracks: Tracks, *, percentiles: tuple[float, float] = (2.0, 98.0),
+                       margin: float = 0.1) -> DepthPrior:
+    """Depth prior from triangulated tracks: the ``percentiles`` of every observation's z-depth (mm, in
+    its own camera), widened by ``margin`` (fraction). Raises ValueError when no point is in front."""
+    rot_z = np.stack([p.rotation[2] for p in poses])
+    t_z = np.stack([p.translation[2] for p in poses])
+    z = np.einsum("mi,mi->m", rot_z[tracks.frame], tracks.points[tracks.track]) + t_z[tracks.frame]
+    z = z[z > 0]
+    if len(z) == 0:
+        raise ValueError("no triangulated point lies in front of its cameras")
+    near, far = np.percentile(z, percentiles)
+    return DepthPrior(max((1 - margin) * near, 1e-3), (1 + margin) * far)
+
+
+def surface_depth_prior(camera: Camera, features: list[Features], matches: list[PairMatches], depth_prior: DepthPrior,
+                        poses: list[MeasuredPose], track_options: TrackOptions, surface_options: SurfaceOptions,
+                        extra_band_mm: float) -> DepthPrior | None:
+    """A per-ray depth band around a coarse surface through ``matches`` (a first matching pass),
+    triangulated with ``poses`` (the ones the next pass predicts with); None if too few points (< 50) or
+    no surface fits.
+
+    The coarse surface has 4x the grid step and twice the control cell of ``surface_options``. The band's
+    half-width is the points' robust spread about it (4 sigma), plus what a pose may be off along the
+    normal (its tolerance's half-diagonal), plus ``extra_band_mm`` for the detail the coarse fit smooths away.
+    """
+    tracks = build_tracks(features, matches)
+    if tracks.n_tracks < 50:
+        return None
+    slack = max(2.0 * pose_error_px(camera, m.tolerance, depth_prior) for m in poses)
+    tracks = triangulate_tracks(camera, [m.pose for m in poses], tracks, track_options.widened_by(slack))
+    if tracks.n_tracks < 50:
+        return None
+    coarse = SurfaceOptions(grid_step_mm=max(4 * surface_options.grid_step_mm, 0.5),
+                            control_cell_mm=2 * surface_options.control_cell_mm, max_control_points=800,
+                            max_extrapolation_mm=3.0)
+    towards = -np.mean([m.pose.optical_axis for m in poses], axis=0)
+    try:
+        surface = fit_surface(tracks.points, coarse, towards=towards)
+    except ValueError:
+        return None
+    stn = surface.to_plane(tracks.points)
+    resid = stn[:, 2] - surface.height_at(stn[:, :2])
+    resid = resid[np.isfinite(resid)]
+    pos_tol = max(float(np.linalg.norm(m.tolerance.position_mm)) for m in poses)
+    band = 4.0 * 1.4826 * float(np.median(np.abs(resid - np.median(resid)))) + pos_tol + extra_band_mm
+    if not np.isfinite(band):
+        return None
+    return depth_prior.with_band(surface, band)
