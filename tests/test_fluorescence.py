@@ -11,11 +11,11 @@ from scope3d.metrology.fluorescence import (
     FluorescenceOptions,
     auto_threshold,
     carry_to_surface,
-    targets_on_surface,
     match_targets,
     measure_targets,
     overlay,
     segment,
+    targets_on_surface,
 )
 from scope3d.scene.surface import Surface
 from scope3d.sensor.camera import Camera

@@ -9,6 +9,7 @@ from scope3d.feature.depth_prior import DepthPrior, predict_segments, window_rad
 from scope3d.feature.detection import detect
 from scope3d.feature.matching import MatchOptions, _ratio_select_grouped, match_exhaustive, match_guided, match_pairs
 from scope3d.feature.pairs import PairOptions, frame_overlap, select_pairs
+from scope3d.geometry.pose import Pose
 from scope3d.metrology.evaluation import true_match_error_px
 from scope3d.sensor.pose_tolerance import OPTICAL_TRACKER, PoseTolerance
 from scope3d.sfm.depth_priors import estimate_depth_prior
@@ -140,3 +141,31 @@ def test_bad_inputs(pair):
         match_pairs(seq.camera, feats, seq.measured_poses, [(0, 1, 1.0)], None, method="magic")
     with pytest.raises(ValueError, match="depth prior"):
         match_pairs(seq.camera, feats, seq.measured_poses, [(0, 1, 1.0)], None)
+
+
+def test_depth_prior_is_data_that_pickles_and_keeps_its_ray_ranges():
+    """Cluster workers receive depth priors by pickling: the box and the surface band must survive it
+    and give the same per-ray ranges (the box's slab test is exact: a ray through the box centre
+    enters and leaves it at the box's near and far faces)."""
+    import pickle
+
+    from scope3d.scene.surface import SurfaceOptions, fit_surface
+    from scope3d.sfm.depth_priors import box_depth_prior
+
+    pose = Pose.from_centre(np.eye(3), [0.0, 0.0, -20.0])  # looking along +z from 20 mm before the origin
+    box = box_depth_prior([-5.0, -5.0, -2.0], [5.0, 5.0, 2.0], [pose])
+    rays = np.array([[0.0, 0.0, 1.0], [0.1, -0.05, 1.0], [5.0, 0.0, 1.0]])  # centre, inside, missing the box
+    near, far = box.ray_ranges(pose, rays)
+    np.testing.assert_allclose([near[0], far[0]], [18.0, 22.0])
+    assert np.isnan(near[2]) and np.isnan(far[2])
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-6, 6, (600, 2))
+    surface = fit_surface(np.column_stack([xy, 0.02 * (xy ** 2).sum(axis=1)]), SurfaceOptions(grid_step_mm=0.5),
+                          towards=np.array([0.0, 0.0, -1.0]))
+    band = DepthPrior(10.0, 30.0).with_band(surface, 0.5)
+    for prior in (box, band):
+        back = pickle.loads(pickle.dumps(prior))
+        for a, b in zip(prior.ray_ranges(pose, rays), back.ray_ranges(pose, rays)):
+            np.testing.assert_array_equal(a, b)
+    lo, hi = band.ray_ranges(pose, rays[:2])
+    np.testing.assert_allclose(hi - lo, 1.0, rtol=0.05)  # +-0.5 mm along a normal within a few degrees of the ray

@@ -89,32 +89,32 @@ def _box_ray_ranges(lo: np.ndarray, hi: np.ndarray, pose: Pose, rays_cam: np.nda
 
 
 def predict_segments(
-    camera: Camera, pose_i: Pose, pose_j: Pose, keypoints_i: np.ndarray, depth: DepthPrior
+    camera: Camera, pose_i: Pose, pose_j: Pose, keypoints_i: np.ndarray, depth_prior: DepthPrior
 ) -> tuple[np.ndarray, np.ndarray]:
     """Where features of frame i may appear in frame j.
 
     keypoints_i : (N, 2) pixels in frame i. Returns the two ends of each feature's epipolar segment in
     frame j, ``near_px`` and ``far_px``, (N, 2) each: the projections of the feature's ray at z-depths
-    ``depth.near_mm`` and ``depth.far_mm`` (camera i), or the per-ray range of :meth:`DepthPrior.ray_ranges`. Ends
+    ``depth_prior.near_mm`` and ``depth_prior.far_mm`` (camera i), or the per-ray range of :meth:`DepthPrior.ray_ranges`. Ends
     behind camera j are NaN. With
     ``near == far`` both ends are the plane-induced homography's prediction ``H = K (R - t n^T / d) K^-1``
     (distortion included).
     """
-    return _project_ray_ranges(camera, pose_i, pose_j, *_ray_depth_ranges(camera, pose_i, keypoints_i, depth))
+    return _project_ray_ranges(camera, pose_i, pose_j, *_ray_depth_ranges(camera, pose_i, keypoints_i, depth_prior))
 
 
-def _ray_depth_ranges(camera: Camera, pose_i: Pose, keypoints_i: np.ndarray, depth: DepthPrior):
+def _ray_depth_ranges(camera: Camera, pose_i: Pose, keypoints_i: np.ndarray, depth_prior: DepthPrior):
     """Rays (N, 3) (camera i, z = 1) of the keypoints and their z-depth ranges near, far (N,) mm.
     Depends on frame i only, so it is computed once per frame, not once per pair."""
     kp = np.asarray(keypoints_i, dtype=float).reshape(-1, 2)
     rays = camera.unproject(kp, np.ones(len(kp)))
-    near = np.full(len(kp), depth.near_mm)
-    far = np.full(len(kp), depth.far_mm)
-    if depth.per_ray:
-        lo, hi = depth.ray_ranges(pose_i, rays)
+    near = np.full(len(kp), depth_prior.near_mm)
+    far = np.full(len(kp), depth_prior.far_mm)
+    if depth_prior.per_ray:
+        lo, hi = depth_prior.ray_ranges(pose_i, rays)
         known = np.isfinite(lo) & np.isfinite(hi)
-        near[known] = np.clip(lo[known], depth.near_mm, depth.far_mm)
-        far[known] = np.clip(hi[known], depth.near_mm, depth.far_mm)
+        near[known] = np.clip(lo[known], depth_prior.near_mm, depth_prior.far_mm)
+        far[known] = np.clip(hi[known], depth_prior.near_mm, depth_prior.far_mm)
     return rays, near, far
 
 

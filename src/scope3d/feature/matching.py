@@ -229,7 +229,7 @@ def match_guided(
     features_j: Features,
     measured_i: MeasuredPose,
     measured_j: MeasuredPose,
-    depth: DepthPrior,
+    depth_prior: DepthPrior,
     options: MatchOptions = MatchOptions(),
     *,
     i: int = 0,
@@ -243,7 +243,7 @@ def match_guided(
     :func:`match_exhaustive` when the window is larger than ``options.max_radius_px``.
     See :func:`match_guided_many`, which does the same for many pairs at once (faster).
     """
-    return match_guided_many(camera, [features_i, features_j], [measured_i, measured_j], [(0, 1, 1.0)], depth,
+    return match_guided_many(camera, [features_i, features_j], [measured_i, measured_j], [(0, 1, 1.0)], depth_prior,
                              options, frame_ids=[i, j])[0]
 
 
@@ -252,7 +252,7 @@ def match_guided_many(
     features: list[Features],
     poses: list[MeasuredPose],
     pairs: list[tuple[int, int, float]],
-    depth: DepthPrior,
+    depth_prior: DepthPrior,
     options: MatchOptions = MatchOptions(),
     *,
     frame_ids: list[int] | None = None,
@@ -280,7 +280,7 @@ def match_guided_many(
     ray_ranges: dict[int, tuple] = {}
     radius_limit = min(options.max_radius_px, np.sqrt(camera.width * camera.height / (16.0 * np.pi)))
     for k, (i, j, _) in enumerate(pairs):  # per-pair loop: prediction only
-        radius = window_radius_px(camera, poses[i].tolerance, poses[j].tolerance, depth, options.base_radius_px)
+        radius = window_radius_px(camera, poses[i].tolerance, poses[j].tolerance, depth_prior, options.base_radius_px)
         radii[k] = radius
         if radius > radius_limit:
             results[k] = match_exhaustive(camera, features[i], features[j], options, i=ids[i], j=ids[j])
@@ -290,7 +290,7 @@ def match_guided_many(
             results[k] = PairMatches(ids[i], ids[j], empty, empty)
             continue
         if i not in ray_ranges:
-            ray_ranges[i] = _ray_depth_ranges(camera, poses[i].pose, features[i].keypoints, depth)
+            ray_ranges[i] = _ray_depth_ranges(camera, poses[i].pose, features[i].keypoints, depth_prior)
         p0, p1 = _project_ray_ranges(camera, poses[i].pose, poses[j].pose, *ray_ranges[i])
         half = 0.5 * np.linalg.norm(p1 - p0, axis=1)
         mid = 0.5 * (p0 + p1)
@@ -399,7 +399,7 @@ def match_pairs(
     features: list[Features],
     poses: list[MeasuredPose],
     pairs: list[tuple[int, int, float]],
-    depth: DepthPrior | None,
+    depth_prior: DepthPrior | None,
     options: MatchOptions = MatchOptions(),
     *,
     method: str = "guided",
@@ -412,9 +412,9 @@ def match_pairs(
     if method not in ("guided", "exhaustive"):
         raise ValueError(f"method must be 'guided' or 'exhaustive', got {method!r}")
     if method == "guided":
-        if depth is None:
+        if depth_prior is None:
             raise ValueError("the guided matcher needs a depth prior")
-        return match_guided_many(camera, features, poses, pairs, depth, options, progress=progress)
+        return match_guided_many(camera, features, poses, pairs, depth_prior, options, progress=progress)
     out = []
     for i, j, _ in pairs:
         out.append(match_exhaustive(camera, features[i], features[j], options, i=i, j=j))

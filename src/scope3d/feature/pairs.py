@@ -69,17 +69,17 @@ def fov_samples(camera: Camera, n: int) -> np.ndarray:
     return grid[camera.in_image(grid)]
 
 
-def frame_overlap(camera: Camera, poses: list[Pose], depth: DepthPrior, *, samples_per_side: int = 16) -> np.ndarray:
+def frame_overlap(camera: Camera, poses: list[Pose], depth_prior: DepthPrior, *, samples_per_side: int = 16) -> np.ndarray:
     """Pairwise overlap of the frames' fields of view placed at the depth prior.
 
     poses : n ``cam_from_world`` poses (mm). Returns (n, n) float in [0, 1]: entry [a, b] is the fraction
-    of frame a's field of view, back-projected to depth ``depth.mid_mm`` in frame a, that projects
+    of frame a's field of view, back-projected to depth ``depth_prior.mid_mm`` in frame a, that projects
     inside frame b. The matrix is symmetrised with the minimum (both must see each other).
     """
     if not poses:
         raise ValueError("no poses given")
     pix = fov_samples(camera, samples_per_side)
-    pts_cam = camera.unproject(pix, np.full(len(pix), depth.mid_mm))
+    pts_cam = camera.unproject(pix, np.full(len(pix), depth_prior.mid_mm))
     n = len(poses)
     rot = np.stack([p.rotation for p in poses])
     trans = np.stack([p.translation for p in poses])
@@ -94,7 +94,7 @@ def frame_overlap(camera: Camera, poses: list[Pose], depth: DepthPrior, *, sampl
 
 
 def select_pairs(
-    camera: Camera, poses: list[Pose], depth: DepthPrior, options: PairOptions = PairOptions()
+    camera: Camera, poses: list[Pose], depth_prior: DepthPrior, options: PairOptions = PairOptions()
 ) -> list[tuple[int, int, float]]:
     """Frame pairs worth matching, as (i, j, overlap) with i < j, best overlap first.
 
@@ -102,7 +102,7 @@ def select_pairs(
     ``options``: per direction of camera motion first (``max_pairs_per_direction``), then per frame
     (``max_pairs_per_frame``); a pair is matched when either frame keeps it.
     """
-    ov = frame_overlap(camera, poses, depth, samples_per_side=options.samples_per_side)
+    ov = frame_overlap(camera, poses, depth_prior, samples_per_side=options.samples_per_side)
     n = len(poses)
     axes = np.stack([p.optical_axis for p in poses])
     cos_axes = np.clip(axes @ axes.T, -1.0, 1.0)
@@ -115,7 +115,7 @@ def select_pairs(
         partners = np.flatnonzero(cand[a])
         partners = partners[np.argsort(-score[a, partners], kind="stable")]
         if options.max_pairs_per_direction:
-            cls = _motion_direction(poses[a], centres[partners], depth.mid_mm)
+            cls = _motion_direction(poses[a], centres[partners], depth_prior.mid_mm)
             rank = np.zeros(len(partners), int)  # rank within its class, best first
             for c in np.unique(cls):
                 rank[cls == c] = np.arange(np.count_nonzero(cls == c))

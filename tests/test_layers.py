@@ -1,0 +1,77 @@
+"""The package's layers: a module imports only modules of its own layer or of lower ones, and no two
+modules import each other, directly or through others (docs/architecture.md draws the layers)."""
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+PACKAGE = Path(__file__).resolve().parents[1] / "src" / "scope3d"
+
+# lowest first; a layer may import those before it (the same rank shares a level)
+RANK = {"errors": 0, "utils": 0, "geometry": 1, "sensor": 2, "scene": 3, "io": 4, "phantoms": 5, "feature": 6,
+        "estimators": 7, "sfm": 8, "mvs": 8, "registration": 8, "metrology": 8, "pipelines": 9, "report": 10,
+        "cli": 11}
+
+
+def _modules() -> dict[str, Path]:
+    out = {}
+    for f in sorted(PACKAGE.rglob("*.py")):
+        parts = list(f.relative_to(PACKAGE.parent).with_suffix("").parts)
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        out[".".join(parts)] = f
+    return out
+
+
+def _imports(module: str, path: Path) -> set[str]:
+    """Every scope3d module ``module`` imports, at the top or inside functions (``from package import
+    submodule`` counts as importing the submodule only)."""
+    known = _modules()
+    found = set()
+    package = module if path.name == "__init__.py" else module.rsplit(".", 1)[0]
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                base = ".".join(package.split(".")[: len(package.split(".")) - node.level + 1] + ([base] if base else []))
+            if base.startswith("scope3d"):
+                for a in node.names:
+                    found.add(f"{base}.{a.name}" if f"{base}.{a.name}" in known else base)
+        elif isinstance(node, ast.Import):
+            found.update(a.name for a in node.names if a.name.startswith("scope3d"))
+    return found
+
+
+def test_every_top_level_part_has_a_layer():
+    assert {m.split(".")[1] for m in _modules() if m.count(".") >= 1} <= set(RANK)
+
+
+def test_no_module_imports_a_higher_layer():
+    bad = []
+    for module, path in _modules().items():
+        if module == "scope3d":
+            continue
+        layer = module.split(".")[1]
+        for other in _imports(module, path):
+            if other == "scope3d" or other.split(".")[1] == layer:  # the package's version, its own layer
+                continue
+            if RANK[other.split(".")[1]] >= RANK[layer]:
+                bad.append(f"{module} imports {other}")
+    assert not bad, "\n".join(bad)
+
+
+def test_no_import_cycle_between_modules():
+    modules = _modules()
+    names = list(modules)
+    index = {m: k for k, m in enumerate(names)}
+    edges = [(index[m], index[o]) for m, p in modules.items() for o in _imports(m, p) if o in index and o != m]
+    rows, cols = zip(*edges)
+    graph = coo_matrix(([1] * len(edges), (rows, cols)), shape=(len(names), len(names)))
+    n, labels = connected_components(graph, directed=True, connection="strong")
+    # a package's __init__ re-exporting its modules is not a cycle (its modules import each other, not it)
+    cycles = [sorted(names[k] for k in range(len(names)) if labels[k] == c) for c in range(n)
+              if (labels == c).sum() > 1]
+    assert not cycles, cycles
