@@ -24,7 +24,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from scope3d.sensor.pose_tolerance import perturb_poses_uniform
+from scope3d.estimators.bundle import BoundsWarning, SolverOptions, solve
+from scope3d.geometry.pose import Pose
+from scope3d.sensor.pose_tolerance import MeasuredPose, perturb_poses_uniform
 
 BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_bundle_dome.py"
 BOUND_MM = 0.25
@@ -69,9 +71,37 @@ def test_survey_has_real_matches(dome):
 
 
 def test_bound_is_the_one_derived(dome):
-    _, survey, *_ = dome
-    assert survey.camera.fx == pytest.approx(304.9, abs=0.1)
-    assert physical_bound_mm(survey.camera.fx) == pytest.approx(0.68, abs=0.005)
+    """The box BCBA applies is the dataset's tolerance around each reported centre, and it binds."""
+    bench, survey, measured, tracks, solved = dome
+    problem, result, _ = solved["BCBA"]
+    # the dataset's tolerance: +-0.25 mm per axis on the centre, the orientation exact
+    centres = np.stack([mp.pose.centre for mp in measured])
+    half = np.stack([mp.tolerance.position_mm for mp in measured])
+    assert np.all(half == BOUND_MM) and all(np.all(mp.tolerance.orientation_rad == 0) for mp in measured)
+    # what the library put into the problem it solved: centre +- tolerance per world axis, orientation held
+    np.testing.assert_allclose(problem.pose_lower[:, 3:], centres - half, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(problem.pose_upper[:, 3:], centres + half, rtol=0, atol=1e-12)
+    assert problem.pose_fixed[:, :3].all() and not problem.pose_fixed[:, 3:].any()
+    np.testing.assert_array_equal(result.parameters.pose[:, :3], 0.0)
+    solved_c = result.parameters.pose[:, 3:]
+    assert np.all(solved_c >= problem.pose_lower[:, 3:]) and np.all(solved_c <= problem.pose_upper[:, 3:])
+
+    # It binds. Camera 4 (the grid's centre) is reported 0.6 mm too far along +x with the same +-0.25 mm, so
+    # its true centre lies 0.35-0.85 mm below its box in x. Started at the truth (outside: clamped onto the
+    # box, with a warning), it is pulled towards the truth by its images and held on the box's face.
+    c = 4
+    moved = Pose.from_centre(measured[c].pose.rotation, measured[c].pose.centre + [0.6, 0.0, 0.0])
+    shifted = measured[:c] + [MeasuredPose(moved, measured[c].tolerance)] + measured[c + 1:]
+    lower_x = moved.centre[0] - BOUND_MM
+    assert survey.true_poses[c].centre[0] < lower_x - 0.1
+    pushed = bench.build_problem("BCBA", survey.camera, shifted, tracks, BOUND_MM)
+    pushed.initial.pose[c, 3:] = survey.true_poses[c].centre
+    with pytest.warns(BoundsWarning, match="clamped"):
+        out = solve(pushed, SolverOptions(max_iterations=bench.MAX_ITERATIONS))
+    x = out.parameters.pose[:, 3]
+    assert x[c] == pytest.approx(lower_x, abs=1e-9)  # on the face, not beyond it
+    others = np.arange(len(measured)) != c
+    assert np.all(np.abs(out.parameters.pose[others, 3:] - centres[others]) <= BOUND_MM + 1e-9)
 
 
 def test_bcba_keeps_every_camera_in_its_box(dome):

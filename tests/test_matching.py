@@ -15,6 +15,7 @@ from scope3d.sensor.pose_tolerance import OPTICAL_TRACKER, PoseTolerance
 from scope3d.sfm.depth_priors import estimate_depth_prior
 
 CORRECT_PX = 3.0  # a match is correct when the true depth sends its keypoint within 3 px of its partner
+SIFT_SIGMA_PX = 0.5  # SIFT keypoint localisation, per coordinate (MatchOptions: "good to ~0.5 px")
 
 
 @pytest.fixture(scope="module")
@@ -109,11 +110,38 @@ def test_depth_prior_estimate_brackets_the_true_depths(pair):
 
 
 def test_match_pairs_runs_both_methods(pair):
+    """Both methods, through :func:`match_pairs`, return the listed pairs with matches that the true geometry
+    confirms.
+
+    Threshold for a correct match, from SIFT's localisation noise (sigma = 0.5 px per coordinate, as
+    MatchOptions assumes): the keypoint of j and the true transfer of the keypoint of i differ by two
+    independent localisation errors, sigma_d = sigma sqrt(2) = 0.71 px per coordinate (the transfer between
+    these near-parallel views has unit gain), so the norm is Rayleigh(sigma_d) and lies beyond
+    sigma_d sqrt(2 ln 1000) = 2.63 px for one correct match in a thousand. ``true_match_error_px`` reads the
+    depth at the keypoint's nearest pixel, up to sqrt(2)/2 px away: on the dome's steepest wall (64.6 deg at
+    the rim of the R = 17.5 mm, 10 mm deep cavity) that changes the depth by (sqrt(2)/2)(z/f) tan 64.6 deg
+    and the transfer by f b dz / z^2 = b (sqrt(2)/2) tan 64.6 deg / z = 0.49 px (b = 5 mm, z = 15 mm).
+    Total 3.1 px. Each pair must keep at least ``min_matches`` correct matches (fewer and the matcher drops
+    the pair) and at least 95 % of what a method returns must be correct.
+    """
     seq, feats = pair
+    sigma_d = SIFT_SIGMA_PX * np.sqrt(2.0)
+    rim_slope = np.arcsin(np.sqrt(17.5**2 - 7.5**2) / 17.5)
+    threshold = sigma_d * np.sqrt(2.0 * np.log(1000.0)) + 5.0 * np.sqrt(0.5) * np.tan(rim_slope) / 15.0
     pairs = [(0, 1, 1.0), (1, 2, 1.0)]
     g = match_pairs(seq.camera, feats, seq.measured_poses, pairs, DepthPrior(12.0, 28.0))
     e = match_pairs(seq.camera, feats, seq.measured_poses, pairs, None, method="exhaustive")
     assert [(m.i, m.j) for m in g] == [(m.i, m.j) for m in e] == [(0, 1), (1, 2)]
+    assert {m.method for m in g} == {"guided"} and {m.method for m in e} == {"exhaustive"}
+    # per method and pair: (matches, correct, fraction correct, worst error px), all shown on failure
+    found = {}
+    for m in g + e:
+        err = true_match_error_px(seq.camera, seq.true_poses[m.i], seq.true_poses[m.j], seq.depths[m.i],
+                                  feats[m.i].keypoints[m.idx_i], feats[m.j].keypoints[m.idx_j])
+        found[m.method, m.i, m.j] = (len(m), int(np.sum(err < threshold)), round(float(np.mean(err < threshold)), 3),
+                                     round(float(np.nanmax(err)), 1))
+    assert all(n_correct >= MatchOptions().min_matches for _, n_correct, _, _ in found.values()), found
+    assert all(fraction >= 0.95 for _, _, fraction, _ in found.values()), found
 
 
 def test_ratio_test_among_grouped_candidates():

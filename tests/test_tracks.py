@@ -75,6 +75,31 @@ def test_noise_gives_sub_pixel_errors_and_depth_error_of_the_expected_size():
     assert np.median(err) < 0.1
 
 
+def _down_looking(x: float, y: float = 0.0, z: float = 15.0) -> Pose:
+    """A camera at (x, y, z) mm looking straight down the world -z axis."""
+    return Pose.from_centre(look_at(np.array([x, y, z]), np.array([x, y, z - 10.0])), [x, y, z])
+
+
+def _observe(poses, X, frames_of_track):
+    """Noise-free observations of points ``X`` (n, 3) in the given frames, one list of frame indices per point.
+
+    A point behind a camera is given the pixel of its own viewing ray (the mirror of the point through the
+    centre projects there): such an observation is geometrically consistent with the point, with zero
+    reprojection error along the ray, so only the cheirality check can tell it is wrong."""
+    track, frame, px = [], [], []
+    for k, frames in enumerate(frames_of_track):
+        for f in frames:
+            p_cam = poses[f].transform(X[k:k + 1])
+            if p_cam[0, 2] < 0:
+                p_cam = -p_cam
+            track.append(k)
+            frame.append(f)
+            px.append(CAM.project(p_cam)[0])
+    track, frame = np.array(track), np.array(frame)
+    assert np.all(CAM.in_image(np.array(px))), "a synthetic observation left the image"
+    return Tracks(track, frame, np.arange(len(track)), np.array(px), np.zeros((len(X), 3), np.uint8))
+
+
 def test_cheirality_and_angle_filters():
     X, poses = _scene(n=10)
     t = _tracks_from(X, poses[:2])
@@ -83,6 +108,44 @@ def test_cheirality_and_angle_filters():
     t_same = Tracks(t.track, t.frame, t.feature, np.concatenate([CAM.project_world(poses[0], X)] * 2)[
         np.argsort(np.r_[np.arange(10) * 2, np.arange(10) * 2 + 1])], t.colors)
     assert triangulate_tracks(CAM, same, t_same, TrackOptions(min_angle_deg=1.0)).n_tracks == 0
+
+    # cheirality. Cameras 0 and 1 look down from z = 15 mm, 5 mm apart; camera 2 looks down from z = -30 mm,
+    # under the scene, so everything at z > -30 mm is behind it.
+    cams = [_down_looking(-2.5), _down_looking(2.5), _down_looking(0.0, z=-30.0)]
+    pts = np.array([
+        [0.3, 0.2, 0.0],    # 0: in front of 0 and 1 (15 mm deep): kept whole
+        [0.3, 0.2, 30.0],   # 1: 15 mm *behind* 0 and 1 (their rays meet above them): must go
+        [-0.4, 0.5, -2.0],  # 2: in front of 0 and 1, behind 2: the point stays, its view in 2 must go
+    ])
+    obs = _observe(cams, pts, [[0, 1], [0, 1], [0, 1, 2]])
+    # the point behind cameras 0 and 1 is what their rays give (exact triangulation, zero reprojection error,
+    # a 19 deg triangulation angle): neither the reprojection gate nor the angle filter can reject it
+    behind = triangulate_observations(CAM, cams, obs.track, obs.frame, obs.pixels, 3)
+    np.testing.assert_allclose(behind, pts, atol=1e-9)
+    options = TrackOptions(max_reprojection_error_px=2.0, min_angle_deg=1.0)
+    out = triangulate_tracks(CAM, cams, obs, options)
+    assert out.n_tracks == 2
+    np.testing.assert_allclose(out.points, pts[[0, 2]], atol=1e-9)
+    assert out.lengths().tolist() == [2, 2]
+    assert 2 not in out.frame.tolist()  # the observation in the camera the point is behind is dropped
+    depth = np.einsum("mi,mi->m", np.stack([c.rotation[2] for c in cams])[out.frame], out.points[out.track]) \
+        + np.stack([c.translation[2] for c in cams])[out.frame]
+    assert np.all(depth > 0)
+
+    # triangulation angle: two cameras 0.5 mm apart and points on their bisecting plane at a distance rho
+    # from the baseline, where the two rays meet at exactly 2 atan(0.25 / rho). Noise-free data triangulate
+    # exactly (first test), so the angle is known to ~1e-9 relative and points 1 % either side of the
+    # threshold are decided by the filter alone.
+    pair = [_down_looking(-0.25), _down_looking(0.25)]
+    threshold_deg = 1.0
+    angles_deg = np.array([0.99, 1.01, 0.5, 2.0]) * threshold_deg
+    rho = 0.25 / np.tan(np.radians(angles_deg) / 2.0)
+    pts = np.column_stack([np.zeros(4), np.linspace(-0.5, 0.5, 4), 15.0 - rho])
+    obs = _observe(pair, pts, [[0, 1]] * 4)
+    out = triangulate_tracks(CAM, pair, obs, TrackOptions(min_angle_deg=threshold_deg))
+    np.testing.assert_allclose(out.points, pts[angles_deg > threshold_deg], atol=1e-6)
+    # and nothing else rejected them: without the angle filter all four are kept
+    assert triangulate_tracks(CAM, pair, obs, TrackOptions(min_angle_deg=0.0)).n_tracks == 4
 
 
 def test_build_tracks_joins_chains_and_drops_inconsistent_components():

@@ -1,0 +1,141 @@
+"""Ray casting: the Embree and the pure-NumPy backends of ``RayCaster`` give the same first hits.
+
+Both backends only *find* the triangle; the distance is then recomputed on that triangle in float64
+(Möller–Trumbore). So when both find the same triangle their distances are bit-identical, and when they find
+two triangles sharing the edge the ray crosses, the two planes meet there and the distances differ by float64
+rounding: ~1e-16 relative, times 1/sin(incidence) <= 300 for the most grazing ray below (0.2 deg), so
+< 1e-13. A single-precision intersection (what Embree itself computes) is off by ~6e-8 of the 20 mm
+coordinates, 1e-7 relative or more, again amplified at grazing incidence. The tolerance, 1e-9 relative, lies
+between the two: it passes the float64 answer and would fail a float32 one.
+
+Rays, on the dome phantom (plate top z = 0, spherical cavity of R = 17.5 mm about (0, 0, 7.5), 10 mm deep,
+rim radius 15.81 mm; the mesh is only the plate's top and the cavity, both zero-thickness):
+
+* views from above in a 60 deg cone: the steep ones hit the plate or the cavity, the wide ones pass beyond
+  the 40 mm plate and miss;
+* rays pointing up from above the plate: all miss;
+* rays grazing the flat plate at 0.2-3 deg, landing on its ring outside the cavity: all hit, at the
+  analytic distance h / sin(elevation);
+* rays tangent to the cavity's sphere, starting delta inside it (hit at incidence asin(sqrt(2 R delta) / R),
+  0.9 deg for delta = 2 um; the flat triangles lie at most ~0.3 um inside the sphere, far less) or delta
+  outside it (never closer than delta to the sphere, and the mesh lies inside the sphere: near misses);
+* rays from below: the back faces of the cavity and the plate count as hits for both.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from scope3d.phantoms import build_scene
+from scope3d.phantoms.raycast import RayCaster
+
+R_MM = 17.5
+CENTRE = np.array([0.0, 0.0, R_MM - 10.0])
+PHI_OPEN = float(np.arcsin(np.sqrt(R_MM**2 - CENTRE[2] ** 2) / R_MM))  # polar angle of the rim, from -z
+REL_TOL = 1e-9
+
+
+def _unit(v):
+    v = np.asarray(v, float)
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def _cone(rng, n, axis, half_angle_deg):
+    """n unit directions uniformly inside a cone about ``axis``."""
+    cos_max = np.cos(np.radians(half_angle_deg))
+    c = rng.uniform(cos_max, 1.0, n)
+    phi = rng.uniform(0.0, 2 * np.pi, n)
+    s = np.sqrt(1.0 - c**2)
+    local = np.column_stack([s * np.cos(phi), s * np.sin(phi), c])
+    z = _unit(axis)
+    x = _unit(np.cross(z, [1.0, 0.0, 0.0] if abs(z[0]) < 0.9 else [0.0, 1.0, 0.0]))
+    return local @ np.stack([x, np.cross(z, x), z])
+
+
+def _ray_groups():
+    """{name: (origins (n, 3), directions (n, 3), expected hit (n,) bool or None)}."""
+    rng = np.random.default_rng(0)
+    groups = {}
+    origins = np.repeat([[0.0, 0.0, 15.0], [8.0, -5.0, 15.0], [-12.0, 10.0, 15.0]], 100, axis=0)
+    groups["views from above"] = (origins, _cone(rng, 300, [0, 0, -1], 60.0), None)
+    origins = np.column_stack([rng.uniform(-25, 25, (50, 2)), rng.uniform(0.1, 20, 50)])
+    groups["pointing up"] = (origins, _cone(rng, 50, [0, 0, 1], 80.0), np.zeros(50, bool))
+    # grazing the plate: from x = 19.9 mm towards -x, down at elevation e, 2 mm of horizontal travel to z = 0
+    elevation = np.radians(np.repeat([0.2, 0.5, 1.0, 3.0], 15))
+    y0 = np.tile(np.linspace(-3.0, 3.0, 15), 4)
+    height = 2.0 * np.tan(elevation)
+    origins = np.column_stack([np.full(60, 19.9), y0, height])
+    directions = np.column_stack([-np.cos(elevation), np.zeros(60), -np.sin(elevation)])
+    groups["grazing the plate"] = (origins, directions, np.ones(60, bool))
+    # tangent to the sphere along a parallel, at polar angles inside the cap and all round
+    phi = np.radians(rng.uniform(5.0, np.degrees(PHI_OPEN) - 5.0, 40))
+    theta = rng.uniform(0.0, 2 * np.pi, 40)
+    on_sphere = CENTRE + R_MM * np.column_stack([np.sin(phi) * np.cos(theta), np.sin(phi) * np.sin(theta), -np.cos(phi)])
+    inward = (CENTRE - on_sphere) / R_MM
+    along = np.column_stack([-np.sin(theta), np.cos(theta), np.zeros(40)])
+    for delta in (0.002, 0.01, 0.05):
+        groups[f"tangent, {delta} mm inside"] = (on_sphere + delta * inward, along, np.ones(40, bool))
+        groups[f"tangent, {delta} mm outside"] = (on_sphere - delta * inward, along, np.zeros(40, bool))
+    # from below, spreading at most 20 tan 20 deg = 7.3 mm by z = 0: all inside the 40 mm plate
+    origins = np.column_stack([rng.uniform(-10, 10, (100, 2)), np.full(100, -20.0)])
+    groups["from below"] = (origins, _cone(rng, 100, [0, 0, 1], 20.0), np.ones(100, bool))
+    return groups
+
+
+@pytest.fixture(scope="module")
+def mesh():
+    return build_scene("dome").mesh
+
+
+@pytest.fixture(scope="module")
+def casts(mesh):
+    embree, numpy_ = RayCaster(mesh, backend="embree"), RayCaster(mesh, backend="numpy")
+    assert (embree.backend, numpy_.backend) == ("embree", "numpy")
+    out = {}
+    for name, (origins, directions, expected) in _ray_groups().items():
+        out[name] = (origins, directions, expected, embree.cast(origins, directions), numpy_.cast(origins, directions))
+    return out
+
+
+def test_backends_agree_on_hits_and_distances(casts):
+    for name, (origins, directions, expected, a, b) in casts.items():
+        np.testing.assert_array_equal(a.hit, b.hit, err_msg=name)
+        if expected is not None:
+            np.testing.assert_array_equal(a.hit, expected, err_msg=name)
+        else:  # the cone from above both hits and misses
+            assert 0 < a.hit.sum() < len(a.hit), name
+        np.testing.assert_array_equal(np.isnan(a.distance_mm), ~a.hit, err_msg=name)
+        np.testing.assert_array_equal(np.isnan(b.distance_mm), ~b.hit, err_msg=name)
+        hit = a.hit
+        np.testing.assert_allclose(a.distance_mm[hit], b.distance_mm[hit], rtol=REL_TOL, atol=0, err_msg=name)
+        np.testing.assert_allclose(a.points[hit], b.points[hit], rtol=0, atol=REL_TOL * 50.0, err_msg=name)
+        # where they found the same triangle (a ray through an edge may report either neighbour), the
+        # normals agree too
+        same = hit & (a.triangle == b.triangle)
+        np.testing.assert_allclose(a.normals[same], b.normals[same], rtol=0, atol=1e-12, err_msg=name)
+
+
+def test_grazing_hits_are_at_the_analytic_distance(casts, mesh):
+    origins, directions, _, a, b = casts["grazing the plate"]
+    elevation = np.arcsin(-directions[:, 2])
+    exact = origins[:, 2] / np.sin(elevation)
+    for hits in (a, b):
+        np.testing.assert_allclose(hits.distance_mm, exact, rtol=REL_TOL, atol=0)
+        np.testing.assert_allclose(hits.points[:, 2], 0.0, rtol=0, atol=1e-12)
+        # they are grazing: the angle between ray and plate is the elevation (0.2-3 deg)
+        incidence = np.degrees(np.arcsin(np.abs(np.einsum("ij,ij->i", directions, hits.normals))))
+        np.testing.assert_allclose(incidence, np.degrees(elevation), atol=1e-9)
+    tri = mesh.vertices[mesh.faces]
+    on_cap = np.all(np.abs(np.linalg.norm(tri - CENTRE, axis=2) - R_MM) < 1e-9, axis=1)
+    longest = np.linalg.norm(tri[on_cap] - np.roll(tri[on_cap], 1, axis=1), axis=2).max()
+    sagitta = longest**2 / (6 * R_MM)
+    assert sagitta < 1e-3  # the phantom's tessellation (0.15 mm edges)
+    for delta in (0.002, 0.01, 0.05):
+        origins, directions, _, a, b = casts[f"tangent, {delta} mm inside"]
+        # from the closest approach to the sphere: sqrt(R^2 - (R - delta)^2). The mesh's flat triangles have
+        # their vertices on the sphere and lie at most L^2 / (6 R) inside it (L: longest edge; the depth of an
+        # equilateral triangle's centre, the deepest case), which moves the hit along this grazing ray by at
+        # most that / sin(incidence), sin(incidence) = chord / R
+        chord = np.sqrt(R_MM**2 - (R_MM - delta) ** 2)
+        for hits in (a, b):
+            assert np.all(np.abs(hits.distance_mm - chord) <= sagitta / (chord / R_MM) + 1e-9), delta
