@@ -76,7 +76,6 @@ from scope3d.sfm.guided_mapping import (
     POSE_MODES,
     BundleStageOptions,
     adjust_map,
-    on_surface,
     refine_poses_for_matching,
 )
 from scope3d.utils.atomic import atomic_directory
@@ -193,8 +192,8 @@ class MatchingResult:
 class SparseResult:
     """The adjusted sparse model: tracks (observations, points in mm world), poses, BA results.
 
-    n_off_surface : points dropped for standing off their neighbours' surface
-        (:func:`scope3d.sfm.guided_mapping.on_surface`).
+    off_surface_points : (K, 3) mm world, points dropped for standing off their neighbours' surface
+        (:func:`scope3d.sfm.guided_mapping.on_surface`; only when the map has a surface stage).
     """
 
     tracks: Tracks
@@ -203,7 +202,11 @@ class SparseResult:
     bundle_results: list
     mean_reprojection_error_px: float
     time_s: float
-    n_off_surface: int = 0
+    off_surface_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+
+    @property
+    def n_off_surface(self) -> int:
+        return len(self.off_surface_points)
 
 
 @dataclass
@@ -393,17 +396,13 @@ def reconstruct(options: MapOptions, dataset: Dataset, features: list[Features],
         raise InputError(f"{dataset.root}: no feature could be matched between frames (do they overlap?)")
     movable = options.pose_mode != "fixed"
     start = matching.guide_poses if movable and matching.coarse is not None else dataset.poses
+    # the surface stage's assumption, a height field seen from one side, lets wrong matches be dropped
     adjusted = adjust_map(options.pose_mode, dataset.poses, dataset.camera, tracks, start, matching.depth_prior,
-                          options.tracks, options.bundle, where=str(dataset.root))
-    tracks, poses, camera = adjusted.tracks, adjusted.poses, adjusted.camera
-    n_off_surface = 0
-    if options.surface is not None:  # the surface stage's assumption: a height field seen from one side
-        keep = on_surface(tracks, poses)
-        n_off_surface = int((~keep).sum())
-        tracks = tracks.subset(keep[tracks.track])
-    err = reprojection_errors(camera, poses, tracks)
-    return SparseResult(tracks, poses, camera, adjusted.bundle_results, float(np.mean(err)), time.perf_counter() - t0,
-                        n_off_surface)
+                          options.tracks, options.bundle, height_field=options.surface is not None,
+                          where=str(dataset.root))
+    err = reprojection_errors(adjusted.camera, adjusted.poses, adjusted.tracks)
+    return SparseResult(adjusted.tracks, adjusted.poses, adjusted.camera, adjusted.bundle_results, float(np.mean(err)),
+                        time.perf_counter() - t0, adjusted.off_surface_points)
 
 
 # --- 4. surface -------------------------------------------------------------------------------

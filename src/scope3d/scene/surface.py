@@ -36,6 +36,10 @@ from scope3d.scene.mesh import Mesh
 from scope3d.sensor.camera import Camera
 
 
+#: Passes of :func:`off_surface_points`: gross errors (2 mm) first, then ~3 sigma of a two-view point's depth.
+OFF_SURFACE_FLOORS_MM = (2.0, 0.5)
+
+
 @dataclass(frozen=True)
 class SurfaceOptions:
     """Thin-plate-spline surface fitting.
@@ -220,11 +224,15 @@ def _control_points(stn: np.ndarray, cell: float, mad_k: float) -> np.ndarray:
     return np.column_stack([st, med_h[ok]])
 
 
-def _local_plane_residuals(stn: np.ndarray, k: int) -> np.ndarray:
+def _local_plane_residuals(stn: np.ndarray, k: int, usable: np.ndarray | None = None) -> np.ndarray:
     """Height (M,) of each point (M, 3) (s, t, h) above the least-squares plane of its ``k`` nearest
-    neighbours in (s, t), the point itself excluded."""
-    _, idx = cKDTree(stn[:, :2]).query(stn[:, :2], k=k + 1)
-    nb = stn[idx[:, 1:]]  # (M, k, 3)
+    neighbours in (s, t) among the ``usable`` points (boolean (M,), default all), the point itself excluded."""
+    src = np.arange(len(stn)) if usable is None else np.flatnonzero(usable)
+    _, idx = cKDTree(stn[src, :2]).query(stn[:, :2], k=k + 1)
+    idx = src[idx]
+    # the point itself is its own nearest usable neighbour when usable: move it last, keep the first k
+    order = np.argsort(idx == np.arange(len(stn))[:, None], axis=1, kind="stable")
+    nb = stn[np.take_along_axis(idx, order, axis=1)[:, :k]]  # (M, k, 3)
     A = np.concatenate([nb[:, :, :2] - stn[:, None, :2], np.ones(nb.shape[:2] + (1,))], axis=2)
     AtA = np.einsum("mki,mkj->mij", A, A) + 1e-9 * np.eye(3)
     coef = np.linalg.solve(AtA, np.einsum("mki,mk->mi", A, nb[:, :, 2])[..., None])[..., 0]
@@ -245,31 +253,38 @@ def _reject_local_outliers(ctrl: np.ndarray, k: int, mad_k: float, floor_mm: flo
 
 
 def off_surface_points(points: np.ndarray, *, towards: np.ndarray | None = None, neighbours: int = 10,
-                       mad_k: float = 6.0, floors_mm: tuple[float, ...] = (2.0, 0.5)) -> np.ndarray:
+                       mad_k: float = 6.0, floors_mm: tuple[float, ...] = OFF_SURFACE_FLOORS_MM) -> np.ndarray:
     """Boolean mask (N,) of points (N, 3) mm that stand off the local surface of their neighbours.
 
     Each point is compared with the least-squares plane of its ``neighbours`` nearest points in the
     best-fit plane of the cloud (a height field seen from one side, as :func:`fit_surface` assumes).
     A wrong two-view match that satisfies the epipolar constraint triangulates at the wrong depth
     along its ray — millimetres above or below a dense, consistent neighbourhood — which is what this
-    catches. One pass per floor, on the points the previous passes kept: gross errors go first so that
-    they no longer tilt their neighbours' planes. Threshold: ``mad_k`` robust sigmas of all residuals,
-    at least the pass's floor (the last, default 0.5 mm, is above what a plane fitted across a crease
-    such as a cavity's rim leaves on correct points).
+    catches. One pass per floor, on the points the previous passes kept: gross errors go first. Within a
+    pass, the points flagged are set aside and every point is checked again against planes through the
+    others only: a wrong point tilts its neighbours' planes and would otherwise take correct neighbours
+    with it (on the dome, two correct points lost per wrong one). Threshold: ``mad_k`` robust sigmas of
+    the residuals, at least the pass's floor (the last, default 0.5 mm, about 3 sigma of a two-view
+    point's depth at the dome's 400 px).
     """
     pts = np.asarray(points, float)
     off = ~np.all(np.isfinite(pts), axis=1)
-    if (~off).sum() <= neighbours + 3:
+    if (~off).sum() <= 2 * neighbours + 3:
         return off
     origin, axes = fit_plane(pts[~off], towards)
     stn = (pts - origin) @ axes.T
+    stn[off] = 0.0  # never used: not usable as neighbours, never unflagged
     for floor_mm in floors_mm:
-        idx = np.flatnonzero(~off)
-        if len(idx) <= neighbours + 3:
+        usable = ~off
+        if usable.sum() <= 2 * neighbours + 3:
             break
-        resid = _local_plane_residuals(stn[idx], neighbours)
-        mad = 1.4826 * float(np.median(np.abs(resid - np.median(resid))))
-        off[idx[np.abs(resid) > max(mad_k * mad, floor_mm)]] = True
+        resid = _local_plane_residuals(stn, neighbours, usable)
+        mad = 1.4826 * float(np.median(np.abs(resid[usable] - np.median(resid[usable]))))
+        threshold = max(mad_k * mad, floor_mm)
+        suspect = usable & (np.abs(resid) > threshold)
+        if suspect.any() and (usable & ~suspect).sum() > neighbours + 3:
+            resid = _local_plane_residuals(stn, neighbours, usable & ~suspect)
+        off |= usable & (np.abs(resid) > threshold)
     return off
 
 

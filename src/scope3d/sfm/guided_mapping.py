@@ -30,7 +30,7 @@ from scope3d.feature.pairs import fov_samples
 from scope3d.feature.tracks import build_tracks
 from scope3d.geometry.pose import Pose
 from scope3d.geometry.rotation import rotvec_to_matrix
-from scope3d.scene.surface import off_surface_points
+from scope3d.scene.surface import OFF_SURFACE_FLOORS_MM, off_surface_points
 from scope3d.scene.tracks import Tracks
 from scope3d.sensor.camera import Camera
 from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance
@@ -139,17 +139,19 @@ def adjust(options: BundleStageOptions, mode: str, measured: list[MeasuredPose],
 @dataclass
 class AdjustedMap:
     """tracks (points in mm world), poses (``cam_from_world``), camera (adjusted when intrinsics were
-    refined) and one bundle result per round."""
+    refined), one bundle result per round, and the points dropped for standing off their neighbours'
+    surface, (K, 3) mm world (empty unless the scene was declared a height field)."""
 
     tracks: Tracks
     poses: list[Pose]
     camera: Camera
     bundle_results: list[BundleResult]
+    off_surface_points: np.ndarray
 
 
 def adjust_map(mode: str, measured: list[MeasuredPose], camera: Camera, tracks: Tracks, start: list[MeasuredPose],
                depth_prior: DepthPrior | None, track_options: TrackOptions, options: BundleStageOptions, *,
-               where: str = "dataset") -> AdjustedMap:
+               height_field: bool = False, where: str = "dataset") -> AdjustedMap:
     """Triangulate ``tracks`` (untriangulated, from :func:`scope3d.feature.tracks.build_tracks`) and adjust.
 
     Triangulation and the adjustment start from ``start`` (the poses that guided matching); the bounds
@@ -158,6 +160,12 @@ def adjust_map(mode: str, measured: list[MeasuredPose], camera: Camera, tracks: 
     adjust, align the gauge to the measurements, re-triangulate every track with the strict gate. A second
     round runs unless the poses cannot move or barely moved. Raises InputError (naming ``where``) when no
     point survives.
+
+    height_field : the scene is a surface seen from one side (a surgical field, not an object in a ring):
+        after every triangulation, points millimetres off their neighbours' surface (:func:`on_surface`,
+        gross errors only) are dropped before they enter an adjustment (a wrong two-view match millimetres
+        off pulls a weakly held camera); the final points get the full check once (each check has its
+        false alarms, so it is not repeated).
     """
     movable = mode != "fixed"
     # both ends of a ray pair may be off: twice one pose's effect
@@ -168,7 +176,16 @@ def adjust_map(mode: str, measured: list[MeasuredPose], camera: Camera, tracks: 
     if movable:
         first = replace(first, min_angle_deg=0.5 * track_options.min_angle_deg)
     poses = [m.pose for m in start]
-    tracks = triangulate_tracks(camera, poses, tracks, first)
+    dropped = [np.zeros((0, 3))]
+
+    def keep_on_surface(tracks: Tracks, *, gross_only: bool) -> Tracks:
+        if not height_field or tracks.n_tracks == 0:
+            return tracks
+        keep = on_surface(tracks, poses, gross_only=gross_only)
+        dropped.append(tracks.points[~keep])
+        return tracks.subset(keep[tracks.track])
+
+    tracks = keep_on_surface(triangulate_tracks(camera, poses, tracks, first), gross_only=True)
     if tracks.n_tracks == 0:
         raise InputError(f"{where}: no point could be triangulated (poses inconsistent with the images?)")
     exact = all(m.tolerance.is_exact for m in measured)
@@ -182,7 +199,8 @@ def adjust_map(mode: str, measured: list[MeasuredPose], camera: Camera, tracks: 
             poses = align_gauge(poses, measured, bounded=mode == "bounded")
         if options.refine_intrinsics:
             camera = camera.with_intrinsics(result.intrinsics[0])
-        tracks = triangulate_tracks(camera, poses, tracks.untriangulated(), track_options)
+        tracks = keep_on_surface(triangulate_tracks(camera, poses, tracks.untriangulated(), track_options),
+                                 gross_only=True)
         if tracks.n_tracks == 0:
             raise InputError(f"{where}: bundle adjustment left no consistent point")
         if not movable or (mode == "bounded" and exact):
@@ -191,19 +209,24 @@ def adjust_map(mode: str, measured: list[MeasuredPose], camera: Camera, tracks: 
         turned = max(p.distance_to(q)[1] for p, q in zip(poses, before))
         if moved < options.settled_mm and turned < options.settled_rad:
             break  # the poses barely moved (a micro-stage's 0.01 mm box): a second round would change nothing
-    return AdjustedMap(tracks, poses, camera, results)
+    tracks = keep_on_surface(tracks, gross_only=False)
+    if tracks.n_tracks == 0:
+        raise InputError(f"{where}: no point lies on a consistent surface")
+    return AdjustedMap(tracks, poses, camera, results, np.concatenate(dropped))
 
 
-def on_surface(tracks: Tracks, poses: list[Pose]) -> np.ndarray:
+def on_surface(tracks: Tracks, poses: list[Pose], *, gross_only: bool = False) -> np.ndarray:
     """Mask (n_tracks,) of points consistent with their neighbours' local surface.
 
     A wrong match that happens to lie on the epipolar line passes RANSAC and the reprojection gate
-    and triangulates millimetres off the surface (on the dome: 2 % of the points, all two-view tracks,
-    2-13 mm off); :func:`scope3d.scene.surface.off_surface_points` finds them. Assumes a height field
-    seen from one side (the cameras' mean viewing direction).
+    and triangulates millimetres off the surface (on the dome: 2-4 % of the points, mostly two-view
+    tracks, 1-13 mm off); :func:`scope3d.scene.surface.off_surface_points` finds them. Assumes a height field
+    seen from one side (the cameras' mean viewing direction). gross_only : only the first pass (points
+    more than 2 mm off).
     """
     towards = -np.mean([p.optical_axis for p in poses], axis=0)
-    return ~off_surface_points(tracks.points, towards=towards)
+    floors = OFF_SURFACE_FLOORS_MM[:1] if gross_only else OFF_SURFACE_FLOORS_MM
+    return ~off_surface_points(tracks.points, towards=towards, floors_mm=floors)
 
 
 # --- poses that guide matching ----------------------------------------------------------------
