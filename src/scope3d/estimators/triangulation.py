@@ -96,20 +96,6 @@ def triangulate_observations(
     raise ValueError(f"method must be 'midpoint' or 'dlt', got {method!r}")
 
 
-def triangulate_pairs(camera: Camera, pose_i: Pose, pose_j: Pose, px_i: np.ndarray, px_j: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Two-view midpoint triangulation of matched pixels (N, 2) each -> points (N, 3) mm, ok mask (N,)
-    (finite and in front of both cameras)."""
-    n = len(px_i)
-    track = np.repeat(np.arange(n), 2)
-    frame = np.tile([0, 1], n)
-    pixels = np.empty((2 * n, 2))
-    pixels[0::2], pixels[1::2] = px_i, px_j
-    X = triangulate_observations(camera, [pose_i, pose_j], track, frame, pixels, n)
-    ok = np.all(np.isfinite(X), axis=1)
-    ok[ok] &= (pose_i.transform(X[ok])[:, 2] > 0) & (pose_j.transform(X[ok])[:, 2] > 0)
-    return X, ok
-
-
 def reprojection_errors(camera: Camera, poses: list[Pose], tracks: Tracks, points: np.ndarray | None = None) -> np.ndarray:
     """(M,) pixel distance of each observation from its point's projection (NaN behind the camera)."""
     X = tracks.points if points is None else points

@@ -266,11 +266,6 @@ class AxialPair:
         local = np.stack([rho * np.cos(theta) * z, rho * np.sin(theta) * z, z], axis=1)
         return local @ self.virtual_from_world + self.front_centre
 
-    def rays_world(self, pose: Pose) -> np.ndarray:
-        """(H, W, 3) unit ray directions (world) of every pixel of the camera at ``pose``."""
-        rays = self.camera.unproject(self.camera.pixel_grid().reshape(-1, 2))
-        return (rays @ pose.rotation).reshape(self.camera.height, self.camera.width, 3)
-
 
 def make_axial_pair(
     camera: Camera,
