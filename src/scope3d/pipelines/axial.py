@@ -13,7 +13,6 @@ Read top to bottom like the method section::
 """
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -29,7 +28,8 @@ from scope3d.mvs.dense_matching import SgmOptions
 from scope3d.mvs.multiview import MultiViewOptions, reconstruct_reference, reference_frames
 from scope3d.mvs.two_view import ImageDepth, TwoViewOptions, grid_mesh_faces, reconstruct_pair, to_image
 from scope3d.scene.mesh import Mesh, PointCloud
-from scope3d.utils.atomic import atomic_file, atomic_path
+from scope3d.utils.atomic import atomic_path
+from scope3d.utils.jsonio import write_json
 
 METHODS = ("sgm", "sad", "multiview")
 
@@ -237,15 +237,6 @@ def run(options: AxialOptions, dataset: Dataset, out_dir: str | Path | None) -> 
 
             save_error_histogram_png(out / "error_histogram.png", distances,
                                      title=f"axial {options.method}: distance to the true surface")
-        with atomic_file(out / "report.json") as fh:
-            json.dump(report, fh, indent=2, default=_json_default)
-            fh.write("\n")
+        write_json(out / "report.json", report)
     return AxialResult(cloud, mesh, depths, report, Path(out_dir) if out_dir is not None else None)
 
-
-def _json_default(obj):
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, (np.floating, np.integer, np.bool_)):
-        return obj.item()
-    raise TypeError(f"cannot serialise {type(obj).__name__}")

@@ -1,2 +1,2 @@
-"""Helpers every layer may use: atomic outputs (:mod:`.atomic`).
+"""Helpers every layer may use: atomic outputs (:mod:`.atomic`), JSON with numpy values (:mod:`.jsonio`).
 """
