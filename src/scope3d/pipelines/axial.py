@@ -28,7 +28,7 @@ from scope3d.mvs.dense_matching import SgmOptions
 from scope3d.mvs.multiview import MultiViewOptions, reconstruct_reference, reference_frames
 from scope3d.mvs.two_view import ImageDepth, TwoViewOptions, grid_mesh_faces, reconstruct_pair, to_image
 from scope3d.scene.mesh import Mesh, PointCloud
-from scope3d.utils.atomic import atomic_path
+from scope3d.utils.figures import new_figure, save_figure
 from scope3d.utils.jsonio import write_json
 
 METHODS = ("sgm", "sad", "multiview")
@@ -188,13 +188,9 @@ def evaluate(cloud: PointCloud, dataset: Dataset, step_mm: float) -> tuple[dict 
 
 def save_depth_png(path: Path, depth: ImageDepth, *, title: str) -> None:
     """z-depth map (mm) with a colour bar; pixels without depth are white."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     z = np.where(depth.valid, depth.z_depth_mm, np.nan)
-    fig, ax = plt.subplots(figsize=(5.6, 4.8), dpi=110)
+    fig = new_figure((5.6, 4.8), dpi=110)
+    ax = fig.add_subplot()
     finite = z[np.isfinite(z)]
     lo, hi = (np.percentile(finite, [1, 99]) if finite.size else (0, 1))
     im = ax.imshow(z, cmap="turbo", vmin=lo, vmax=hi)
@@ -202,9 +198,7 @@ def save_depth_png(path: Path, depth: ImageDepth, *, title: str) -> None:
     ax.set_title(title)
     ax.set_axis_off()
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def run(options: AxialOptions, dataset: Dataset, out_dir: str | Path | None) -> AxialResult:

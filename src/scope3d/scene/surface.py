@@ -431,23 +431,17 @@ def depth_map(surface: Surface) -> np.ndarray:
 
 
 def save_depth_map_png(path, surface: Surface, *, title: str = "depth map") -> None:
-    """Depth map with a colour scale (mm) as a PNG (matplotlib, imported here: plotting is optional)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from scope3d.utils.atomic import atomic_path
+    """Depth map with a colour scale (mm) as a PNG (written atomically)."""
+    from scope3d.utils.figures import new_figure, save_figure
 
     d = depth_map(surface)
     extent = (surface.s[0], surface.s[-1], surface.t[-1], surface.t[0])
-    fig, ax = plt.subplots(figsize=(5.5, 4.5), dpi=110)
+    fig = new_figure((5.5, 4.5), dpi=110)
+    ax = fig.add_subplot()
     im = ax.imshow(d, cmap="turbo", extent=extent)
     fig.colorbar(im, ax=ax, label="depth below the highest point (mm)")
     ax.set_xlabel("s (mm)")
     ax.set_ylabel("t (mm)")
     ax.set_title(title)
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp)
-    plt.close(fig)
+    save_figure(fig, path)

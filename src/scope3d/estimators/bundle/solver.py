@@ -219,15 +219,11 @@ class BundleResult:
 
     def plot_convergence(self, path, *, title: str | None = None) -> None:
         """Write the convergence curve (cost and projected gradient per iteration) to a PNG at ``path``."""
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
-        from scope3d.utils.atomic import atomic_path
+        from scope3d.utils.figures import new_figure, save_figure
 
         its = [rec.iteration for rec in self.log]
-        fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(9, 3.5))
+        fig = new_figure((9, 3.5))
+        ax1, ax2 = fig.subplots(1, 2)
         ax1.semilogy(its, [rec.cost for rec in self.log], "o-", ms=3)
         rejected = [rec for rec in self.log if rec.iteration > 0 and not rec.accepted]
         if rejected:
@@ -242,9 +238,7 @@ class BundleResult:
         ax2.grid(True, which="both", alpha=0.3)
         fig.suptitle(title or f"{self.termination}, {self.solve_time_s:.2f} s")
         fig.tight_layout()
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, dpi=110)
-        plt.close(fig)
+        save_figure(fig, path, dpi=110)
 
 
 # --- evaluation ----------------------------------------------------------------------------------
