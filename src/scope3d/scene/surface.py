@@ -30,6 +30,7 @@ import numpy as np
 from scipy.interpolate import RBFInterpolator
 from scipy.spatial import cKDTree
 
+from scope3d.geometry.grid import grid_faces
 from scope3d.geometry.plane import fit_plane
 from scope3d.geometry.pose import Pose
 from scope3d.scene.mesh import Mesh
@@ -197,10 +198,10 @@ class Surface:
         valid = self.valid
         index = np.full(valid.shape, -1, dtype=np.int64)
         index[valid] = np.arange(int(valid.sum()))
-        v00, v01, v10, v11 = index[:-1, :-1], index[:-1, 1:], index[1:, :-1], index[1:, 1:]
-        cell = (v00 >= 0) & (v01 >= 0) & (v10 >= 0) & (v11 >= 0)
-        # (s, t, n) is right-handed, so (v00, v01, v11) winds counter-clockwise about n
-        faces = np.concatenate([np.stack([v00[cell], v01[cell], v11[cell]], 1), np.stack([v00[cell], v11[cell], v10[cell]], 1)])
+        cell = valid[:-1, :-1] & valid[:-1, 1:] & valid[1:, :-1] & valid[1:, 1:]
+        # columns run along s and rows along t, and (s, t, n) is right-handed: the grid's
+        # counter-clockwise (column, row) winding is counter-clockwise about n
+        faces = index.reshape(-1)[grid_faces(*valid.shape, keep=cell)]
         verts = self.vertices()[valid]
         normals = self.normals()[valid]
         vc = None if colors is None else np.asarray(colors, np.uint8)[valid]
