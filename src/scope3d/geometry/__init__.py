@@ -1,5 +1,6 @@
 """Pure geometry, the lowest layer: rotations, rigid poses (``cam_from_world``), similarity transforms,
-planes. No cameras, no files.
+planes, triangles of vertex grids (:mod:`.grid`), points from rays (:mod:`.triangulation`). No cameras,
+no files.
 """
 from scope3d.geometry.plane import fit_plane
 from scope3d.geometry.pose import Pose
