@@ -168,6 +168,17 @@ class BundleResult:
             intr[:, 1] = intr[:, 0]
         return intr
 
+    @property
+    def rms_initial_px(self) -> float:
+        """RMS reprojection error (px) at the start, from the cost: ``sqrt(2 cost / observations)``, i.e.
+        ``sqrt(mean rho(|r|^2))`` (the plain RMS without a robust loss); 0 without observations."""
+        return math.sqrt(2 * self.initial_cost / max(self.problem.num_observations, 1))
+
+    @property
+    def rms_final_px(self) -> float:
+        """RMS reprojection error (px) at the solution, from the cost, as :attr:`rms_initial_px`."""
+        return math.sqrt(2 * self.final_cost / max(self.problem.num_observations, 1))
+
     def reprojection_errors_px(self) -> np.ndarray:
         """(K,) reprojection error per observation, pixels, in the problem's input order."""
         r = evaluate(self.problem, self.parameters)[0]
@@ -176,8 +187,6 @@ class BundleResult:
         return out
 
     def summary(self) -> str:
-        rms_init = math.sqrt(2 * self.initial_cost / self.problem.num_observations)
-        rms_final = math.sqrt(2 * self.final_cost / self.problem.num_observations)
         last = self.log[-1]
         return "\n".join([
             "Bundle adjustment (bound-constrained Levenberg-Marquardt, Schur complement)",
@@ -185,8 +194,8 @@ class BundleResult:
             f"  linear solver        {self.linear_solver} ({self.threads} thread(s) for the Schur complement);"
             f" loss {self.options.loss}"
             + (f" (scale {self.options.loss_scale_px:g} px)" if self.options.loss != "none" else ""),
-            f"  initial cost         {self.initial_cost:.6e}  (RMS {rms_init:.4f} px)",
-            f"  final cost           {self.final_cost:.6e}  (RMS {rms_final:.4f} px)",
+            f"  initial cost         {self.initial_cost:.6e}  (RMS {self.rms_initial_px:.4f} px)",
+            f"  final cost           {self.final_cost:.6e}  (RMS {self.rms_final_px:.4f} px)",
             f"  iterations           {self.iterations} ({self.successful_iterations} accepted)",
             f"  active bounds        {last.active_set_size}",
             f"  termination          {self.termination}",
