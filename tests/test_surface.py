@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from scope3d.geometry.grid import grid_faces
-from scope3d.geometry.plane import fit_plane
+from scope3d.geometry.plane import fit_plane, plane_residuals, plane_rms, principal_axes
 from scope3d.geometry.pose import Pose
 from scope3d.geometry.rotation import look_at
 from scope3d.scene.surface import Surface, SurfaceOptions, depth_map, fit_surface, off_surface_points, texture
@@ -64,6 +64,24 @@ def test_mesh_faces_wind_towards_the_normal():
     face_n = np.cross(b - a, c - a)
     assert np.all(face_n @ s.axes[2] > 0)
     assert len(m.vertices) == int(s.valid.sum())
+
+
+def test_plane_residuals_and_rms():
+    rng = np.random.default_rng(3)
+    R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    offsets = rng.normal(0, 0.2, 400)
+    local = np.column_stack([rng.uniform(-20, 20, (400, 2)), offsets - offsets.mean()])
+    pts = local @ R.T + [5.0, -3.0, 40.0]  # a tilted, shifted sheet 0.2 mm thick
+    r = plane_residuals(pts)
+    assert r.shape == (400,)
+    np.testing.assert_allclose(np.abs(r), np.abs(local[:, 2]), atol=0.03)  # the plane is (almost) the sheet's
+    assert abs(r.mean()) < 1e-9
+    assert plane_rms(pts) == pytest.approx(np.sqrt(np.mean(r**2)), rel=1e-9)
+    assert plane_rms(pts) <= np.sqrt(np.mean(local[:, 2] ** 2))  # least squares: no plane does better
+    assert plane_rms(pts[:, [0, 1, 1]]) < 1e-12  # points on a plane
+    centroid, axes = principal_axes(pts)
+    np.testing.assert_allclose(axes @ axes.T, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(abs(axes[2] @ R[:, 2]), 1.0, atol=1e-5)
 
 
 @pytest.mark.parametrize("anti_diagonal", [False, True])
