@@ -569,9 +569,9 @@ def build_thread(size: str = "M8x1.25", *, texture_seed: int = 0, mm_per_texel: 
     mm_per_texel = circumference / round(circumference / mm_per_texel)  # a whole number of texels per turn
     v_lo, v_hi = z_apex - pitch - 1.0, 1.0
     wall = TextureMap(machined_texture((circumference, v_hi - v_lo), mm_per_texel, texture_seed + 20, periodic_u=True),
-                      (0.0, v_lo), mm_per_texel, wrap_u=True, exact_mip_centres=True)
+                      (0.0, v_lo), mm_per_texel, wrap_u=True)
     face = TextureMap(machined_texture((22.0, 22.0), 0.01, texture_seed + 21, along_mm=0.6, across_mm=0.03),
-                      (-11.0, -11.0), 0.01, exact_mip_centres=True)
+                      (-11.0, -11.0), 0.01)
     score_rng = np.random.default_rng(texture_seed + 22)
     score_levels = score_rng.uniform(0.7, 1.15, 4096)
     score_period = 0.04  # mm between the scored rings of the counterbore
