@@ -136,17 +136,23 @@ def _check_header(path: Path, data: bytes) -> list[tuple[str, int, list[list[str
         raise InputError(f"{path}: not a PLY file")
     newline = data.find(b"\n", end)
     body = data[newline + 1 :] if newline >= 0 else b""
-    fmt, elements = None, []
-    for line in data[:end].decode("ascii", "replace").splitlines():
+    lines = data[:end].decode("ascii", "replace").splitlines()
+    head = lines[1].split() if len(lines) > 1 else []
+    if head[:1] != ["format"]:
+        raise InputError(f"{path}: the line after 'ply' must be the format line")
+    fmt, elements = (head[1] if len(head) > 1 else ""), []
+    for line in lines[2:]:
         parts = line.split()
-        if parts[:1] == ["format"]:
-            fmt = parts[1] if len(parts) > 1 else ""
-        elif parts[:1] == ["element"]:
-            if len(parts) != 3 or not parts[2].lstrip("-").isdigit():
-                raise InputError(f"{path}: malformed header line {line.strip()!r}")
-            if int(parts[2]) < 0:
-                raise InputError(f"{path}: element {parts[1]} has a negative count")
-            elements.append((parts[1], int(parts[2]), []))
+        if parts[:1] == ["element"]:
+            try:
+                name, count = parts[1], int(parts[2])
+                if len(parts) != 3:
+                    raise ValueError
+            except (IndexError, ValueError):
+                raise InputError(f"{path}: malformed header line {line.strip()!r}") from None
+            if count < 0:
+                raise InputError(f"{path}: element {name} has a negative count")
+            elements.append((name, count, []))
         elif parts[:1] == ["property"]:
             if not elements:
                 raise InputError(f"{path}: property before any element in the header")
