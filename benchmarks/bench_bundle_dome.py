@@ -13,7 +13,7 @@ Features and matches are the map pipeline's public functions, used read-only:
   at all, so the matches (and tracks) are identical for every draw and every noise bound; only the
   triangulation and the adjustment see the noisy poses. (The pose-guided matcher would re-match per draw
   with a window widened by the tolerance; not used here.)
-* ``scope3d.feature.tracks.build_tracks`` (union-find, inconsistent tracks dropped) and, per draw,
+* ``scope3d.feature.tracks.build_tracks`` (connected components, inconsistent tracks dropped) and, per draw,
   ``triangulate_tracks`` (midpoint) **from the noisy poses**, with the reprojection gate widened by the
   image shift the pose noise can cause (``2 px + f·b·√3 / 15 mm``), then a working-range gate: a track
   is dropped if its point lies more than ``MAX_DEPTH_MM`` (4 × the stand-off) in front of any camera

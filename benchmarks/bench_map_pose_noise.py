@@ -80,7 +80,6 @@ per mode, COLMAP ~2 min per scene, the oracle and floor ICPs ~10 s per row). Run
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import shutil
@@ -107,6 +106,7 @@ from scope3d.sensor.pose_tolerance import (
     perturb_poses_drift,
     perturb_poses_uniform,
 )
+from scope3d.utils.jsonio import write_json
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "results"
@@ -848,9 +848,7 @@ def main(argv=None) -> None:
         results["elapsed_s"] = round(time.perf_counter() - t_start, 1)
         evaluate_goals(results["rows"])
         results["scale_limit"] = floor_table(results["rows"])
-        tmp = json_path.with_suffix(".json.tmp")
-        tmp.write_text(json.dumps(results, indent=2, default=_json_default) + "\n")
-        tmp.replace(json_path)
+        write_json(json_path, results)
 
     sweep(args, results, save)
     save()
@@ -859,16 +857,6 @@ def main(argv=None) -> None:
             plot(results["rows"], scene, model, args.out / f"{prefix}_{scene}_{model}.png")
     print_tables(results)
     print(f"\nwrote {json_path} and {prefix}_<scene>_<model>.png ({results['elapsed_s']:.0f} s)")
-
-
-def _json_default(obj):
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, (np.floating, np.integer)):
-        return obj.item()
-    if isinstance(obj, Path):
-        return str(obj)
-    raise TypeError(f"cannot serialise {type(obj).__name__}")
 
 
 if __name__ == "__main__":

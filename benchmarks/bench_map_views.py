@@ -36,6 +36,7 @@ from bench_map_middlebury import _known_pose_reconstruction
 from scope3d import phantoms
 from scope3d.cli.main import main as cli
 from scope3d.feature.pairs import PairOptions
+from scope3d.geometry.plane import principal_axes
 from scope3d.io.dataset import load_dataset, write_dataset
 from scope3d.phantoms.trajectories import ring_poses
 from scope3d.pipelines.surgical_map import MAP_PRESETS, MapOptions, run
@@ -59,8 +60,8 @@ def ring_subset(ds, n: int, out: Path):
     """``n`` views of a ring evenly spaced in azimuth (about the centres' best-fit plane), each the
     unused view nearest to its target azimuth, starting at view 0."""
     centres = np.stack([m.pose.centre for m in ds.poses])
-    c = centres - centres.mean(axis=0)
-    axes = np.linalg.svd(c)[2]
+    centroid, axes = principal_axes(centres)
+    c = centres - centroid
     azimuth = np.degrees(np.arctan2(c @ axes[1], c @ axes[0]))
     keep: list[int] = []
     for k in range(min(n, len(ds))):

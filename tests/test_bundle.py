@@ -304,6 +304,9 @@ def test_result_summary_log_and_plot(tmp_path):
     assert all(b <= a for a, b in zip(costs, costs[1:]))  # accepted steps only ever lower the cost
     d = result.to_dict()
     assert {"initial_cost", "final_cost", "iterations", "solve_time_s", "iteration_log"} <= set(d)
+    # no robust loss: the RMS from the cost is the RMS of the reprojection errors
+    assert result.rms_final_px == pytest.approx(np.sqrt(np.mean(result.reprojection_errors_px() ** 2)), rel=1e-9)
+    assert result.rms_initial_px > result.rms_final_px and f"(RMS {result.rms_final_px:.4f} px)" in text
     result.plot_convergence(tmp_path / "curve.png")
     assert (tmp_path / "curve.png").read_bytes()[:4] == b"\x89PNG"
 

@@ -1,6 +1,10 @@
 """Evaluation against a true surface: distances, ICP from eight starts, summaries, figures."""
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 import trimesh
@@ -78,6 +82,29 @@ def test_summary_and_figures(tmp_path):
     save_error_histogram_png(tmp_path / "h.png", d)
     save_error_map_png(tmp_path / "m.png", np.random.default_rng(0).random((4, 3)), d)
     assert (tmp_path / "h.png").stat().st_size > 1000 and (tmp_path / "m.png").stat().st_size > 1000
+
+
+def test_figures_leave_the_callers_matplotlib_alone(tmp_path):
+    """Library figures draw on their own Agg canvas: the program's backend stays what it chose, and
+    pyplot (with its global figure registry) is never imported."""
+    code = f"""
+import sys
+import matplotlib
+matplotlib.use("svg")
+import numpy as np
+from scope3d.estimators.bundle import solver
+from scope3d.metrology.evaluation import save_error_histogram_png, save_error_map_png
+from scope3d.pipelines import axial
+from scope3d.scene import surface
+save_error_histogram_png({str(tmp_path / "h.png")!r}, np.array([0.1, 0.2, 0.3]))
+save_error_map_png({str(tmp_path / "m.png")!r}, np.zeros((3, 3)), np.array([0.1, 0.2, 0.3]))
+assert matplotlib.get_backend() == "svg", matplotlib.get_backend()
+assert "matplotlib.pyplot" not in sys.modules
+"""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
+    assert done.returncode == 0, done.stderr
+    assert (tmp_path / "h.png").read_bytes()[:4] == b"\x89PNG" and (tmp_path / "m.png").read_bytes()[:4] == b"\x89PNG"
 
 
 def test_bad_inputs(bowl):

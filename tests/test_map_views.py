@@ -1,6 +1,6 @@
 """More views of the same object must give the map more points, not fewer.
 
-Tracks are joined by union-find over the pairwise matches, and a track holding two features of one frame
+Tracks are the connected components of the pairwise matches, and a track holding two features of one frame
 is dropped whole (:func:`scope3d.feature.tracks.build_tracks`). Every pair adds a few wrong matches that can glue
 two tracks together, so with a fixed number of partners per frame the loss grows with the density of
 views (on a dense ring the partners all see the same points). The ``photograph`` preset therefore keeps

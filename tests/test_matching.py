@@ -35,8 +35,12 @@ def test_guided_finds_at_least_as_many_correct_matches_as_exhaustive(pair):
     seq, feats = pair
     depth = DepthPrior(12.0, 28.0)
     for i, j in ((0, 1), (1, 2), (0, 2)):
-        g = match_guided(seq.camera, feats[i], feats[j], seq.measured_poses[i], seq.measured_poses[j], depth, i=i, j=j)
-        e = match_exhaustive(seq.camera, feats[i], feats[j], i=i, j=j)
+        # the wide pair (0, 2) sits at the 15-match gate at 400 px (a few renders more or less texture
+        # drop it whole either way): compare the matchers there before the gate
+        options = MatchOptions(min_matches=0) if (i, j) == (0, 2) else MatchOptions()
+        g = match_guided(seq.camera, feats[i], feats[j], seq.measured_poses[i], seq.measured_poses[j], depth, options,
+                         i=i, j=j)
+        e = match_exhaustive(seq.camera, feats[i], feats[j], options, i=i, j=j)
         good_g, err_g = _correct(seq, feats, g)
         good_e, err_e = _correct(seq, feats, e)
         assert good_g >= good_e and good_g > 0, (i, j, good_g, good_e)

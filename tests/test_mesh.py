@@ -1,4 +1,8 @@
-"""PLY files: binary round trip, ASCII files written by hand, other writers (trimesh), malformed files."""
+"""PLY files: binary round trip, ASCII files written by hand, other writers (trimesh), polygons, malformed
+and lying files."""
+import time
+import tracemalloc
+
 import numpy as np
 import pytest
 import trimesh
@@ -106,11 +110,16 @@ end_header
 """
 
 
+def _triangles(faces):
+    """The set of triangles, each rotated to start at its smallest index (winding kept)."""
+    return {tuple(np.roll(f, -int(np.argmin(f))).tolist()) for f in np.asarray(faces)}
+
+
 def test_ascii_mesh_written_by_hand(tmp_path):
     (tmp_path / "a.ply").write_text(ASCII_MESH)
     mesh = read_ply(tmp_path / "a.ply")
-    assert isinstance(mesh, Mesh)
-    np.testing.assert_array_equal(mesh.faces, [[0, 1, 2], [0, 2, 3], [0, 1, 4]])  # quad split as a fan
+    assert isinstance(mesh, Mesh) and len(mesh.faces) == 3
+    assert _triangles(mesh.faces) == {(0, 1, 2), (0, 2, 3), (0, 1, 4)}  # the quad split along 0-2, winding kept
     np.testing.assert_array_equal(mesh.vertex_colors[3], [10, 20, 30])
     np.testing.assert_array_equal(mesh.vertex_normals[:, 2], 1.0)
     np.testing.assert_array_equal(mesh.vertices[4], [0.5, 0.5, 1.0])
@@ -126,6 +135,55 @@ def test_ascii_point_cloud_with_float_colours(tmp_path):
     assert isinstance(cloud, PointCloud)
     np.testing.assert_array_equal(cloud.points, [[1, 2, 3], [4, 5, 6]])
     np.testing.assert_array_equal(cloud.colors, [[255, 128, 0], [0, 0, 51]])
+
+
+def _binary_polygons(faces, order="<"):
+    """A binary PLY of a 2 x 3 vertex grid (double x y z, uchar colours) with the given polygons."""
+    k = len(faces[0])
+    header = (f"ply\nformat binary_{'little' if order == '<' else 'big'}_endian 1.0\nelement vertex 6\n"
+              "property double x\nproperty double y\nproperty double z\n"
+              "property uchar red\nproperty uchar green\nproperty uchar blue\n"
+              f"element face {len(faces)}\nproperty list uchar int vertex_indices\nend_header\n")
+    v = np.zeros(6, [("xyz", order + "f8", (3,)), ("rgb", "u1", (3,))])
+    v["xyz"] = [[0, 0, 0], [1, 0, 0], [2, 0, 0], [0, 1, 0], [1, 1, 0], [2, 1, 0]]
+    v["rgb"] = np.arange(18).reshape(6, 3)
+    f = np.zeros(len(faces), [("n", "u1"), ("i", order + "i4", (k,))])
+    f["n"], f["i"] = k, faces
+    return header.encode() + v.tobytes() + f.tobytes()
+
+
+@pytest.mark.parametrize("order", ["<", ">"])
+def test_binary_quad_mesh_is_triangulated(tmp_path, order):
+    (tmp_path / "q.ply").write_bytes(_binary_polygons([[0, 1, 4, 3], [1, 2, 5, 4]], order))
+    mesh = read_ply(tmp_path / "q.ply")
+    assert isinstance(mesh, Mesh) and mesh.faces.shape == (4, 3)
+    assert _triangles(mesh.faces) == {(0, 1, 4), (0, 4, 3), (1, 2, 5), (1, 5, 4)}  # the quads split, winding kept
+    np.testing.assert_array_equal(mesh.vertices[5], [2, 1, 0])
+    np.testing.assert_array_equal(mesh.vertex_colors, np.arange(18).reshape(6, 3))
+    area = np.linalg.norm(np.cross(*(mesh.vertices[mesh.faces[:, 1:]] - mesh.vertices[mesh.faces[:, :1]]).transpose(1, 0, 2)),
+                          axis=1) / 2
+    assert area.sum() == pytest.approx(2.0)  # the two unit squares, covered once
+
+
+def test_binary_pentagon_is_a_fan(tmp_path):
+    (tmp_path / "p.ply").write_bytes(_binary_polygons([[0, 1, 2, 5, 3]]))
+    assert _triangles(read_ply(tmp_path / "p.ply").faces) == {(0, 1, 2), (0, 2, 5), (0, 5, 3)}
+
+
+def test_lying_header_is_refused_quickly_without_allocating(tmp_path):
+    """A tiny file whose header claims 10^9 vertices (24 GB of doubles) must fail at once, in both encodings."""
+    for fmt in ("binary_little_endian", "ascii"):
+        (tmp_path / "lie.ply").write_bytes(
+            f"ply\nformat {fmt} 1.0\nelement vertex 1000000000\nproperty double x\nproperty double y\n"
+            f"property double z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n".encode()
+            + b"\0" * 64)
+        tracemalloc.start()
+        t0 = time.perf_counter()
+        with pytest.raises(InputError, match="lie.ply: file ends inside element vertex"):
+            read_ply(tmp_path / "lie.ply")
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+        assert time.perf_counter() - t0 < 1.0 and peak < 10_000_000, (fmt, peak)
 
 
 def test_big_endian_binary(tmp_path):
@@ -149,8 +207,18 @@ def test_big_endian_binary(tmp_path):
          b"end_header\n1 2 3\n", "ends inside element vertex"),
         (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty quaternion x\nend_header\n1\n", "unknown property type"),
         (b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
-         b"element face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0 1 0 0 0 1 0\n3 0 1 7\n",
+         b"element face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 7\n",
          "vertices that do not exist"),
+        (b"ply\nformat ascii 1.0\nelement vertex -3\nproperty float x\nproperty float y\nproperty float z\n"
+         b"end_header\n", "negative count"),
+        (b"ply\nformat binary_middle_endian 1.0\nelement vertex 1\nproperty float x\nproperty float y\n"
+         b"property float z\nend_header\n" + b"\0" * 12, "format 'binary_middle_endian'"),
+        # the second face has 4 corners where the first has 3: trimesh reads binary lists of one length only
+        (_binary_polygons([[0, 1, 4], [1, 2, 5]])[:-26] + b"\x03" + np.array([0, 1, 4], "<i4").tobytes()
+         + b"\x04" + np.array([1, 2, 5, 4], "<i4").tobytes(), "does not match the header"),
+        (_binary_polygons([[0, 1, 4, 3]])[:-3], "truncated"),
+        (b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\n"
+         b"end_header\n1 2 3\n4 five 6\n", "bad.ply: "),
         (b"ply\nformat ascii 1.0\nelement face 0\nproperty list uchar int vertex_indices\nend_header\n",
          "no vertex element"),
     ],

@@ -176,14 +176,12 @@ def test_mip_levels_keep_the_pattern_in_place():
     from scope3d.phantoms.textures import TextureMap
 
     ramp = np.tile(np.arange(256, dtype=np.uint8), (256, 1))
-    tex = TextureMap(ramp, (0.0, 0.0), 0.01, exact_mip_centres=True)
+    tex = TextureMap(ramp, (0.0, 0.0), 0.01)
     uv = np.stack([np.linspace(0.6, 1.9, 50), np.full(50, 1.2)], axis=1)  # mm, far from the borders
     for level, footprint in ((0, 0.01), (1, 0.02), (2, 0.04), (3, 0.08)):
         got = tex.sample(uv, np.full(50, footprint))[:, 0] * 255.0
         # Bilinear reads of an 8-bit ramp are exact to quantisation (0.5 grey level = 0.5 texel).
         assert np.max(np.abs(got - uv[:, 0] / 0.01)) < 0.6, level
-    legacy = TextureMap(ramp, (0.0, 0.0), 0.01).sample(uv, np.full(50, 0.04))[:, 0] * 255.0
-    assert np.median(legacy - uv[:, 0] / 0.01) < -1.0  # the old convention displaces level 2 by 1.5 texels
 
 
 def test_supersampling_is_the_box_average_of_a_finer_render():

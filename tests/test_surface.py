@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from scope3d.feature.depth_prior import DepthPrior
-from scope3d.geometry.plane import fit_plane
+from scope3d.geometry.grid import grid_faces
+from scope3d.geometry.plane import fit_plane, plane_residuals, plane_rms, principal_axes
 from scope3d.geometry.pose import Pose
 from scope3d.geometry.rotation import look_at
 from scope3d.scene.surface import Surface, SurfaceOptions, depth_map, fit_surface, off_surface_points, texture
@@ -76,6 +77,45 @@ def test_mesh_faces_wind_towards_the_normal():
     face_n = np.cross(b - a, c - a)
     assert np.all(face_n @ s.axes[2] > 0)
     assert len(m.vertices) == int(s.valid.sum())
+
+
+def test_plane_residuals_and_rms():
+    rng = np.random.default_rng(3)
+    R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    offsets = rng.normal(0, 0.2, 400)
+    local = np.column_stack([rng.uniform(-20, 20, (400, 2)), offsets - offsets.mean()])
+    pts = local @ R.T + [5.0, -3.0, 40.0]  # a tilted, shifted sheet 0.2 mm thick
+    r = plane_residuals(pts)
+    assert r.shape == (400,)
+    np.testing.assert_allclose(np.abs(r), np.abs(local[:, 2]), atol=0.03)  # the plane is (almost) the sheet's
+    assert abs(r.mean()) < 1e-9
+    assert plane_rms(pts) == pytest.approx(np.sqrt(np.mean(r**2)), rel=1e-9)
+    assert plane_rms(pts) <= np.sqrt(np.mean(local[:, 2] ** 2))  # least squares: no plane does better
+    assert plane_rms(pts[:, [0, 1, 1]]) < 1e-12  # points on a plane
+    centroid, axes = principal_axes(pts)
+    np.testing.assert_allclose(axes @ axes.T, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(abs(axes[2] @ R[:, 2]), 1.0, atol=1e-5)
+
+
+@pytest.mark.parametrize("anti_diagonal", [False, True])
+@pytest.mark.parametrize("clockwise", [False, True])
+def test_grid_faces_cover_each_cell_once_with_one_winding(anti_diagonal, clockwise):
+    rows, cols = 4, 5
+    f = grid_faces(rows, cols, anti_diagonal=anti_diagonal, clockwise=clockwise)
+    assert f.shape == (2 * (rows - 1) * (cols - 1), 3) and f.dtype == np.int64
+    xy = np.stack(np.meshgrid(np.arange(cols), np.arange(rows)), -1).reshape(-1, 2).astype(float)  # (column, row)
+    a, b, c = xy[f[:, 0]], xy[f[:, 1]], xy[f[:, 2]]
+    cross = (b - a)[:, 0] * (c - a)[:, 1] - (b - a)[:, 1] * (c - a)[:, 0]
+    np.testing.assert_allclose(cross, -1.0 if clockwise else 1.0)  # half a unit cell each, one winding
+    diagonal = {1, cols} if anti_diagonal else {0, cols + 1}  # both halves of cell 0 hold its diagonal
+    assert diagonal <= set(f[0]) and diagonal <= set(f[len(f) // 2])
+    ring = grid_faces(rows, cols, wrap=True)  # the last column joins the first
+    assert len(ring) == 2 * (rows - 1) * cols and {0, cols - 1} <= set(ring[cols - 1])
+    keep = np.zeros((rows - 1, cols - 1), bool)
+    keep[1, 2] = True
+    np.testing.assert_array_equal(grid_faces(rows, cols, keep=keep), [[7, 8, 13], [7, 13, 12]])
+    only_second = grid_faces(rows, cols, keep=(np.zeros_like(keep), keep))
+    np.testing.assert_array_equal(only_second, [[7, 13, 12]])
 
 
 def test_ray_depths_hit_the_surface():

@@ -1,4 +1,4 @@
-"""Tracks: union-find over matches, exact multi-view triangulation, filters."""
+"""Tracks: connected components of the matches, exact multi-view triangulation, filters."""
 from __future__ import annotations
 
 import numpy as np

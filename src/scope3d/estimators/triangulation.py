@@ -16,6 +16,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from scope3d.geometry.pose import Pose
+from scope3d.geometry.triangulation import triangulate_midpoint
 from scope3d.scene.tracks import Tracks
 from scope3d.sensor.camera import Camera
 
@@ -71,17 +72,8 @@ def triangulate_observations(
     Returns (n_tracks, 3) mm world points (NaN where a track's rays are degenerate).
     """
     if method == "midpoint":
-        # argmin_X sum_k |(I - d_k d_k^T)(X - c_k)|^2  ->  (sum P_k) X = sum P_k c_k
         c, d = _rays_world(camera, poses, frame, pixels)
-        proj = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
-        A = np.zeros((n_tracks, 3, 3))
-        b = np.zeros((n_tracks, 3))
-        np.add.at(A, track, proj)
-        np.add.at(b, track, np.einsum("mij,mj->mi", proj, c))
-        ok = np.abs(np.linalg.det(A)) > 1e-12
-        X = np.full((n_tracks, 3), np.nan)
-        X[ok] = np.linalg.solve(A[ok], b[ok][..., None])[..., 0]
-        return X
+        return triangulate_midpoint(c, d, track, n_tracks)
     if method == "dlt":
         # rows x P3 - P1, y P3 - P2 on normalised coordinates; A^T A summed per track
         xy = camera.pixel_to_normalised(pixels)
@@ -99,20 +91,6 @@ def triangulate_observations(
         X[~np.all(np.isfinite(X), axis=1)] = np.nan
         return X
     raise ValueError(f"method must be 'midpoint' or 'dlt', got {method!r}")
-
-
-def triangulate_pairs(camera: Camera, pose_i: Pose, pose_j: Pose, px_i: np.ndarray, px_j: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Two-view midpoint triangulation of matched pixels (N, 2) each -> points (N, 3) mm, ok mask (N,)
-    (finite and in front of both cameras)."""
-    n = len(px_i)
-    track = np.repeat(np.arange(n), 2)
-    frame = np.tile([0, 1], n)
-    pixels = np.empty((2 * n, 2))
-    pixels[0::2], pixels[1::2] = px_i, px_j
-    X = triangulate_observations(camera, [pose_i, pose_j], track, frame, pixels, n)
-    ok = np.all(np.isfinite(X), axis=1)
-    ok[ok] &= (pose_i.transform(X[ok])[:, 2] > 0) & (pose_j.transform(X[ok])[:, 2] > 0)
-    return X, ok
 
 
 def reprojection_errors(camera: Camera, poses: list[Pose], tracks: Tracks, points: np.ndarray | None = None) -> np.ndarray:

@@ -16,7 +16,8 @@ from scope3d.scene.tracks import Tracks
 
 
 def build_tracks(features: list[Features], matches: list[PairMatches], *, min_track_length: int = 2) -> Tracks:
-    """Union-find over pairwise matches. Components with two features in one frame are dropped."""
+    """Tracks = connected components (scipy.sparse.csgraph) of the match graph; components with two
+    features in one frame are dropped, and so are those shorter than ``min_track_length``."""
     offsets = np.concatenate([[0], np.cumsum([len(f) for f in features])])
     n_nodes = int(offsets[-1])
     src = [offsets[m.i] + m.idx_i for m in matches if len(m)]

@@ -32,7 +32,6 @@ pixel, u right, v down (:mod:`scope3d.sensor.camera`).
 """
 from __future__ import annotations
 
-import json
 import shutil
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -50,6 +49,7 @@ from scope3d.scene.mesh import Mesh
 from scope3d.sensor.camera import Camera, fov_from_focal
 from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance
 from scope3d.utils.atomic import atomic_directory
+from scope3d.utils.jsonio import write_json
 
 LENGTH_UNITS_TO_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "um": 1e-3}
 
@@ -200,8 +200,8 @@ def write_dataset(
         meta.update(metadata or {})
         if scene is not None:
             meta["scene"] = scene.get("name", "custom")
-        (tmp / "dataset.json").write_text(json.dumps(meta, indent=2, default=_json_default) + "\n")
-        (tmp / "camera.json").write_text(json.dumps(camera_to_dict(camera), indent=2) + "\n")
+        write_json(tmp / "dataset.json", meta)
+        write_json(tmp / "camera.json", camera_to_dict(camera))
         (tmp / "poses.csv").write_text(format_poses_csv(names, poses))
         (tmp / "frames").mkdir()
         for name, img in zip(names, frames):
@@ -223,7 +223,7 @@ def write_dataset(
                 for name, depth in zip(names, true_depths):
                     np.save(gt / "depth" / (Path(name).stem + ".npy"), np.asarray(depth, dtype=np.float32))
             if scene is not None:
-                (gt / "scene.json").write_text(json.dumps(scene, indent=2, default=_json_default) + "\n")
+                write_json(gt / "scene.json", scene)
     return out_dir
 
 
@@ -236,14 +236,6 @@ def _write_frame(dest: Path, image: np.ndarray | str | Path) -> None:
             return
         image = read_image(source)
     write_image(dest, image)
-
-
-def _json_default(obj):
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, (np.floating, np.integer)):
-        return obj.item()
-    raise TypeError(f"cannot serialise {type(obj).__name__}")
 
 
 @dataclass(frozen=True)

@@ -12,7 +12,6 @@ from scope3d.errors import InputError
 from scope3d.geometry.pose import Pose
 from scope3d.geometry.rotation import matrix_to_quaternion, normalised_quaternion, quaternion_to_matrix
 from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance
-from scope3d.utils.atomic import atomic_file
 
 POSE_COLUMNS = (
     "image", "x_mm", "y_mm", "z_mm", "qw", "qx", "qy", "qz",
@@ -34,11 +33,6 @@ def format_poses_csv(names: list[str], poses: list[MeasuredPose]) -> str:
             + [f"{v:.9g}" for v in tol.orientation_deg]
         )
     return out.getvalue()
-
-
-def write_poses_csv(path: str | Path, names: list[str], poses: list[MeasuredPose]) -> None:
-    with atomic_file(path) as fh:
-        fh.write(format_poses_csv(names, poses))
 
 
 def read_poses_csv(path: str | Path, length_scale_to_mm: float = 1.0) -> tuple[list[str], list[MeasuredPose]]:

@@ -141,17 +141,13 @@ def icp_from_initial_poses(points: np.ndarray, target: SampledSurface, options: 
 
 def save_error_histogram_png(path, distances: np.ndarray, *, title: str = "distance to the true surface") -> None:
     """Histogram of distances (mm) with mean and the fraction within 1 mm (reference Fig. 4.7(b))."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from scope3d.utils.atomic import atomic_path
+    from scope3d.utils.figures import new_figure, save_figure
 
     d = np.asarray(distances, float)
     d = d[np.isfinite(d)]
     s = distance_summary(d)
-    fig, ax = plt.subplots(figsize=(5.5, 3.8), dpi=110)
+    fig = new_figure((5.5, 3.8), dpi=110)
+    ax = fig.add_subplot()
     ax.hist(d, bins=60, range=(0, max(float(np.percentile(d, 99.5)), 1e-3)) if len(d) else None, color="#3465a4")
     if len(d):
         ax.axvline(s["mean"], color="k", ls="--", label=f"mean {s['mean']:.3f} mm")
@@ -160,23 +156,17 @@ def save_error_histogram_png(path, distances: np.ndarray, *, title: str = "dista
     ax.set_ylabel("points")
     ax.set_title(title)
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def save_error_map_png(path, points: np.ndarray, distances: np.ndarray, *, title: str = "error map") -> None:
     """Points seen from above (world x, y), coloured by distance (mm) (reference Fig. 4.7(a))."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from scope3d.utils.atomic import atomic_path
+    from scope3d.utils.figures import new_figure, save_figure
 
     p = np.asarray(points, float)
     d = np.asarray(distances, float)
-    fig, ax = plt.subplots(figsize=(5.5, 4.5), dpi=110)
+    fig = new_figure((5.5, 4.5), dpi=110)
+    ax = fig.add_subplot()
     vmax = max(float(np.percentile(d, 98)), 1e-3) if len(d) else 1.0
     sc = ax.scatter(p[:, 0], p[:, 1], c=d, s=3, cmap="viridis", vmin=0, vmax=vmax)
     fig.colorbar(sc, ax=ax, label="distance to the true surface (mm)")
@@ -185,9 +175,7 @@ def save_error_map_png(path, points: np.ndarray, distances: np.ndarray, *, title
     ax.set_ylabel("y (mm)")
     ax.set_title(title)
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def pose_errors(adjusted: list[Pose], measured: list[MeasuredPose], truth: list[Pose]) -> dict:

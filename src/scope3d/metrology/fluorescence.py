@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,6 +24,7 @@ import numpy as np
 from scope3d.geometry.pose import Pose
 from scope3d.scene.surface import Surface
 from scope3d.sensor.camera import Camera
+from scope3d.utils.jsonio import write_json
 
 
 @dataclass(frozen=True)
@@ -414,7 +414,7 @@ def write_targets(out_dir: Path, targets: list[Target], vs_truth: list | None = 
     """``out_dir/targets.json`` (targets and, when given, their comparison with the truth) and
     ``out_dir/targets.csv`` (one row per target: label, shape, centroid mm, area mm², size mm)."""
     rows = [t.as_dict() for t in targets]
-    (out_dir / "targets.json").write_text(json.dumps({"targets": rows, "vs_truth": vs_truth}, indent=2) + "\n")
+    write_json(out_dir / "targets.json", {"targets": rows, "vs_truth": vs_truth})
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(["label", "shape", "x_mm", "y_mm", "z_mm", "area_mm2", "size_mm"])

@@ -35,6 +35,7 @@ import numpy as np
 
 from scope3d.errors import InputError
 from scope3d.geometry.pose import Pose
+from scope3d.geometry.triangulation import triangulate_midpoint
 from scope3d.sensor.camera import Camera
 
 
@@ -266,11 +267,6 @@ class AxialPair:
         local = np.stack([rho * np.cos(theta) * z, rho * np.sin(theta) * z, z], axis=1)
         return local @ self.virtual_from_world + self.front_centre
 
-    def rays_world(self, pose: Pose) -> np.ndarray:
-        """(H, W, 3) unit ray directions (world) of every pixel of the camera at ``pose``."""
-        rays = self.camera.unproject(self.camera.pixel_grid().reshape(-1, 2))
-        return (rays @ pose.rotation).reshape(self.camera.height, self.camera.width, 3)
-
 
 def make_axial_pair(
     camera: Camera,
@@ -392,21 +388,13 @@ def aligned_triangulate(
 def triangulate_rays(
     camera: Camera, pose_1: Pose, pose_2: Pose, pixels_1: np.ndarray, pixels_2: np.ndarray
 ) -> np.ndarray:
-    """General two-view triangulation: midpoint of the shortest segment between the two pixel rays.
+    """General two-view triangulation: midpoint of the shortest segment between the two pixel rays
+    (:func:`scope3d.geometry.triangulation.triangulate_midpoint`).
 
     pixels_1, pixels_2 : (N, 2) matched pixels in the cameras at ``pose_1`` and ``pose_2``.
-    Returns (N, 3) world points, mm; NaN for parallel rays.
+    Returns (N, 3) world points, mm; NaN for (nearly) parallel rays.
     """
     o1, d1 = camera.pixel_rays_world(pose_1, np.asarray(pixels_1, dtype=float).reshape(-1, 2))
     o2, d2 = camera.pixel_rays_world(pose_2, np.asarray(pixels_2, dtype=float).reshape(-1, 2))
-    w = o1 - o2
-    b = np.sum(d1 * d2, axis=1)
-    d = np.sum(d1 * w, axis=1)
-    e = np.sum(d2 * w, axis=1)
-    denom = 1.0 - b * b
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = (b * e - d) / denom
-        t = (e - b * d) / denom
-    mid = 0.5 * ((o1 + s[:, None] * d1) + (o2 + t[:, None] * d2))
-    mid[denom < 1e-14] = np.nan
-    return mid
+    n = len(o1)
+    return triangulate_midpoint(np.concatenate([o1, o2]), np.concatenate([d1, d2]), np.tile(np.arange(n), 2), n)

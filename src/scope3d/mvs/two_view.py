@@ -11,6 +11,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from scope3d.geometry.grid import grid_faces
 from scope3d.geometry.pose import Pose
 from scope3d.mvs.axial import AxialPair, PolarGridOptions, aligned_poses, make_axial_pair
 from scope3d.mvs.confidence import ConfidenceOptions, Reliability, reliability
@@ -171,7 +172,6 @@ def grid_mesh_faces(points: np.ndarray, range_mm: np.ndarray, *, max_edge_ratio:
     Returns (F, 3) int64 indices into ``points.reshape(-1, 3)``.
     """
     h, w = points.shape[:2]
-    idx = np.arange(h * w).reshape(h, w)
     ok = np.all(np.isfinite(points), axis=-1) & np.isfinite(range_mm)
     rng = np.nan_to_num(range_mm)
 
@@ -184,6 +184,5 @@ def grid_mesh_faces(points: np.ndarray, range_mm: np.ndarray, *, max_edge_ratio:
     quad_ok = ok[tl] & ok[tr] & ok[bl] & ok[br]
     t1 = quad_ok & short(tl, tr) & short(tr, bl) & short(bl, tl)
     t2 = quad_ok & short(tr, br) & short(br, bl) & short(bl, tr)
-    f1 = np.stack([idx[tl][t1], idx[bl][t1], idx[tr][t1]], axis=1)
-    f2 = np.stack([idx[tr][t2], idx[bl][t2], idx[br][t2]], axis=1)
-    return np.concatenate([f1, f2]).astype(np.int64)
+    # cells split along the top-right/bottom-left diagonal: (tl, bl, tr) and (tr, bl, br)
+    return grid_faces(h, w, anti_diagonal=True, clockwise=True, keep=(t1, t2))

@@ -49,7 +49,7 @@ class RenderOptions:
         sub-ray footprint, so the box average is their only low-pass. Depth and target id stay those of
         the ray through the pixel centre (exact geometric truth, as with one ray). 1 = one ray per pixel;
         None = the scene's default (:attr:`~scope3d.phantoms.scenes.Scene.render_supersample`: 2 for the
-        thread, 1 elsewhere, so the other scenes render exactly as before).
+        thread, 1 elsewhere: one ray per pixel).
     """
 
     read_noise: float = 0.008

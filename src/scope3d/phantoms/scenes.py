@@ -25,6 +25,7 @@ from typing import Callable
 import numpy as np
 
 from scope3d.errors import InputError
+from scope3d.geometry.grid import grid_faces
 from scope3d.phantoms.raycast import RayCaster
 from scope3d.phantoms.textures import TextureMap, machined_texture, printed_texture, tissue_texture
 from scope3d.scene.mesh import Mesh
@@ -154,17 +155,6 @@ class Scene:
 # --- mesh helpers ------------------------------------------------------------------------------
 
 
-def _grid_faces(n_rows: int, n_cols: int, *, wrap: bool, offset: int = 0) -> np.ndarray:
-    """Two triangles per cell of a row-major vertex grid; ``wrap`` joins the last column to the first."""
-    cols = n_cols if wrap else n_cols - 1
-    r, c = np.meshgrid(np.arange(n_rows - 1), np.arange(cols), indexing="ij")
-    r, c = r.ravel(), c.ravel()
-    c1 = (c + 1) % n_cols
-    a, b = r * n_cols + c, r * n_cols + c1
-    d, e = (r + 1) * n_cols + c, (r + 1) * n_cols + c1
-    return np.concatenate([np.stack([a, b, e], 1), np.stack([a, e, d], 1)]) + offset
-
-
 def _assemble(parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> Mesh:
     """Concatenate (vertices, faces, normals) parts; drop zero-area faces (collapsed poles, clamped ends)."""
     verts, faces, normals, offset = [], [], [], 0
@@ -190,7 +180,7 @@ def _square_annulus(r_inner: float, half_width: float, z: float, n_theta: int, n
     rho = r_inner + (r_square - r_inner) * k
     v = np.stack([rho * np.cos(theta), rho * np.sin(theta), np.full_like(rho, z)], -1).reshape(-1, 3)
     n = np.tile([0.0, 0.0, normal_z], (len(v), 1))
-    return v, _grid_faces(n_rings + 1, n_theta, wrap=True), n
+    return v, grid_faces(n_rings + 1, n_theta, wrap=True), n
 
 
 def _revolution(radius: np.ndarray, z: np.ndarray, normal_rz: np.ndarray, n_theta: int):
@@ -200,7 +190,7 @@ def _revolution(radius: np.ndarray, z: np.ndarray, normal_rz: np.ndarray, n_thet
     v = np.stack([radius[:, None] * c, radius[:, None] * s, np.broadcast_to(z[:, None], (len(z), n_theta))], -1)
     n = np.stack([normal_rz[:, 0:1] * c, normal_rz[:, 0:1] * s,
                   np.broadcast_to(normal_rz[:, 1:2], (len(z), n_theta))], -1)
-    return v.reshape(-1, 3), _grid_faces(len(z), n_theta, wrap=True), n.reshape(-1, 3)
+    return v.reshape(-1, 3), grid_faces(len(z), n_theta, wrap=True), n.reshape(-1, 3)
 
 
 # --- targets -----------------------------------------------------------------------------------
@@ -387,7 +377,7 @@ def build_sheet(*, texture_seed: int = 0, mm_per_texel: float = 0.02) -> Scene:
     g = np.linspace(-half, half, 5)
     gx, gy = np.meshgrid(g, g)
     v = np.stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)], 1)
-    mesh = _assemble([(v, _grid_faces(5, 5, wrap=False), np.tile([0.0, 0.0, 1.0], (len(v), 1)))])
+    mesh = _assemble([(v, grid_faces(5, 5, wrap=False), np.tile([0.0, 0.0, 1.0], (len(v), 1)))])
     size = SHEET_SIZE_MM + 2.0
     tex = TextureMap(printed_texture((size, size), mm_per_texel, texture_seed + 1), (-size / 2, -size / 2),
                      mm_per_texel)
@@ -559,7 +549,7 @@ def build_thread(size: str = "M8x1.25", *, texture_seed: int = 0, mm_per_texel: 
             v = np.stack([rr * c, rr * sn, zc], -1)
             if np.all(top) or np.all(bottom):
                 continue
-            parts.append((v.reshape(-1, 3), _grid_faces(n_rows + 1, n_th + 1, wrap=False), nrm.reshape(-1, 3)))
+            parts.append((v.reshape(-1, 3), grid_faces(n_rows + 1, n_th + 1, wrap=False), nrm.reshape(-1, 3)))
     # Shoulder from the major diameter to the counterbore at z_top, counterbore wall, top face.
     parts.append(_revolution(np.array([r_major, cb_radius]), np.array([z_top, z_top]),
                              np.array([[0.0, 1.0], [0.0, 1.0]]), n_th))
@@ -579,9 +569,9 @@ def build_thread(size: str = "M8x1.25", *, texture_seed: int = 0, mm_per_texel: 
     mm_per_texel = circumference / round(circumference / mm_per_texel)  # a whole number of texels per turn
     v_lo, v_hi = z_apex - pitch - 1.0, 1.0
     wall = TextureMap(machined_texture((circumference, v_hi - v_lo), mm_per_texel, texture_seed + 20, periodic_u=True),
-                      (0.0, v_lo), mm_per_texel, wrap_u=True, exact_mip_centres=True)
+                      (0.0, v_lo), mm_per_texel, wrap_u=True)
     face = TextureMap(machined_texture((22.0, 22.0), 0.01, texture_seed + 21, along_mm=0.6, across_mm=0.03),
-                      (-11.0, -11.0), 0.01, exact_mip_centres=True)
+                      (-11.0, -11.0), 0.01)
     score_rng = np.random.default_rng(texture_seed + 22)
     score_levels = score_rng.uniform(0.7, 1.15, 4096)
     score_period = 0.04  # mm between the scored rings of the counterbore

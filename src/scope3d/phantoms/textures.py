@@ -30,20 +30,17 @@ class TextureMap:
     mm_per_texel : float, mm.
     wrap_u : bool, the texture repeats along u (an unrolled cylinder; the seam is a visible, world-anchored
         line); otherwise edges are clamped.
-    exact_mip_centres : bool, where the texels of the coarser mip levels sit. ``cv2.pyrDown`` centres its
-        output texel ``i`` on input texel ``2 i``, so level ``k``'s texel ``i`` is centred on level 0's
-        ``i 2^k``. True samples there, so every level shows the pattern at the same place in the world.
-        False keeps the first version's box-filter convention (``(i + 0.5) 2^k - 0.5``), which displaces
-        level ``k`` by ``2^(k-1) - 1/2`` texels along +u and +v; two views reading one point at different
-        levels then see it displaced, a sub-pixel disparity error. False is the default only so that the
-        scenes built before the fix (dome, sheet, bladder) render byte-identical images; the thread uses True.
+
+    Coarser mip levels are read where their texels are: ``cv2.pyrDown`` centres its output texel ``i`` on
+    input texel ``2 i``, so level ``k``'s texel ``i`` is centred on level 0's ``i 2^k``, and every level
+    shows the pattern at the same place in the world (two views reading one point at different levels see
+    it at the same place: no sub-pixel disparity error from the pyramid).
     """
 
     image: np.ndarray
     origin_mm: tuple[float, float]
     mm_per_texel: float
     wrap_u: bool = False
-    exact_mip_centres: bool = False
 
     def __post_init__(self) -> None:
         img = np.asarray(self.image)
@@ -93,14 +90,9 @@ class TextureMap:
         n = len(uv)
         image = self.level(k)
         scale = 2**k
-        cols = (uv[:, 0] - self.origin_mm[0]) / self.mm_per_texel  # level-0 texel coordinates
-        rows = (uv[:, 1] - self.origin_mm[1]) / self.mm_per_texel
-        if self.exact_mip_centres:
-            # pyrDown: level k's texel (i, j) is centred on level 0's (i 2^k, j 2^k).
-            cols, rows = cols / scale, rows / scale
-        else:
-            # Legacy (box-filter) convention, see the class docstring.
-            cols, rows = (cols + 0.5) / scale - 0.5, (rows + 0.5) / scale - 0.5
+        # level-0 texel coordinates, then level k's: pyrDown centres its texel (i, j) on level 0's (i 2^k, j 2^k)
+        cols = (uv[:, 0] - self.origin_mm[0]) / self.mm_per_texel / scale
+        rows = (uv[:, 1] - self.origin_mm[1]) / self.mm_per_texel / scale
         if self.wrap_u:
             cols = np.mod(cols, image.shape[1])
         n_rows = -(-n // _REMAP_ROW)

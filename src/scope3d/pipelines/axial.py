@@ -13,7 +13,6 @@ Read top to bottom like the method section::
 """
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -29,7 +28,8 @@ from scope3d.mvs.dense_matching import SgmOptions
 from scope3d.mvs.multiview import MultiViewOptions, reconstruct_reference, reference_frames
 from scope3d.mvs.two_view import ImageDepth, TwoViewOptions, grid_mesh_faces, reconstruct_pair, to_image
 from scope3d.scene.mesh import Mesh, PointCloud
-from scope3d.utils.atomic import atomic_file, atomic_path
+from scope3d.utils.figures import new_figure, save_figure
+from scope3d.utils.jsonio import write_json
 from scope3d.utils.progress import Progress, advance, stage
 
 METHODS = ("sgm", "sad", "multiview")
@@ -188,13 +188,9 @@ def evaluate(cloud: PointCloud, dataset: Dataset, step_mm: float) -> tuple[dict 
 
 def save_depth_png(path: Path, depth: ImageDepth, *, title: str) -> None:
     """z-depth map (mm) with a colour bar; pixels without depth are white."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     z = np.where(depth.valid, depth.z_depth_mm, np.nan)
-    fig, ax = plt.subplots(figsize=(5.6, 4.8), dpi=110)
+    fig = new_figure((5.6, 4.8), dpi=110)
+    ax = fig.add_subplot()
     finite = z[np.isfinite(z)]
     lo, hi = (np.percentile(finite, [1, 99]) if finite.size else (0, 1))
     im = ax.imshow(z, cmap="turbo", vmin=lo, vmax=hi)
@@ -202,9 +198,7 @@ def save_depth_png(path: Path, depth: ImageDepth, *, title: str) -> None:
     ax.set_title(title)
     ax.set_axis_off()
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def run(options: AxialOptions, dataset: Dataset, out_dir: str | Path | None, *,
@@ -239,15 +233,6 @@ def run(options: AxialOptions, dataset: Dataset, out_dir: str | Path | None, *,
 
             save_error_histogram_png(out / "error_histogram.png", distances,
                                      title=f"axial {options.method}: distance to the true surface")
-        with atomic_file(out / "report.json") as fh:
-            json.dump(report, fh, indent=2, default=_json_default)
-            fh.write("\n")
+        write_json(out / "report.json", report)
     return AxialResult(cloud, mesh, depths, report, Path(out_dir) if out_dir is not None else None)
 
-
-def _json_default(obj):
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, (np.floating, np.integer, np.bool_)):
-        return obj.item()
-    raise TypeError(f"cannot serialise {type(obj).__name__}")

@@ -26,7 +26,6 @@ Units: mm and radians inside; pixels with their origin at the top-left pixel's c
 """
 from __future__ import annotations
 
-import json
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -42,6 +41,7 @@ from scope3d.feature.figures import save_matches_png
 from scope3d.feature.matching import MatchOptions, PairMatches, match_exhaustive, match_guided, match_pairs
 from scope3d.feature.pairs import PairOptions, select_pairs, spanning_pairs
 from scope3d.feature.tracks import build_tracks
+from scope3d.geometry.plane import plane_residuals, plane_rms
 from scope3d.geometry.pose import Pose
 from scope3d.io.colmap import SparseModel, write_colmap_text
 from scope3d.io.dataset import Dataset
@@ -79,6 +79,7 @@ from scope3d.sfm.guided_mapping import (
     refine_poses_for_matching,
 )
 from scope3d.utils.atomic import atomic_directory
+from scope3d.utils.jsonio import write_json
 from scope3d.utils.progress import Progress, advance, stage
 
 MATCHERS = ("guided", "exhaustive")
@@ -496,9 +497,9 @@ def write_outputs(
         d = s.height[s.valid]
         report["surface"] = {"grid": list(s.height.shape), "step_mm": s.step_mm, "n_vertices": int(s.valid.sum()),
                              "height_range_mm": float(np.ptp(d)),
-                             "flatness_rms_mm": _flatness_rms(s.vertices()[s.valid]),
-                             "points_flatness_rms_mm": _flatness_rms(tr.points),
-                             "points_flatness_median_mm": _flatness_median(tr.points)}
+                             "flatness_rms_mm": plane_rms(s.vertices()[s.valid]),
+                             "points_flatness_rms_mm": plane_rms(tr.points),
+                             "points_flatness_median_mm": float(np.median(np.abs(plane_residuals(tr.points))))}
         if options.figures:
             write_image(out_dir / "texture_mosaic.png", enlarge_raster(surface.colors))
             save_depth_map_png(out_dir / "depth_map.png", s)
@@ -525,37 +526,15 @@ def write_outputs(
     timings["outputs"] = time.perf_counter() - t0
     report["timings_s"] = {k: round(v, 4) for k, v in timings.items()}
     report["time_s"] = round(sum(v for k, v in timings.items() if k != "evaluation"), 4)
-    (out_dir / "report.json").write_text(json.dumps(report, indent=2, default=_json_default) + "\n")
+    write_json(out_dir / "report.json", report)
     return report
-
-
-def _json_default(obj):
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, (np.floating, np.integer)):
-        return obj.item()
-    raise TypeError(f"cannot serialise {type(obj).__name__}")
 
 
 def _bundle_summary(result) -> dict:
     d = result.to_dict()
     d.pop("iteration_log", None)
-    d["rms_initial_px"] = float(np.sqrt(2 * result.initial_cost / max(result.problem.num_observations, 1)))
-    d["rms_final_px"] = float(np.sqrt(2 * result.final_cost / max(result.problem.num_observations, 1)))
+    d["rms_initial_px"], d["rms_final_px"] = result.rms_initial_px, result.rms_final_px
     return d
-
-
-def _flatness_rms(points: np.ndarray) -> float:
-    """RMS distance (mm) of points (N, 3) from their best-fit plane (0 for a perfectly flat sheet)."""
-    c = points - points.mean(axis=0)
-    return float(np.linalg.svd(c, compute_uv=False)[-1] / np.sqrt(len(points)))
-
-
-def _flatness_median(points: np.ndarray) -> float:
-    """Median distance (mm) of the points from their best-fit plane (robust to the odd wrong track)."""
-    c = points - points.mean(axis=0)
-    n = np.linalg.svd(c, full_matrices=False)[2][-1]
-    return float(np.median(np.abs(c @ n)))
 
 
 def _matches_figure(options, dataset, frames, features, matching, path) -> dict | None:

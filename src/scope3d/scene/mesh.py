@@ -56,7 +56,12 @@ class Mesh:
 
 
 class SampledSurface:
-    """A triangle mesh sampled densely with normals, with a KD-tree for nearest queries."""
+    """A triangle mesh sampled densely with normals, with a KD-tree for nearest queries.
+
+    Every face gets ``ceil(area / step_mm²)`` seeded random points, with the face's normal: at least one
+    unless it is degenerate, and on the phantoms' fine meshes that floor, not the area, sets the count.
+    Every vertex that a face uses is a sample too, with the area-weighted vertex normal.
+    """
 
     def __init__(self, mesh: Mesh, step_mm: float = 0.1):
         self._mesh = mesh
@@ -68,9 +73,12 @@ class SampledSurface:
         cross = np.cross(b - a, c - a)
         area2 = np.linalg.norm(cross, axis=1)
         normals = cross / np.maximum(area2, 1e-300)[:, None]
-        # samples per face ~ area / step², at least the centroid; barycentric grid would be nicer,
-        # random-but-seeded barycentric samples are simpler and as good at this density
-        counts = np.ceil(0.5 * area2 / step_mm**2).astype(np.int64)  # small faces: their vertices suffice
+        # Stratified: a fixed count per face. trimesh.sample.sample_surface draws the faces at random in
+        # proportion to their area instead; at the same total count its samples leave larger gaps, and the
+        # distances of points lying on the dome, bladder and thread came out 10-50 % larger on average
+        # (0.10-0.13 vs 0.09 um on the dome at 0.25 mm, 0.19 vs 0.13 um on the thread at 0.05 mm), with
+        # area / step² samples in all, up to 3x larger. The accuracy figures rest on these distances.
+        counts = np.ceil(0.5 * area2 / step_mm**2).astype(np.int64)
         face = np.repeat(np.arange(len(f)), counts)
         rng = np.random.default_rng(0)
         r1, r2 = rng.random(len(face)), rng.random(len(face))

@@ -30,11 +30,11 @@ import numpy as np
 from scipy.interpolate import RBFInterpolator
 from scipy.spatial import cKDTree
 
+from scope3d.geometry.grid import grid_faces
 from scope3d.geometry.plane import fit_plane
 from scope3d.geometry.pose import Pose
 from scope3d.scene.mesh import Mesh
 from scope3d.sensor.camera import Camera
-
 
 #: Passes of :func:`off_surface_points`: gross errors (2 mm) first, then ~3 sigma of a two-view point's depth.
 OFF_SURFACE_FLOORS_MM = (2.0, 0.5)
@@ -190,10 +190,10 @@ class Surface:
         valid = self.valid
         index = np.full(valid.shape, -1, dtype=np.int64)
         index[valid] = np.arange(int(valid.sum()))
-        v00, v01, v10, v11 = index[:-1, :-1], index[:-1, 1:], index[1:, :-1], index[1:, 1:]
-        cell = (v00 >= 0) & (v01 >= 0) & (v10 >= 0) & (v11 >= 0)
-        # (s, t, n) is right-handed, so (v00, v01, v11) winds counter-clockwise about n
-        faces = np.concatenate([np.stack([v00[cell], v01[cell], v11[cell]], 1), np.stack([v00[cell], v11[cell], v10[cell]], 1)])
+        cell = valid[:-1, :-1] & valid[:-1, 1:] & valid[1:, :-1] & valid[1:, 1:]
+        # columns run along s and rows along t, and (s, t, n) is right-handed: the grid's
+        # counter-clockwise (column, row) winding is counter-clockwise about n
+        faces = index.reshape(-1)[grid_faces(*valid.shape, keep=cell)]
         verts = self.vertices()[valid]
         normals = self.normals()[valid]
         vc = None if colors is None else np.asarray(colors, np.uint8)[valid]
@@ -435,26 +435,20 @@ def depth_map(surface: Surface) -> np.ndarray:
 
 
 def save_depth_map_png(path, surface: Surface, *, title: str = "depth map") -> None:
-    """Depth map with a colour scale (mm) as a PNG (matplotlib, imported here: plotting is optional)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from scope3d.utils.atomic import atomic_path
+    """Depth map with a colour scale (mm) as a PNG (written atomically)."""
+    from scope3d.utils.figures import new_figure, save_figure
 
     d = depth_map(surface)
     extent = (surface.s[0], surface.s[-1], surface.t[-1], surface.t[0])
-    fig, ax = plt.subplots(figsize=(5.5, 4.5), dpi=110)
+    fig = new_figure((5.5, 4.5), dpi=110)
+    ax = fig.add_subplot()
     im = ax.imshow(d, cmap="turbo", extent=extent)
     fig.colorbar(im, ax=ax, label="depth below the highest point (mm)")
     ax.set_xlabel("s (mm)")
     ax.set_ylabel("t (mm)")
     ax.set_title(title)
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def enlarge_raster(img: np.ndarray, factor: int = 3) -> np.ndarray:

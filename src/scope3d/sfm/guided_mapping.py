@@ -20,7 +20,7 @@ import numpy as np
 
 from scope3d.errors import InputError
 from scope3d.estimators.bundle import BundleProblem, BundleResult, SolverOptions, solve
-from scope3d.estimators.bundle.covariance import relative_pose_covariances
+from scope3d.estimators.bundle.covariance import pairwise_pose_covariances
 from scope3d.estimators.gauge import align_gauge
 from scope3d.estimators.triangulation import TrackOptions, reprojection_errors, triangulate_tracks
 from scope3d.feature.depth_prior import DepthPrior, pose_error_px
@@ -245,12 +245,15 @@ def refine_poses_for_matching(camera: Camera, measured: list[MeasuredPose], feat
     poses and points (intrinsics held); the tracks are triangulated again with the strict gate and
     adjusted once more.
 
-    Each adjusted pose carries the tolerance the images leave it: its covariance relative to the other
-    cameras (:func:`scope3d.estimators.bundle.covariance.relative_pose_covariances`; a frame tied to the
-    rest by one small patch reprojects well and is still poorly fixed) carried into the image
-    (:func:`projection_sigma_px`), 3 sigma, expressed as the camera shift that moves a point at the
-    nearest depth that far; at most the measured tolerance. Frames the coarse pass did not reach keep
-    their measurement.
+    Each adjusted pose carries the tolerance the images leave it relative to the frames it overlaps: the
+    covariance of its pose relative to each coarse partner's
+    (:func:`scope3d.estimators.bundle.covariance.pairwise_pose_covariances`; a frame tied to the rest by one
+    small patch reprojects well and is still poorly fixed, and a group of frames tied loosely to another
+    is still well fixed within itself) carried into the image (:func:`projection_sigma_px`). A pair's
+    search window is the sum of its two frames' tolerances, so each frame takes half of the largest pair
+    sigma among its partners; 3 sigma, expressed as the camera shift that moves a point at the nearest
+    depth that far; at most the measured tolerance. Frames the coarse pass did not reach keep their
+    measurement.
     Returns the guide poses and the depth prior of the adjusted points
     (:func:`scope3d.sfm.depth_priors.points_depth_prior`). Raises InputError when the coarse pass left
     too few points.
@@ -276,18 +279,28 @@ def refine_poses_for_matching(camera: Camera, measured: list[MeasuredPose], feat
         poses = result.poses
     tracks = triangulate_tracks(camera, poses, tracks, strict)
     depth_prior = points_depth_prior(poses, tracks)
-    # what the images leave each pose free to do relative to the others, as pixels of reprojection
-    covariances = relative_pose_covariances(problem, result.parameters, loss_scale_px=options.loss_scale_px)
+    # what the images leave each pose free to do relative to its partners, as pixels of reprojection
+    pairs = sorted({(min(m.i, m.j), max(m.i, m.j)) for m in matches})
+    # the measured boxes as priors (uniform: sigma = half-width / sqrt(3)) where every one is finite
+    boxes = np.array([np.r_[m.tolerance.orientation_rad, m.tolerance.position_mm] for m in measured])
+    prior = boxes / np.sqrt(3.0) if np.all(np.isfinite(boxes) & (boxes > 0)) else None
+    covariances = pairwise_pose_covariances(problem, result.parameters, pairs, loss_scale_px=options.loss_scale_px,
+                                            prior_sigmas=prior)
+    sigma_px = np.full(len(poses), np.nan)
+    for (i, j), cov in zip(pairs, covariances):
+        if not np.all(np.isfinite(cov)):
+            continue
+        pair_sigma = max(projection_sigma_px(camera, poses[k], cov, depth_prior) for k in (i, j))
+        sigma_px[[i, j]] = np.fmax(sigma_px[[i, j]], 0.5 * pair_sigma)
     f = max(camera.fx, camera.fy)
     guide = []
-    for m, pose, cov in zip(measured, poses, covariances):
-        if m.tolerance.is_exact or not np.all(np.isfinite(cov)):
+    for m, pose, sigma in zip(measured, poses, sigma_px):
+        if m.tolerance.is_exact or not np.isfinite(sigma):
             guide.append(m)
             continue
         # the camera shift that moves a point at the nearest depth by 3 sigma (per axis, so that the box's
         # half-diagonal is the shift: f * |dp| / z_near = 3 sigma); the orientation is then part of it
-        sigma_px = projection_sigma_px(camera, pose, cov, depth_prior)
-        shift = 3.0 * sigma_px * depth_prior.near_mm / f / np.sqrt(3.0)
+        shift = 3.0 * sigma * depth_prior.near_mm / f / np.sqrt(3.0)
         guide.append(MeasuredPose(pose, PoseTolerance(np.minimum(shift, m.tolerance.position_mm), np.zeros(3))))
     return guide, depth_prior
 

@@ -1,2 +1,3 @@
-"""Helpers every layer may use: atomic outputs (:mod:`.atomic`).
+"""Helpers every layer may use: atomic outputs (:mod:`.atomic`), JSON with numpy values (:mod:`.jsonio`),
+figures on an Agg canvas without pyplot (:mod:`.figures`).
 """

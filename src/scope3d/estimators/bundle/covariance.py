@@ -8,8 +8,10 @@ eliminated, Schur complement), scaled by the keypoints' noise.
 
 Images fix a reconstruction only up to a similarity, so that matrix is singular along the 7 gauge
 directions (a common rotation, translation and scale of every camera and point), and what a matcher needs
-is how far a camera may be off *relative to the others*: the covariance is taken in the complement of the
-gauge (the minimum-norm inverse, "inner constraints"), so a common shift of everything costs nothing.
+is how far a camera may be off *relative to the one it is matched with*: :func:`pairwise_pose_covariances`
+gives the covariance of each pair's pose difference, with the robot's measurements as priors (they hold
+the gauge and any camera the images leave loose) or, without them, in the complement of the gauge (the
+minimum-norm inverse, "inner constraints").
 """
 from __future__ import annotations
 
@@ -20,15 +22,45 @@ from scope3d.estimators.bundle.solver import evaluate
 from scope3d.geometry.rotation import hat
 
 
-def relative_pose_covariances(problem: BundleProblem, parameters: BundleParameters, *, loss_scale_px: float = 1.0,
-                              noise_px: float | None = None) -> np.ndarray:
-    """Covariance (m, 6, 6) of each camera's pose scalars ``(w (rad), centre (mm))``, gauge removed.
+def pairwise_pose_covariances(problem: BundleProblem, parameters: BundleParameters, pairs: list[tuple[int, int]], *,
+                              loss_scale_px: float = 1.0, noise_px: float | None = None,
+                              prior_sigmas: np.ndarray | None = None) -> np.ndarray:
+    """Covariance (len(pairs), 6, 6) of each pair's pose difference ``(w_j - w_i, C_j - C_i)`` (rad, mm):
+    how far camera j may be off relative to camera i, which is what predicting i's features in j needs.
 
-    The Hessian uses the observations' Huber weights at ``loss_scale_px`` (as the adjustment did); the
-    noise is ``noise_px`` or, by default, estimated from the residuals (median norm / 1.1774, the median of
-    a 2-D Gaussian's norm). Intrinsics and fixed pose scalars are held (zero sigma); a camera with no
-    observation gets infinity. Needs positions parametrised as centres (``from_measured_poses``).
+    Two cameras tied to each other by many points but, as a group, loosely to the rest have large
+    covariances relative to the whole map (:func:`relative_pose_covariances`) and a small one relative to
+    each other: ``S_ii + S_jj - S_ij - S_ji`` (S: the joint covariance of every camera's pose scalars
+    ``(w (rad), centre (mm))``). The Hessian uses the observations' Huber weights at ``loss_scale_px`` (as
+    the adjustment did); the noise is ``noise_px`` or, by default, estimated from the residuals (median
+    norm / 1.1774, the median of a 2-D Gaussian's norm). Intrinsics and fixed pose scalars are held (zero
+    sigma). Infinity where either camera has no observation. Needs positions parametrised as centres
+    (``from_measured_poses``).
+
+    prior_sigmas : optional (m, 6) finite standard deviations of the measured poses (rad, mm; a box of
+        half-width a is a uniform error of sigma a / sqrt(3)). With them the covariance is the posterior of
+        images and measurements: the gauge and a camera the images barely hold are held by the
+        measurements, instead of being removed by the minimum-norm gauge, which spreads one loose camera's
+        freedom over every other (on the tracker dome one frame's 4 m sigma became every pair's). Without
+        them the gauge is removed by the minimum-norm inverse.
     """
+    if prior_sigmas is not None and not np.all(np.isfinite(prior_sigmas) & (np.asarray(prior_sigmas) > 0)):
+        raise ValueError("prior_sigmas must be finite and positive")
+    full, seen = _pose_covariance(problem, parameters, loss_scale_px, noise_px, prior_sigmas)
+    out = np.empty((len(pairs), 6, 6))
+    for k, (i, j) in enumerate(pairs):
+        if not (seen[i] and seen[j]):
+            out[k] = np.diag(np.full(6, np.inf))
+            continue
+        a, b = slice(6 * i, 6 * i + 6), slice(6 * j, 6 * j + 6)
+        out[k] = full[a, a] + full[b, b] - full[a, b] - full[b, a]
+    return out
+
+
+def _pose_covariance(problem: BundleProblem, parameters: BundleParameters, loss_scale_px: float,
+                     noise_px: float | None, prior_sigmas: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """The joint pose covariance (6m, 6m) (gauge removed, or held by the priors) and which cameras are
+    observed (m,) bool."""
     if problem.position_parameter != "centre":
         raise ValueError("relative_pose_sigmas needs poses parametrised by their centres")
     m = problem.num_cameras
@@ -67,17 +99,20 @@ def relative_pose_covariances(problem: BundleProblem, parameters: BundleParamete
                 np.subtract.at(S, (rows, cols), block)
     seen = np.bincount(cam, minlength=m) > 0
     free = ~problem.pose_fixed.ravel() & np.repeat(seen, 6)
-    gauge = _gauge_basis(problem, parameters)[free]
-    Sf = S[np.ix_(free, free)]
-    q, _ = np.linalg.qr(gauge)
-    lam = max(float(np.trace(Sf)) / max(len(Sf), 1), 1e-12)
-    projector = np.eye(len(Sf)) - q @ q.T
-    cov = projector @ np.linalg.inv(Sf + lam * q @ q.T) @ projector
+    Sf = S[np.ix_(free, free)] / sigma**2
+    if prior_sigmas is not None:
+        # the measurements as Gaussian priors: they hold the gauge and any camera the images leave loose
+        prior = np.asarray(prior_sigmas, float).reshape(-1)[free]
+        cov = np.linalg.inv(Sf + np.diag(1.0 / prior**2))
+    else:
+        gauge = _gauge_basis(problem, parameters)[free]
+        q, _ = np.linalg.qr(gauge)
+        lam = max(float(np.trace(Sf)) / max(len(Sf), 1), 1e-12)
+        projector = np.eye(len(Sf)) - q @ q.T
+        cov = projector @ np.linalg.inv(Sf + lam * q @ q.T) @ projector
     full = np.zeros((6 * m, 6 * m))
-    full[np.ix_(free, free)] = cov * sigma**2
-    out = np.stack([full[6 * c:6 * c + 6, 6 * c:6 * c + 6] for c in range(m)])
-    out[~seen] = np.diag(np.full(6, np.inf))
-    return out
+    full[np.ix_(free, free)] = cov
+    return full, seen
 
 
 def _gauge_basis(problem: BundleProblem, parameters: BundleParameters) -> np.ndarray:

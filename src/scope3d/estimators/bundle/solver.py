@@ -168,6 +168,17 @@ class BundleResult:
             intr[:, 1] = intr[:, 0]
         return intr
 
+    @property
+    def rms_initial_px(self) -> float:
+        """RMS reprojection error (px) at the start, from the cost: ``sqrt(2 cost / observations)``, i.e.
+        ``sqrt(mean rho(|r|^2))`` (the plain RMS without a robust loss); 0 without observations."""
+        return math.sqrt(2 * self.initial_cost / max(self.problem.num_observations, 1))
+
+    @property
+    def rms_final_px(self) -> float:
+        """RMS reprojection error (px) at the solution, from the cost, as :attr:`rms_initial_px`."""
+        return math.sqrt(2 * self.final_cost / max(self.problem.num_observations, 1))
+
     def reprojection_errors_px(self) -> np.ndarray:
         """(K,) reprojection error per observation, pixels, in the problem's input order."""
         r = evaluate(self.problem, self.parameters)[0]
@@ -176,8 +187,6 @@ class BundleResult:
         return out
 
     def summary(self) -> str:
-        rms_init = math.sqrt(2 * self.initial_cost / self.problem.num_observations)
-        rms_final = math.sqrt(2 * self.final_cost / self.problem.num_observations)
         last = self.log[-1]
         return "\n".join([
             "Bundle adjustment (bound-constrained Levenberg-Marquardt, Schur complement)",
@@ -185,8 +194,8 @@ class BundleResult:
             f"  linear solver        {self.linear_solver} ({self.threads} thread(s) for the Schur complement);"
             f" loss {self.options.loss}"
             + (f" (scale {self.options.loss_scale_px:g} px)" if self.options.loss != "none" else ""),
-            f"  initial cost         {self.initial_cost:.6e}  (RMS {rms_init:.4f} px)",
-            f"  final cost           {self.final_cost:.6e}  (RMS {rms_final:.4f} px)",
+            f"  initial cost         {self.initial_cost:.6e}  (RMS {self.rms_initial_px:.4f} px)",
+            f"  final cost           {self.final_cost:.6e}  (RMS {self.rms_final_px:.4f} px)",
             f"  iterations           {self.iterations} ({self.successful_iterations} accepted)",
             f"  active bounds        {last.active_set_size}",
             f"  termination          {self.termination}",
@@ -219,15 +228,11 @@ class BundleResult:
 
     def plot_convergence(self, path, *, title: str | None = None) -> None:
         """Write the convergence curve (cost and projected gradient per iteration) to a PNG at ``path``."""
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
-        from scope3d.utils.atomic import atomic_path
+        from scope3d.utils.figures import new_figure, save_figure
 
         its = [rec.iteration for rec in self.log]
-        fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(9, 3.5))
+        fig = new_figure((9, 3.5))
+        ax1, ax2 = fig.subplots(1, 2)
         ax1.semilogy(its, [rec.cost for rec in self.log], "o-", ms=3)
         rejected = [rec for rec in self.log if rec.iteration > 0 and not rec.accepted]
         if rejected:
@@ -242,9 +247,7 @@ class BundleResult:
         ax2.grid(True, which="both", alpha=0.3)
         fig.suptitle(title or f"{self.termination}, {self.solve_time_s:.2f} s")
         fig.tight_layout()
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, dpi=110)
-        plt.close(fig)
+        save_figure(fig, path, dpi=110)
 
 
 # --- evaluation ----------------------------------------------------------------------------------
