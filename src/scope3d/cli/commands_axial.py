@@ -1,7 +1,6 @@
 """``scope3d axial``: dense axial-stereo metrology of an internal surface (reference ch. 7, sec. 9.2)."""
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 
@@ -27,6 +26,7 @@ def register(subparsers) -> None:
 def _run(args) -> int:
     from dataclasses import replace
 
+    from scope3d.cli.progress import progress_bar
     from scope3d.errors import InputError
     from scope3d.io.dataset import load_dataset
     from scope3d.pipelines.axial import AxialOptions, run
@@ -40,16 +40,8 @@ def _run(args) -> int:
     options = replace(base, method=args.method, frames=tuple(args.frames) if args.frames else None,
                       use_true_poses=args.true_poses,
                       two_view=replace(base.two_view, min_depth_mm=args.min_depth_mm))
-    progress = None
-    if args.method == "multiview":
-        from tqdm import tqdm
-
-        progress = tqdm(unit="frame", leave=False, file=sys.stderr)
-    try:
+    with progress_bar(args.method == "multiview", "frame") as progress:
         result = run(options, dataset, args.out, progress=progress)
-    finally:
-        if progress is not None:
-            progress.close()
     print(result.summary())
     print(f"wrote {args.out}/ (cloud.ply, mesh.ply, depth.png, report.json)")
     return 0

@@ -2,8 +2,6 @@
 :mod:`scope3d.pipelines.surgical_map`). A thin layer: parse, load, call ``run``, print the summary."""
 from __future__ import annotations
 
-import sys
-
 from scope3d.errors import InputError
 
 
@@ -38,6 +36,7 @@ def register(subparsers) -> None:
 def run(args) -> int:
     from dataclasses import replace
 
+    from scope3d.cli.progress import progress_bar
     from scope3d.io.dataset import load_dataset
     from scope3d.pipelines.surgical_map import MAP_PRESETS
     from scope3d.pipelines.surgical_map import run as run_map
@@ -45,21 +44,14 @@ def run(args) -> int:
     dataset = load_dataset(args.dataset)
     options = replace(MAP_PRESETS[args.preset], pose_mode=args.pose_mode, matcher=args.matcher,
                       figures=not args.no_figures)
-    progress = None
-    if not args.no_progress:
-        from tqdm import tqdm
-
-        progress = tqdm(leave=False, file=sys.stderr, unit="step")
     try:
-        result = run_map(options, dataset, args.out, progress=progress)
+        with progress_bar(not args.no_progress, "step") as progress:
+            result = run_map(options, dataset, args.out, progress=progress)
     except ValueError as exc:
         if isinstance(exc, InputError):
             raise
         # a degenerate scene (no overlap, too few points for a surface) is the user's data, not a bug
         raise InputError(f"{args.dataset}: {exc}") from None
-    finally:
-        if progress is not None:
-            progress.close()
     print(result.summary())
     print(f"wrote {args.out}")
     return 0

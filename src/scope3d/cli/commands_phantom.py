@@ -56,6 +56,7 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
+    from scope3d.cli.progress import progress_bar
     from scope3d.phantoms import catalogue, generate, write
     from scope3d.phantoms.render import RenderOptions
 
@@ -70,12 +71,7 @@ def run(args) -> int:
         raise InputError(f"--blur must be non-negative, got {args.blur}")
     if args.supersample is not None and not 1 <= args.supersample <= 8:
         raise InputError(f"--supersample must be from 1 to 8, got {args.supersample}")
-    progress = None
-    if not args.no_progress:
-        from tqdm import tqdm
-
-        progress = tqdm(unit="frame", leave=False, file=sys.stderr)
-    try:
+    with progress_bar(not args.no_progress, "frame") as progress:
         seq = generate(
             args.scene, args.trajectory, seed=args.seed, pose_noise_mm=args.pose_noise, thread=args.thread,
             n_frames=args.frames, size=args.size, fov_deg=args.fov, side_view_deg=args.side_view,
@@ -83,9 +79,6 @@ def run(args) -> int:
             dome_radius_mm=args.dome_radius, options=RenderOptions(blur_sigma_px=args.blur, supersample=args.supersample),
             progress=progress,
         )
-    finally:
-        if progress is not None:
-            progress.close()
     out = write(seq, args.out)
     print(f"wrote {len(seq)} frames of {args.scene}/{seq.trajectory.name} "
           f"({seq.camera.width}x{seq.camera.height}) to {out}", file=sys.stderr)
