@@ -32,7 +32,7 @@ class PairOptions:
         coordinates, is classed by its dominant axis (+-x, +-y, +-z); partners whose baseline subtends
         less than 1 deg at the prior depth (the same place, no triangulation) form a seventh class.
         With 1, a ring links each view to its nearest neighbour on either side, a raster to its four
-        neighbours, whatever the spacing. Why not more partners: tracks are joined by union-find, and
+        neighbours, whatever the spacing. Why not more partners: tracks are joined as connected components of the match graph, and
         every extra pair adds a few wrong matches that glue two tracks into one holding two features
         of a frame, which is dropped whole (:func:`~scope3d.feature.tracks.build_tracks`). A point's views are
         already connected by the chain of nearest neighbours, and the glue grows with pairs per frame

@@ -8,12 +8,13 @@ Method (reference chapters 3, 4 and 6), one stage per function, run top to botto
    each feature is searched only near the epipolar segment the poses predict, with a window sized by
    the pose tolerance; ratio test 0.8 and RANSAC. Poses whose tolerance makes that window wide are
    first adjusted by BCBA on a coarse pass (the reference's "combination algorithm", sec. 3.5).
-3. :func:`reconstruct` — tracks by union-find, multi-view triangulation with the measured poses, then
-   bundle adjustment in one of three pose modes: ``fixed`` (poses trusted, points refined — the
-   reference's chapter 3-4 method), ``free`` (conventional BA, gauge fixed by the first camera and one
-   coordinate of the farthest), ``bounded`` (BCBA, chapter 6: every pose scalar kept within its measured
-   tolerance). Observations that still reproject badly are dropped and the adjustment is repeated once.
-   Points that stand off their neighbours' surface (wrong matches along the epipolar line) are dropped.
+3. :func:`reconstruct` — tracks (connected components of the match graph), multi-view triangulation
+   with the poses that guided matching, then bundle adjustment in one of three pose modes: ``fixed``
+   (poses trusted, points refined — the reference's chapter 3-4 method), ``free`` (conventional BA, gauge
+   fixed by the first camera and one coordinate of the farthest), ``bounded`` (BCBA, chapter 6: every
+   pose scalar kept within its measured tolerance). Observations that still reproject badly are dropped
+   and the adjustment is repeated once. Points that stand off their neighbours' surface (wrong matches
+   along the epipolar line) are dropped, gross ones before every adjustment.
 4. :func:`build_surface` — a thin-plate-spline height field through the points, meshed on a grid and
    textured from each vertex's best view.
 5. :func:`locate_targets` — fluorescence thresholded and cleaned per frame, voted onto the surface,

@@ -29,7 +29,7 @@ def pairwise_pose_covariances(problem: BundleProblem, parameters: BundleParamete
     how far camera j may be off relative to camera i, which is what predicting i's features in j needs.
 
     Two cameras tied to each other by many points but, as a group, loosely to the rest have large
-    covariances relative to the whole map (:func:`relative_pose_covariances`) and a small one relative to
+    covariances relative to the whole map and a small one relative to
     each other: ``S_ii + S_jj - S_ij - S_ji`` (S: the joint covariance of every camera's pose scalars
     ``(w (rad), centre (mm))``). The Hessian uses the observations' Huber weights at ``loss_scale_px`` (as
     the adjustment did); the noise is ``noise_px`` or, by default, estimated from the residuals (median
