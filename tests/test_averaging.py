@@ -12,12 +12,14 @@ from scope3d.estimators.averaging import (
     RelativePose,
     average_positions,
     average_rotations,
+    positions_from_points,
     relative_pose,
 )
 from scope3d.estimators.gauge import gauge_from_measurements
 from scope3d.geometry.pose import Pose
 from scope3d.geometry.rotation import look_at, rotation_angle_between, rotvec_to_matrix
 from scope3d.geometry.similarity import Similarity
+from scope3d.scene.tracks import Tracks
 from scope3d.sensor.camera import Camera
 from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance, perturb_poses_uniform
 
@@ -101,6 +103,66 @@ def test_averaging_downweights_a_wrong_pair():
     assert others.max() < np.deg2rad(0.1)  # ... instead of spreading it over the others
     _, used = average_positions(measured, rotations, pairs)
     assert not used[3] and used.sum() >= len(pairs) - 2
+
+
+def _row_of_cameras_and_tracks(noise_px: float, seed: int):
+    """Six cameras in a row 2 mm apart looking down at points 13-17 mm below, and every point's
+    observations (pixels, with Gaussian noise) in the cameras that see it."""
+    rng = np.random.default_rng(seed)
+    camera = Camera(width=600, height=600, fx=500.0, fy=500.0, cx=300.0, cy=300.0)
+    centres = np.c_[np.arange(6) * 2.0, np.zeros(6), np.zeros(6)]
+    rotations = np.stack([np.diag([1.0, -1.0, -1.0])] * 6)  # optical axes along -z
+    points = np.c_[rng.uniform(-3, 13, 300), rng.uniform(-5, 5, 300), rng.uniform(-17, -13, 300)]
+    track, frame, pixels = [], [], []
+    for p, x in enumerate(points):
+        for k in range(6):
+            uv = camera.project((rotations[k] @ (x - centres[k]))[None])[0]
+            if camera.in_image(uv[None])[0]:
+                track.append(p), frame.append(k), pixels.append(uv + rng.normal(0, noise_px, 2))
+    _, track = np.unique(track, return_inverse=True)
+    tracks = Tracks(track, np.array(frame), np.zeros(len(track), np.int64), np.array(pixels),
+                    np.zeros((track.max() + 1, 3), np.uint8))
+    return camera, rotations, centres, tracks
+
+
+@pytest.mark.parametrize("noise_px", [0.0, 0.5])
+def test_positions_from_points_space_cameras_in_a_row(noise_px):
+    """Baseline directions cannot space cameras along a line (every direction is the same); shared points
+    can. From a start 1 mm off per axis and measurements 1 mm off, the row's shape must come out to the
+    precision of the rays, and its scale and place from the measurements."""
+    camera, rotations, centres, tracks = _row_of_cameras_and_tracks(noise_px, seed=3)
+    rng = np.random.default_rng(4)
+    measured = [MeasuredPose(Pose.from_centre(R, c + rng.uniform(-1, 1, 3)), PoseTolerance.from_degrees(1.0, 0.5))
+                for R, c in zip(rotations, centres)]
+    start = centres + rng.uniform(-1, 1, centres.shape)
+    out, solved = positions_from_points(camera, measured, rotations, start, tracks)
+    assert solved.all()
+    a, b = out - out.mean(axis=0), centres - centres.mean(axis=0)
+    scale = float(np.sum(a * b) / np.sum(a * a))
+    shape_error = np.linalg.norm(scale * a - b, axis=1).max()
+    if noise_px == 0:
+        assert shape_error < 1e-6
+    else:
+        # ~100 points per camera at 15 mm, 0.5 px at f = 500: a centre is fixed to about
+        # 15 mm * 1e-3 rad / sqrt(100) = 1.5 um per axis; 20 um is ten sigma of the worst of six
+        assert shape_error < 0.02
+    # the measurements (uniform 1 mm per axis: sigma 1 / sqrt 3) fix the scale along the row to
+    # sigma / sqrt(sum of squared offsets from the middle), within 3 sigma
+    sigma_scale = (1 / np.sqrt(3)) / np.sqrt(np.sum(b[:, 0] ** 2))
+    assert abs(1 / scale - 1.0) < 3 * sigma_scale
+    # and the place: the mean centre to sigma = (1 / sqrt 3) / sqrt 6 = 0.24 mm per axis, within 4 sigma
+    assert np.abs(out.mean(axis=0) - centres.mean(axis=0)).max() < 4 * 0.24
+
+
+def test_positions_from_points_leave_frames_with_no_shared_points_at_their_start():
+    camera, rotations, centres, tracks = _row_of_cameras_and_tracks(0.0, seed=3)
+    alone = tracks.subset(tracks.frame != 5)
+    measured = [MeasuredPose(Pose.from_centre(R, c), PoseTolerance.from_degrees(1.0, 0.5))
+                for R, c in zip(rotations, centres)]
+    start = centres + 0.5
+    out, solved = positions_from_points(camera, measured, rotations, start, alone)
+    assert solved[:5].all() and not solved[5]
+    np.testing.assert_array_equal(out[5], start[5])
 
 
 @pytest.mark.parametrize("scale", [0.9, 1.0, 1.1])

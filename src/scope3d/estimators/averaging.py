@@ -26,10 +26,12 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import spsolve
 
 from scope3d.geometry.pose import Pose
 from scope3d.geometry.rotation import matrix_to_rotvec, rotvec_to_matrix
+from scope3d.scene.tracks import Tracks
 from scope3d.sensor.camera import Camera
 from scope3d.sensor.pose_tolerance import MeasuredPose
 
@@ -280,3 +282,133 @@ def average_positions(measured: list[MeasuredPose], rotations: np.ndarray, pairs
 def poses_from(rotations: np.ndarray, centres: np.ndarray) -> list[Pose]:
     """``cam_from_world`` poses from rotations (n, 3, 3) and centres (n, 3) mm."""
     return [Pose.from_centre(R, c) for R, c in zip(rotations, centres)]
+
+
+def positions_from_points(camera: Camera, measured: list[MeasuredPose], rotations: np.ndarray, centres: np.ndarray,
+                          tracks: Tracks, *, noise_px: float = 0.5, min_observations: int = 8,
+                          iterations: int = 6) -> tuple[np.ndarray, np.ndarray]:
+    """Camera centres (n, 3) mm from the tracks' rays once the rotations are known (the points fix the lengths).
+
+    Baseline directions alone leave a frame's distance along its only pair free, and cannot space
+    cameras along a line at all (a row of a survey grid): :func:`average_positions` then falls back on
+    the measured centres, millimetres off. A point seen from three frames fixes the ratio of their
+    baselines. With known rotations each observation says that the point lies on a known world ray from
+    the camera centre, ``(I - u u^T)(X - C) = 0`` — linear in centres and points (the known-rotation
+    problem, Kahl & Hartley 2008). Each residual (mm) is weighed as an angle, by the current distance
+    along the ray and the keypoint noise, with Huber weights beyond 2 sigma of a robustly estimated
+    common factor; the points are eliminated (3 x 3 blocks) and the centres solved per rigid group
+    (frames tied by shared points) with its centroid and scale held to the start's. Each group is then
+    scaled and shifted onto the measured centres (weighted by their tolerances), as the averaging does.
+
+    measured : n measured poses (tolerances weigh the final fit). rotations : (n, 3, 3) ``cam_from_world``.
+    centres : (n, 3) mm, the start (e.g. :func:`average_positions`). tracks : observations (pixels) of
+    frames 0..n-1. min_observations : a frame with fewer observations on points seen twice keeps its start.
+    Returns (centres (n, 3), solved (n,) bool: the frames placed by the points).
+    """
+    n = len(measured)
+    C = np.asarray(centres, float).copy()
+    obs_frame, obs_track = tracks.frame.astype(int), tracks.track.astype(int)
+    rays = np.c_[camera.pixel_to_normalised(tracks.pixels), np.ones(len(obs_frame))]
+    u = np.einsum("kji,kj->ki", rotations[obs_frame], rays)  # R^T x: world direction of each observation
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    keep = np.ones(len(obs_frame), bool)
+    for _ in range(3):  # frames with too few observations out, then tracks left with one view out
+        counts = np.bincount(obs_frame[keep], minlength=n)
+        keep &= counts[obs_frame] >= min_observations
+        keep &= np.bincount(obs_track[keep], minlength=tracks.n_tracks)[obs_track] >= 2
+    solved = np.zeros(n, bool)
+    if not keep.any():
+        return C, solved
+    obs_frame, obs_track, u = obs_frame[keep], np.unique(obs_track[keep], return_inverse=True)[1], u[keep]
+    n_points = int(obs_track.max()) + 1
+    graph = coo_matrix((np.ones(len(obs_frame)), (obs_frame, n + obs_track)), shape=(n + n_points,) * 2)
+    _, group = connected_components(graph, directed=False)
+    P = np.eye(3) - u[:, :, None] * u[:, None, :]  # projector orthogonal to each ray
+    sigma_angle = noise_px / (0.5 * (camera.fx + camera.fy))
+    weight = np.ones(len(obs_frame))
+    factor = 1.0
+    X = np.zeros((n_points, 3))
+    for _ in range(iterations):
+        X = _points_on_rays(P, weight, obs_frame, obs_track, C, n_points)
+        depth = np.maximum(np.linalg.norm(X[obs_track] - C[obs_frame], axis=1), 1e-9)
+        resid = np.linalg.norm(np.einsum("kij,kj->ki", P, X[obs_track] - C[obs_frame]), axis=1) / depth
+        factor = _robust_sigma(resid / sigma_angle, 1.0)
+        weight = _huber_weights(resid / (factor * sigma_angle), 2.0) / depth**2
+        C_new = C.copy()
+        for g in np.unique(group[:n][np.bincount(obs_frame, minlength=n) > 0]):
+            frames = np.flatnonzero(group[:n] == g)
+            if len(frames) >= 2:
+                C_new[frames] = _solve_group(P, weight, obs_frame, obs_track, frames, C[frames], n_points)
+        C = C_new
+    for g in np.unique(group[:n][np.bincount(obs_frame, minlength=n) > 0]):
+        frames = np.flatnonzero(group[:n] == g)
+        if len(frames) >= 2:
+            C[frames] = _onto_measured(C[frames], [measured[k] for k in frames])
+            solved[frames] = True
+    return C, solved
+
+
+def _points_on_rays(P, weight, obs_frame, obs_track, C, n_points) -> np.ndarray:
+    """Each point closest (weighted) to its rays: ``(sum w P) X = sum w P C``, 3 x 3 per point."""
+    wP = weight[:, None, None] * P
+    H = np.zeros((n_points, 3, 3))
+    np.add.at(H, obs_track, wP)
+    g = np.zeros((n_points, 3))
+    np.add.at(g, obs_track, np.einsum("kij,kj->ki", wP, C[obs_frame]))
+    H += 1e-12 * np.trace(H, axis1=1, axis2=2)[:, None, None] * np.eye(3)  # a point on parallel rays: any depth
+    return np.linalg.solve(H, g[:, :, None])[:, :, 0]
+
+
+def _solve_group(P, weight, obs_frame, obs_track, frames, start, n_points) -> np.ndarray:
+    """Centres (len(frames), 3) of one rigid group minimising the weighted ray residuals with the points
+    eliminated (Schur complement), its centroid and its spread along the start held to the start's."""
+    m = len(frames)
+    local = np.full(obs_frame.max() + 1, -1)
+    local[frames] = np.arange(m)
+    sel = local[obs_frame] >= 0
+    f, t, wP = local[obs_frame[sel]], obs_track[sel], weight[sel, None, None] * P[sel]
+    H = np.zeros((n_points, 3, 3))
+    np.add.at(H, t, wP)
+    H += 1e-12 * np.trace(H, axis1=1, axis2=2)[:, None, None] * np.eye(3)
+    Hinv = np.linalg.inv(H)
+    S = np.zeros((m, 3, m, 3))
+    np.add.at(S, (f, slice(None), f), wP)  # the cameras' own blocks
+    # the points' elimination: -sum over pairs of observations (a, b) of one point of wP_a H^-1 wP_b
+    order = np.argsort(t, kind="stable")
+    t_sorted = t[order]
+    starts = np.searchsorted(t_sorted, np.arange(n_points))
+    lengths = np.bincount(t_sorted, minlength=n_points)
+    a = np.repeat(order, lengths[t_sorted])
+    offs = np.arange(len(a)) - np.repeat(np.cumsum(lengths[t_sorted]) - lengths[t_sorted], lengths[t_sorted])
+    b = order[np.repeat(starts[t_sorted], lengths[t_sorted]) + offs]
+    blocks = np.einsum("kij,kjl,klm->kim", wP[a], Hinv[t[a]], wP[b])
+    np.add.at(S, (f[a], slice(None), f[b]), -blocks)
+    S = S.reshape(3 * m, 3 * m)
+    S = 0.5 * (S + S.T)
+    # gauge: the group's centroid and its spread along the start's (translation and scale are free)
+    c0 = start.mean(axis=0)
+    A = np.zeros((4, 3 * m))
+    A[:3] = np.tile(np.eye(3), m)
+    A[3] = (start - c0).ravel()
+    rhs = np.r_[m * c0, (start - c0).ravel() @ start.ravel()]
+    ridge = 1e-9 * max(float(np.trace(S)) / (3 * m), 1e-300)  # a frame free along a direction stays put
+    K = np.block([[S + ridge * np.eye(3 * m), A.T], [A, np.zeros((4, 4))]])
+    x = np.linalg.lstsq(K, np.r_[ridge * start.ravel(), rhs], rcond=None)[0]
+    return x[:3 * m].reshape(m, 3)
+
+
+def _onto_measured(C: np.ndarray, measured: list[MeasuredPose]) -> np.ndarray:
+    """``s C + t`` with the scale and shift that best fit the measured centres, each weighed by its
+    position tolerance (a frame with an infinite tolerance does not pull); unchanged when nothing pulls."""
+    meas = np.stack([m.pose.centre for m in measured])
+    tol = np.stack([m.tolerance.position_mm for m in measured])
+    w = np.where(np.isfinite(tol), 1.0 / np.maximum(tol, 1e-6) ** 2, 0.0)  # (m, 3) per axis
+    if np.count_nonzero(w.sum(axis=1)) < 2:
+        return C
+    # unknowns s, t (4): rows w^1/2 (s C + t - meas) per axis
+    J = np.zeros((len(C), 3, 4))
+    J[:, :, 0] = C
+    J[:, :, 1:] = np.eye(3)
+    sw = np.sqrt(w)
+    x = np.linalg.lstsq((J * sw[:, :, None]).reshape(-1, 4), (meas * sw).ravel(), rcond=None)[0]
+    return x[0] * C + x[1:]

@@ -28,9 +28,17 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
 
-from scope3d.estimators.averaging import RelativePose, average_positions, average_rotations, poses_from, relative_pose
+from scope3d.estimators.averaging import (
+    RelativePose,
+    average_positions,
+    average_rotations,
+    poses_from,
+    positions_from_points,
+    relative_pose,
+)
 from scope3d.feature.detection import Features
 from scope3d.feature.matching import MatchOptions, PairMatches, match_exhaustive
+from scope3d.feature.tracks import build_tracks
 from scope3d.feature.retrieval import RetrievalOptions, image_similarity
 from scope3d.geometry.pose import Pose
 from scope3d.geometry.rotation import rotation_angle_between
@@ -48,6 +56,8 @@ class CoarseOptions:
     max_view_angle_deg : float, partners whose measured optical axes differ by more than this plus both
         orientation tolerances are never tried (default 60 deg, where SIFT stops matching).
     connect_rounds : int, rounds of trying pairs between groups the verified pairs leave apart (default 4).
+    min_pairs_per_frame : int, a frame in fewer verified pairs tries more partners (default 3: one pair
+        leaves its distance free, two can leave a hinge). reinforce_rounds : int, rounds of that (default 2).
     noise_px : float, keypoint localisation noise, for the relative poses' uncertainty (default 0.5 px).
     threads : int, pairs matched at once (OpenCV releases the GIL; default 2, the machine's cores).
     """
@@ -55,13 +65,17 @@ class CoarseOptions:
     partners_per_frame: int = 3
     max_view_angle_deg: float = 60.0
     connect_rounds: int = 4
+    min_pairs_per_frame: int = 3
+    reinforce_rounds: int = 2
     noise_px: float = 0.5
     threads: int = 2
     retrieval: RetrievalOptions = field(default_factory=RetrievalOptions)
 
     def __post_init__(self) -> None:
-        if self.partners_per_frame < 1 or self.connect_rounds < 0 or self.noise_px <= 0 or self.threads < 1:
-            raise ValueError("need partners_per_frame >= 1, connect_rounds >= 0, noise_px > 0, threads >= 1")
+        if (self.partners_per_frame < 1 or self.connect_rounds < 0 or self.min_pairs_per_frame < 0
+                or self.reinforce_rounds < 0 or self.noise_px <= 0 or self.threads < 1):
+            raise ValueError("need partners_per_frame >= 1, connect_rounds, min_pairs_per_frame, reinforce_rounds >= 0, "
+                             "noise_px > 0, threads >= 1")
         if not 0 < self.max_view_angle_deg <= 180:
             raise ValueError(f"max_view_angle_deg must be in (0, 180], got {self.max_view_angle_deg}")
 
@@ -181,11 +195,37 @@ def coarse_poses(camera: Camera, features: list[Features], measured: list[Measur
         if not batch:
             break
         run(batch)
+    # a frame in fewer than three verified pairs is weakly placed: one pair leaves its distance along the
+    # baseline free and two in a row leave a hinge. Retrieval on a repetitive texture can rank a true
+    # neighbour low, so its next candidates alternate between image similarity and the measured centres'
+    # distance (the robot's poses still say roughly where the frame was)
+    centres = np.stack([m.pose.centre for m in measured])
+    distance = np.linalg.norm(centres[:, None] - centres[None], axis=2)
+    for _ in range(options.reinforce_rounds):
+        degree = np.bincount(np.array([(m.i, m.j) for m, _ in found], int).ravel(), minlength=n) if found else np.zeros(n, int)
+        batch = set()
+        for a in np.flatnonzero(degree < options.min_pairs_per_frame):
+            ranked = [np.argsort(-score[a], kind="stable"), np.argsort(np.where(score[a] > 0, distance[a], np.inf), kind="stable")]
+            wanted = options.min_pairs_per_frame - degree[a]
+            picks = []
+            for b in (int(b) for pair in zip(*ranked) for b in pair):
+                key = (min(int(a), b), max(int(a), b))
+                if score[a, b] <= 0 or key in tried or key in batch or key in picks:
+                    continue
+                picks.append(key)
+                if len(picks) >= wanted:
+                    break
+            batch.update(picks)
+        if not batch:
+            break
+        run(sorted(batch))
     found.sort(key=lambda mr: (mr[0].i, mr[0].j))
     matches = [m for m, _ in found]
     relative = [r for _, r in found]
     rotations, _ = average_rotations(measured, relative)
     centres, _ = average_positions(measured, rotations, relative)
+    centres, _ = positions_from_points(camera, measured, rotations, centres, build_tracks(features, matches),
+                                       noise_px=options.noise_px)
     n_groups = len(np.unique(_groups(n, [(m.i, m.j) for m in matches])))
     return CoarseResult(matches, relative, poses_from(rotations, centres), similarity, len(tried), n_groups,
                         time.perf_counter() - t0)
