@@ -7,6 +7,8 @@ import resource
 import sys
 import time
 
+from scope3d.cli.job_output import add_job_arguments, finish_job
+
 _BOUNDS_HELP = """\
 BOUNDS_FILE format (one rule per line, '#' starts a comment; indices 0-based: *, 7, 0-9 or 1,4,10-12):
   camera INDICES COMPONENTS SPEC   components: rx ry rz (rotation relative to the initial one, rad,
@@ -49,6 +51,7 @@ def register(subparsers) -> None:
     parser.add_argument("--output", metavar="BAL_FILE", help="write the solved problem as a BAL file")
     parser.add_argument("--plot", metavar="PNG", help="write the convergence curve")
     parser.add_argument("--quiet", action="store_true", help="no per-iteration progress on stderr")
+    add_job_arguments(parser, quiet=False)
     parser.set_defaults(func=run)
 
 
@@ -105,4 +108,5 @@ def run(args: argparse.Namespace) -> int:
         result.plot_convergence(args.plot, title=f"{args.problem_file}: {result.termination}")
     with atomic_file(args.report) as handle:
         json.dump(report, handle, indent=2)
-    return 0
+    # a BAL problem has no run folder: report.json goes where --report says, no page
+    return finish_job(args, None, report, [])
