@@ -67,10 +67,17 @@ def run(args: argparse.Namespace) -> int:
     )
     from scope3d.utils.atomic import atomic_file
 
+    from scope3d.estimators.bundle.jit import parallel_assembly_ready
+
     options = SolverOptions(
         max_iterations=args.max_iterations, loss=args.loss, loss_scale_px=args.loss_scale_px,
         function_tolerance=args.function_tolerance, linear_solver=args.linear_solver,
+        # a fresh install: one-thread assembly while the parallel kernel compiles in the background
+        num_threads=0 if parallel_assembly_ready() else 1,
     )
+    if options.num_threads == 1 and not args.quiet:
+        print("first run on this machine: one-thread assembly while the parallel kernel compiles in the "
+              "background for the next runs", file=sys.stderr)
     t0 = time.perf_counter()
     bal = read_bal(args.problem_file)
     problem = bal_to_problem(bal)
