@@ -17,19 +17,12 @@ from scope3d.report import ReportOptions, build_page, write_report
 from scope3d.report.html import read_report_json
 from scope3d.report.scene import gather_scene, scene_payload
 
-# 12 frames of the dome at 320x240: the smallest grid on which the map finds fluorescent targets (6 frames
-# found none), so the targets' table has rows to check.
-MAP_SIZE = (320, 240)
-MAP_FRAMES = 12
+MAP_FRAMES = 12  # the frames of conftest's small_dome_map
 
 
 @pytest.fixture(scope="module")
-def map_run(tmp_path_factory):
-    seq = phantoms.generate("dome", "grid5x6", size=MAP_SIZE, seed=0, n_frames=MAP_FRAMES)
-    dataset = phantoms.write(seq, tmp_path_factory.mktemp("dome") / "dome")
-    out = tmp_path_factory.mktemp("map") / "run"
-    assert main(["map", str(dataset), "--out", str(out), "--quiet"]) == 0
-    return out
+def map_run(small_dome_map):
+    return small_dome_map
 
 
 @pytest.fixture(scope="module")

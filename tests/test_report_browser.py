@@ -12,8 +12,6 @@ import cv2
 import numpy as np
 import pytest
 
-from scope3d import phantoms
-from scope3d.cli.main import main
 
 CHROMIUM = Path("/usr/bin/chromium")
 CHROMEDRIVER = Path("/usr/bin/chromedriver")
@@ -25,13 +23,8 @@ BACKGROUND_RGB = np.array([18, 20, 26])
 
 
 @pytest.fixture(scope="module")
-def run_dir(tmp_path_factory):
-    # the smallest dome grid on which the map finds targets (see tests/test_report.py)
-    seq = phantoms.generate("dome", "grid5x6", size=(320, 240), seed=0, n_frames=12)
-    dataset = phantoms.write(seq, tmp_path_factory.mktemp("dome") / "dome")
-    out = tmp_path_factory.mktemp("map") / "run"
-    assert main(["map", str(dataset), "--out", str(out), "--quiet", "--no-figures"]) == 0
-    return out
+def run_dir(small_dome_map):
+    return small_dome_map
 
 
 @pytest.fixture(scope="module")
@@ -141,3 +134,16 @@ def test_colouring_and_layer_controls_change_the_view(browser, run_dir):
     time.sleep(0.5)
     empty = _canvas_pixels(browser)
     assert np.mean(np.any(np.abs(empty.astype(int) - BACKGROUND_RGB) > 12, axis=2)) < 0.001
+
+
+def test_a_run_without_geometry_still_loads_cleanly(browser, tmp_path):
+    """A report.json and nothing else (a job that failed before writing its clouds): the page says so
+    and the viewer draws an empty scene without a script error."""
+    from scope3d.report import write_report
+
+    (tmp_path / "report.json").write_text(json.dumps({"n_points": 0, "time_s": 0.5}))
+    page = write_report(tmp_path)
+    _open(browser, page)
+    assert _console_errors(browser) == []
+    assert browser.execute_script("return document.body.getAttribute('data-layers-drawn')") == "0"
+    assert "no cloud or mesh" in browser.find_element("id", "view-section").text

@@ -166,7 +166,7 @@
     var truthCrosses = cross3.length ? lineSet(new Float32Array(cross3), [0.1, 0.85, 0.3]) : null;
 
     var state = {yaw: 0.6, pitch: 0.7, distance: 2.6 * data.radius_mm, target: [0, 0, 0],
-                 mode: document.querySelector("input[name=colouring]:checked").value,
+                 mode: (document.querySelector("input[name=colouring]:checked") || {value: "height"}).value,
                  frusta: true, targets: true};
     var mvp = null, eyeDir = [0, 0, 1], pending = false;
 
