@@ -199,3 +199,29 @@ def test_covariance_box_takes_the_largest_rotation_sigma():
     np.testing.assert_allclose(tol.orientation_rad, 0.06)
     with pytest.raises(InputError):
         tolerance_from_covariance(np.diag([-1.0, 1, 1, 1, 1, 1]), 3.0)
+
+
+def test_raw_image_encodings_decode_to_the_same_pixels():
+    from types import SimpleNamespace
+
+    from scope3d.io.rosbag import decode_image
+
+    rgb = np.random.default_rng(0).integers(0, 256, (5, 7, 3), dtype=np.uint8)
+
+    def msg(encoding, data, step, bigendian=0):
+        return SimpleNamespace(encoding=encoding, height=5, width=7, step=step, is_bigendian=bigendian,
+                               data=np.frombuffer(data, np.uint8))
+
+    padded = np.zeros((5, 7 * 3 + 3), np.uint8)  # rows padded past width * channels: step > row
+    padded[:, :21] = rgb[..., ::-1].reshape(5, 21)
+    np.testing.assert_array_equal(decode_image(msg("bgr8", padded.tobytes(), 24), "sensor_msgs/msg/Image", "t"), rgb)
+    rgba = np.concatenate([rgb, np.full((5, 7, 1), 255, np.uint8)], axis=2)
+    np.testing.assert_array_equal(decode_image(msg("rgba8", rgba.tobytes(), 28), "sensor_msgs/msg/Image", "t"), rgb)
+    depth = np.arange(35, dtype=np.uint16).reshape(5, 7) * 1000
+    for order, big in ((">u2", 1), ("<u2", 0)):
+        got = decode_image(msg("mono16", depth.astype(order).tobytes(), 14, big), "sensor_msgs/msg/Image", "t")
+        np.testing.assert_array_equal(got, depth)
+    with pytest.raises(InputError, match="'32FC1' not supported"):
+        decode_image(msg("32FC1", bytes(140), 28), "sensor_msgs/msg/Image", "t")
+    with pytest.raises(InputError, match="shorter"):
+        decode_image(msg("rgb8", bytes(50), 21), "sensor_msgs/msg/Image", "t")
