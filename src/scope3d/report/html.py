@@ -185,16 +185,18 @@ def _view_section(scene: ViewScene) -> str:
         for mode, (low, high, unit) in scene.scales.items())
     no_error = "" if "error" in available else \
         "<p class='notes'>No error colouring: the run's dataset has no ground-truth surface here.</p>"
+    has_targets = bool(scene.targets or scene.true_targets)
+    hide_targets = "" if has_targets else " hidden"
     legend = ('<span><span class="legend-key" style="background:#408cf2"></span>camera frusta</span> '
               '<span><span class="legend-key" style="background:#ff991a"></span>trajectory</span> '
-              '<span><span class="legend-key" style="background:#ff1ae6"></span>targets found</span> '
-              '<span><span class="legend-key" style="background:#1ad94d"></span>true targets</span>')
+              f'<span{hide_targets}><span class="legend-key" style="background:#ff1ae6"></span>targets found</span> '
+              f'<span{hide_targets}><span class="legend-key" style="background:#1ad94d"></span>true targets</span>')
     notes = "".join(f"<li>{_e(n)}</li>" for n in scene.notes)
     return (
         '<section id="view-section"><h2>3D view</h2>'
         f'<div class="controls"><span>colour by: {radios}</span><span>{layers}</span>'
         '<label><input type="checkbox" id="show-frusta" checked> cameras</label>'
-        '<label><input type="checkbox" id="show-targets" checked> targets</label>'
+        f'<label{hide_targets}><input type="checkbox" id="show-targets" checked> targets</label>'
         '<button id="reset-view" type="button">reset view</button></div>'
         '<div class="viewer"><canvas id="view"></canvas><canvas id="view-labels"></canvas>'
         '<div id="view-message"></div></div>'
