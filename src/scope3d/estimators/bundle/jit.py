@@ -2,14 +2,15 @@
 
 The kernels are cached on disk (``cache=True``): beside the sources, or in NUMBA_CACHE_DIR. A fresh
 install has no cache, and the first run compiles every kernel it calls. Measured on BAL ladybug-49
-(benchmarks/bench_first_run.py, docs/report.md#first-run): the parallel Schur assembly alone
-(``assemble_reduced_system_parallel``, numba's parfors) is about 70 % of that compilation.
+(benchmarks/bench_first_run.py, docs/report.md, "First run after pip install"): 24 CPU-seconds, of which
+the parallel Schur assembly (``assemble_reduced_system_parallel``, numba's parfors) is about a quarter.
 
 :func:`parallel_assembly_ready` lets a command avoid that wait: when the parallel kernel is not in the
 cache, it starts one detached background process that compiles every kernel into the cache
 (:func:`scope3d.estimators.bundle.warm_up`, on the machine's other core) and says no, so the run uses
-the one-thread assembly (same results; it compiles in a fraction of the time); the next run finds the
-parallel kernel cached. Library functions never start processes: the command line decides.
+the one-thread assembly (same results, and cheaper to compile); the next run finds the parallel kernel
+cached. The other kernels still compile in the first run. Library functions never start processes: the
+command line decides.
 """
 from __future__ import annotations
 
