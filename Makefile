@@ -30,7 +30,14 @@ demo: $(STAMP_CORE)
 	$(BIN)/scope3d map runs/demo/dataset --out runs/demo/map
 	@echo "Open runs/demo/map/ (report.json, *.png, *.ply)."
 
-test: $(STAMP_ALL)
+# The report's browser tests drive Debian's chromium through chromedriver (never a downloaded browser
+# build); installed here when missing (CI runs as root on a clean Debian machine).
+BROWSER := /usr/bin/chromium /usr/bin/chromedriver
+$(BROWSER):
+	DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends chromium chromium-driver || \
+	  { apt-get update && DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends chromium chromium-driver; }
+
+test: $(STAMP_ALL) $(BROWSER)
 	$(BIN)/python -m pytest -q
 
 bench: $(STAMP_ALL)

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from scope3d.cli.job_output import add_job_arguments, finish_job, show_progress
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -20,6 +22,7 @@ def register(subparsers) -> None:
     p.add_argument("--true-poses", action="store_true", help="use ground-truth poses (phantom datasets)")
     p.add_argument("--min-depth-mm", type=float, default=3.0,
                    help="nearest surface along the motion; sets the disparity search range (default 3)")
+    add_job_arguments(p)
     p.set_defaults(func=_run)
 
 
@@ -40,8 +43,7 @@ def _run(args) -> int:
     options = replace(base, method=args.method, frames=tuple(args.frames) if args.frames else None,
                       use_true_poses=args.true_poses,
                       two_view=replace(base.two_view, min_depth_mm=args.min_depth_mm))
-    with progress_bar(args.method == "multiview", "frame") as progress:
+    with progress_bar(args.method == "multiview" and show_progress(args), "frame") as progress:
         result = run(options, dataset, args.out, progress=progress)
-    print(result.summary())
-    print(f"wrote {args.out}/ (cloud.ply, mesh.ply, depth.png, report.json)")
-    return 0
+    return finish_job(args, args.out, result.report,
+                      [result.summary(), f"wrote {args.out}/ (cloud.ply, mesh.ply, depth.png, report.json)"])

@@ -7,6 +7,8 @@ import resource
 import sys
 import time
 
+from scope3d.cli.job_output import add_job_arguments, finish_job
+
 _BOUNDS_HELP = """\
 BOUNDS_FILE format (one rule per line, '#' starts a comment; indices 0-based: *, 7, 0-9 or 1,4,10-12):
   camera INDICES COMPONENTS SPEC   components: rx ry rz (rotation relative to the initial one, rad,
@@ -49,6 +51,7 @@ def register(subparsers) -> None:
     parser.add_argument("--output", metavar="BAL_FILE", help="write the solved problem as a BAL file")
     parser.add_argument("--plot", metavar="PNG", help="write the convergence curve")
     parser.add_argument("--quiet", action="store_true", help="no per-iteration progress on stderr")
+    add_job_arguments(parser, quiet=False)
     parser.set_defaults(func=run)
 
 
@@ -64,10 +67,17 @@ def run(args: argparse.Namespace) -> int:
     )
     from scope3d.utils.atomic import atomic_file
 
+    from scope3d.estimators.bundle.jit import parallel_assembly_ready
+
     options = SolverOptions(
         max_iterations=args.max_iterations, loss=args.loss, loss_scale_px=args.loss_scale_px,
         function_tolerance=args.function_tolerance, linear_solver=args.linear_solver,
+        # a fresh install: one-thread assembly while the parallel kernel compiles in the background
+        num_threads=0 if parallel_assembly_ready() else 1,
     )
+    if options.num_threads == 1 and not args.quiet:
+        print("first run on this machine: one-thread assembly while the parallel kernel compiles in the "
+              "background for the next runs", file=sys.stderr)
     t0 = time.perf_counter()
     bal = read_bal(args.problem_file)
     problem = bal_to_problem(bal)
@@ -105,4 +115,5 @@ def run(args: argparse.Namespace) -> int:
         result.plot_convergence(args.plot, title=f"{args.problem_file}: {result.termination}")
     with atomic_file(args.report) as handle:
         json.dump(report, handle, indent=2)
-    return 0
+    # a BAL problem has no run folder: report.json goes where --report says, no page
+    return finish_job(args, None, report, [])

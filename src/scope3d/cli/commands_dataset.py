@@ -28,7 +28,7 @@ def register(subparsers) -> None:
 
     imp = subparsers.add_parser(
         "import",
-        help="convert a Middlebury or COLMAP set into a scope3d dataset",
+        help="convert a Middlebury or COLMAP set or a ROS bag into a scope3d dataset",
         description="Convert another tool's multi-view set into a scope3d dataset folder (mm).",
     )
     formats = imp.add_subparsers(dest="format", metavar="FORMAT", required=True)
@@ -55,6 +55,29 @@ def register(subparsers) -> None:
                      help="length unit of the model's translations (default mm)")
     _add_output_arguments(col)
     col.set_defaults(func=run_import_colmap)
+
+    bag = formats.add_parser(
+        "rosbag",
+        help="ROS 1 or ROS 2 bag: camera images and camera poses, synchronised",
+        description="Import a ROS 1 (.bag) or ROS 2 (folder) bag: images (sensor_msgs/Image or CompressedImage) "
+                    "paired with the camera's pose (PoseStamped, PoseWithCovarianceStamped, TransformStamped, "
+                    "Odometry or /tf) stamped nearest, within the slop, each used once. Poses are of the "
+                    "camera's optical frame (z forward, x right, y down) in metres (converted to mm). Without "
+                    "--tolerance the poses' box comes from their covariance (3 sigma) when they carry one, "
+                    "else they are exact. See docs/rosbag.md.",
+    )
+    bag.add_argument("bag", metavar="BAG", type=Path, help="the .bag file (ROS 1) or bag folder (ROS 2)")
+    bag.add_argument("--image-topic", required=True, metavar="T", help="camera image topic")
+    bag.add_argument("--pose-topic", required=True, metavar="T", help="camera pose topic (e.g. /tf)")
+    bag.add_argument("--camera-frame", metavar="FRAME",
+                     help="child frame id of the camera in a tf / TransformStamped / Odometry stream")
+    intrinsics = bag.add_mutually_exclusive_group(required=True)
+    intrinsics.add_argument("--camera-info-topic", metavar="T", help="sensor_msgs/CameraInfo topic")
+    intrinsics.add_argument("--camera", metavar="CAMERA_JSON", type=Path, help="camera.json (see docs/datasets.md)")
+    bag.add_argument("--slop-ms", type=float, default=20.0,
+                     help="largest gap between an image's stamp and its pose's, ms (default 20)")
+    _add_output_arguments(bag)
+    bag.set_defaults(func=run_import_rosbag)
 
 
 def _add_output_arguments(parser: argparse.ArgumentParser) -> None:
@@ -111,5 +134,22 @@ def run_import_colmap(args) -> int:
     _check_output(args.out)
     out = import_colmap(args.model_dir, args.images, args.out, tolerance=_tolerance(args),
                         length_scale_to_mm=LENGTH_UNITS_TO_MM[args.model_unit])
+    print(load_dataset(out).summary())
+    return 0
+
+
+def run_import_rosbag(args) -> int:
+    from scope3d.io.camera_json import read_camera_json
+    from scope3d.io.rosbag import RosbagOptions, import_rosbag
+
+    if not args.slop_ms > 0:
+        raise InputError("--slop-ms must be positive")
+    _check_output(args.out)
+    given = args.tolerance is not None or args.tolerance_deg > 0
+    options = RosbagOptions(image_topic=args.image_topic, pose_topic=args.pose_topic, camera_frame=args.camera_frame,
+                            camera_info_topic=args.camera_info_topic, slop_s=args.slop_ms / 1000.0,
+                            tolerance=_tolerance(args) if given else None)
+    camera = read_camera_json(args.camera) if args.camera else None
+    out = import_rosbag(args.bag, args.out, options, camera=camera)
     print(load_dataset(out).summary())
     return 0

@@ -2,6 +2,7 @@
 :mod:`scope3d.pipelines.surgical_map`). A thin layer: parse, load, call ``run``, print the summary."""
 from __future__ import annotations
 
+from scope3d.cli.job_output import add_job_arguments, finish_job, show_progress
 from scope3d.errors import InputError
 
 
@@ -30,6 +31,7 @@ def register(subparsers) -> None:
                         "(calibrated photos around an object: no surface, no targets)")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    add_job_arguments(p)
     p.set_defaults(func=run)
 
 
@@ -45,13 +47,11 @@ def run(args) -> int:
     options = replace(MAP_PRESETS[args.preset], pose_mode=args.pose_mode, matcher=args.matcher,
                       figures=not args.no_figures)
     try:
-        with progress_bar(not args.no_progress, "step") as progress:
+        with progress_bar(show_progress(args), "step") as progress:
             result = run_map(options, dataset, args.out, progress=progress)
     except ValueError as exc:
         if isinstance(exc, InputError):
             raise
         # a degenerate scene (no overlap, too few points for a surface) is the user's data, not a bug
         raise InputError(f"{args.dataset}: {exc}") from None
-    print(result.summary())
-    print(f"wrote {args.out}")
-    return 0
+    return finish_job(args, args.out, result.report, [result.summary(), f"wrote {args.out}"])

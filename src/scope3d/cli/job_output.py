@@ -1,0 +1,46 @@
+"""What every job does on the command line after its work: write the run folder's report.html (the
+report layer), and speak the habits shared by every job: ``--json`` prints the report as JSON on stdout
+(nothing else goes there), ``--quiet`` silences progress; the exit codes are in every job's ``--help``."""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+EXIT_CODES = """\
+exit status: 0 ok; 2 bad input (a missing or malformed file, a bad option: one line on stderr, nothing
+half-written); 130 interrupted (Ctrl-C); 1 any other failure (a bug: the traceback is printed)."""
+
+
+def add_job_arguments(parser: argparse.ArgumentParser, *, quiet: bool = True) -> None:
+    """Add ``--json`` (and ``--quiet`` unless the job has its own) and the exit codes to the epilog."""
+    parser.add_argument("--json", action="store_true",
+                        help="print the job's report as JSON on stdout (and nothing else there)")
+    if quiet:
+        parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    parser.epilog = f"{parser.epilog}\n\n{EXIT_CODES}" if parser.epilog else EXIT_CODES
+    if parser.formatter_class is argparse.HelpFormatter:
+        parser.formatter_class = argparse.RawDescriptionHelpFormatter
+
+
+def show_progress(args) -> bool:
+    """Progress bars unless --quiet (or the job's own --no-progress) asks for silence."""
+    return not (getattr(args, "quiet", False) or getattr(args, "no_progress", False))
+
+
+def finish_job(args, out_dir: str | Path | None, report: dict, summary_lines: list[str]) -> int:
+    """Write ``out_dir/report.html`` (when the job has an output folder), then print the report as JSON
+    (``--json``) or the summary lines. Returns the exit status 0."""
+    from scope3d.report import write_report
+    from scope3d.utils.jsonio import json_default
+
+    lines = list(summary_lines)
+    if out_dir is not None:
+        lines.append(f"wrote {write_report(out_dir)}")
+    if getattr(args, "json", False):
+        sys.stdout.write(json.dumps(report, indent=2, default=json_default) + "\n")
+    else:
+        for line in lines:
+            print(line)
+    return 0

@@ -1,0 +1,277 @@
+"""Robot logs in: a ROS 1 or ROS 2 bag's camera images and camera poses as a scope3d dataset.
+
+Read with the ``rosbags`` library (pure Python, no ROS install). Images: ``sensor_msgs/Image`` (rgb8, bgr8,
+rgba8, bgra8, mono8, mono16) or ``sensor_msgs/CompressedImage`` (any format OpenCV decodes). Poses of the
+camera's optical frame (z forward, x right, y down: scope3d's camera frame, REP 103's ``_optical``
+frame) in the world: ``geometry_msgs/PoseStamped``, ``PoseWithCovarianceStamped``, ``TransformStamped``,
+``nav_msgs/Odometry`` or ``tf2_msgs/TFMessage`` (``/tf``, the transform whose child frame is the
+camera's). ROS lengths are metres (REP 103): converted to mm.
+
+Each image is paired with the pose stamped nearest to it, within a slop, each pose used once (the
+approximate-time pairing the reference used for its webcams): the pair with the smallest time gap first.
+Images without a pose within the slop are left out; no pair at all is an InputError.
+"""
+from __future__ import annotations
+
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from scope3d.errors import InputError
+from scope3d.geometry.pose import Pose
+from scope3d.geometry.rotation import quaternion_to_matrix
+from scope3d.sensor.camera import Camera
+from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance
+
+IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
+POSE_TYPES = ("geometry_msgs/msg/PoseStamped", "geometry_msgs/msg/PoseWithCovarianceStamped",
+              "geometry_msgs/msg/TransformStamped", "nav_msgs/msg/Odometry", "tf2_msgs/msg/TFMessage")
+CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
+M_TO_MM = 1000.0
+
+
+@dataclass(frozen=True)
+class RosbagOptions:
+    """What to read and how to pair it.
+
+    image_topic, pose_topic : str, topic names. camera_frame : str or None, the child frame id of the
+        camera's pose in a tf or TransformStamped / Odometry stream (required for /tf, where many frames
+        share the topic). camera_info_topic : str or None, where the intrinsics are (else give a Camera
+        to :func:`import_rosbag`).
+    slop_s : float, seconds, largest gap between an image's stamp and its pose's (ROS's approximate-time
+        slop). tolerance : PoseTolerance or None, the poses' box; None = from the pose covariance when the
+        messages carry one (``covariance_sigmas`` standard deviations), else exact.
+    """
+
+    image_topic: str
+    pose_topic: str
+    camera_frame: str | None = None
+    camera_info_topic: str | None = None
+    slop_s: float = 0.02
+    tolerance: PoseTolerance | None = None
+    covariance_sigmas: float = 3.0  # a 3-sigma box holds 99.7 % of a Gaussian's mass per axis
+
+    def __post_init__(self) -> None:
+        if not self.image_topic or not self.pose_topic:
+            raise ValueError("image_topic and pose_topic are required")
+        if not self.slop_s > 0:
+            raise ValueError(f"slop_s must be positive, got {self.slop_s}")
+        if not self.covariance_sigmas > 0:
+            raise ValueError("covariance_sigmas must be positive")
+
+
+@dataclass(frozen=True)
+class StampedPose:
+    """stamp_ns : int, header time; pose : cam_from_world (mm); covariance : (6, 6) in m² and rad²
+    (x, y, z, rotation about x, y, z of the parent frame) or None."""
+
+    stamp_ns: int
+    pose: Pose
+    covariance: np.ndarray | None = None
+
+
+def _stamp_ns(header, fallback_ns: int) -> int:
+    stamp = header.stamp
+    ns = int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+    return ns if ns > 0 else fallback_ns
+
+
+def _pose_from(position, orientation) -> Pose:
+    """ROS pose of the camera in the world (world_from_cam, metres) -> scope3d cam_from_world (mm)."""
+    world_from_cam = quaternion_to_matrix(np.array([orientation.x, orientation.y, orientation.z, orientation.w]))
+    centre = np.array([position.x, position.y, position.z]) * M_TO_MM
+    return Pose.from_centre(world_from_cam.T, centre)
+
+
+def _poses_of(msg, msgtype: str, time_ns: int, camera_frame: str | None, topic: str) -> list[StampedPose]:
+    """The camera poses one message holds (none if it is about other frames)."""
+    if msgtype == "geometry_msgs/msg/PoseStamped":
+        return [StampedPose(_stamp_ns(msg.header, time_ns), _pose_from(msg.pose.position, msg.pose.orientation))]
+    if msgtype in ("geometry_msgs/msg/PoseWithCovarianceStamped", "nav_msgs/msg/Odometry"):
+        if msgtype == "nav_msgs/msg/Odometry" and camera_frame and msg.child_frame_id != camera_frame:
+            return []
+        p = msg.pose.pose
+        cov = np.asarray(msg.pose.covariance, float).reshape(6, 6)
+        return [StampedPose(_stamp_ns(msg.header, time_ns), _pose_from(p.position, p.orientation), cov)]
+    transforms = msg.transforms if msgtype == "tf2_msgs/msg/TFMessage" else [msg]
+    if msgtype == "tf2_msgs/msg/TFMessage" and not camera_frame:
+        raise InputError(f"{topic}: a tf stream needs the camera's frame id (--camera-frame)")
+    out = []
+    for t in transforms:
+        if camera_frame and t.child_frame_id.lstrip("/") != camera_frame.lstrip("/"):
+            continue
+        out.append(StampedPose(_stamp_ns(t.header, time_ns), _pose_from(t.transform.translation, t.transform.rotation)))
+    return out
+
+
+def decode_image(msg, msgtype: str, where: str) -> np.ndarray:
+    """(H, W, 3) uint8 RGB or (H, W) uint8/uint16 of an Image or CompressedImage message."""
+    if msgtype == "sensor_msgs/msg/CompressedImage":
+        img = cv2.imdecode(np.asarray(msg.data, np.uint8), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise InputError(f"{where}: compressed image ({msg.format!r}) does not decode")
+        return img if img.ndim == 2 else cv2.cvtColor(img[..., :3], cv2.COLOR_BGR2RGB)
+    channels = {"rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4, "mono8": 1, "mono16": 1, "8UC1": 1, "8UC3": 3}
+    if msg.encoding not in channels:
+        raise InputError(f"{where}: image encoding {msg.encoding!r} not supported "
+                         f"(supported: {', '.join(channels)})")
+    dtype = np.dtype(">u2" if msg.is_bigendian else "<u2") if msg.encoding == "mono16" else np.dtype(np.uint8)
+    c = channels[msg.encoding]
+    row = msg.width * c * dtype.itemsize
+    data = np.asarray(msg.data, np.uint8)
+    if msg.step < row or len(data) < msg.step * msg.height:
+        raise InputError(f"{where}: image data shorter than height x step ({len(data)} bytes)")
+    rows = data[: msg.step * msg.height].reshape(msg.height, msg.step)[:, :row]
+    img = np.ascontiguousarray(rows).view(dtype).reshape(msg.height, msg.width, c) if c > 1 else \
+        np.ascontiguousarray(rows).view(dtype).reshape(msg.height, msg.width).astype(dtype.newbyteorder("="))
+    if msg.encoding.startswith("bgr"):
+        img = img[..., 2::-1]
+    elif c == 4:
+        img = img[..., :3]
+    return np.ascontiguousarray(img)
+
+
+def camera_from_info(msg, where: str) -> Camera:
+    """A Camera from a CameraInfo message (plumb_bob / rational_polynomial: k1, k2 kept; the others must
+    be negligible, as scope3d's model has k1, k2 only)."""
+    k = np.asarray(getattr(msg, "k", getattr(msg, "K", None)), float).reshape(3, 3)
+    d = np.asarray(getattr(msg, "d", getattr(msg, "D", [])), float)
+    if not k[0, 0] > 0 or not k[1, 1] > 0:
+        raise InputError(f"{where}: camera info has no focal length (uncalibrated camera)")
+    if len(d) > 2 and np.any(np.abs(d[2:]) > 1e-9):
+        raise InputError(f"{where}: distortion terms beyond k1, k2 ({d.tolist()}); undistort first")
+    k1, k2 = (list(d[:2]) + [0.0, 0.0])[:2]
+    # ROS's pixel centres are at integer coordinates, as scope3d's are: cx, cy carry over unchanged
+    return Camera(int(msg.width), int(msg.height), k[0, 0], k[1, 1], k[0, 2], k[1, 2], k1=float(k1), k2=float(k2))
+
+
+def pair_by_time(image_ns: np.ndarray, pose_ns: np.ndarray, slop_ns: int) -> list[tuple[int, int]]:
+    """(image index, pose index) pairs, each index used once, gaps within ``slop_ns``, smallest gap first;
+    sorted by image index. image_ns : (M,) int ns; pose_ns : (P,) int ns."""
+    order = np.argsort(pose_ns, kind="stable")
+    sorted_ns = pose_ns[order]
+    candidates = []
+    for i, t in enumerate(image_ns):
+        lo = np.searchsorted(sorted_ns, t - slop_ns, side="left")
+        hi = np.searchsorted(sorted_ns, t + slop_ns, side="right")
+        candidates.extend((abs(int(sorted_ns[j]) - int(t)), i, int(order[j])) for j in range(lo, hi))
+    used_images, used_poses, pairs = set(), set(), []
+    for _, i, j in sorted(candidates):
+        if i not in used_images and j not in used_poses:
+            used_images.add(i)
+            used_poses.add(j)
+            pairs.append((i, j))
+    return sorted(pairs)
+
+
+def tolerance_from_covariance(cov: np.ndarray, sigmas: float) -> PoseTolerance:
+    """Box half-widths from a ROS pose covariance (m², rad²): ``sigmas`` standard deviations per position
+    axis (mm); orientation: ROS states it about the parent's axes and scope3d's box is about the camera's,
+    so every axis gets the largest of the three (a box that holds the other whatever the rotation)."""
+    var = np.diag(np.asarray(cov, float).reshape(6, 6))
+    if np.any(var < 0) or not np.all(np.isfinite(var)):
+        raise InputError("pose covariance has a negative or non-finite variance")
+    position_mm = sigmas * np.sqrt(var[:3]) * M_TO_MM
+    return PoseTolerance(position_mm, np.full(3, sigmas * np.sqrt(var[3:].max())))
+
+
+def import_rosbag(bag: str | Path, out_dir: str | Path, options: RosbagOptions, *,
+                  camera: Camera | None = None) -> Path:
+    """Write the bag's synchronised images and poses as a scope3d dataset folder (see
+    :func:`scope3d.io.dataset.write_dataset`); returns ``out_dir``. camera : the intrinsics when the
+    bag has no CameraInfo topic (``options.camera_info_topic``). Frames are decoded one at a time (only
+    the paired ones), so a long bag never sits in memory. Raises InputError naming the bag for a missing
+    topic, an unsupported message type, no intrinsics, or streams that never meet within the slop."""
+    from rosbags.highlevel import AnyReader, AnyReaderError
+    from rosbags.typesys import Stores, get_typestore
+
+    from scope3d.io.dataset import write_dataset
+
+    bag = Path(bag)
+    if not bag.exists():
+        raise InputError(f"{bag}: no such bag")
+    try:
+        reader = AnyReader([bag], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
+        reader.open()
+    except (AnyReaderError, OSError, ValueError) as exc:
+        raise InputError(f"{bag}: not a readable ROS 1 or ROS 2 bag ({exc})") from None
+    try:
+        topics = {c.topic: c.msgtype for c in reader.connections}
+        for topic, allowed in ((options.image_topic, IMAGE_TYPES), (options.pose_topic, POSE_TYPES)):
+            if topic not in topics:
+                raise InputError(f"{bag}: no topic {topic!r} (topics: {', '.join(sorted(topics)) or 'none'})")
+            if topics[topic] not in allowed:
+                raise InputError(f"{bag}: topic {topic!r} holds {topics[topic]}, not one of {', '.join(allowed)}")
+        if camera is None:
+            camera = _read_camera_info(reader, bag, options, topics)
+
+        poses: list[StampedPose] = []
+        pose_conns = [c for c in reader.connections if c.topic == options.pose_topic]
+        for conn, time_ns, raw in reader.messages(connections=pose_conns):
+            poses.extend(_poses_of(reader.deserialize(raw, conn.msgtype), conn.msgtype, time_ns,
+                                   options.camera_frame, options.pose_topic))
+        if not poses:
+            raise InputError(f"{bag}: topic {options.pose_topic!r} has no pose of frame "
+                             f"{options.camera_frame!r}" if options.camera_frame else
+                             f"{bag}: topic {options.pose_topic!r} has no message")
+        image_conns = [c for c in reader.connections if c.topic == options.image_topic]
+        image_ns = np.array([_stamp_ns(reader.deserialize(raw, conn.msgtype).header, time_ns)
+                             for conn, time_ns, raw in reader.messages(connections=image_conns)], dtype=np.int64)
+        if len(image_ns) == 0:
+            raise InputError(f"{bag}: topic {options.image_topic!r} has no message")
+        pose_ns = np.array([p.stamp_ns for p in poses], dtype=np.int64)
+        pairs = pair_by_time(image_ns, pose_ns, int(round(options.slop_s * 1e9)))
+        if not pairs:
+            gap = float(np.min(np.abs(image_ns[:, None] - pose_ns[None, :]))) / 1e9
+            raise InputError(f"{bag}: images on {options.image_topic!r} and poses on {options.pose_topic!r} never "
+                             f"come within the slop of {options.slop_s:g} s of each other (closest {gap:.3g} s)")
+
+        pose_of_image = dict(pairs)
+        measured = []
+        for i, j in pairs:
+            p = poses[j]
+            if options.tolerance is not None:
+                tol = options.tolerance
+            elif p.covariance is not None:
+                tol = tolerance_from_covariance(p.covariance, options.covariance_sigmas)
+            else:
+                tol = PoseTolerance.exact()
+            measured.append(MeasuredPose(p.pose, tol))
+        with tempfile.TemporaryDirectory(prefix="scope3d-rosbag-") as tmp:
+            frames = []
+            for index, (conn, _time_ns, raw) in enumerate(reader.messages(connections=image_conns)):
+                if index not in pose_of_image:
+                    continue
+                img = decode_image(reader.deserialize(raw, conn.msgtype), conn.msgtype,
+                                   f"{bag}: {options.image_topic} message {index}")
+                if img.shape[:2] != (camera.height, camera.width):
+                    raise InputError(f"{bag}: {options.image_topic} message {index} is {img.shape[1]}x"
+                                     f"{img.shape[0]} px, the camera {camera.width}x{camera.height}")
+                if img.dtype != np.uint8:  # mono16 -> 8 bits, scope3d's frames are 8-bit
+                    img = (img >> 8).astype(np.uint8)
+                path = Path(tmp) / f"{len(frames):04d}.png"
+                if not cv2.imwrite(str(path), img if img.ndim == 2 else img[..., ::-1]):
+                    raise InputError(f"{path}: could not write a frame")
+                frames.append(path)
+            return write_dataset(out_dir, camera, frames, measured, metadata={
+                "source": {"rosbag": str(bag), "image_topic": options.image_topic, "pose_topic": options.pose_topic,
+                           "camera_frame": options.camera_frame, "slop_s": options.slop_s,
+                           "images_in_bag": int(len(image_ns)), "images_paired": len(pairs),
+                           "image_stamps_ns": [int(image_ns[i]) for i, _ in pairs],
+                           "pose_gaps_s": [float(abs(image_ns[i] - pose_ns[j]) / 1e9) for i, j in pairs]}})
+    finally:
+        reader.close()
+
+
+def _read_camera_info(reader, bag: Path, options: RosbagOptions, topics: dict) -> Camera:
+    if not options.camera_info_topic:
+        raise InputError(f"{bag}: no intrinsics: give a camera-info topic or a camera.json")
+    if topics.get(options.camera_info_topic) != CAMERA_INFO_TYPE:
+        raise InputError(f"{bag}: no {CAMERA_INFO_TYPE} topic {options.camera_info_topic!r}")
+    conns = [c for c in reader.connections if c.topic == options.camera_info_topic]
+    for conn, _time_ns, raw in reader.messages(connections=conns):
+        return camera_from_info(reader.deserialize(raw, conn.msgtype), f"{bag}: {options.camera_info_topic}")
+    raise InputError(f"{bag}: topic {options.camera_info_topic!r} has no message")

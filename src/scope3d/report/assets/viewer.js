@@ -1,0 +1,299 @@
+// scope3d report viewer: a small WebGL 1 viewer of our own (no library, no network).
+// Reads the JSON in <script id="scene-data">: layers (positions float32, faces uint32, colours RGB bytes
+// per colouring, all base64), camera frusta (line segments), trajectory, fluorescent targets, up axis.
+// Mouse: drag = orbit, shift-drag or right-drag = pan, wheel = zoom. State for tests: body[data-viewer].
+(function () {
+  "use strict";
+
+  function decode(b64, Type) {
+    if (!b64) return null;
+    var bin = atob(b64);
+    var bytes = new Uint8Array(bin.length);
+    for (var i = 0; i < bin.length; i++) bytes[i] = bin.charCodeAt(i);
+    return new Type(bytes.buffer);
+  }
+
+  // --- 4x4 matrices, column-major as WebGL wants them ---
+  function perspective(fovy, aspect, near, far) {
+    var f = 1 / Math.tan(fovy / 2), nf = 1 / (near - far);
+    return [f / aspect, 0, 0, 0, 0, f, 0, 0, 0, 0, (far + near) * nf, -1, 0, 0, 2 * far * near * nf, 0];
+  }
+  function sub(a, b) { return [a[0] - b[0], a[1] - b[1], a[2] - b[2]]; }
+  function add(a, b) { return [a[0] + b[0], a[1] + b[1], a[2] + b[2]]; }
+  function scale(a, s) { return [a[0] * s, a[1] * s, a[2] * s]; }
+  function dot(a, b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
+  function cross(a, b) { return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]; }
+  function norm(a) { var n = Math.sqrt(dot(a, a)) || 1; return [a[0] / n, a[1] / n, a[2] / n]; }
+  function lookAt(eye, target, up) {
+    var z = norm(sub(eye, target)), x = norm(cross(up, z)), y = cross(z, x);
+    return [x[0], y[0], z[0], 0, x[1], y[1], z[1], 0, x[2], y[2], z[2], 0,
+            -dot(x, eye), -dot(y, eye), -dot(z, eye), 1];
+  }
+  function multiply(a, b) {
+    var out = new Array(16);
+    for (var c = 0; c < 4; c++) for (var r = 0; r < 4; r++) {
+      var s = 0;
+      for (var k = 0; k < 4; k++) s += a[k * 4 + r] * b[c * 4 + k];
+      out[c * 4 + r] = s;
+    }
+    return out;
+  }
+  function project(m, p) {
+    var x = m[0] * p[0] + m[4] * p[1] + m[8] * p[2] + m[12];
+    var y = m[1] * p[0] + m[5] * p[1] + m[9] * p[2] + m[13];
+    var w = m[3] * p[0] + m[7] * p[1] + m[11] * p[2] + m[15];
+    return w > 0 ? [x / w, y / w] : null;
+  }
+
+  var VERTEX = [
+    "attribute vec3 position; attribute vec3 colour; attribute vec3 normal;",
+    "uniform mat4 mvp; uniform float pointSize; uniform vec3 eyeDir; uniform float lit;",
+    "varying vec3 vColour;",
+    "void main() {",
+    "  gl_Position = mvp * vec4(position, 1.0); gl_PointSize = pointSize;",
+    "  float shade = mix(1.0, 0.35 + 0.65 * abs(dot(normalize(normal + vec3(1e-9)), eyeDir)), lit);",
+    "  vColour = colour * shade;",
+    "}"].join("\n");
+  var FRAGMENT = [
+    "precision mediump float; varying vec3 vColour;",
+    "void main() { gl_FragColor = vec4(vColour, 1.0); }"].join("\n");
+
+  function compile(gl, type, source) {
+    var shader = gl.createShader(type);
+    gl.shaderSource(shader, source);
+    gl.compileShader(shader);
+    if (!gl.getShaderParameter(shader, gl.COMPILE_STATUS)) throw new Error(gl.getShaderInfoLog(shader));
+    return shader;
+  }
+
+  function vertexNormals(pos, faces) {
+    var n = new Float32Array(pos.length);
+    for (var f = 0; f < faces.length; f += 3) {
+      var a = faces[f] * 3, b = faces[f + 1] * 3, c = faces[f + 2] * 3;
+      var e1 = [pos[b] - pos[a], pos[b + 1] - pos[a + 1], pos[b + 2] - pos[a + 2]];
+      var e2 = [pos[c] - pos[a], pos[c + 1] - pos[a + 1], pos[c + 2] - pos[a + 2]];
+      var fn = cross(e1, e2);
+      [a, b, c].forEach(function (v) { n[v] += fn[0]; n[v + 1] += fn[1]; n[v + 2] += fn[2]; });
+    }
+    return n;
+  }
+
+  function start() {
+    var data = JSON.parse(document.getElementById("scene-data").textContent);
+    var canvas = document.getElementById("view");
+    var overlay = document.getElementById("view-labels");
+    var gl = canvas.getContext("webgl", {antialias: true, preserveDrawingBuffer: true}) ||
+             canvas.getContext("experimental-webgl", {preserveDrawingBuffer: true});
+    if (!gl) {
+      document.body.setAttribute("data-viewer", "no-webgl");
+      document.getElementById("view-message").textContent =
+        "This browser gives no WebGL context: the 3D view is off (the figures and tables below are complete).";
+      return;
+    }
+    var uintIndices = !!gl.getExtension("OES_element_index_uint");
+    var program = gl.createProgram();
+    gl.attachShader(program, compile(gl, gl.VERTEX_SHADER, VERTEX));
+    gl.attachShader(program, compile(gl, gl.FRAGMENT_SHADER, FRAGMENT));
+    gl.linkProgram(program);
+    gl.useProgram(program);
+    var loc = {
+      position: gl.getAttribLocation(program, "position"), colour: gl.getAttribLocation(program, "colour"),
+      normal: gl.getAttribLocation(program, "normal"), mvp: gl.getUniformLocation(program, "mvp"),
+      pointSize: gl.getUniformLocation(program, "pointSize"), eyeDir: gl.getUniformLocation(program, "eyeDir"),
+      lit: gl.getUniformLocation(program, "lit")
+    };
+    function buffer(array, target) {
+      var b = gl.createBuffer();
+      gl.bindBuffer(target || gl.ARRAY_BUFFER, b);
+      gl.bufferData(target || gl.ARRAY_BUFFER, array, gl.STATIC_DRAW);
+      return b;
+    }
+
+    var layers = data.layers.map(function (layer) {
+      var pos = decode(layer.positions, Float32Array);
+      var faces = decode(layer.faces, Uint32Array);
+      var out = {name: layer.name, count: layer.count, position: buffer(pos), colours: {}, visible: true};
+      Object.keys(layer.colours).forEach(function (mode) {
+        var bytes = decode(layer.colours[mode], Uint8Array), rgb = new Float32Array(bytes.length);
+        for (var i = 0; i < bytes.length; i++) rgb[i] = bytes[i] / 255;
+        out.colours[mode] = buffer(rgb);
+      });
+      if (faces && (uintIndices || layer.count < 65536)) {
+        out.normal = buffer(vertexNormals(pos, faces));
+        out.index = buffer(uintIndices ? faces : new Uint16Array(faces), gl.ELEMENT_ARRAY_BUFFER);
+        out.indexType = uintIndices ? gl.UNSIGNED_INT : gl.UNSIGNED_SHORT;
+        out.nIndices = faces.length;
+      }
+      return out;
+    });
+
+    // Lines: frusta, trajectory, target rings (in the plane across the up axis) and true-target crosses.
+    var up = norm(data.up);
+    var side = norm(cross(Math.abs(up[0]) < 0.9 ? [1, 0, 0] : [0, 1, 0], up)), side2 = cross(up, side);
+    function lineSet(points, rgb) {
+      var colours = new Float32Array(points.length);
+      for (var i = 0; i < points.length; i += 3) colours.set(rgb, i);
+      return {position: buffer(points), colour: buffer(colours), count: points.length / 3};
+    }
+    var frusta = data.frusta ? lineSet(decode(data.frusta, Float32Array), [0.25, 0.55, 0.95]) : null;
+    var trajectoryPoints = data.trajectory ? decode(data.trajectory, Float32Array) : null;
+    var trajectory = null;
+    if (trajectoryPoints) {
+      var seg = [];
+      for (var i = 0; i + 5 < trajectoryPoints.length; i += 3)
+        for (var k = 0; k < 6; k++) seg.push(trajectoryPoints[i + k]);
+      trajectory = lineSet(new Float32Array(seg), [1.0, 0.6, 0.1]);
+    }
+    var ring = [];
+    data.targets.forEach(function (t) {
+      var r = t.size_mm / 2, n = 32;
+      for (var j = 0; j < n; j++) {
+        [j, j + 1].forEach(function (q) {
+          var a = 2 * Math.PI * q / n;
+          ring.push.apply(ring, add(add(t.centre, scale(side, r * Math.cos(a))), scale(side2, r * Math.sin(a))));
+        });
+      }
+    });
+    var rings = ring.length ? lineSet(new Float32Array(ring), [1.0, 0.1, 0.9]) : null;
+    var cross3 = [];
+    data.true_targets.forEach(function (t) {
+      var r = t.size_mm / 2;
+      [side, side2, up].forEach(function (d) {
+        cross3.push.apply(cross3, sub(t.centre, scale(d, r)));
+        cross3.push.apply(cross3, add(t.centre, scale(d, r)));
+      });
+    });
+    var truthCrosses = cross3.length ? lineSet(new Float32Array(cross3), [0.1, 0.85, 0.3]) : null;
+
+    var state = {yaw: 0.6, pitch: 0.7, distance: 2.6 * data.radius_mm, target: [0, 0, 0],
+                 mode: (document.querySelector("input[name=colouring]:checked") || {value: "height"}).value,
+                 frusta: true, targets: true};
+    var mvp = null, eyeDir = [0, 0, 1], pending = false;
+
+    function eye() {
+      var dir = add(add(scale(up, Math.sin(state.pitch)), scale(side, Math.cos(state.pitch) * Math.cos(state.yaw))),
+                    scale(side2, Math.cos(state.pitch) * Math.sin(state.yaw)));
+      return add(state.target, scale(dir, state.distance));
+    }
+    function drawLines(set) {
+      if (!set) return;
+      gl.uniform1f(loc.lit, 0);
+      gl.bindBuffer(gl.ARRAY_BUFFER, set.position);
+      gl.vertexAttribPointer(loc.position, 3, gl.FLOAT, false, 0, 0);
+      gl.bindBuffer(gl.ARRAY_BUFFER, set.colour);
+      gl.vertexAttribPointer(loc.colour, 3, gl.FLOAT, false, 0, 0);
+      gl.drawArrays(gl.LINES, 0, set.count);
+    }
+    function draw() {
+      pending = false;
+      var ratio = window.devicePixelRatio || 1;
+      var w = Math.max(1, Math.round(canvas.clientWidth * ratio)), h = Math.max(1, Math.round(canvas.clientHeight * ratio));
+      if (canvas.width !== w || canvas.height !== h) { canvas.width = w; canvas.height = h; overlay.width = w; overlay.height = h; }
+      gl.viewport(0, 0, w, h);
+      gl.clearColor(0.07, 0.08, 0.1, 1);
+      gl.clear(gl.COLOR_BUFFER_BIT | gl.DEPTH_BUFFER_BIT);
+      gl.enable(gl.DEPTH_TEST);
+      var e = eye();
+      eyeDir = norm(sub(e, state.target));
+      var far = state.distance + 4 * data.radius_mm;
+      mvp = multiply(perspective(45 * Math.PI / 180, w / h, Math.max(far * 1e-4, state.distance * 0.01), far),
+                     lookAt(e, state.target, up));
+      gl.uniformMatrix4fv(loc.mvp, false, new Float32Array(mvp));
+      gl.uniform3fv(loc.eyeDir, new Float32Array(eyeDir));
+      gl.uniform1f(loc.pointSize, 3 * ratio);
+      gl.enableVertexAttribArray(loc.position);
+      gl.enableVertexAttribArray(loc.colour);
+      var drawn = 0;
+      layers.forEach(function (layer) {
+        var colour = layer.colours[state.mode] || layer.colours.height || layer.colours[Object.keys(layer.colours)[0]];
+        if (!layer.visible || !colour) return;
+        gl.bindBuffer(gl.ARRAY_BUFFER, layer.position);
+        gl.vertexAttribPointer(loc.position, 3, gl.FLOAT, false, 0, 0);
+        gl.bindBuffer(gl.ARRAY_BUFFER, colour);
+        gl.vertexAttribPointer(loc.colour, 3, gl.FLOAT, false, 0, 0);
+        if (layer.index) {
+          gl.enableVertexAttribArray(loc.normal);
+          gl.bindBuffer(gl.ARRAY_BUFFER, layer.normal);
+          gl.vertexAttribPointer(loc.normal, 3, gl.FLOAT, false, 0, 0);
+          gl.uniform1f(loc.lit, 1);
+          gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, layer.index);
+          gl.drawElements(gl.TRIANGLES, layer.nIndices, layer.indexType, 0);
+          gl.disableVertexAttribArray(loc.normal);
+        } else {
+          gl.vertexAttrib3f(loc.normal, 0, 0, 1);
+          gl.uniform1f(loc.lit, 0);
+          gl.drawArrays(gl.POINTS, 0, layer.count);
+        }
+        drawn += 1;
+      });
+      gl.vertexAttrib3f(loc.normal, 0, 0, 1);
+      if (state.frusta) { drawLines(frusta); drawLines(trajectory); }
+      if (state.targets) { drawLines(rings); drawLines(truthCrosses); }
+      drawLabels(w, h, ratio);
+      document.body.setAttribute("data-viewer", "ready");
+      document.body.setAttribute("data-layers-drawn", String(drawn));
+    }
+    function drawLabels(w, h, ratio) {
+      var ctx = overlay.getContext("2d");
+      ctx.clearRect(0, 0, w, h);
+      if (!state.targets) return;
+      ctx.font = (12 * ratio) + "px sans-serif";
+      ctx.fillStyle = "#ff5cf0";
+      data.targets.forEach(function (t) {
+        var p = project(mvp, t.centre);
+        if (p) ctx.fillText(String(t.label), (p[0] + 1) / 2 * w + 6 * ratio, (1 - p[1]) / 2 * h - 6 * ratio);
+      });
+    }
+    function redraw() { if (!pending) { pending = true; window.requestAnimationFrame(draw); } }
+
+    var drag = null;
+    canvas.addEventListener("contextmenu", function (ev) { ev.preventDefault(); });
+    canvas.addEventListener("mousedown", function (ev) {
+      drag = {x: ev.clientX, y: ev.clientY, pan: ev.shiftKey || ev.button === 2};
+    });
+    window.addEventListener("mouseup", function () { drag = null; });
+    window.addEventListener("mousemove", function (ev) {
+      if (!drag) return;
+      var dx = ev.clientX - drag.x, dy = ev.clientY - drag.y;
+      drag.x = ev.clientX; drag.y = ev.clientY;
+      if (drag.pan) {
+        var e = eye(), forward = norm(sub(state.target, e)), right = norm(cross(forward, up)), upScreen = cross(right, forward);
+        var k = state.distance / canvas.clientHeight;
+        state.target = add(state.target, add(scale(right, -dx * k), scale(upScreen, dy * k)));
+      } else {
+        state.yaw -= dx * 0.01;
+        state.pitch = Math.max(-1.55, Math.min(1.55, state.pitch + dy * 0.01));
+      }
+      redraw();
+    });
+    canvas.addEventListener("wheel", function (ev) {
+      ev.preventDefault();
+      state.distance *= Math.exp(ev.deltaY * 0.001);
+      redraw();
+    }, {passive: false});
+    document.querySelectorAll("input[name=colouring]").forEach(function (input) {
+      input.addEventListener("change", function () { state.mode = input.value; showScale(); redraw(); });
+    });
+    document.querySelectorAll("input[data-layer]").forEach(function (input) {
+      input.addEventListener("change", function () {
+        layers[Number(input.getAttribute("data-layer"))].visible = input.checked; redraw();
+      });
+    });
+    document.getElementById("show-frusta").addEventListener("change", function (ev) { state.frusta = ev.target.checked; redraw(); });
+    document.getElementById("show-targets").addEventListener("change", function (ev) { state.targets = ev.target.checked; redraw(); });
+    document.getElementById("reset-view").addEventListener("click", function () {
+      state.yaw = 0.6; state.pitch = 0.7; state.distance = 2.6 * data.radius_mm; state.target = [0, 0, 0]; redraw();
+    });
+    function showScale() {
+      document.querySelectorAll(".colour-scale").forEach(function (el) {
+        el.hidden = el.getAttribute("data-mode") !== state.mode;
+      });
+    }
+    window.addEventListener("resize", redraw);
+    showScale();
+    draw();
+  }
+
+  if (document.readyState === "loading") document.addEventListener("DOMContentLoaded", start);
+  else start();
+})();

@@ -1,0 +1,246 @@
+"""``RUN_DIR/report.html``: one self-contained page per run, opened from the file system with no network.
+
+The page holds the figures of merit of report.json with their units, the job's PNG pictures (inlined as
+data URIs), an interactive 3D view (WebGL, :mod:`scope3d.report.scene` gathers what it draws; the viewer's
+JavaScript and the styles are this package's data files, inlined) and the fluorescent targets' table.
+"""
+from __future__ import annotations
+
+import base64
+import html
+import json
+import math
+from importlib import resources
+from pathlib import Path
+
+from scope3d.errors import InputError
+from scope3d.report.scene import ReportOptions, ViewScene, colour_stops, gather_scene, scene_payload
+from scope3d.utils.atomic import atomic_file
+from scope3d.utils.jsonio import json_default
+
+# Key suffix -> unit shown beside the value (units live in the report's key names, see STYLE.md).
+UNIT_SUFFIXES = (("_mm2", "mm²"), ("_mm", "mm"), ("_px2", "px²"), ("_px", "px"), ("_deg", "°"), ("_rad", "rad"),
+                 ("_s", "s"), ("_mb", "MB"), ("_fraction", "%"))
+# The headline cards: (dotted key in report.json, label), shown when present.
+HEADLINES = (
+    ("n_frames", "frames"), ("n_points", "points"), ("mean_reprojection_error_px", "mean reprojection error"),
+    ("surface_error_mm.direct.mean", "mean distance to the true surface"),
+    ("surface_error_mm.after_icp.mean", "mean distance after ICP"),
+    ("surface_error_mm.mean", "mean distance to the true surface"),
+    ("surface_error_mm.within_1mm_fraction", "points within 1 mm of the truth"),
+    ("surface_error_mm.direct.within_1mm_fraction", "points within 1 mm of the truth"),
+    ("pose_error.position_mm_mean", "mean camera position error"),
+    ("initial_cost", "initial cost"), ("final_cost", "final cost"), ("iterations", "iterations"),
+    ("time_s", "time"),
+)
+COLOURINGS = (("height", "height"), ("error", "error against ground truth"), ("texture", "texture"),
+              ("multimodal", "texture + fluorescence"))
+
+
+def write_report(run_dir: str | Path, options: ReportOptions = ReportOptions()) -> Path:
+    """Write ``run_dir/report.html`` from the run folder's report.json, pictures and geometry; returns its
+    path. Raises InputError if the folder has no readable report.json."""
+    run = Path(run_dir)
+    page = build_page(run, options)
+    out = run / "report.html"
+    with atomic_file(out, encoding="utf-8") as handle:
+        handle.write(page)
+    return out
+
+
+def read_report_json(run: Path) -> dict:
+    path = run / "report.json"
+    if not path.is_file():
+        raise InputError(f"{path}: no report.json (is {run} a scope3d run folder?)")
+    try:
+        report = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: not JSON ({exc})") from None
+    if not isinstance(report, dict):
+        raise InputError(f"{path}: expected a JSON object")
+    return report
+
+
+def build_page(run: Path, options: ReportOptions = ReportOptions()) -> str:
+    """The whole page as one string (no external references except links to the run's own files)."""
+    report = read_report_json(run)
+    scene = gather_scene(run, report, options)
+    assets = resources.files("scope3d.report") / "assets"
+    style = (assets / "style.css").read_text(encoding="utf-8")
+    script = (assets / "viewer.js").read_text(encoding="utf-8")
+    payload = json.dumps(scene_payload(scene), default=json_default).replace("</", "<\\/")
+    title = f"scope3d {job_name(report)}: {run.name}"
+    parts = [
+        "<!DOCTYPE html>", '<html lang="en"><head><meta charset="utf-8">',
+        # no network at view time, whatever the page holds
+        "<meta http-equiv=\"Content-Security-Policy\" content=\"default-src 'none'; img-src data:; "
+        "style-src 'unsafe-inline'; script-src 'unsafe-inline'\">",
+        f"<title>{_e(title)}</title><style>{style}</style></head><body>",
+        f"<header><h1>{_e(title)}</h1><p>{_e(str(report.get('dataset', '')))}</p></header><main>",
+        _merit_section(report), _view_section(scene), _targets_section(scene, report), _pictures_section(run),
+        _files_section(run, scene),
+        f'</main><script type="application/json" id="scene-data">{payload}</script>',
+        f"<script>{script}</script></body></html>",
+    ]
+    return "\n".join(parts)
+
+
+def job_name(report: dict) -> str:
+    """Which job wrote the report (its keys tell)."""
+    if "pose_mode" in report:
+        return "map"
+    if report.get("method") in ("sgm", "sad", "multiview"):
+        return "axial"
+    if "initial_cost" in report:
+        return "bundle-adjust"
+    return "run"
+
+
+def _e(text) -> str:
+    return html.escape(str(text), quote=True)
+
+
+def flatten(report: dict, prefix: str = "") -> list[tuple[str, object]]:
+    """(dotted key, value) of every scalar (and short list of numbers) in the report, in order; lists of
+    records (bundle rounds, targets) are left to their own sections."""
+    rows: list[tuple[str, object]] = []
+    for key, value in report.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict):
+            rows.extend(flatten(value, name + "."))
+        elif isinstance(value, list) and value and all(isinstance(v, dict) for v in value):
+            for i, v in enumerate(value) if key == "bundle" else ():
+                rows.extend(flatten(v, f"{name}[{i}]."))
+        elif isinstance(value, list) and len(value) > 8:
+            continue
+        else:
+            rows.append((name, value))
+    return rows
+
+
+def unit_of(key: str) -> str:
+    """The unit a dotted key states in its name (the nearest part with a known suffix), or ''."""
+    for part in reversed(key.replace("[", ".").split(".")):
+        for suffix, unit in UNIT_SUFFIXES:
+            if part.endswith(suffix) or f"{suffix}_" in part:  # position_mm_mean is in mm too
+                return unit
+    return ""
+
+
+def format_value(key: str, value) -> str:
+    """A value as shown: fractions in %, floats to 4 significant digits, lists joined."""
+    if isinstance(value, bool) or value is None:
+        return "—" if value is None else ("yes" if value else "no")
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            return str(value)
+        if unit_of(key) == "%":
+            return f"{100 * value:.4g}"
+        return f"{value:.4g}"
+    if isinstance(value, list):
+        return ", ".join(format_value(key, v) for v in value)
+    return str(value)
+
+
+def _lookup(report: dict, dotted: str):
+    value = report
+    for part in dotted.split("."):
+        if not isinstance(value, dict) or part not in value:
+            return None
+        value = value[part]
+    return None if isinstance(value, (dict, list)) else value
+
+
+def _merit_section(report: dict) -> str:
+    cards, seen = [], set()
+    for key, label in HEADLINES:
+        value = _lookup(report, key)
+        if value is None or label in seen:
+            continue
+        seen.add(label)
+        cards.append(f'<div class="card"><div class="value">{_e(format_value(key, value))} {_e(unit_of(key))}</div>'
+                     f'<div class="label">{_e(label)}</div></div>')
+    rows = "".join(f'<tr><td>{_e(k)}</td><td class="num">{_e(format_value(k, v))}</td><td>{_e(unit_of(k))}</td></tr>'
+                   for k, v in flatten(report))
+    return (f'<section id="merit"><h2>Figures of merit</h2><div class="cards">{"".join(cards)}</div>'
+            f'<details><summary>every figure in report.json</summary><table id="merit-table"><thead><tr><th>figure'
+            f'</th><th>value</th><th>unit</th></tr></thead><tbody>{rows}</tbody></table></details></section>')
+
+
+def _view_section(scene: ViewScene) -> str:
+    available = {mode for layer in scene.layers for mode in layer.colours}
+    first = next((mode for mode, _ in COLOURINGS if mode in available), "height")
+    radios = "".join(
+        f'<label><input type="radio" name="colouring" value="{mode}"{" checked" if mode == first else ""}'
+        f'{"" if mode in available else " disabled"}> {_e(label)}</label>'
+        for mode, label in COLOURINGS if mode in available or mode == "error")
+    layers = "".join(f'<label><input type="checkbox" data-layer="{i}" checked> {_e(layer.name)} '
+                     f'({len(layer.positions):,} {"vertices" if layer.faces is not None else "points"})</label>'
+                     for i, layer in enumerate(scene.layers))
+    gradient = ", ".join(colour_stops())
+    scales = "".join(
+        f'<div class="colour-scale" data-mode="{mode}" hidden><span>{low:.3g} {unit}</span>'
+        f'<span class="bar" style="background: linear-gradient(to right, {gradient})"></span>'
+        f'<span>{high:.3g} {unit}</span><span>({_e(dict(COLOURINGS)[mode])})</span></div>'
+        for mode, (low, high, unit) in scene.scales.items())
+    no_error = "" if "error" in available else \
+        "<p class='notes'>No error colouring: the run's dataset has no ground-truth surface here.</p>"
+    has_targets = bool(scene.targets or scene.true_targets)
+    hide_targets = "" if has_targets else " hidden"
+    legend = ('<span><span class="legend-key" style="background:#408cf2"></span>camera frusta</span> '
+              '<span><span class="legend-key" style="background:#ff991a"></span>trajectory</span> '
+              f'<span{hide_targets}><span class="legend-key" style="background:#ff1ae6"></span>targets found</span> '
+              f'<span{hide_targets}><span class="legend-key" style="background:#1ad94d"></span>true targets</span>')
+    notes = "".join(f"<li>{_e(n)}</li>" for n in scene.notes)
+    return (
+        '<section id="view-section"><h2>3D view</h2>'
+        f'<div class="controls"><span>colour by: {radios}</span><span>{layers}</span>'
+        '<label><input type="checkbox" id="show-frusta" checked> cameras</label>'
+        f'<label{hide_targets}><input type="checkbox" id="show-targets" checked> targets</label>'
+        '<button id="reset-view" type="button">reset view</button></div>'
+        '<div class="viewer"><canvas id="view"></canvas><canvas id="view-labels"></canvas>'
+        '<div id="view-message"></div></div>'
+        f'<div class="controls">{scales}{legend}</div>'
+        '<p style="font-size:12px;color:#5b6474">drag: orbit · shift-drag or right-drag: pan · wheel: zoom; '
+        f'lengths in mm</p>{no_error}<ul class="notes">{notes}</ul></section>')
+
+
+def _targets_section(scene: ViewScene, report: dict) -> str:
+    if "targets" not in report and not scene.true_targets:
+        return ""
+    matched = {t.get("found_label"): t for t in scene.true_targets if t.get("found_label") is not None}
+    rows = []
+    for t in scene.targets:
+        c = t.get("centroid_mm", [math.nan] * 3)
+        truth = matched.get(t.get("label"), {})
+        rows.append(
+            f'<tr><td>{_e(t.get("label"))}</td><td>{_e(t.get("shape", ""))}</td>'
+            + "".join(f'<td class="num">{v:.3f}</td>' for v in c)
+            + f'<td class="num">{t.get("size_mm", math.nan):.3f}</td><td class="num">{t.get("area_mm2", math.nan):.3f}</td>'
+            f'<td>{_e(truth.get("name", "—"))}</td>'
+            f'<td class="num">{_e(format_value("x_mm", truth.get("centroid_error_mm")))}</td></tr>')
+    table = ('<table id="targets"><thead><tr><th>label</th><th>shape</th><th>x (mm)</th><th>y (mm)</th><th>z (mm)</th>'
+             '<th>size (mm)</th><th>area (mm²)</th><th>true target</th><th>centre error (mm)</th></tr></thead>'
+             f'<tbody>{"".join(rows)}</tbody></table>')
+    missed = [t["name"] for t in scene.true_targets if t.get("found_label") is None]
+    missed_text = f"<p>True targets not found: {_e(', '.join(missed))}.</p>" if missed else ""
+    return (f'<section id="targets-section"><h2>Fluorescent targets ({len(scene.targets)} found'
+            + (f" of {len(scene.true_targets)} true" if scene.true_targets else "") + f")</h2>{table}{missed_text}</section>")
+
+
+def _pictures_section(run: Path) -> str:
+    figures = []
+    for png in sorted(run.glob("*.png")):
+        data = base64.b64encode(png.read_bytes()).decode()
+        figures.append(f'<figure><img alt="{_e(png.name)}" src="data:image/png;base64,{data}">'
+                       f"<figcaption>{_e(png.name)}</figcaption></figure>")
+    if not figures:
+        return ""
+    return f'<section id="pictures"><h2>Pictures</h2>{"".join(figures)}</section>'
+
+
+def _files_section(run: Path, scene: ViewScene) -> str:
+    files = sorted(p for p in run.iterdir() if p.is_file() and p.suffix in (".ply", ".json", ".csv") and
+                   not p.name.startswith("."))
+    items = "".join(f'<li><a href="{_e(p.name)}">{_e(p.name)}</a> ({p.stat().st_size / 1e6:.2f} MB)</li>' for p in files)
+    return f'<section id="files"><h2>Full data</h2><ul>{items}</ul></section>'
