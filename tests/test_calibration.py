@@ -141,3 +141,46 @@ def test_board_render_options_are_validated():
         BoardRenderOptions(fill_range=(0.8, 0.4))
     with pytest.raises(ValueError):
         BoardSpec(1, 6, 2.0)
+
+
+def test_calibrated_bounds_are_consumed_by_bundle_adjustment(tmp_path):
+    """A survey whose camera.json is 3 deg off in FOV: with the calibration's +-3 sigma box the adjusted
+    intrinsics land inside the box, next to the truth; cx, cy held (NaN in the file) do not move."""
+    from scope3d.estimators.bundle import solve
+    from scope3d.geometry.pose import Pose
+    from scope3d.geometry.rotation import look_at
+    from scope3d.io.intrinsic_bounds import write_intrinsic_bounds
+    from scope3d.scene.tracks import Tracks
+    from scope3d.sensor.pose_tolerance import MICRO_STAGE, MeasuredPose
+    from scope3d.sfm.guided_mapping import BundleStageOptions, bundle_problem
+
+    truth = Camera.from_fov(400, 400, 53.0, k1=-0.1, k2=0.02)
+    wrong = Camera.from_fov(400, 400, 56.0, k1=-0.1, k2=0.02)
+    rng = np.random.default_rng(0)
+    points = rng.uniform([-8, -8, -3], [8, 8, 3], (300, 3))
+    poses = [Pose.from_centre(look_at(np.array([x, y, 30.0]), np.array([0.0, 0.0, 0.0])), [x, y, 30.0])
+             for x in (-6.0, 0.0, 6.0) for y in (-4.0, 4.0)]
+    px = np.stack([truth.project_world(p, points) for p in poses], axis=1).reshape(-1, 2)
+    px += 0.3 * rng.standard_normal(px.shape)  # SIFT-like keypoint noise
+    track = np.repeat(np.arange(len(points)), len(poses))
+    tracks = Tracks(track, np.tile(np.arange(len(poses)), len(points)), np.arange(len(track)), px,
+                    np.zeros((len(points), 3), np.uint8), points + 0.05 * rng.standard_normal(points.shape))
+    # A calibration's sigmas of the size the rendered boards give (fx +-0.15 px, k1 +-0.001).
+    std = np.array([0.15, 0.15, 0.15, 0.15, 1e-3, 2e-3])
+    write_intrinsic_bounds(tmp_path / "b.json", truth.intrinsics, std, 3.0)
+    lower, upper = read_intrinsic_bounds(tmp_path / "b.json")
+    lower[2:4] = upper[2:4] = np.nan  # hold the principal point
+    options = BundleStageOptions(refine_intrinsics=True, intrinsic_bounds=(tuple(lower), tuple(upper)))
+    measured = [MeasuredPose(p, MICRO_STAGE) for p in poses]
+    problem = bundle_problem("bounded", measured, wrong, tracks, refine_intrinsics=True,
+                             intrinsic_bounds=options.intrinsic_bounds)
+    result = solve(problem, options.solver())
+    got = result.intrinsics[0]
+    free = [0, 1, 4, 5]
+    assert np.all(got[free] >= lower[free] - 1e-9) and np.all(got[free] <= upper[free] + 1e-9)
+    np.testing.assert_array_equal(got[2:4], wrong.intrinsics[2:4])
+    # The FOV is back to the truth within what 3 sigma of 0.15 px allows (0.45 px of ~400 px focal: 0.06 deg).
+    fov = Camera.from_intrinsics(400, 400, got).fov_deg
+    assert abs(fov - 53.0) < 0.07, fov
+    with pytest.raises(ValueError):
+        BundleStageOptions(intrinsic_bounds=((1.0,) * 6, (0.0,) * 6))

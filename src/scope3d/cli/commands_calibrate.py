@@ -28,6 +28,9 @@ def register(subparsers) -> None:
     p.add_argument("--marker", type=float, metavar="MM", help="ChArUco marker side, mm (default 0.7 square)")
     p.add_argument("--mask-circle", action="store_true",
                    help="the image is a lit disc (scanning-fibre scope): ignore what lies outside it")
+    p.add_argument("--no-refine", action="store_true",
+                   help="keep the detector's corners (no cornerSubPix): may fit better on small, strongly "
+                   "distorted images such as a capsule's (docs/calibration.md)")
     p.add_argument("--k-sigma", type=float, default=3.0,
                    help="half-width of the bounds in standard deviations (default 3)")
     p.add_argument("--min-views", type=int, default=3, help="fewest usable views (default 3)")
@@ -38,7 +41,7 @@ def _run(args) -> int:
     from scope3d.cli.progress import progress_bar
     from scope3d.errors import InputError
     from scope3d.pipelines.calibrate import CalibrateOptions, run
-    from scope3d.sensor.calibration import BoardSpec, CalibrationOptions
+    from scope3d.sensor.calibration import BoardSpec, CalibrationOptions, DetectionOptions
 
     if not args.k_sigma > 0:
         raise InputError("--k-sigma must be positive")
@@ -48,6 +51,7 @@ def _run(args) -> int:
     board = BoardSpec.parse(args.board, args.square, kind=kind, marker_mm=args.marker,
                             dictionary=args.charuco_dictionary)
     options = CalibrateOptions(board, model=args.model, k_sigma=args.k_sigma, mask_circle=args.mask_circle,
+                               detection=DetectionOptions(refine_corners=not args.no_refine),
                                calibration=CalibrationOptions(min_views=args.min_views))
     with progress_bar(len(args.images) > 20, "image") as progress:
         result = run(options, args.images, args.out, progress=progress)

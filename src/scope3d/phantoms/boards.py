@@ -175,7 +175,8 @@ def _charuco_reflectance(board: BoardSpec, xy: np.ndarray) -> np.ndarray:
     tx = (xy[..., 0] / board.square_mm + 1.0) * texels - 0.5
     ty = (xy[..., 1] / board.square_mm + 1.0) * texels - 0.5
     inside = (tx >= -0.5) & (tx <= size[0] - 0.5) & (ty >= -0.5) & (ty <= size[1] - 0.5)
-    sampled = cv2.remap(texture, tx.astype(np.float32).reshape(-1, 1), ty.astype(np.float32).reshape(-1, 1),
+    rows = int(np.prod(tx.shape[:2]))  # remap takes a 2-D map of at most 32767 rows and columns
+    sampled = cv2.remap(texture, tx.astype(np.float32).reshape(rows, -1), ty.astype(np.float32).reshape(rows, -1),
                         cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(tx.shape)
     margin = (tx >= -texels) & (tx <= size[0] + texels) & (ty >= -texels) & (ty <= size[1] + texels)
     return np.where(inside, sampled, np.where(margin, _WHITE, _BACKGROUND))

@@ -17,7 +17,7 @@ bundle adjustment use; with ``model="fisheye"`` report.json's ``intrinsics`` are
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -94,8 +94,7 @@ def run(options: CalibrateOptions, image_paths: list[str | Path], out_dir: str |
                          "calibrate one camera at a time")
     height, width = images[0].shape
     mask_radius = circular_field_radius(images) if options.mask_circle else None
-    detection = DetectionOptions(options.detection.subpixel_window_px, mask_radius,
-                                 options.detection.min_charuco_corners)
+    detection = replace(options.detection, mask_radius_px=mask_radius)
     stage(progress, "detect", len(images))
     detections = []
     for path, image in zip(image_paths, images):
@@ -121,7 +120,7 @@ def run(options: CalibrateOptions, image_paths: list[str | Path], out_dir: str |
 
 
 def _with_model(options: CalibrationOptions, model: str) -> CalibrationOptions:
-    return CalibrationOptions(model, options.min_views, options.outlier_ratio, options.outlier_floor_px)
+    return replace(options, model=model)
 
 
 def _intrinsics_dict(cal: Calibration) -> dict:
