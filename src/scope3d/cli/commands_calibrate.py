@@ -1,4 +1,5 @@
-"""``scope3d calibrate``: intrinsics with uncertainty from board images (reference sec. 6.3, 8.1)."""
+"""``scope3d calibrate`` (intrinsics with uncertainty from board images) and ``scope3d calibrate-hand-eye``
+(camera-from-flange from board images and robot poses); reference sec. 6.3, 8.1."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -35,6 +36,7 @@ def register(subparsers) -> None:
                    help="half-width of the bounds in standard deviations (default 3)")
     p.add_argument("--min-views", type=int, default=3, help="fewest usable views (default 3)")
     p.set_defaults(func=_run)
+    register_hand_eye(subparsers)
 
 
 def _run(args) -> int:
@@ -57,4 +59,46 @@ def _run(args) -> int:
         result = run(options, args.images, args.out, progress=progress)
     print(result.summary())
     print(f"wrote {args.out}/ (camera.json, intrinsic_bounds.json, report.json, coverage.png, residuals.png)")
+    return 0
+
+
+def register_hand_eye(subparsers) -> None:
+    p = subparsers.add_parser(
+        "calibrate-hand-eye",
+        help="camera-from-flange transform of a robot-held scope from board images and the robot's poses",
+        description="Detect the board in every image, find its pose through the calibrated camera, solve "
+        "AX = XB in closed form (Park-Martin) and refine it jointly; write DIR/hand_eye.json "
+        "(flange_from_cam, cam_from_flange, residuals, pose tolerance = k x residual RMS) and DIR/poses.csv "
+        "(every robot row turned into a camera pose with that tolerance: a dataset's poses.csv).",
+    )
+    p.add_argument("images", type=Path, nargs="+", help="board images, named as in the robot poses file")
+    p.add_argument("--robot-poses", type=Path, required=True, metavar="CSV",
+                   help="poses.csv format (docs/datasets.md); each row is the flange pose in the robot base "
+                   "(x_mm, y_mm, z_mm: flange origin; qw..qz: base_from_flange)")
+    p.add_argument("--camera", type=Path, required=True, help="camera.json of the calibrated scope")
+    p.add_argument("--board", required=True, metavar="COLSxROWS", help="inner corners (use one odd, one even "
+                   "side: an even x even board's orientation is ambiguous)")
+    p.add_argument("--square", type=float, required=True, metavar="MM", help="side of one square, mm")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--no-refine", action="store_true", help="closed form only, no joint refinement")
+    p.add_argument("--tolerance-sigmas", type=float, default=3.0,
+                   help="pose tolerance = this many residual RMS per axis (default 3)")
+    p.set_defaults(func=_run_hand_eye)
+
+
+def _run_hand_eye(args) -> int:
+    from scope3d.errors import InputError
+    from scope3d.io.camera_json import read_camera_json
+    from scope3d.pipelines.hand_eye import HandEyeRunOptions, run
+    from scope3d.sensor.calibration import BoardSpec
+    from scope3d.sensor.hand_eye import HandEyeOptions
+
+    if not args.tolerance_sigmas > 0:
+        raise InputError("--tolerance-sigmas must be positive")
+    board = BoardSpec.parse(args.board, args.square)
+    options = HandEyeRunOptions(board, hand_eye=HandEyeOptions(refine=not args.no_refine,
+                                                               tolerance_sigmas=args.tolerance_sigmas))
+    result = run(options, args.images, args.robot_poses, read_camera_json(args.camera), args.out)
+    print(result.summary())
+    print(f"wrote {args.out}/ (hand_eye.json, poses.csv)")
     return 0

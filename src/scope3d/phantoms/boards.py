@@ -160,8 +160,10 @@ def _reflectance(board: BoardSpec, xy: np.ndarray) -> np.ndarray:
     j = np.floor(xy[..., 1] / sq).astype(np.int64)
     on_squares = (i >= -1) & (i <= board.cols - 1) & (j >= -1) & (j <= board.rows - 1)
     on_paper = (i >= -2) & (i <= board.cols) & (j >= -2) & (j <= board.rows)
-    # Square (-1, -1), at the first inner corner's top-left, is black.
-    black = on_squares & ((i + j) % 2 == 0)
+    # Square (-1, -1), at the first inner corner's top-left, is white: OpenCV's detectors then number the
+    # corners of a board with one odd and one even side as object_points does (an even x even board is
+    # symmetric under a half turn, and its order is ambiguous to any detector).
+    black = on_squares & ((i + j) % 2 == 1)
     return np.where(black, _BLACK, np.where(on_paper, _WHITE, _BACKGROUND))
 
 
