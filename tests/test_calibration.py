@@ -206,3 +206,35 @@ def test_charuco_board_is_rendered_detected_and_calibrated():
     cal = calibrate(detections, board, (camera.width, camera.height))
     # Within 3 reported sigmas (the sigmas are checked for honesty above and in the benchmark).
     assert np.all(np.abs(cal.values - camera.intrinsics) <= 3.0 * cal.std)
+
+
+def test_bundle_adjust_cli_keeps_f_k1_k2_inside_intrinsic_bounds(tmp_path):
+    """`scope3d bundle-adjust --intrinsic-bounds`: every BAL camera's f, k1, k2 end inside the box."""
+    from scope3d.io.bal import BALProblem, write_bal
+    from scope3d.io.intrinsic_bounds import write_intrinsic_bounds
+
+    rng = np.random.default_rng(5)
+    points = rng.uniform([-3, -3, -12], [3, 3, -8], (40, 3))  # BAL cameras look down -z
+    cameras = np.zeros((3, 9))
+    cameras[:, 3] = [-0.5, 0.0, 0.5]
+    cameras[:, 6:9] = [500.0, -0.05, 0.01]
+    cam_idx = np.repeat(np.arange(3), len(points))
+    pt_idx = np.tile(np.arange(len(points)), 3)
+    bal = BALProblem(cam_idx, pt_idx, np.zeros((len(cam_idx), 2)), cameras, points)
+    # Observations from a 480 px focal length: the file's f = 500 start lies outside the box below.
+    p = points[pt_idx] + cameras[cam_idx, 3:6]
+    xy = -p[:, :2] / p[:, 2:3]
+    r2 = np.sum(xy * xy, axis=1, keepdims=True)
+    bal.observations_px[:] = 480.0 * (1 - 0.05 * r2 + 0.01 * r2 * r2) * xy
+    write_bal(tmp_path / "p.txt", bal)
+    write_intrinsic_bounds(tmp_path / "b.json", [480.0, 480.0, 0, 0, -0.05, 0.01], [0.5, 0.5, 1, 1, 1e-3, 1e-3], 3.0)
+    rc = main(["bundle-adjust", str(tmp_path / "p.txt"), "--report", str(tmp_path / "r.json"), "--quiet",
+               "--intrinsic-bounds", str(tmp_path / "b.json"), "--output", str(tmp_path / "out.txt")])
+    assert rc == 0
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert report["intrinsics_bounded"] == ["f", "k1", "k2"]
+    from scope3d.io.bal import read_bal
+
+    solved = read_bal(tmp_path / "out.txt").cameras
+    assert np.all(np.abs(solved[:, 6] - 480.0) <= 1.5 + 1e-6)
+    assert np.all(np.abs(solved[:, 7] + 0.05) <= 3e-3 + 1e-9) and np.all(np.abs(solved[:, 8] - 0.01) <= 3e-3 + 1e-9)
