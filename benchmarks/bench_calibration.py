@@ -47,8 +47,8 @@ def plain_opencv(detections, board, size, *, fisheye=False):
     img = [d.pixels.astype(np.float32) for d in detections if d.found]
     if fisheye:
         rms, k, dist, _, _ = cv2.fisheye.calibrate(
-            [o.reshape(1, -1, 3).astype(np.float64) for o in obj], [i.reshape(1, -1, 2).astype(np.float64) for i in img],
-            size, None, None, flags=cv2.CALIB_RECOMPUTE_EXTRINSIC | cv2.CALIB_FIX_SKEW)
+            [o.reshape(1, -1, 3).astype(np.float64) for o in obj],
+            [i.reshape(1, -1, 2).astype(np.float64) for i in img], size, None, None, flags=cv2.CALIB_RECOMPUTE_EXTRINSIC | cv2.CALIB_FIX_SKEW)
     else:
         rms, k, dist, _, _ = cv2.calibrateCamera(obj, img, size, None, None)
     return float(rms), np.array([k[0, 0], k[1, 1], k[0, 2], k[1, 2], *np.ravel(dist)[:2]])

@@ -23,7 +23,6 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-import numpy as np
 
 from scope3d import phantoms
 from scope3d.io.dataset import load_dataset
