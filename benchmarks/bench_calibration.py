@@ -27,7 +27,7 @@ import numpy as np
 
 from scope3d.io.images import read_image
 from scope3d.phantoms.boards import render_board_views
-from scope3d.pipelines.calibrate import CalibrateOptions, plot_residuals, run
+from scope3d.pipelines.calibrate import CalibrateOptions, plot_coverage, plot_residuals, run
 from scope3d.sensor.calibration import BoardSpec, CalibrationOptions, DetectionOptions, calibrate, detect_board
 from scope3d.sensor.camera import INTRINSIC_NAMES, Camera
 from scope3d.utils.figures import new_figure, save_figure
@@ -170,6 +170,9 @@ def real_images() -> dict:
                       "../shared/data/endoslam_pillcam_cam1/*.png --board 8x6 --square 2 --model fisheye "
                       "--no-refine --out benchmarks/results/calibration_real_run")
     out["command_report"] = res.report
+    # The run folder is not committed (results/*_run/ is ignored): keep its two pictures beside the JSON.
+    plot_coverage(res.reported, OUT / "calibration_real_coverage.png")
+    plot_residuals(res.reported, OUT / "calibration_real_residuals.png")
     return out
 
 
