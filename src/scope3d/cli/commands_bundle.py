@@ -41,6 +41,9 @@ def register(subparsers) -> None:
     parser.add_argument("--report", required=True, metavar="REPORT_JSON",
                         help="write the solve report (costs, iterations, times, memory, per-iteration log)")
     parser.add_argument("--bounds", metavar="BOUNDS_FILE", help="fixed/bounded parameters, format below")
+    parser.add_argument("--intrinsic-bounds", metavar="FILE",
+                        help="intrinsic_bounds.json from `scope3d calibrate`: every camera's f (from fx), k1 and "
+                        "k2 stay within its bounds (cx, cy do not apply: BAL's principal point is the origin)")
     parser.add_argument("--loss", choices=["none", "huber", "cauchy"], default="none", help="robust loss")
     parser.add_argument("--loss-scale-px", type=float, default=1.0, help="robust loss scale in pixels (1.0)")
     parser.add_argument("--max-iterations", type=int, default=100, help="iteration cap (100)")
@@ -82,6 +85,12 @@ def run(args: argparse.Namespace) -> int:
     bal = read_bal(args.problem_file)
     problem = bal_to_problem(bal)
     rules = apply_bounds_file(problem, args.bounds) if args.bounds else 0
+    intrinsic_bounded: list[str] = []
+    if args.intrinsic_bounds:
+        from scope3d.estimators.bundle.bal import bound_bal_intrinsics
+        from scope3d.io.intrinsic_bounds import read_intrinsic_bounds
+
+        intrinsic_bounded = bound_bal_intrinsics(problem, *read_intrinsic_bounds(args.intrinsic_bounds))
     read_time = time.perf_counter() - t0
     if not args.quiet:
         print(f"{problem.summary()}; {rules} bound rule(s)", file=sys.stderr)
@@ -105,6 +114,8 @@ def run(args: argparse.Namespace) -> int:
         "problem_file": str(args.problem_file),
         "bounds_file": str(args.bounds) if args.bounds else None,
         "bound_rules": rules,
+        "intrinsic_bounds_file": str(args.intrinsic_bounds) if args.intrinsic_bounds else None,
+        "intrinsics_bounded": intrinsic_bounded,
         "read_time_s": read_time,
         "peak_memory_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         "cost_definition": "0.5 * sum over observations of rho(|projected - observed|^2), pixels^2",

@@ -29,6 +29,9 @@ def register(subparsers) -> None:
     p.add_argument("--preset", choices=sorted(MAP_PRESETS), default="default",
                    help="option preset: default, dim_endoscope (CLAHE, lower SIFT threshold), photograph "
                         "(calibrated photos around an object: no surface, no targets)")
+    p.add_argument("--intrinsic-bounds", metavar="FILE",
+                   help="intrinsic_bounds.json from `scope3d calibrate`: the bundle adjustment refines fx, fy, "
+                        "cx, cy, k1, k2 within these bounds (the dataset's camera.json is the start)")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     add_job_arguments(p)
@@ -46,6 +49,12 @@ def run(args) -> int:
     dataset = load_dataset(args.dataset)
     options = replace(MAP_PRESETS[args.preset], pose_mode=args.pose_mode, matcher=args.matcher,
                       figures=not args.no_figures)
+    if args.intrinsic_bounds:
+        from scope3d.io.intrinsic_bounds import read_intrinsic_bounds
+
+        lower, upper = read_intrinsic_bounds(args.intrinsic_bounds)
+        options = replace(options, bundle=replace(options.bundle, refine_intrinsics=True,
+                                                  intrinsic_bounds=(tuple(lower), tuple(upper))))
     try:
         with progress_bar(show_progress(args), "step") as progress:
             result = run_map(options, dataset, args.out, progress=progress)

@@ -32,7 +32,7 @@ from scope3d.geometry.pose import Pose
 from scope3d.geometry.rotation import rotvec_to_matrix
 from scope3d.scene.surface import OFF_SURFACE_FLOORS_MM, off_surface_points
 from scope3d.scene.tracks import Tracks
-from scope3d.sensor.camera import Camera
+from scope3d.sensor.camera import INTRINSIC_NAMES, Camera
 from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance
 from scope3d.sfm.depth_priors import points_depth_prior
 
@@ -53,6 +53,10 @@ class BundleStageOptions:
         every track is re-triangulated after the adjustment (500 or 100 000 give the same points).
     refine_intrinsics : bool, let the intrinsics move (default False: the scope is calibrated, and
         with a short-baseline survey focal length and depth trade off).
+    intrinsic_bounds : ((6,), (6,)) tuples or None, a box ``(lower, upper)`` on ``(fx, fy, cx, cy, k1, k2)``
+        (from ``scope3d calibrate``'s intrinsic_bounds.json: the calibration's value +- k sigma, the
+        reference's FOV range of sec. 6.3); NaN in both holds that intrinsic fixed. Used only with
+        ``refine_intrinsics``.
     align_gauge : bool, after free or bounded BA with inexact poses, move the map to the similarity
         frame that best fits all measured poses (:func:`scope3d.estimators.gauge.align_gauge`; default True).
     settled_mm, settled_rad : no second adjustment round when no camera moved more than ``settled_mm``
@@ -64,6 +68,7 @@ class BundleStageOptions:
     loss_scale_px: float = 1.0
     max_points: int = 6000
     refine_intrinsics: bool = False
+    intrinsic_bounds: tuple[tuple[float, ...], tuple[float, ...]] | None = None
     align_gauge: bool = True
     settled_mm: float = 0.02
     settled_rad: float = 2e-4
@@ -73,6 +78,10 @@ class BundleStageOptions:
             raise ValueError("need max_iterations >= 0, loss_scale_px > 0, max_points >= 10")
         if not (self.settled_mm >= 0 and self.settled_rad >= 0):
             raise ValueError("need settled_mm >= 0 and settled_rad >= 0")
+        if self.intrinsic_bounds is not None:
+            lower, upper = (np.asarray(b, dtype=float) for b in self.intrinsic_bounds)
+            if lower.shape != (6,) or upper.shape != (6,) or np.any(lower > upper):
+                raise ValueError("intrinsic_bounds must be two (6,) arrays with lower <= upper")
 
     def solver(self) -> SolverOptions:
         return SolverOptions(max_iterations=self.max_iterations, loss="huber", loss_scale_px=self.loss_scale_px)
@@ -82,13 +91,15 @@ class BundleStageOptions:
 
 
 def bundle_problem(mode: str, measured: list[MeasuredPose], camera: Camera, tracks: Tracks, *,
-                   refine_intrinsics: bool = False, start: list[Pose] | None = None) -> BundleProblem:
+                   refine_intrinsics: bool = False, start: list[Pose] | None = None,
+                   intrinsic_bounds: tuple | None = None) -> BundleProblem:
     """The bundle problem of ``mode`` on ``tracks`` (observations and points in mm world).
 
     bounded : the measured boxes, starting from ``start`` (clipped into them) when given;
     free : conventional BA from ``start`` (default: the measured poses), gauge fixed on the start
         (:func:`fix_gauge`);
     fixed : the measured poses held.
+    intrinsic_bounds : (lower, upper) (6,) box on the intrinsics when they are refined (NaN: held fixed).
     """
     if mode not in POSE_MODES:
         raise ValueError(f"mode must be one of {POSE_MODES}, got {mode!r}")
@@ -100,6 +111,7 @@ def bundle_problem(mode: str, measured: list[MeasuredPose], camera: Camera, trac
             fix_gauge(problem, [m.pose for m in measured])  # no box holds the gauge: fix it as free BA does
         if start is not None:
             problem.start_from(start)
+        _bound_intrinsics(problem, refine_intrinsics, intrinsic_bounds)
         return problem
     base = [m.pose for m in measured] if mode == "fixed" or start is None else start
     rot = np.stack([p.rotation for p in base])
@@ -111,7 +123,20 @@ def bundle_problem(mode: str, measured: list[MeasuredPose], camera: Camera, trac
         problem.fix("pose")
     else:
         fix_gauge(problem, base)
+    _bound_intrinsics(problem, refine_intrinsics, intrinsic_bounds)
     return problem
+
+
+def _bound_intrinsics(problem: BundleProblem, refine_intrinsics: bool, intrinsic_bounds: tuple | None) -> None:
+    if not refine_intrinsics or intrinsic_bounds is None:
+        return
+    lower, upper = (np.asarray(b, dtype=float) for b in intrinsic_bounds)
+    held = np.isnan(lower) | np.isnan(upper)
+    free = [n for n, h in zip(INTRINSIC_NAMES, held) if not h]
+    if held.any():
+        problem.fix("intrinsics", components=[n for n, h in zip(INTRINSIC_NAMES, held) if h])
+    if free:
+        problem.set_bounds("intrinsics", None, free, lower[~held], upper[~held])
 
 
 def fix_gauge(problem: BundleProblem, poses: list[Pose]) -> None:
@@ -129,7 +154,8 @@ def adjust(options: BundleStageOptions, mode: str, measured: list[MeasuredPose],
            start: list[Pose]) -> tuple[BundleProblem, BundleResult]:
     """One bundle adjustment of the ``options.max_points`` strongest tracks in ``mode`` from ``start``."""
     problem = bundle_problem(mode, measured, camera, tracks.strongest(options.max_points),
-                             refine_intrinsics=options.refine_intrinsics, start=start)
+                             refine_intrinsics=options.refine_intrinsics, start=start,
+                             intrinsic_bounds=options.intrinsic_bounds)
     return problem, solve(problem, options.solver())
 
 

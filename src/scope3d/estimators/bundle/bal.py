@@ -75,6 +75,21 @@ def bal_to_problem(bal: BALProblem) -> BundleProblem:
     return problem
 
 
+def bound_bal_intrinsics(problem: BundleProblem, lower: np.ndarray, upper: np.ndarray) -> list[str]:
+    """Box every camera's ``f, k1, k2`` of a problem made by :func:`bal_to_problem` with a calibration's
+    bounds (``(fx, fy, cx, cy, k1, k2)`` lower and upper, (6,), NaN = no bound, e.g. from
+    ``intrinsic_bounds.json``). BAL has square pixels, so f takes fx's box; its principal point is the
+    origin of the observations, so cx, cy do not apply. Returns the names bounded."""
+    lower = np.asarray(lower, dtype=float)
+    upper = np.asarray(upper, dtype=float)
+    bounded = []
+    for name, k in (("fx", 0), ("k1", 4), ("k2", 5)):
+        if np.isfinite(lower[k]) and np.isfinite(upper[k]):
+            problem.set_bounds("intrinsics", None, [name], lower[k], upper[k])
+            bounded.append("f" if name == "fx" else name)
+    return bounded
+
+
 def result_to_bal(bal: BALProblem, result) -> BALProblem:
     """The solved problem back in BAL form (same observations)."""
     rot = _FLIP[None, :, None] * result.rotations

@@ -1,0 +1,104 @@
+"""``scope3d calibrate`` (intrinsics with uncertainty from board images) and ``scope3d calibrate-hand-eye``
+(camera-from-flange from board images and robot poses); reference sec. 6.3, 8.1."""
+from __future__ import annotations
+
+from pathlib import Path
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "calibrate",
+        help="calibrate a scope from checkerboard or ChArUco images: intrinsics, their sigmas, BCBA bounds",
+        description="Detect the board in every image, fit the pinhole + k1, k2 model scope3d uses (and the "
+        "fisheye model with --model fisheye), drop outlier views, and write DIR/camera.json, "
+        "DIR/intrinsic_bounds.json (value +- k sigma, for `scope3d map` and `scope3d bundle-adjust "
+        "--intrinsic-bounds`), DIR/report.json (rms_px, n_views_used, intrinsics with value and std, "
+        "per-view errors, rejected views and why), DIR/coverage.png and DIR/residuals.png.",
+    )
+    p.add_argument("images", type=Path, nargs="+", help="board images of one camera (same size)")
+    p.add_argument("--board", required=True, metavar="COLSxROWS",
+                   help="inner corners, OpenCV's convention (a 10x7-square board is 9x6)")
+    p.add_argument("--square", type=float, required=True, metavar="MM", help="side of one square, mm")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--model", choices=("pinhole", "fisheye"), default="pinhole",
+                   help="pinhole: fx, fy, cx, cy, k1, k2 (default, scope3d's camera); fisheye: "
+                   "equidistant with k1..k4 (capsule and wide-angle scopes); camera.json and the bounds "
+                   "always hold the pinhole fit")
+    p.add_argument("--charuco", action="store_true", help="the board is a ChArUco board (cv2.aruco)")
+    p.add_argument("--charuco-dictionary", default="DICT_4X4_50", help="ArUco dictionary (default DICT_4X4_50)")
+    p.add_argument("--marker", type=float, metavar="MM", help="ChArUco marker side, mm (default 0.7 square)")
+    p.add_argument("--mask-circle", action="store_true",
+                   help="the image is a lit disc (scanning-fibre scope): ignore what lies outside it")
+    p.add_argument("--no-refine", action="store_true",
+                   help="keep the detector's corners (no cornerSubPix): may fit better on small, strongly "
+                   "distorted images such as a capsule's (docs/calibration.md)")
+    p.add_argument("--k-sigma", type=float, default=3.0,
+                   help="half-width of the bounds in standard deviations (default 3)")
+    p.add_argument("--min-views", type=int, default=3, help="fewest usable views (default 3)")
+    p.set_defaults(func=_run)
+    register_hand_eye(subparsers)
+
+
+def _run(args) -> int:
+    from scope3d.cli.progress import progress_bar
+    from scope3d.errors import InputError
+    from scope3d.pipelines.calibrate import CalibrateOptions, run
+    from scope3d.sensor.calibration import BoardSpec, CalibrationOptions, DetectionOptions
+
+    if not args.k_sigma > 0:
+        raise InputError("--k-sigma must be positive")
+    if args.min_views < 3:
+        raise InputError("--min-views must be at least 3")
+    kind = "charuco" if args.charuco else "checkerboard"
+    board = BoardSpec.parse(args.board, args.square, kind=kind, marker_mm=args.marker,
+                            dictionary=args.charuco_dictionary)
+    options = CalibrateOptions(board, model=args.model, k_sigma=args.k_sigma, mask_circle=args.mask_circle,
+                               detection=DetectionOptions(refine_corners=not args.no_refine),
+                               calibration=CalibrationOptions(min_views=args.min_views))
+    with progress_bar(len(args.images) > 20, "image") as progress:
+        result = run(options, args.images, args.out, progress=progress)
+    print(result.summary())
+    print(f"wrote {args.out}/ (camera.json, intrinsic_bounds.json, report.json, coverage.png, residuals.png)")
+    return 0
+
+
+def register_hand_eye(subparsers) -> None:
+    p = subparsers.add_parser(
+        "calibrate-hand-eye",
+        help="camera-from-flange transform of a robot-held scope from board images and the robot's poses",
+        description="Detect the board in every image, find its pose through the calibrated camera, solve "
+        "AX = XB in closed form (Park-Martin) and refine it jointly; write DIR/hand_eye.json "
+        "(flange_from_cam, cam_from_flange, residuals, pose tolerance = k x residual RMS) and DIR/poses.csv "
+        "(every robot row turned into a camera pose with that tolerance: a dataset's poses.csv).",
+    )
+    p.add_argument("images", type=Path, nargs="+", help="board images, named as in the robot poses file")
+    p.add_argument("--robot-poses", type=Path, required=True, metavar="CSV",
+                   help="poses.csv format (docs/datasets.md); each row is the flange pose in the robot base "
+                   "(x_mm, y_mm, z_mm: flange origin; qw..qz: base_from_flange)")
+    p.add_argument("--camera", type=Path, required=True, help="camera.json of the calibrated scope")
+    p.add_argument("--board", required=True, metavar="COLSxROWS", help="inner corners (use one odd, one even "
+                   "side: an even x even board's orientation is ambiguous)")
+    p.add_argument("--square", type=float, required=True, metavar="MM", help="side of one square, mm")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--no-refine", action="store_true", help="closed form only, no joint refinement")
+    p.add_argument("--tolerance-sigmas", type=float, default=3.0,
+                   help="pose tolerance = this many residual RMS per axis (default 3)")
+    p.set_defaults(func=_run_hand_eye)
+
+
+def _run_hand_eye(args) -> int:
+    from scope3d.errors import InputError
+    from scope3d.io.camera_json import read_camera_json
+    from scope3d.pipelines.hand_eye import HandEyeRunOptions, run
+    from scope3d.sensor.calibration import BoardSpec
+    from scope3d.sensor.hand_eye import HandEyeOptions
+
+    if not args.tolerance_sigmas > 0:
+        raise InputError("--tolerance-sigmas must be positive")
+    board = BoardSpec.parse(args.board, args.square)
+    options = HandEyeRunOptions(board, hand_eye=HandEyeOptions(refine=not args.no_refine,
+                                                               tolerance_sigmas=args.tolerance_sigmas))
+    result = run(options, args.images, args.robot_poses, read_camera_json(args.camera), args.out)
+    print(result.summary())
+    print(f"wrote {args.out}/ (hand_eye.json, poses.csv)")
+    return 0

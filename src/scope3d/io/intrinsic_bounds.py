@@ -1,0 +1,63 @@
+"""``intrinsic_bounds.json``: a box on the intrinsics ``(fx, fy, cx, cy, k1, k2)`` for bundle adjustment.
+
+Written by ``scope3d calibrate`` (value +- k sigma of the calibration) and read by ``scope3d map`` and
+``scope3d bundle-adjust`` (``--intrinsic-bounds``), which let the intrinsics move inside the box (BCBA,
+reference eq. 6.2 and sec. 6.3, where the field of view was known only as 50-56 deg)::
+
+    {"model": "pinhole_radial_k1k2", "k_sigma": 3.0,
+     "fx": {"value": 228.6, "std": 0.09, "lower": 228.3, "upper": 228.9}, ... "k2": {...}}
+
+Only ``lower`` and ``upper`` are required per parameter; a parameter left out is held fixed by the reader's
+caller. Units: pixels for fx, fy, cx, cy; unitless for k1, k2.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from scope3d.errors import InputError
+from scope3d.io.camera_json import _read_json_object
+from scope3d.sensor.camera import INTRINSIC_NAMES
+from scope3d.utils.jsonio import write_json
+
+
+def write_intrinsic_bounds(path: str | Path, values: np.ndarray, std: np.ndarray, k_sigma: float, *,
+                           source: str = "") -> None:
+    """values, std : (6,) ``(fx, fy, cx, cy, k1, k2)`` and their standard deviations."""
+    data: dict = {"model": "pinhole_radial_k1k2", "k_sigma": float(k_sigma), "source": source}
+    for name, v, s in zip(INTRINSIC_NAMES, np.asarray(values, float), np.asarray(std, float)):
+        data[name] = {"value": float(v), "std": float(s), "lower": float(v - k_sigma * s),
+                      "upper": float(v + k_sigma * s)}
+    write_json(path, data)
+
+
+def read_intrinsic_bounds(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """(lower, upper) (6,) in ``INTRINSIC_NAMES`` order; a missing parameter gives NaN in both (held fixed).
+
+    Problems are InputErrors naming the file and the parameter."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: intrinsic bounds file is missing")
+    data = _read_json_object(path)
+    lower = np.full(6, np.nan)
+    upper = np.full(6, np.nan)
+    found = 0
+    for i, name in enumerate(INTRINSIC_NAMES):
+        if name not in data:
+            continue
+        entry = data[name]
+        if not isinstance(entry, dict) or "lower" not in entry or "upper" not in entry:
+            raise InputError(f"{path}: {name} must be an object with lower and upper")
+        for key in ("lower", "upper"):
+            v = entry[key]
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise InputError(f"{path}: {name}.{key} = {v!r} is not a finite number")
+        if entry["lower"] > entry["upper"]:
+            raise InputError(f"{path}: {name}: lower {entry['lower']:g} > upper {entry['upper']:g}")
+        lower[i], upper[i] = float(entry["lower"]), float(entry["upper"])
+        found += 1
+    if found == 0:
+        raise InputError(f"{path}: no bounds on any of {', '.join(INTRINSIC_NAMES)}")
+    return lower, upper

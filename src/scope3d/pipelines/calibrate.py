@@ -1,0 +1,191 @@
+"""Scope calibration from board images, with uncertainty and bounds for BCBA (reference sec. 6.3, 8.1).
+
+Read top to bottom like the method section::
+
+    images      <- read grey
+    field       <- circular_field_radius          (scanning-fibre scope: the lit disc; optional)
+    detections  <- detect_board per image          (corners, sub-pixel; which images lack the board)
+    pinhole     <- calibrate(model="pinhole")      (scope3d's Camera: fx, fy, cx, cy, k1, k2 + covariance)
+    fisheye     <- calibrate(model="fisheye")      (when asked: the capsule / wide-angle lens model)
+    files       <- camera.json, intrinsic_bounds.json (pinhole value +- k sigma), report.json,
+                   coverage.png, residuals.png
+
+``run(options, image_paths, out_dir) -> CalibrationRun`` is what the CLI (``scope3d calibrate``) calls.
+camera.json and intrinsic_bounds.json always hold the pinhole model, the one scope3d's datasets and
+bundle adjustment use; with ``model="fisheye"`` report.json's ``intrinsics`` are the fisheye model's and
+``pinhole`` holds the other fit.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from scope3d.errors import InputError
+from scope3d.io.camera_json import camera_to_dict
+from scope3d.io.images import read_image
+from scope3d.io.intrinsic_bounds import write_intrinsic_bounds
+from scope3d.sensor.calibration import (
+    BoardSpec,
+    Calibration,
+    CalibrationOptions,
+    DetectionOptions,
+    calibrate,
+    circular_field_radius,
+    detect_board,
+)
+from scope3d.utils.figures import new_figure, save_figure
+from scope3d.utils.jsonio import write_json
+from scope3d.utils.progress import Progress, advance, stage
+
+
+@dataclass(frozen=True)
+class CalibrateOptions:
+    """board : the board. model : "pinhole" or "fisheye" (the reported model; pinhole is always fitted too).
+    k_sigma : half-width of the bounds in standard deviations (3: a 99.7 % interval for a Gaussian error).
+    mask_circle : find the circular field of a scanning-fibre scope and ignore what lies outside.
+    detection, calibration : the stages' options (calibration.model is set from ``model``)."""
+
+    board: BoardSpec
+    model: str = "pinhole"
+    k_sigma: float = 3.0
+    mask_circle: bool = False
+    detection: DetectionOptions = field(default_factory=DetectionOptions)
+    calibration: CalibrationOptions = field(default_factory=CalibrationOptions)
+
+    def __post_init__(self) -> None:
+        if self.model not in ("pinhole", "fisheye"):
+            raise ValueError(f"model must be pinhole or fisheye, got {self.model!r}")
+        if not self.k_sigma > 0:
+            raise ValueError("k_sigma must be positive")
+
+
+@dataclass
+class CalibrationRun:
+    """pinhole : always. fisheye : with model="fisheye". reported : the one report.json leads with."""
+
+    pinhole: Calibration
+    fisheye: Calibration | None
+    report: dict
+
+    @property
+    def reported(self) -> Calibration:
+        return self.fisheye if self.fisheye is not None else self.pinhole
+
+    def summary(self) -> str:
+        lines = [self.reported.summary()]
+        if self.fisheye is not None:
+            lines.append(self.pinhole.summary())
+        for name, why in self.reported.rejected.items():
+            lines.append(f"  rejected {name}: {why}")
+        return "\n".join(lines)
+
+
+def run(options: CalibrateOptions, image_paths: list[str | Path], out_dir: str | Path, *,
+        progress: Progress = None) -> CalibrationRun:
+    image_paths = [Path(p) for p in image_paths]
+    if not image_paths:
+        raise InputError("no images given")
+    images = [read_image(p, grey=True) for p in image_paths]
+    sizes = {im.shape for im in images}
+    if len(sizes) > 1:
+        raise InputError(f"images differ in size ({', '.join(f'{w}x{h}' for h, w in sorted(sizes))}); "
+                         "calibrate one camera at a time")
+    height, width = images[0].shape
+    mask_radius = circular_field_radius(images) if options.mask_circle else None
+    detection = replace(options.detection, mask_radius_px=mask_radius)
+    stage(progress, "detect", len(images))
+    detections = []
+    for path, image in zip(image_paths, images):
+        detections.append(detect_board(image, options.board, name=path.name, options=detection))
+        advance(progress)
+    pinhole = calibrate(detections, options.board, (width, height), mask_radius_px=mask_radius,
+                        options=_with_model(options.calibration, "pinhole"))
+    fisheye = None
+    if options.model == "fisheye":
+        fisheye = calibrate(detections, options.board, (width, height), mask_radius_px=mask_radius,
+                            options=_with_model(options.calibration, "fisheye"))
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    reported = fisheye if fisheye is not None else pinhole
+    report = _report(options, reported, pinhole, fisheye, [p.name for p in image_paths])
+    write_json(out / "camera.json", camera_to_dict(pinhole.camera()))
+    write_intrinsic_bounds(out / "intrinsic_bounds.json", pinhole.values, pinhole.std, options.k_sigma,
+                           source=f"scope3d calibrate, {len(pinhole.views)} views, RMS {pinhole.rms_px:.3f} px")
+    plot_coverage(reported, out / "coverage.png")
+    plot_residuals(reported, out / "residuals.png")
+    write_json(out / "report.json", report)
+    return CalibrationRun(pinhole, fisheye, report)
+
+
+def _with_model(options: CalibrationOptions, model: str) -> CalibrationOptions:
+    return replace(options, model=model)
+
+
+def _intrinsics_dict(cal: Calibration) -> dict:
+    return {n: {"value": float(v), "std": float(s)} for n, v, s in zip(cal.names, cal.values, cal.std)}
+
+
+def _report(options, reported, pinhole, fisheye, names) -> dict:
+    report = {
+        "model": reported.model,
+        "board": {"cols": options.board.cols, "rows": options.board.rows, "square_mm": options.board.square_mm,
+                  "kind": options.board.kind},
+        "image_size": [reported.width, reported.height],
+        "rms_px": reported.rms_px,
+        "n_images": len(names),
+        "n_views_used": len(reported.views),
+        "intrinsics": _intrinsics_dict(reported),
+        "per_view_rms_px": dict(zip(reported.views, map(float, reported.view_rms_px))),
+        "rejected": reported.rejected,
+        "k_sigma": options.k_sigma,
+        "mask_radius_px": reported.mask_radius_px,
+    }
+    if reported.opencv_std is not None:
+        report["opencv_std"] = dict(zip(reported.names, map(float, reported.opencv_std)))
+    if fisheye is not None:
+        report["pinhole"] = {"rms_px": pinhole.rms_px, "n_views_used": len(pinhole.views),
+                             "intrinsics": _intrinsics_dict(pinhole), "rejected": pinhole.rejected}
+    return report
+
+
+def plot_coverage(cal: Calibration, path: str | Path) -> None:
+    """Where on the sensor corners were seen (one colour per view), with the circular field if any."""
+    fig = new_figure((5.5, 5.5 * cal.height / cal.width + 0.6), dpi=110)
+    ax = fig.add_subplot()
+    for name, px in zip(cal.views, cal.pixels):
+        ax.plot(px[:, 0], px[:, 1], ".", ms=3, label=name)
+    if cal.mask_radius_px is not None:
+        t = np.linspace(0, 2 * np.pi, 200)
+        ax.plot((cal.width - 1) / 2 + cal.mask_radius_px * np.cos(t),
+                (cal.height - 1) / 2 + cal.mask_radius_px * np.sin(t), "k--", lw=0.8)
+    ax.set_xlim(-0.5, cal.width - 0.5)
+    ax.set_ylim(cal.height - 0.5, -0.5)
+    ax.set_aspect("equal")
+    ax.set_title(f"corner coverage: {len(cal.views)} views, {sum(len(p) for p in cal.pixels)} corners")
+    ax.set_xlabel("u (px)")
+    ax.set_ylabel("v (px)")
+    if len(cal.views) <= 12:
+        ax.legend(fontsize=6, loc="upper right")
+    save_figure(fig, path)
+
+
+def plot_residuals(cal: Calibration, path: str | Path) -> None:
+    """Residual vectors (observed - fitted) at every used corner, magnified so the largest spans ~5 % of
+    the image width; a structured pattern means the model (or the detector) misses something."""
+    px = np.concatenate(cal.pixels)
+    res = np.concatenate(cal.residuals_px)
+    longest = float(np.max(np.linalg.norm(res, axis=1))) or 1.0
+    gain = 0.05 * cal.width / longest
+    fig = new_figure((5.5, 5.5 * cal.height / cal.width + 0.6), dpi=110)
+    ax = fig.add_subplot()
+    ax.quiver(px[:, 0], px[:, 1], res[:, 0] * gain, res[:, 1] * gain, angles="xy", scale_units="xy", scale=1,
+              width=0.003, color="tab:red")
+    ax.set_xlim(-0.5, cal.width - 0.5)
+    ax.set_ylim(cal.height - 0.5, -0.5)
+    ax.set_aspect("equal")
+    ax.set_title(f"{cal.model} residuals x{gain:.0f} (RMS {cal.rms_px:.3f} px, longest {longest:.2f} px)")
+    ax.set_xlabel("u (px)")
+    ax.set_ylabel("v (px)")
+    save_figure(fig, path)

@@ -1,0 +1,111 @@
+"""Hand-eye calibration of a robot-held scope, as one job (reference sec. 8.1)::
+
+    robot      <- poses.csv rows (the flange in the robot base: position mm, orientation quaternion)
+    corners    <- detect_board per image                (images without the board are listed and skipped)
+    board      <- board_pose per view                   (solvePnP through the calibrated camera.json)
+    hand-eye   <- calibrate_hand_eye                    (Park-Martin closed form, joint refinement)
+    files      <- hand_eye.json (flange_from_cam, cam_from_flange, residuals, tolerance),
+                  poses.csv (cam_from_base of every robot row with the tolerance: a dataset's poses)
+
+``run(options, image_paths, robot_poses_csv, camera, out_dir) -> HandEyeRun`` is what
+``scope3d calibrate-hand-eye`` calls.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from scope3d.errors import InputError
+from scope3d.geometry.pose import Pose
+from scope3d.io.images import read_image
+from scope3d.io.poses_csv import format_poses_csv, read_poses_csv
+from scope3d.sensor.calibration import BoardSpec, DetectionOptions, detect_board
+from scope3d.sensor.camera import Camera
+from scope3d.sensor.hand_eye import HandEyeOptions, HandEyeResult, board_pose, calibrate_hand_eye
+from scope3d.sensor.pose_tolerance import MeasuredPose
+from scope3d.utils.atomic import atomic_file
+from scope3d.utils.jsonio import write_json
+
+
+@dataclass(frozen=True)
+class HandEyeRunOptions:
+    board: BoardSpec
+    detection: DetectionOptions = field(default_factory=DetectionOptions)
+    hand_eye: HandEyeOptions = field(default_factory=HandEyeOptions)
+
+
+@dataclass
+class HandEyeRun:
+    result: HandEyeResult
+    views: list[str]
+    skipped: dict[str, str]
+    report: dict
+
+    def summary(self) -> str:
+        lines = [f"{len(self.views)} views; " + self.result.summary()]
+        lines += [f"  skipped {k}: {v}" for k, v in self.skipped.items()]
+        return "\n".join(lines)
+
+
+def robot_flange_poses(path: str | Path) -> dict[str, Pose]:
+    """poses.csv read as robot flange poses: each row is the flange's position (mm) and orientation in the
+    robot base, i.e. ``base_from_flange``, keyed by the row's image name."""
+    names, measured = read_poses_csv(path)
+    return {n: m.pose.inverse() for n, m in zip(names, measured)}
+
+
+def run(options: HandEyeRunOptions, image_paths: list[str | Path], robot_poses_csv: str | Path, camera: Camera,
+        out_dir: str | Path) -> HandEyeRun:
+    robot = robot_flange_poses(robot_poses_csv)
+    image_paths = [Path(p) for p in image_paths]
+    missing = [p.name for p in image_paths if p.name not in robot]
+    if missing:
+        raise InputError(f"{robot_poses_csv}: no robot pose for image(s) {', '.join(missing)}")
+    obj_all = options.board.object_points()
+    views, flange, boards, objs, pixels, skipped = [], [], [], [], [], {}
+    for path in image_paths:
+        det = detect_board(read_image(path, grey=True), options.board, name=path.name, options=options.detection)
+        if not det.found:
+            skipped[path.name] = det.reason
+            continue
+        views.append(path.name)
+        flange.append(robot[path.name])
+        objs.append(obj_all[det.corner_ids])
+        pixels.append(det.pixels)
+        boards.append(board_pose(camera, objs[-1], det.pixels))
+    if len(views) < 3:
+        raise InputError(f"only {len(views)} image(s) show the board, need 3; not found in: "
+                         f"{', '.join(skipped) or 'none'}")
+    result = calibrate_hand_eye(flange, boards, camera=camera, object_points=objs, pixels=pixels,
+                                options=options.hand_eye)
+    report = {
+        "flange_from_cam": _pose_dict(result.flange_from_cam),
+        "cam_from_flange": _pose_dict(result.cam_from_flange),
+        "closed_form_flange_from_cam": _pose_dict(result.closed_form),
+        "base_from_board": _pose_dict(result.base_from_board),
+        "rms_px": result.rms_px,
+        "n_views_used": len(views),
+        "skipped": skipped,
+        "residual_rms_mm": np.sqrt(np.mean(result.position_residual_mm ** 2, axis=0)).tolist(),
+        "residual_rms_deg": float(np.rad2deg(np.sqrt(np.mean(result.orientation_residual_rad ** 2)))),
+        "per_view": {v: {"position_mm": p.tolist(), "orientation_deg": float(np.rad2deg(a))}
+                     for v, p, a in zip(views, result.position_residual_mm, result.orientation_residual_rad)},
+        "tolerance": {"position_mm": result.tolerance.position_mm.tolist(),
+                      "orientation_deg": np.rad2deg(result.tolerance.orientation_rad).tolist(),
+                      "sigmas": options.hand_eye.tolerance_sigmas},
+    }
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    names = list(robot)
+    cameras = result.camera_poses([robot[n] for n in names])
+    with atomic_file(out / "poses.csv") as fh:
+        fh.write(format_poses_csv(names, [MeasuredPose(c, result.tolerance) for c in cameras]))
+    write_json(out / "hand_eye.json", report)
+    return HandEyeRun(result, views, skipped, report)
+
+
+def _pose_dict(pose: Pose) -> dict:
+    return {"rotation": pose.rotation.tolist(), "translation_mm": pose.translation.tolist(),
+            "quaternion_xyzw": pose.quaternion.tolist(), "rotvec_deg": np.rad2deg(pose.rotvec).tolist()}
