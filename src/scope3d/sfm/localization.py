@@ -152,6 +152,7 @@ class Localizer:
         self.options = options
         self._matcher = cv2.BFMatcher(cv2.NORM_L2)
         self._detect_mask = detection_mask(camera, options.features.mask_margin_px) > 0
+        self._usable_cache: tuple[np.ndarray, np.ndarray] | None = None
         self.reset()
 
     def reset(self) -> None:
@@ -168,7 +169,9 @@ class Localizer:
         image : (H, W, 3) uint8 RGB or (H, W) uint8, the camera's size.
         reported : the robot's pose for this frame with its tolerance, or None. A finite tolerance bounds
             the refinement and narrows the search when tracking is lost; an infinite one is ignored.
-        blocked : (H, W) bool, True where the tool hides the scene, or None.
+        blocked : (H, W) bool, True where the tool hides the scene, or None. The tool is rigid with the
+            scope, so the mask is dilated once and reused while the same array is passed (pass a new array,
+            not the old one edited in place, when it changes).
         """
         t0, c0 = time.perf_counter(), time.process_time()
         grey = to_grey(image)
@@ -221,6 +224,9 @@ class Localizer:
     def _usable(self, blocked: np.ndarray | None) -> np.ndarray:
         if blocked is None:
             return self._detect_mask
+        if self._usable_cache is not None and self._usable_cache[0] is blocked:
+            return self._usable_cache[1]  # a sequence-wide mask: dilated once
+        key = blocked
         blocked = np.asarray(blocked, bool)
         if blocked.shape != (self.camera.height, self.camera.width):
             raise ValueError(f"blocked mask is {blocked.shape[1]}x{blocked.shape[0]}, the camera "
@@ -228,7 +234,9 @@ class Localizer:
         m = int(np.ceil(self.options.blocked_margin_px))
         if m:
             blocked = cv2.dilate(blocked.astype(np.uint8), np.ones((2 * m + 1, 2 * m + 1), np.uint8)) > 0
-        return self._detect_mask & ~blocked
+        usable = self._detect_mask & ~blocked
+        self._usable_cache = (key, usable)
+        return usable
 
     def _predict(self) -> Pose | None:
         """Constant velocity: the last motion applied once more (the previous pose when only one is known)."""
