@@ -27,7 +27,7 @@ import numpy as np
 
 from scope3d.geometry.pose import Pose
 from scope3d.geometry.rotation import hat, matrix_to_rotvec, rotvec_to_matrix, so3_left_jacobian
-from scope3d.sensor.camera import Camera, project_with_jacobians
+from scope3d.sensor.camera import Camera, project_with_camera_jacobian
 from scope3d.sensor.pose_tolerance import MeasuredPose
 
 #: Outcomes of one estimate. Only ``"ok"`` carries a pose.
@@ -207,12 +207,9 @@ def refine_pose(camera: Camera, points_world: np.ndarray, pixels: np.ndarray, st
     def linearise(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Residuals (N, 2) px and their Jacobian (N, 2, 6) with respect to (w, C)."""
         rotation = rotvec_to_matrix(x[:3]) @ ref_rotation
-        translation = -rotation @ x[3:]
-        n = len(points_world)
-        px, d_point, _, _ = project_with_jacobians(points_world, np.broadcast_to(matrix_to_rotvec(rotation), (n, 3)),
-                                                   np.broadcast_to(translation, (n, 3)), intrinsics)
-        d_cam = d_point @ rotation.T  # d px / d x_cam
         x_cam = (points_world - x[3:]) @ rotation.T
+        px, d_cam = project_with_camera_jacobian(x_cam, intrinsics)  # d px / d x_cam
+        # x_cam = exp(w) R_ref (X - C): d x_cam / d w = -[x_cam]x J_l(w), one J_l for every point
         d_w = -d_cam @ hat(x_cam) @ so3_left_jacobian(x[:3])
         return px - pixels, np.concatenate([d_w, -d_cam @ rotation], axis=2)
 
