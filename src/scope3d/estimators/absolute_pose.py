@@ -133,8 +133,8 @@ def undistorted_pixels(camera: Camera, pixels: np.ndarray) -> np.ndarray:
     return np.stack([camera.fx * n[:, 0] + camera.cx, camera.fy * n[:, 1] + camera.cy], axis=1)
 
 
-def _ransac_pnp(camera: Camera, points_world: np.ndarray, pixels_ud: np.ndarray, options: AbsolutePoseOptions,
-                guess: Pose | None) -> tuple[Pose | None, np.ndarray]:
+def _ransac_pnp(camera: Camera, points_world: np.ndarray, pixels_ud: np.ndarray, options: AbsolutePoseOptions
+                ) -> tuple[Pose | None, np.ndarray]:
     params = cv2.UsacParams()
     params.threshold = options.ransac_threshold_px
     params.confidence = options.ransac_confidence
@@ -270,9 +270,9 @@ def estimate_absolute_pose(
     pixels : (N, 2) float, their observations in this frame (distorted image, origin at the top-left pixel's
         centre).
     reported : the robot's pose for this frame with its tolerance, or None. With a finite tolerance the
-        refinement stays inside the box, and a RANSAC pose farther than the box allows (with the slack of
-        twice the threshold's worth of pose) is ``"outside_tolerance"``; an infinite tolerance is the image
-        alone.
+        refinement stays inside the box, and when the box's best pose keeps fewer than half the inliers the
+        free RANSAC pose had, image and report disagree: ``"outside_tolerance"``. An infinite tolerance is
+        the image alone.
     options : :class:`AbsolutePoseOptions`.
     """
     t0 = time.perf_counter()
@@ -288,7 +288,7 @@ def estimate_absolute_pose(
 
     if n < options.min_inliers:
         return fail("too_few_matches")
-    start, ransac_inliers = _ransac_pnp(camera, points_world, undistorted_pixels(camera, pixels), options, None)
+    start, ransac_inliers = _ransac_pnp(camera, points_world, undistorted_pixels(camera, pixels), options)
     if start is None or ransac_inliers.sum() < options.min_inliers:
         return fail("too_few_inliers")
     if _spread_px(pixels[ransac_inliers]) < options.min_spread_fraction * min(camera.width, camera.height):
@@ -308,8 +308,3 @@ def estimate_absolute_pose(
         return fail("degenerate", inliers)
     rms = float(np.sqrt(np.mean(err[inliers] ** 2)))
     return AbsolutePoseResult("ok", pose, inliers, cov, rms, time.perf_counter() - t0)
-
-
-def left_rotation_between(a: Pose, b: Pose) -> np.ndarray:
-    """(3,) rad, ``w`` with ``R_a = exp([w]x) R_b`` (the tolerance's parametrisation)."""
-    return matrix_to_rotvec(a.rotation @ b.rotation.T)
