@@ -52,6 +52,9 @@ def register(subparsers) -> None:
     p.add_argument("--dome-radius", type=float, default=17.5, metavar="MM", help="dome radius, 15-17.5 mm")
     p.add_argument("--blur", type=float, default=0.0, metavar="PX", help="optical blur sigma in pixels")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--target", type=int, metavar="N",
+                   help="approach trajectory: the target to approach (dome: 1-8); a tool hides part of the view, "
+                        "its mask written as tool_mask.png")
     p.set_defaults(func=run)
 
 
@@ -77,7 +80,7 @@ def run(args) -> int:
             n_frames=args.frames, size=args.size, fov_deg=args.fov, side_view_deg=args.side_view,
             axis_offset_mm=args.axis_offset, axis_tilt_deg=args.axis_tilt,
             dome_radius_mm=args.dome_radius, options=RenderOptions(blur_sigma_px=args.blur, supersample=args.supersample),
-            progress=progress,
+            progress=progress, target=args.target,
         )
     out = write(seq, args.out)
     print(f"wrote {len(seq)} frames of {args.scene}/{seq.trajectory.name} "

@@ -53,3 +53,27 @@ def build_tracks(features: list[Features], matches: list[PairMatches], *, min_tr
     colors = np.stack([np.bincount(track, col[:, c], n_tracks) for c in range(3)], axis=1) / np.maximum(counts, 1)
     return Tracks(track.astype(np.int64), frame.astype(np.int64), feature.astype(np.int64), pixels,
                   np.clip(np.rint(colors), 0, 255).astype(np.uint8))
+
+
+def track_descriptors(features: list[Features], tracks: Tracks) -> np.ndarray:
+    """One representative SIFT descriptor per track: the observation's descriptor nearest the track's mean
+    (a medoid-like choice, as COLMAP keeps one real descriptor rather than an average that no image shows).
+
+    Returns (n_tracks, 128) float32, in the scale of :class:`~scope3d.feature.detection.Features`.
+    """
+    n = tracks.n_tracks
+    if n == 0:
+        return np.zeros((0, 128), np.float32)
+    desc = np.empty((tracks.n_observations, 128), np.float32)
+    for f in np.unique(tracks.frame):  # per-frame loop
+        sel = tracks.frame == f
+        desc[sel] = features[f].descriptors[tracks.feature[sel]]
+    counts = np.bincount(tracks.track, minlength=n).astype(np.float32)
+    mean = np.zeros((n, 128), np.float32)
+    np.add.at(mean, tracks.track, desc)
+    mean /= counts[:, None]
+    dist = np.sum((desc - mean[tracks.track]) ** 2, axis=1)
+    # the observation with the least distance per track: sort by (track, distance), take each track's first
+    order = np.lexsort((dist, tracks.track))
+    first = order[np.r_[True, tracks.track[order][1:] != tracks.track[order][:-1]]]
+    return desc[first]

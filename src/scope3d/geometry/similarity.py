@@ -39,11 +39,12 @@ class Similarity:
                           self.origin, self.origin + alpha * (self.target - self.origin))
 
 
-def fit_similarity(source: np.ndarray, target: np.ndarray) -> Similarity:
-    """Least-squares similarity taking points ``source`` (N, 3) onto ``target`` (N, 3) (Umeyama 1991)."""
+def fit_similarity(source: np.ndarray, target: np.ndarray, *, with_scale: bool = True) -> Similarity:
+    """Least-squares similarity taking points ``source`` (N, 3) onto ``target`` (N, 3) (Umeyama 1991);
+    ``with_scale=False``: the rigid fit (Kabsch), scale held at 1."""
     a0, b0 = source.mean(axis=0), target.mean(axis=0)
     a, b = source - a0, target - b0
     U, S, Vt = np.linalg.svd(b.T @ a)
     D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    scale = float(np.trace(np.diag(S) @ D) / np.sum(a * a))
+    scale = float(np.trace(np.diag(S) @ D) / np.sum(a * a)) if with_scale else 1.0
     return Similarity(scale, U @ D @ Vt, a0, b0)

@@ -26,6 +26,7 @@ from scope3d.io.dataset import write_dataset
 from scope3d.io.images import write_image
 from scope3d.phantoms.render import RenderOptions, render_frame, sequence_exposure, supersample_factor
 from scope3d.phantoms.scenes import SCENE_TRAJECTORIES, SCENES, THREADS, Scene, build_scene
+from scope3d.phantoms.tool import paint_tool, tool_mask
 from scope3d.phantoms.trajectories import TRAJECTORIES, Trajectory, build_trajectory
 from scope3d.scene.mesh import Mesh
 from scope3d.sensor.camera import Camera
@@ -33,6 +34,7 @@ from scope3d.sensor.pose_tolerance import MICRO_STAGE, MeasuredPose, perturb_pos
 from scope3d.utils.progress import Progress, advance, stage
 
 ORIENTATION_NOISE_DEG_PER_MM = 0.5
+TOOL_MASK_FILE = "tool_mask.png"  # white where the tool hides the scene; beside dataset.json
 ENDOSCOPE_SIZE_PX = (608, 608)  # scanning fibre endoscope (sec. 3.1)
 ENDOSCOPE_MASK_FRACTION = 300.0 / 608.0  # circular field of ~300 px radius
 BORESCOPE_SIZE_PX = (1280, 1024)  # Stryker rigid scope (sec. 8.3)
@@ -63,6 +65,7 @@ class PhantomSequence:
     trajectory: Trajectory
     scene_info: dict = field(default_factory=dict)
     names: list[str] = field(default_factory=list)
+    tool_mask: np.ndarray | None = None  # (H, W) bool, where a tool hides the scene (approach trajectories)
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -119,6 +122,7 @@ def generate(
     texture_seed: int = 0,
     options: RenderOptions = RenderOptions(),
     progress: Progress | None = None,
+    target: int | None = None,
 ) -> PhantomSequence:
     """Render ``scene`` along ``trajectory`` (the scene's default when None).
 
@@ -134,6 +138,9 @@ def generate(
     options : rendering settings; ``options.supersample`` None takes the scene's anti-aliasing default
         (2 x 2 rays per pixel for the thread, 1 elsewhere); the value used is recorded in scene.json.
     progress : tqdm-like or None (:mod:`scope3d.utils.progress`), advanced by one per frame rendered.
+    target : the ``approach`` trajectory's target id (1..n of the scene's targets); the approach starts
+        towards azimuth ``72 * (target - 1)`` degrees, so five targets give five directions. A tool
+        (:mod:`scope3d.phantoms.tool`) hides part of every approach frame.
     """
     if thread not in THREADS:
         raise InputError(f"unknown thread size {thread!r} (use one of {', '.join(THREADS)})")
@@ -145,9 +152,16 @@ def generate(
         raise InputError(f"unknown trajectory {name!r} (use one of {', '.join(TRAJECTORIES)})")
     if name not in built.trajectories:
         raise InputError(f"trajectory {name!r} does not fit scene {scene!r} (use one of {', '.join(built.trajectories)})")
+    target_mm = None
+    if name == "approach":
+        ids = [t.id for t in built.targets]
+        if target not in ids:
+            raise InputError(f"the approach needs --target, one of {', '.join(map(str, ids))} (the scene's targets)")
+        target_mm = next(t for t in built.info["targets"] if t["id"] == target)["centroid_mm"]
     try:
         traj = build_trajectory(name, n_frames=n_frames, side_view_deg=side_view_deg,
-                                axis_offset_mm=float(axis_offset_mm), axis_tilt_deg=float(axis_tilt_deg))
+                                axis_offset_mm=float(axis_offset_mm), axis_tilt_deg=float(axis_tilt_deg),
+                                target_mm=target_mm, azimuth_deg=72.0 * ((target or 1) - 1))
     except ValueError as exc:
         raise InputError(str(exc)) from None
     if camera is None:
@@ -156,7 +170,9 @@ def generate(
         except ValueError as exc:
             raise InputError(str(exc)) from None
     poses = traj.poses
-    exposure = sequence_exposure(built, camera, poses, options)
+    # a live approach auto-exposes every frame (the light at the tip is 6x brighter at the stop than at the
+    # start); a survey keeps one setting
+    exposure = None if name == "approach" else sequence_exposure(built, camera, poses, options)
     frames, fluo, depths, tids = [], [], [], []
     stage(progress, f"phantom {scene}/{name}", len(poses))
     for i, pose in enumerate(poses):
@@ -166,6 +182,13 @@ def generate(
         fluo.append(out.fluorescence)
         depths.append(out.depth_mm)
         tids.append(out.target_id)
+    blocked = None
+    if name == "approach":
+        blocked = tool_mask(camera)
+        frames = [paint_tool(f, blocked, seed=seed, frame_index=i) for i, f in enumerate(frames)]
+        fluo = [np.where(blocked[..., None], 0, f).astype(np.uint8) for f in fluo]
+        depths = [np.where(blocked, np.nan, d).astype(np.float32) for d in depths]
+        tids = [np.where(blocked, 0, t).astype(t.dtype) for t in tids]
     measured = measure_poses(poses, pose_noise_mm, seed=seed)
     info = dict(built.info)
     info.update({
@@ -175,7 +198,7 @@ def generate(
                    "mask_radius_px": camera.mask_radius_px,
                    **({"side_view_deg": side_view_deg} if name == "quadrants" else {})},
         "lighting": "point light at the camera centre; Lambert cos/d^2 plus Blinn-Phong specular",
-        "render": {**options.to_dict(), "supersample": supersample_factor(built, options), "exposure_gain": exposure, "seed": seed, "texture_seed": texture_seed},
+        "render": {**options.to_dict(), "supersample": supersample_factor(built, options), "exposure_gain": exposure if exposure is not None else "per frame (auto-exposure)", "seed": seed, "texture_seed": texture_seed},
         "pose_noise": {
             "position_mm": pose_noise_mm,
             "orientation_deg": pose_noise_mm * ORIENTATION_NOISE_DEG_PER_MM,
@@ -183,9 +206,12 @@ def generate(
             else "exact poses reported with the micro-positioning stage tolerance (0.01 mm)",
         },
     })
+    if blocked is not None:
+        info["tool"] = {"mask": "tool_mask.png", "fraction_of_view": float(blocked[camera.mask()].mean()),
+                        "model": "rigid with the scope: the same pixels in every frame (scope3d.phantoms.tool)"}
     return PhantomSequence(
         built, camera, frames, fluo if built.targets else None, list(poses), measured, depths, tids, traj, info,
-        [f"{i:04d}.png" for i in range(len(poses))],
+        [f"{i:04d}.png" for i in range(len(poses))], blocked,
     )
 
 
@@ -224,6 +250,8 @@ def write(sequence: PhantomSequence, out_dir: str | Path, *, contact_sheet_px: i
                   "trajectory": sequence.trajectory.name},
     )
     write_image(out_dir / "contact_sheet.png", contact_sheet(sequence.frames, thumb_px=contact_sheet_px))
+    if sequence.tool_mask is not None:
+        write_image(out_dir / TOOL_MASK_FILE, np.where(sequence.tool_mask, 255, 0).astype(np.uint8))
     if sequence.fluorescence is not None:
         write_image(out_dir / "contact_sheet_fluorescence.png",
                     contact_sheet(sequence.fluorescence, thumb_px=contact_sheet_px))

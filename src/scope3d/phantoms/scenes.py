@@ -39,7 +39,7 @@ BLADDER_SEMI_AXES_MM = (45.0, 38.0, 32.0)
 
 # Trajectories that fit each scene, default first.
 SCENE_TRAJECTORIES = {
-    "dome": ("grid5x6", "grid7x8"),
+    "dome": ("grid5x6", "grid7x8", "approach"),
     "sheet": ("grid5x6", "grid7x8"),
     "bladder": ("spiral",),
     "thread": ("axial", "quadrants"),

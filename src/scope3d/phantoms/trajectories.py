@@ -9,6 +9,8 @@
   real set-up where the misalignment is "small and also unknown" (sec. 8.1); the offset is recorded.
 * ``spiral``: a camera near the centre of a closed cavity, looking outwards and sweeping a spherical
   spiral from top to bottom (bladder scan, ch. 2).
+* ``approach``: a tool-mounted scope approaching a fluorescent target (ch. 5): from the survey's height,
+  off to one side, down a straight line to a stop above the target, looking at the target throughout.
 
 Image orientation: down-looking cameras have world +x to the right and world +y up in the picture;
 cameras in the hole and the cavity have world +z (towards the opening) up in the picture.
@@ -152,6 +154,40 @@ def spiral_trajectory(
     return Trajectory("spiral", poses, params)
 
 
+APPROACH_START_HEIGHT_MM = GRID_STANDOFF_MM
+APPROACH_START_OFFSET_MM = 6.0
+APPROACH_STOP_DISTANCE_MM = 9.0
+
+
+def approach_trajectory(
+    n_frames: int, target_mm, *, azimuth_deg: float = 0.0, start_height_mm: float = APPROACH_START_HEIGHT_MM,
+    start_offset_mm: float = APPROACH_START_OFFSET_MM, stop_distance_mm: float = APPROACH_STOP_DISTANCE_MM,
+) -> Trajectory:
+    """A scope approaching ``target_mm`` (3,) mm: from ``start_offset_mm`` to the side of it (towards
+    ``azimuth_deg`` about world z) at ``start_height_mm`` above the plate top (z = 0, the survey's height),
+    in a straight line to ``stop_distance_mm`` above the target, looking at it all the way. The steps shrink
+    towards the stop (smooth start and stop: ``s = (1 - cos(pi t)) / 2``), as a controller brakes."""
+    if n_frames < 2:
+        raise ValueError("an approach needs at least 2 frames")
+    if not (start_offset_mm >= 0 and stop_distance_mm > 0 and start_height_mm > 0):
+        raise ValueError("approach needs a non-negative start offset and positive heights")
+    target = np.asarray(target_mm, dtype=float).reshape(3)
+    a = np.deg2rad(azimuth_deg)
+    start = np.array([target[0] + start_offset_mm * np.cos(a), target[1] + start_offset_mm * np.sin(a), start_height_mm])
+    stop = target + [0.0, 0.0, stop_distance_mm]
+    if start[2] <= stop[2]:
+        raise ValueError(f"the stop ({stop[2]:.1f} mm) must lie below the start height ({start[2]:.1f} mm)")
+    s = (1.0 - np.cos(np.pi * np.linspace(0.0, 1.0, n_frames))) / 2.0
+    poses = []
+    for f in s:
+        eye = (1.0 - f) * start + f * stop
+        poses.append(Pose.from_centre(look_at(eye, target, up=(0.0, -1.0, 0.0)), eye))
+    params = {"kind": "approach", "frames": n_frames, "target_mm": target.tolist(), "azimuth_deg": azimuth_deg,
+              "start_mm": start.tolist(), "stop_mm": stop.tolist(),
+              "spacing": "(1 - cos(pi t)) / 2 along the straight line", "view": "looking at the target"}
+    return Trajectory("approach", poses, params)
+
+
 # name -> (description, default number of frames)
 TRAJECTORIES = {
     "grid5x6": ("5 x 6 raster looking down from 15 mm, 5 mm spacing (30 frames)", 30),
@@ -160,6 +196,8 @@ TRAJECTORIES = {
     "quadrants": ("45° side view, 0.1 mm steps from z = -1.5 mm, 12 quadrants 30° apart, camera 0.094 mm off "
                   "the rotation axis (8 frames per quadrant, 96 frames)", 96),
     "spiral": ("camera 8 mm from the cavity centre looking outwards, 3-turn spherical spiral (36 frames)", 36),
+    "approach": ("from 15 mm above the plate, 6 mm to the side of target N (--target), straight down to 9 mm "
+                 "above it, looking at it; a tool hides part of the view (30 frames)", 30),
 }
 
 
@@ -178,11 +216,13 @@ def ring_poses(n: int, *, tilt_deg: float, distance_mm: float, target=(0.0, 0.0,
 
 
 def build_trajectory(name: str, *, n_frames: int | None = None, side_view_deg: float = 45.0,
-                     axis_offset_mm: float = 0.0, axis_tilt_deg: float = 0.0) -> Trajectory:
+                     axis_offset_mm: float = 0.0, axis_tilt_deg: float = 0.0, target_mm=None,
+                     azimuth_deg: float = 0.0) -> Trajectory:
     """Build a named trajectory. ``n_frames`` limits the grids (first frames in scan order), sets the
     length of ``axial`` and ``spiral``, and for ``quadrants`` gives the total (``n_frames // 12`` per
     quadrant, at least one). ``axis_offset_mm`` and ``axis_tilt_deg`` misalign ``axial`` (see
-    :func:`axial_trajectory`); other trajectories reject them."""
+    :func:`axial_trajectory`); other trajectories reject them. ``approach`` needs ``target_mm`` (3,) and
+    starts towards ``azimuth_deg`` (see :func:`approach_trajectory`)."""
     if name not in TRAJECTORIES:
         raise InputError(f"unknown trajectory {name!r} (use one of {', '.join(TRAJECTORIES)})")
     if n_frames is not None and n_frames < 1:
@@ -200,4 +240,8 @@ def build_trajectory(name: str, *, n_frames: int | None = None, side_view_deg: f
         return axial_trajectory(n, axis_offset_mm=axis_offset_mm, axis_tilt_deg=axis_tilt_deg)
     if name == "quadrants":
         return quadrant_trajectory(max(1, n // QUADRANT_COUNT), side_view_deg=side_view_deg)
+    if name == "approach":
+        if target_mm is None:
+            raise InputError("the approach trajectory needs a target (--target N)")
+        return approach_trajectory(n, target_mm, azimuth_deg=azimuth_deg)
     return spiral_trajectory(n)

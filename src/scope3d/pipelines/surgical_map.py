@@ -21,7 +21,8 @@ Method (reference chapters 3, 4 and 6), one stage per function, run top to botto
    labelled and measured (centroid, area, star edge or disc diameter).
 6. :func:`evaluate_map` — where ground truth exists: distances to the true surface, direct and after
    ICP from eight starts, pose errors, targets against the true ones.
-7. :func:`write_outputs` — report.json, PLYs, COLMAP text model, targets CSV/JSON, figures.
+7. :func:`write_outputs` — report.json, PLYs, COLMAP text model, map points with descriptors for
+   localization (map_points.npz), targets CSV/JSON, figures.
 
 Units: mm and radians inside; pixels with their origin at the top-left pixel's centre.
 """
@@ -41,12 +42,13 @@ from scope3d.feature.detection import FEATURE_PRESETS, FeatureOptions, Features,
 from scope3d.feature.figures import save_matches_png
 from scope3d.feature.matching import MatchOptions, PairMatches, match_exhaustive, match_guided, match_pairs
 from scope3d.feature.pairs import PairOptions, select_pairs, spanning_pairs
-from scope3d.feature.tracks import build_tracks
+from scope3d.feature.tracks import build_tracks, track_descriptors
 from scope3d.geometry.plane import plane_residuals, plane_rms
 from scope3d.geometry.pose import Pose
 from scope3d.io.colmap import SparseModel, write_colmap_text
 from scope3d.io.dataset import Dataset
 from scope3d.io.images import write_image
+from scope3d.io.map_points import MAP_POINTS_FILE, MapPoints, write_map_points
 from scope3d.io.ply import write_ply
 from scope3d.metrology.evaluation import (
     EvaluationOptions,
@@ -474,6 +476,9 @@ def write_outputs(
     model = SparseModel.from_observations(sparse.camera, dataset.names, sparse.poses, tr.points, tr.frame, tr.track,
                                           tr.pixels, colors=tr.colors, errors=per_point_err)
     write_colmap_text(model, out_dir / "sparse")
+    # what localization against this map needs (scope3d localize): points, one descriptor each, track lengths
+    write_map_points(out_dir / MAP_POINTS_FILE, MapPoints(tr.points, track_descriptors(features, tr),
+                                                          tr.lengths(), tr.colors))
     prior = matching.depth_prior
     report: dict = {
         "dataset": str(dataset.root), "n_frames": len(dataset), "pose_mode": options.pose_mode, "matcher": options.matcher,

@@ -198,6 +198,39 @@ def fov_from_focal(size_px: float, focal_px: float) -> float:
     return float(np.rad2deg(2.0 * np.arctan(size_px / 2.0 / focal_px)))
 
 
+def project_with_camera_jacobian(points_cam: np.ndarray, intrinsics: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Project points given in the camera frame and return d pixel / d point_cam.
+
+    points_cam : (N, 3) mm, +z forward. intrinsics : (N, 6) or (6,) ``(fx, fy, cx, cy, k1, k2)``.
+    Returns pixels (N, 2) and the Jacobian (N, 2, 3).
+    """
+    p_cam = np.asarray(points_cam, dtype=float)
+    n = p_cam.shape[0]
+    intr = np.broadcast_to(np.asarray(intrinsics, dtype=float), (n, 6))
+    fx, fy, k1, k2 = intr[:, 0], intr[:, 1], intr[:, 4], intr[:, 5]
+    inv_z = 1.0 / p_cam[:, 2]
+    x = p_cam[:, 0] * inv_z
+    y = p_cam[:, 1] * inv_z
+    r2 = x * x + y * y
+    d = 1.0 + k1 * r2 + k2 * r2 * r2
+    pixels = np.stack([fx * d * x + intr[:, 2], fy * d * y + intr[:, 3]], axis=-1)
+
+    dd_dr2 = k1 + 2.0 * k2 * r2
+    # d(u, v) / d(x, y)
+    j_xy = np.empty((n, 2, 2))
+    j_xy[:, 0, 0] = fx * (d + 2.0 * x * x * dd_dr2)
+    j_xy[:, 0, 1] = fx * (2.0 * x * y * dd_dr2)
+    j_xy[:, 1, 0] = fy * (2.0 * x * y * dd_dr2)
+    j_xy[:, 1, 1] = fy * (d + 2.0 * y * y * dd_dr2)
+    # d(x, y) / d p_cam
+    j_norm = np.zeros((n, 2, 3))
+    j_norm[:, 0, 0] = inv_z
+    j_norm[:, 0, 2] = -x * inv_z
+    j_norm[:, 1, 1] = inv_z
+    j_norm[:, 1, 2] = -y * inv_z
+    return pixels, j_xy @ j_norm
+
+
 def project_with_jacobians(
     points_world: np.ndarray,
     rotvecs: np.ndarray,
@@ -229,28 +262,11 @@ def project_with_jacobians(
     rotations = rotvec_to_matrix(rotvecs)
     rotated = np.einsum("nij,nj->ni", rotations, points_world)
     p_cam = rotated + translations
+    pixels, d_pcam = project_with_camera_jacobian(p_cam, intr)
     fx, fy, k1, k2 = intr[:, 0], intr[:, 1], intr[:, 4], intr[:, 5]
-    inv_z = 1.0 / p_cam[:, 2]
-    x = p_cam[:, 0] * inv_z
-    y = p_cam[:, 1] * inv_z
+    x, y = p_cam[:, 0] / p_cam[:, 2], p_cam[:, 1] / p_cam[:, 2]
     r2 = x * x + y * y
     d = 1.0 + k1 * r2 + k2 * r2 * r2
-    pixels = np.stack([fx * d * x + intr[:, 2], fy * d * y + intr[:, 3]], axis=-1)
-
-    dd_dr2 = k1 + 2.0 * k2 * r2
-    # d(u, v) / d(x, y)
-    j_xy = np.empty((n, 2, 2))
-    j_xy[:, 0, 0] = fx * (d + 2.0 * x * x * dd_dr2)
-    j_xy[:, 0, 1] = fx * (2.0 * x * y * dd_dr2)
-    j_xy[:, 1, 0] = fy * (2.0 * x * y * dd_dr2)
-    j_xy[:, 1, 1] = fy * (d + 2.0 * y * y * dd_dr2)
-    # d(x, y) / d p_cam
-    j_norm = np.zeros((n, 2, 3))
-    j_norm[:, 0, 0] = inv_z
-    j_norm[:, 0, 2] = -x * inv_z
-    j_norm[:, 1, 1] = inv_z
-    j_norm[:, 1, 2] = -y * inv_z
-    d_pcam = j_xy @ j_norm  # (N, 2, 3)
 
     d_point = d_pcam @ rotations
     d_rot = -hat(rotated) @ so3_left_jacobian(rotvecs)

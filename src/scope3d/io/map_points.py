@@ -1,0 +1,72 @@
+"""``map_points.npz``: the map's 3-D points with what localization needs to find them in a new frame.
+
+Written by ``scope3d map`` beside ``points.ply``; read by :mod:`scope3d.sfm.localization`. Arrays:
+
+* ``xyz_mm`` : (N, 3) float64, points in the map's world frame, mm.
+* ``descriptors`` : (N, 128) float32, one representative SIFT descriptor per point
+  (:func:`scope3d.feature.tracks.track_descriptors`).
+* ``n_observations`` : (N,) int32, frames the point was seen in (its track length).
+* ``colors`` : (N, 3) uint8, mean RGB.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from scope3d.errors import InputError
+from scope3d.utils.atomic import atomic_path
+
+MAP_POINTS_FILE = "map_points.npz"
+
+
+@dataclass(frozen=True)
+class MapPoints:
+    """Map points for localization (see the module docstring for shapes and units)."""
+
+    xyz_mm: np.ndarray
+    descriptors: np.ndarray
+    n_observations: np.ndarray
+    colors: np.ndarray
+
+    def __post_init__(self) -> None:
+        n = len(self.xyz_mm)
+        if (np.shape(self.xyz_mm) != (n, 3) or np.shape(self.descriptors) != (n, 128)
+                or np.shape(self.n_observations) != (n,) or np.shape(self.colors) != (n, 3)):
+            raise ValueError("map points need xyz (N, 3), descriptors (N, 128), n_observations (N,), colors (N, 3)")
+
+    def __len__(self) -> int:
+        return len(self.xyz_mm)
+
+
+def write_map_points(path: str | Path, points: MapPoints) -> None:
+    with atomic_path(Path(path)) as tmp:
+        with open(tmp, "wb") as handle:
+            np.savez_compressed(handle, xyz_mm=points.xyz_mm.astype(np.float64),
+                                descriptors=points.descriptors.astype(np.float32),
+                                n_observations=points.n_observations.astype(np.int32),
+                                colors=points.colors.astype(np.uint8))
+
+
+def read_map_points(path: str | Path) -> MapPoints:
+    """Read ``map_points.npz`` (a file, or a map folder holding one); every problem is one InputError."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / MAP_POINTS_FILE
+    if not path.is_file():
+        raise InputError(f"{path}: no map points (run `scope3d map` first; it writes {MAP_POINTS_FILE})")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {k: np.asarray(data[k]) for k in ("xyz_mm", "descriptors", "n_observations", "colors")}
+    except KeyError as exc:
+        raise InputError(f"{path}: missing array {exc.args[0]}") from None
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{path}: not a readable .npz file ({exc})") from None
+    if not np.all(np.isfinite(arrays["xyz_mm"])) or not np.all(np.isfinite(arrays["descriptors"])):
+        raise InputError(f"{path}: points or descriptors hold NaN or infinite values")
+    try:
+        return MapPoints(arrays["xyz_mm"].astype(np.float64), arrays["descriptors"].astype(np.float32),
+                         arrays["n_observations"].astype(np.int32), arrays["colors"].astype(np.uint8))
+    except ValueError as exc:
+        raise InputError(f"{path}: {exc}") from None

@@ -1,0 +1,343 @@
+"""Where is the scope now? Localization of live frames against the surgical-field map (reference ch. 5).
+
+A :class:`Localizer` holds the map (:class:`~scope3d.io.map_points.MapPoints`) and takes frames one at a
+time, as a video stream delivers them::
+
+    loc = Localizer(read_map_points(map_dir), camera)
+    for image, reported in stream:
+        result = loc.localize(image, reported, blocked=tool_mask)
+        if result.ok: steer(result.pose)
+
+Each frame is localized in one of three modes, the cheapest that works:
+
+* ``tracking`` — the map points that were inliers in the previous frame are followed into this one by
+  pyramidal Lucas-Kanade optical flow, started where the constant-velocity prediction of the pose
+  projects them and checked forwards-backwards. No detection, no descriptor matching: the 3-D points stay
+  the map's, so the pose does not drift, only the 2-D positions are followed (they are re-anchored to
+  fresh SIFT keypoints every ``refresh_every`` frames, or when too few survive).
+* ``guided`` — SIFT in the frame, and each map point is searched only near where the predicted pose (the
+  previous pose, or the reported one when its tolerance is finite) projects it, with a radius from the
+  pose's uncertainty (:func:`~scope3d.feature.depth_prior.pose_error_px`); the ratio test runs among those
+  candidates only (feature position prediction, reference sec. 4.3.1, applied to map points).
+* ``global`` — SIFT against every map descriptor, ratio test (relocalization: the first frame, or after
+  tracking was lost and no finite reported pose narrows the search).
+
+Every mode ends in :func:`~scope3d.estimators.absolute_pose.estimate_absolute_pose` (PnP + RANSAC, then
+the pose refined with the map fixed inside the reported pose's tolerance box). A frame that cannot be
+localized gets a failure status and no pose; the next frame relocalizes.
+
+``blocked`` : (H, W) bool, True where the tool hides the scene (the reference's tool covered a sector of
+every frame, sec. 5.2). No feature is detected or followed there, nor within ``blocked_margin_px`` of it
+(a descriptor straddling the tool's edge describes the tool).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from scope3d.estimators.absolute_pose import AbsolutePoseOptions, AbsolutePoseResult, estimate_absolute_pose
+from scope3d.feature.depth_prior import DepthPrior, pose_error_px
+from scope3d.feature.detection import FeatureOptions, detect, detection_mask, to_grey
+from scope3d.geometry.pose import Pose
+from scope3d.io.map_points import MapPoints
+from scope3d.sensor.camera import Camera
+from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance
+
+LOCALIZATION_MODES = ("tracking", "guided", "global")
+
+
+@dataclass(frozen=True)
+class LocalizerOptions:
+    """How frames are localized against the map.
+
+    features : SIFT settings for guided and global matching (default 2000 features: a frame sees a few
+        hundred map points, and fewer features halve the detection time).
+    ratio : Lowe's ratio test (0.8, the reference's).
+    guided_base_radius_px : float, search radius around a map point's predicted position when the
+        prediction is the previous frame's pose (default 20 px: the scope moves by well under a
+        millimetre between video frames, ~20 px at 15 mm with f ~ 600 px), plus what the reported pose's
+        tolerance allows when that predicts.
+    max_guided_radius_px : float, beyond this radius the prediction carries little information and the
+        frame is matched globally (default 120 px, a fifth of a 608 px frame).
+    tracking : bool, follow last frame's inliers by optical flow (default True).
+    refresh_every : int, re-anchor the tracked points on fresh SIFT keypoints every this many frames
+        (default 10: optical flow drifts by ~0.05 px a frame, 0.5 px after ten).
+    min_tracked : int, fewer points surviving the flow triggers a guided frame (default 60: four times
+        the absolute pose's minimum of inliers, so a tool moving into view does not starve the pose).
+    max_tracked : int, at most this many inliers are followed into the next frame, evenly through the
+        list (default 250: the flow's cost grows with the count, a pose's precision only as its square
+        root; 250 points hold the centre to ~0.02 mm on the dome).
+    flow_window_px : int, Lucas-Kanade window side (default 21 px); flow_levels : pyramid levels (3).
+    max_flow_error_px : float, forwards-backwards disagreement beyond which a followed point is dropped
+        (default 0.5 px, the keypoints' own error).
+    blocked_margin_px : float, pixels next to the tool that are treated as blocked (default 8 px, half a
+        descriptor window at the finest scale, as FeatureOptions.mask_margin_px).
+    pose : :class:`~scope3d.estimators.absolute_pose.AbsolutePoseOptions`.
+    """
+
+    features: FeatureOptions = field(default_factory=lambda: FeatureOptions(max_features=2000))
+    ratio: float = 0.8
+    guided_base_radius_px: float = 20.0
+    max_guided_radius_px: float = 120.0
+    tracking: bool = True
+    refresh_every: int = 10
+    min_tracked: int = 60
+    max_tracked: int = 250
+    flow_window_px: int = 21
+    flow_levels: int = 3
+    max_flow_error_px: float = 0.5
+    blocked_margin_px: float = 8.0
+    pose: AbsolutePoseOptions = field(default_factory=AbsolutePoseOptions)
+
+    def __post_init__(self) -> None:
+        if not 0 < self.ratio <= 1:
+            raise ValueError(f"ratio must be in (0, 1], got {self.ratio}")
+        if not 0 < self.guided_base_radius_px <= self.max_guided_radius_px:
+            raise ValueError("need 0 < guided_base_radius_px <= max_guided_radius_px")
+        if self.refresh_every < 1 or not self.pose.min_inliers <= self.min_tracked <= self.max_tracked:
+            raise ValueError("need refresh_every >= 1 and pose.min_inliers <= min_tracked <= max_tracked")
+        if self.flow_window_px < 5 or self.flow_levels < 0 or self.max_flow_error_px <= 0:
+            raise ValueError("need flow_window_px >= 5, flow_levels >= 0 and max_flow_error_px > 0")
+        if self.blocked_margin_px < 0:
+            raise ValueError("blocked_margin_px must be >= 0")
+
+
+@dataclass
+class LocalizationResult:
+    """One frame's outcome.
+
+    status : "ok" or a failure of :data:`~scope3d.estimators.absolute_pose.POSE_STATUSES`.
+    mode : one of :data:`LOCALIZATION_MODES`, the last one tried.
+    pose : ``cam_from_world`` (mm) when ok. n_matches : 2-D/3-D correspondences given to the pose.
+    n_inliers : final inliers. covariance : (6, 6) of ``(w rad, centre mm)`` when ok.
+    time_s : wall time of :meth:`Localizer.localize`; cpu_s : process CPU time.
+    """
+
+    status: str
+    mode: str
+    pose: Pose | None
+    n_matches: int
+    n_inliers: int
+    covariance: np.ndarray | None
+    rms_px: float
+    time_s: float
+    cpu_s: float
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+
+@dataclass
+class _Track:
+    """What tracking carries from one frame to the next."""
+
+    grey: np.ndarray
+    point_ids: np.ndarray
+    pixels: np.ndarray
+
+
+class Localizer:
+    """Streaming localization against one map (see the module docstring).
+
+    map_points : the map. camera : the live frames' intrinsics (those of the map's dataset).
+    """
+
+    def __init__(self, map_points: MapPoints, camera: Camera, options: LocalizerOptions = LocalizerOptions()):
+        if len(map_points) < options.pose.min_inliers:
+            raise ValueError(f"the map holds {len(map_points)} points, fewer than the {options.pose.min_inliers} "
+                             "inliers a pose needs")
+        self.map = map_points
+        self.camera = camera
+        self.options = options
+        self._matcher = cv2.BFMatcher(cv2.NORM_L2)
+        self._detect_mask = detection_mask(camera, options.features.mask_margin_px) > 0
+        self._usable_cache: tuple[np.ndarray, np.ndarray] | None = None
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the past: the next frame relocalizes."""
+        self._poses: list[Pose] = []  # the last two poses, for the constant-velocity prediction
+        self._track: _Track | None = None
+        self._since_refresh = 0
+
+    # --- one frame ------------------------------------------------------------------------------
+    def localize(self, image: np.ndarray, reported: MeasuredPose | None = None, *,
+                 blocked: np.ndarray | None = None) -> LocalizationResult:
+        """Localize one frame.
+
+        image : (H, W, 3) uint8 RGB or (H, W) uint8, the camera's size.
+        reported : the robot's pose for this frame with its tolerance, or None. A finite tolerance bounds
+            the refinement and narrows the search when tracking is lost; an infinite one is ignored.
+        blocked : (H, W) bool, True where the tool hides the scene, or None. The tool is rigid with the
+            scope, so the mask is dilated once and reused while the same array is passed (pass a new array,
+            not the old one edited in place, when it changes).
+        """
+        t0, c0 = time.perf_counter(), time.process_time()
+        grey = to_grey(image)
+        if grey.shape != (self.camera.height, self.camera.width):
+            raise ValueError(f"frame is {grey.shape[1]}x{grey.shape[0]}, the camera {self.camera.width}x{self.camera.height}")
+        usable = self._usable(blocked)
+        if reported is not None and not np.all(np.isfinite(reported.tolerance.position_mm)):
+            reported = None  # unknown tolerance: the image alone
+        o = self.options
+        result, mode = None, "global"
+        predicted = self._predict()
+        if o.tracking and self._track is not None and predicted is not None and self._since_refresh < o.refresh_every:
+            mode = "tracking"
+            ids, px = self._follow(grey, predicted, usable)
+            if len(ids) >= o.min_tracked:
+                result, used_ids, used_px = self._pose(ids, px, reported)
+                self._since_refresh += 1
+        if result is None or not result.ok:
+            guide = predicted if predicted is not None else (reported.pose if reported is not None else None)
+            tolerance = PoseTolerance.exact() if predicted is not None else (
+                reported.tolerance if reported is not None else None)
+            features = detect(grey, self.camera, o.features)
+            keep = usable[np.clip(np.rint(features.keypoints[:, 1]).astype(int), 0, grey.shape[0] - 1),
+                          np.clip(np.rint(features.keypoints[:, 0]).astype(int), 0, grey.shape[1] - 1)]
+            kp, desc = features.keypoints[keep], features.descriptors[keep]
+            result = None
+            if guide is not None:
+                radius = self._guided_radius(guide, tolerance)
+                if radius <= o.max_guided_radius_px:
+                    mode = "guided"
+                    ids, fidx = self._match_guided(guide, kp, desc, radius)
+                    result, used_ids, used_px = self._pose(ids, kp[fidx], reported)
+            if result is None or not result.ok:
+                # relocalization: the prediction was wrong or too vague to narrow the search
+                mode = "global"
+                ids, fidx = self._match_global(desc)
+                result, used_ids, used_px = self._pose(ids, kp[fidx], reported)
+            self._since_refresh = 0
+        if result.ok:
+            self._poses = (self._poses + [result.pose])[-2:]
+            keep = np.flatnonzero(result.inliers)
+            if len(keep) > o.max_tracked:
+                keep = keep[np.linspace(0, len(keep) - 1, o.max_tracked).round().astype(int)]
+            self._track = _Track(grey, used_ids[keep], used_px[keep])
+        else:
+            self.reset()
+        return LocalizationResult(result.status, mode, result.pose, len(result.inliers), result.n_inliers,
+                                  result.covariance, result.rms_px, time.perf_counter() - t0,
+                                  time.process_time() - c0)
+
+    # --- pieces ---------------------------------------------------------------------------------
+    def _usable(self, blocked: np.ndarray | None) -> np.ndarray:
+        if blocked is None:
+            return self._detect_mask
+        if self._usable_cache is not None and self._usable_cache[0] is blocked:
+            return self._usable_cache[1]  # a sequence-wide mask: dilated once
+        key = blocked
+        blocked = np.asarray(blocked, bool)
+        if blocked.shape != (self.camera.height, self.camera.width):
+            raise ValueError(f"blocked mask is {blocked.shape[1]}x{blocked.shape[0]}, the camera "
+                             f"{self.camera.width}x{self.camera.height}")
+        m = int(np.ceil(self.options.blocked_margin_px))
+        if m:
+            blocked = cv2.dilate(blocked.astype(np.uint8), np.ones((2 * m + 1, 2 * m + 1), np.uint8)) > 0
+        usable = self._detect_mask & ~blocked
+        self._usable_cache = (key, usable)
+        return usable
+
+    def _predict(self) -> Pose | None:
+        """Constant velocity: the last motion applied once more (the previous pose when only one is known)."""
+        if not self._poses:
+            return None
+        if len(self._poses) == 1:
+            return self._poses[-1]
+        a, b = self._poses
+        return (b @ a.inverse()) @ b
+
+    def _visible(self, pose: Pose) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Map points in front of ``pose`` and inside the frame: (ids, pixels (K, 2), depths (K,) mm)."""
+        cam = pose.transform(self.map.xyz_mm)
+        front = np.flatnonzero(cam[:, 2] > 1e-3)
+        px = self.camera.project(cam[front])
+        inside = self.camera.in_image(px)
+        return front[inside], px[inside], cam[front[inside], 2]
+
+    def _guided_radius(self, guide: Pose, tolerance: PoseTolerance) -> float:
+        _, _, depth = self._visible(guide)
+        if len(depth) == 0:
+            return float("inf")
+        prior = DepthPrior(float(np.percentile(depth, 1)), float(depth.max()))
+        return self.options.guided_base_radius_px + pose_error_px(self.camera, tolerance, prior)
+
+    def _follow(self, grey: np.ndarray, predicted: Pose, usable: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Last frame's inliers followed into ``grey`` by optical flow from their predicted positions."""
+        o, tr = self.options, self._track
+        start = self.camera.project(predicted.transform(self.map.xyz_mm[tr.point_ids]))
+        prev = tr.pixels.astype(np.float32).reshape(-1, 1, 2)
+        guess = np.where(np.isfinite(start), start, tr.pixels).astype(np.float32).reshape(-1, 1, 2)
+        win = (o.flow_window_px, o.flow_window_px)
+        criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
+        nxt, st, _ = cv2.calcOpticalFlowPyrLK(tr.grey, grey, prev, guess, winSize=win, maxLevel=o.flow_levels,
+                                              criteria=criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+        back, st2, _ = cv2.calcOpticalFlowPyrLK(grey, tr.grey, nxt, prev.copy(), winSize=win, maxLevel=o.flow_levels,
+                                                criteria=criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+        nxt, back = nxt.reshape(-1, 2).astype(float), back.reshape(-1, 2)
+        ok = (st.ravel() == 1) & (st2.ravel() == 1)
+        ok &= np.linalg.norm(back - tr.pixels, axis=1) <= o.max_flow_error_px
+        ok &= self.camera.in_image(nxt)
+        iu = np.clip(np.rint(nxt[:, 0]).astype(int), 0, grey.shape[1] - 1)
+        iv = np.clip(np.rint(nxt[:, 1]).astype(int), 0, grey.shape[0] - 1)
+        ok &= usable[iv, iu]
+        return tr.point_ids[ok], nxt[ok]
+
+    def _match_guided(self, guide: Pose, kp: np.ndarray, desc: np.ndarray, radius: float):
+        """Each map point against the features within ``radius`` of where ``guide`` projects it: ratio test
+        among those candidates, then one feature per map point and one map point per feature."""
+        ids, px, _ = self._visible(guide)
+        if len(ids) == 0 or len(kp) == 0:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        lists = cKDTree(kp).query_ball_point(px, radius)
+        counts = np.array([len(c) for c in lists])
+        if counts.sum() == 0:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        row = np.repeat(np.arange(len(ids)), counts)
+        feat = np.concatenate([np.asarray(c, np.int64) for c in lists if c])
+        d2 = np.sum((desc[feat] - self.map.descriptors[ids[row]]) ** 2, axis=1)
+        order = np.lexsort((d2, row))
+        row, feat, d2 = row[order], feat[order], d2[order]
+        first = np.flatnonzero(np.r_[True, row[1:] != row[:-1]])
+        second = np.full(len(first), np.inf)
+        has_second = np.r_[first[1:], len(row)] - first > 1
+        second[has_second] = d2[first[has_second] + 1]
+        passed = d2[first] < self.options.ratio**2 * second
+        keep = first[passed]
+        return _one_to_one(ids[row[keep]], feat[keep], d2[keep])
+
+    def _match_global(self, desc: np.ndarray):
+        """Every feature against every map descriptor, ratio test, one-to-one."""
+        if len(desc) < 2:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        pairs = self._matcher.knnMatch(desc, self.map.descriptors, k=2)
+        rows = [(p[0].trainIdx, p[0].queryIdx, p[0].distance) for p in pairs
+                if len(p) == 2 and p[0].distance < self.options.ratio * p[1].distance]
+        if not rows:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        ids, feat, d = (np.array(v) for v in zip(*rows))
+        return _one_to_one(ids.astype(np.int64), feat.astype(np.int64), d**2)
+
+    def _pose(self, ids: np.ndarray, pixels: np.ndarray, reported: MeasuredPose | None
+              ) -> tuple[AbsolutePoseResult, np.ndarray, np.ndarray]:
+        """The pose from map points ``ids`` seen at ``pixels``; returns the result and the correspondences."""
+        pixels = np.asarray(pixels, float).reshape(-1, 2)
+        result = estimate_absolute_pose(self.camera, self.map.xyz_mm[ids], pixels, reported=reported,
+                                        options=self.options.pose)
+        return result, ids, pixels
+
+
+def _one_to_one(ids: np.ndarray, feat: np.ndarray, cost: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Keep, for every map point and every feature, only its cheapest match."""
+    order = np.argsort(cost, kind="stable")
+    ids, feat = ids[order], feat[order]
+    _, first = np.unique(ids, return_index=True)
+    ids, feat = ids[first], feat[first]
+    _, first = np.unique(feat, return_index=True)
+    return ids[first], feat[first]
