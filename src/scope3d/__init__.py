@@ -5,10 +5,20 @@ Layers, lowest first (a lower layer never imports a higher one):
 -> stereo, registration, metrology -> ``pipelines`` -> ``cli``.
 """
 from scope3d.errors import InputError
-from scope3d.geometry.pose import Pose
-from scope3d.sensor.camera import Camera
-from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance
 
 __version__ = "0.1.0"
+
+# The NumPy/SciPy-backed types load on first use (PEP 562), so that ``scope3d --version`` and ``--help``
+# start without importing SciPy.
+_LAZY = {"Camera": "scope3d.sensor.camera", "MeasuredPose": "scope3d.sensor.pose_tolerance",
+         "Pose": "scope3d.geometry.pose", "PoseTolerance": "scope3d.sensor.pose_tolerance"}
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'scope3d' has no attribute {name!r}")
 
 __all__ = ["Camera", "InputError", "MeasuredPose", "Pose", "PoseTolerance", "__version__"]

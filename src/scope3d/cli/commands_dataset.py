@@ -11,9 +11,8 @@ import argparse
 import math
 from pathlib import Path
 
+from scope3d.cli.lazy import LazyChoices
 from scope3d.errors import InputError
-from scope3d.io.dataset import LENGTH_UNITS_TO_MM, load_dataset
-from scope3d.sensor.pose_tolerance import PoseTolerance
 
 
 def register(subparsers) -> None:
@@ -51,8 +50,9 @@ def register(subparsers) -> None:
     )
     col.add_argument("model_dir", metavar="MODEL_DIR", type=Path, help="folder with cameras.txt and images.txt")
     col.add_argument("images", metavar="IMAGES", type=Path, help="folder the image names are relative to")
-    col.add_argument("--model-unit", choices=sorted(LENGTH_UNITS_TO_MM), default="mm",
-                     help="length unit of the model's translations (default mm)")
+    col.add_argument("--model-unit", choices=LazyChoices("scope3d.io.dataset", "LENGTH_UNITS_TO_MM", sort=True),
+                     default="mm", metavar="UNIT",
+                     help="length unit of the model's translations: %(choices)s (default mm)")
     _add_output_arguments(col)
     col.set_defaults(func=run_import_colmap)
 
@@ -99,7 +99,9 @@ def _non_negative(text: str) -> float:
     return value
 
 
-def _tolerance(args) -> PoseTolerance:
+def _tolerance(args):
+    from scope3d.sensor.pose_tolerance import PoseTolerance
+
     return PoseTolerance.from_degrees(args.tolerance or 0.0, args.tolerance_deg)
 
 
@@ -113,6 +115,8 @@ def _check_output(out: Path) -> None:
 
 
 def run_check(args) -> int:
+    from scope3d.io.dataset import load_dataset
+
     dataset = load_dataset(args.dataset, check_images=True)
     print(dataset.summary())
     print("ok: every file parsed and every image decoded")
@@ -120,6 +124,7 @@ def run_check(args) -> int:
 
 
 def run_import_middlebury(args) -> int:
+    from scope3d.io.dataset import load_dataset
     from scope3d.io.middlebury import import_middlebury
 
     _check_output(args.out)
@@ -130,6 +135,7 @@ def run_import_middlebury(args) -> int:
 
 def run_import_colmap(args) -> int:
     from scope3d.io.colmap import import_colmap
+    from scope3d.io.dataset import LENGTH_UNITS_TO_MM, load_dataset
 
     _check_output(args.out)
     out = import_colmap(args.model_dir, args.images, args.out, tolerance=_tolerance(args),

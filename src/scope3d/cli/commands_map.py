@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 from scope3d.cli.job_output import add_job_arguments, finish_job, show_progress
+from scope3d.cli.lazy import LazyChoices
 from scope3d.errors import InputError
+
+_PIPELINE = "scope3d.pipelines.surgical_map"
 
 
 def register(subparsers) -> None:
-    from scope3d.pipelines.surgical_map import MAP_PRESETS, MATCHERS, POSE_MODES
-
     p = subparsers.add_parser(
         "map",
         help="map a surgical field: points, textured mesh, fluorescent targets, accuracy report",
@@ -21,12 +22,14 @@ def register(subparsers) -> None:
     )
     p.add_argument("dataset", metavar="DATASET", help="dataset folder (see scope3d.io.dataset)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (written atomically, replaced)")
-    p.add_argument("--pose-mode", choices=POSE_MODES, default="bounded",
-                   help="bundle adjustment: poses fixed, free (gauge fixed), or bounded by the pose tolerance "
-                        "(default bounded)")
-    p.add_argument("--matcher", choices=MATCHERS, default="guided",
-                   help="guided = feature position prediction from the poses (default); exhaustive = baseline")
-    p.add_argument("--preset", choices=sorted(MAP_PRESETS), default="default",
+    p.add_argument("--pose-mode", choices=LazyChoices(_PIPELINE, "POSE_MODES"), default="bounded", metavar="MODE",
+                   help="%(choices)s: bundle adjustment with poses fixed, free (gauge fixed), or bounded by the "
+                        "pose tolerance (default bounded)")
+    p.add_argument("--matcher", choices=LazyChoices(_PIPELINE, "MATCHERS"), default="guided", metavar="MATCHER",
+                   help="%(choices)s: guided = feature position prediction from the poses (default); "
+                        "exhaustive = baseline")
+    p.add_argument("--preset", choices=LazyChoices(_PIPELINE, "MAP_PRESETS", sort=True), default="default",
+                   metavar="PRESET",
                    help="option preset: default, dim_endoscope (CLAHE, lower SIFT threshold), photograph "
                         "(calibrated photos around an object: no surface, no targets)")
     p.add_argument("--intrinsic-bounds", metavar="FILE",

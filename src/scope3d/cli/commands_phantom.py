@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from scope3d.cli.lazy import LazyChoices
 from scope3d.errors import InputError
 
 
@@ -18,9 +19,6 @@ def _size(text: str) -> tuple[int, int]:
 
 
 def register(subparsers) -> None:
-    from scope3d.phantoms.scenes import SCENES, THREADS
-    from scope3d.phantoms.trajectories import TRAJECTORIES
-
     p = subparsers.add_parser(
         "phantom",
         help="render a phantom (dome, sheet, bladder, thread) with exact ground truth",
@@ -28,15 +26,17 @@ def register(subparsers) -> None:
                     "depth maps, scene.json; lengths in mm) and write it as a scope3d dataset folder, plus "
                     "contact_sheet.png.",
     )
-    p.add_argument("scene", nargs="?", choices=list(SCENES), help="phantom to render")
+    p.add_argument("scene", nargs="?", choices=LazyChoices("scope3d.phantoms.scenes", "SCENES"), metavar="SCENE",
+                   help="phantom to render: %(choices)s")
     p.add_argument("--out", metavar="DIR", help="dataset folder to write (replaced if it exists)")
     p.add_argument("--list", action="store_true", help="list scenes and trajectories with their parameters")
     p.add_argument("--seed", type=int, default=0, help="seed of sensor and pose noise (default 0)")
-    p.add_argument("--trajectory", metavar="NAME", help=f"one of {', '.join(TRAJECTORIES)} (default: the scene's)")
+    p.add_argument("--trajectory", metavar="NAME", help="trajectory, see --list (default: the scene's)")
     p.add_argument("--pose-noise", type=float, default=0.0, metavar="MM",
                    help="reported camera centres are off by up to ±MM per axis (orientation ±0.5°/mm), "
                         "written as their tolerance; 0 = exact, with the micro-stage tolerance 0.01 mm (default)")
-    p.add_argument("--thread", default="M8x1.25", metavar="SIZE", help=f"thread size: {', '.join(THREADS)}")
+    p.add_argument("--thread", default="M8x1.25", metavar="SIZE",
+                   help="ISO thread size (default M8x1.25; the sizes: see --list)")
     p.add_argument("--frames", type=int, metavar="N", help="number of frames (limits grids; quadrants: total)")
     p.add_argument("--fov", type=float, metavar="DEG", help="camera field of view across the width, degrees")
     p.add_argument("--size", type=_size, metavar="WxH", help="image size in pixels (e.g. 160x160 for tests)")

@@ -52,6 +52,14 @@ class IcpResult:
         return np.asarray(points, float) @ self.rotation.T + self.translation
 
 
+def _cross(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
+    """Row-wise a x b of (N, 3) arrays into ``out`` (N, 3): np.cross's arithmetic without its per-call
+    overhead (ICP calls it every iteration)."""
+    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
+    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
+    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+
+
 def icp_point_to_plane(
     points: np.ndarray, target: SampledSurface, options: IcpOptions = IcpOptions(),
     *, rotation: np.ndarray | None = None, translation: np.ndarray | None = None,
@@ -77,17 +85,22 @@ def icp_point_to_plane(
         if options.trim_fraction:
             keep[ok] = np.abs(r[ok]) <= np.quantile(np.abs(r[ok]), 1 - options.trim_fraction)
         history.append(float(np.mean(np.abs(r[ok]))))
+        yk, nk, rk = (y, n, r) if keep.all() else (y[keep], n[keep], r[keep])
+        abs_r = np.abs(rk)
         # Huber weights (scale: 2 robust sigmas of the residuals) rather than dropping the worst: a point
         # sliding off the surface's edge keeps a bounded pull, so ICP cannot slide along a symmetry (a
         # dome's axis) by shedding the points that would resist it
-        sigma = max(1.4826 * float(np.median(np.abs(r[keep]))), 1e-6)
-        w = np.minimum(1.0, options.huber_sigmas * sigma / np.maximum(np.abs(r[keep]), 1e-12))
-        c = y[keep].mean(axis=0)
-        A = np.hstack([np.cross(y[keep] - c, n[keep]), n[keep]])
+        sigma = max(1.4826 * float(np.median(abs_r)), 1e-6)
+        w = np.minimum(1.0, options.huber_sigmas * sigma / np.maximum(abs_r, 1e-12))
+        c = yk.mean(axis=0)
+        A = np.empty((len(yk), 6))
+        _cross(yk - c, nk, A[:, :3])
+        A[:, 3:] = nk
         Aw = A * w[:, None]
         # 6x6 normal equations (tiny Tikhonov term: a rotationally symmetric target leaves a null space)
-        AtA = Aw.T @ A + 1e-9 * np.eye(6) * max(float(np.trace(Aw.T @ A)), 1.0)
-        sol = np.linalg.solve(AtA, -Aw.T @ r[keep])
+        AwtA = Aw.T @ A
+        AtA = AwtA + 1e-9 * np.eye(6) * max(float(np.trace(AwtA)), 1.0)
+        sol = np.linalg.solve(AtA, -Aw.T @ rk)
         dR = rotvec_to_matrix(sol[:3])
         # rotate about the centroid c, then translate
         R = dR @ R
