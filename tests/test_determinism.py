@@ -20,6 +20,6 @@ def test_one_and_two_threads_write_identical_files(inputs, tmp_path, name):
     run_to_completion(one, environment(threads=1))
     run_to_completion(two, environment(threads=2))
     a, b = snapshot(one.out), snapshot(two.out)
-    assert "report.json" in a and len(a) >= 3
+    assert len(a) >= 3  # a dataset (phantom) or a result folder with its report
     differing = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
     assert not differing, differing
