@@ -85,7 +85,7 @@ def one(data):
     if sum(counts.values()) % 200 == 1:  # libFuzzer may exit without running atexit handlers
         Path({progress!r}).write_text(json.dumps(counts))
 atheris.Setup([sys.argv[0], "-max_total_time={seconds}", "-rss_limit_mb=2048", "-timeout=20",
-               "-max_len=65536", "-print_final_stats=1", {corpus!r}], one)
+               "-max_len=65536", "-print_final_stats=1", "-artifact_prefix={work}/", {corpus!r}], one)
 atheris.Fuzz()
 """
 
@@ -97,7 +97,7 @@ def run_atheris(name: str, seed: bytes, seconds: float, work: Path) -> dict:
     (corpus / "seed").write_bytes(seed)
     progress = work / f"progress_{name.replace(' ', '_')}.json"
     script = _ATHERIS_CHILD.format(src=str(REPO / "src"), tests=str(REPO / "tests"), name=name,
-                                   progress=str(progress), seconds=int(seconds), corpus=str(corpus))
+                                   progress=str(progress), seconds=int(seconds), corpus=str(corpus), work=str(work))
     proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=work,
                           timeout=seconds + 300)
     stats = {}
@@ -108,7 +108,7 @@ def run_atheris(name: str, seed: bytes, seconds: float, work: Path) -> dict:
     crashes = []
     if proc.returncode != 0:
         tail = [line for line in proc.stderr.splitlines() if "FuzzCrash" in line or "Error" in line][-3:]
-        crash_files = sorted(work.glob("crash-*"))
+        crash_files = sorted(p for pattern in ("crash-*", "oom-*", "timeout-*") for p in work.glob(pattern))
         crashes.append({"error": " | ".join(tail)[:500] or proc.stderr[-500:],
                         "input_b64": base64.b64encode(crash_files[-1].read_bytes()[:4096]).decode()
                         if crash_files else None})
@@ -121,6 +121,7 @@ def main() -> None:
     parser.add_argument("--seconds-per-reader", type=float, default=60.0)
     parser.add_argument("--engines", default="hypothesis,atheris")
     parser.add_argument("--readers", default="", help="comma-separated target names (default: all)")
+    parser.add_argument("--results", type=Path, default=RESULTS, help="JSON to write (benchmarks/results/fuzz.json)")
     args = parser.parse_args()
     engines = args.engines.split(",")
     with tempfile.TemporaryDirectory() as tmp:
@@ -156,8 +157,8 @@ def main() -> None:
                   for e in engines}
         report["totals"] = totals
         report["load_average_at_end"] = os.getloadavg()
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(json.dumps(report, indent=2) + "\n")
+    args.results.parent.mkdir(parents=True, exist_ok=True)
+    args.results.write_text(json.dumps(report, indent=2) + "\n")
     print("totals", totals)
 
 

@@ -216,3 +216,24 @@ def test_positions_finite_in_metres_but_not_in_mm_are_refused(tmp_path):
     path.write_text(",".join(POSE_COLUMNS) + "\na.png,1e306,0,0,1,0,0,0,0,0,0,0,0,0\n")
     assert read_poses_csv(path)[1][0].pose.centre[0] == 1e306
     _expect_refusal(lambda: read_poses_csv(path, 1000.0), path, "row 2", "position in mm")
+
+
+def test_an_image_header_claiming_400_megapixels_is_refused_before_decoding(targets, tmp_path):
+    """Found by atheris: a PNG whose header claimed a size under OpenCV's 2^30-pixel limit made it allocate
+    2 GB. (tracemalloc does not see OpenCV's allocations: the peak resident set size is checked.)"""
+    import resource
+    import struct
+    import zlib
+
+    from scope3d.io.images import read_image
+
+    seed = targets["image png"].seed
+    ihdr = bytearray(seed[8:33])
+    ihdr[8:16] = struct.pack(">II", 20000, 20000)
+    ihdr[21:25] = struct.pack(">I", zlib.crc32(bytes(ihdr[4:21])) & 0xFFFFFFFF)
+    path = tmp_path / "huge.png"
+    path.write_bytes(seed[:8] + bytes(ihdr) + seed[33:])
+    before_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    _expect_refusal(lambda: read_image(path), path, "claims 400 Mpx")
+    # 20000 x 20000 RGB is 1.2 GB; 100 MB is the noise of this process's own growth
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before_kb < 100_000
