@@ -1,9 +1,13 @@
-"""Outputs that survive a kill, and Ctrl-C: the short version of benchmarks/bench_kill.py.
+"""Outputs that survive a kill, Ctrl-C, and determinism: the short version of benchmarks/bench_kill.py.
 
 Each job is SIGKILLed while it writes its outputs (within 0.3 s of its first temporary output appearing,
 the moment a kill could tear a result), then run once more: the output location must have held the
 previous complete result or the new complete one, never a mix, and the next run must succeed and leave no
 temporaries behind. The long version kills >= 50 runs per job at moments uniform over a run.
+
+Determinism: the same job with 1 and with 2 threads (numba, OpenMP, OpenBLAS) writes the same files byte
+for byte (report.json without its timing fields, scope3d.utils.jsonio.without_timings). The 2-thread run is
+the kill test's last, uninterrupted one, so each job runs three times in this file, not four.
 """
 import signal
 import subprocess
@@ -11,20 +15,44 @@ import time
 
 import pytest
 
-from kill_harness import REPO, environment, jobs, kill_trials, litter, make_inputs, put_previous, snapshot
+from kill_harness import (
+    REPO, environment, jobs, kill_trials, litter, make_inputs, put_previous, run_to_completion, snapshot,
+)
+
+JOBS = ["phantom", "map", "bundle-adjust", "axial"]
+TWO_THREADS = {}  # job name -> snapshot of the kill test's last, uninterrupted run (2 threads)
 
 
 @pytest.fixture(scope="module")
-def all_jobs(tmp_path_factory):
-    root = tmp_path_factory.mktemp("kill")
-    return {job.name: job for job in jobs(make_inputs(root / "in"), root / "out")}
+def inputs(tmp_path_factory):
+    return make_inputs(tmp_path_factory.mktemp("kill") / "in")
 
 
-@pytest.mark.parametrize("name", ["phantom", "map", "bundle-adjust", "axial"])
+@pytest.fixture(scope="module")
+def all_jobs(inputs, tmp_path_factory):
+    return {job.name: job for job in jobs(inputs, tmp_path_factory.mktemp("kill") / "out")}
+
+
+@pytest.mark.parametrize("name", JOBS)
 def test_a_kill_while_writing_leaves_the_previous_or_the_new_result(all_jobs, name):
-    report = kill_trials(all_jobs[name], 1, seed=0, while_writing=True)
+    report = kill_trials(all_jobs[name], 1, seed=0, while_writing=True, env=environment(threads=2))
     assert report.outcomes["mix"] == 0, report.mixes
     assert report.litter_after_final_run == 0  # the next run removed what the killed one left
+    TWO_THREADS[name] = snapshot(all_jobs[name].out)
+
+
+@pytest.mark.parametrize("name", JOBS)
+def test_one_and_two_threads_write_identical_files(inputs, all_jobs, tmp_path, name):
+    # the same folder name under another parent: dataset.json records the folder's name
+    one = {j.name: j for j in jobs(inputs, tmp_path / "threads1")}[name]
+    run_to_completion(one, environment(threads=1))
+    if name not in TWO_THREADS:  # this test alone (-k): make the 2-thread run here
+        run_to_completion(all_jobs[name], environment(threads=2))
+        TWO_THREADS[name] = snapshot(all_jobs[name].out)
+    a, b = snapshot(one.out), TWO_THREADS[name]
+    assert len(a) >= 3  # a dataset (phantom) or a result folder with its report
+    differing = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
+    assert not differing, differing
 
 
 def test_a_failing_run_keeps_the_previous_result(all_jobs, tmp_path):
