@@ -237,3 +237,18 @@ def test_an_image_header_claiming_400_megapixels_is_refused_before_decoding(targ
     _expect_refusal(lambda: read_image(path), path, "claims 400 Mpx")
     # 20000 x 20000 RGB is 1.2 GB; 100 MB is the noise of this process's own growth
     assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before_kb < 100_000
+
+
+def test_a_png_chunk_claiming_4_gb_is_refused_before_decoding(targets, tmp_path):
+    """Found by atheris: a 16x12 PNG whose IDAT chunk claimed 0xFFFFFFFF bytes made OpenCV allocate 4 GB."""
+    import resource
+
+    from scope3d.io.images import read_image
+
+    seed = targets["image png"].seed
+    idat = seed.index(b"IDAT") - 4
+    path = tmp_path / "chunk.png"
+    path.write_bytes(seed[:idat] + b"\xff\xff\xff\xff" + seed[idat + 4:])
+    before_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    _expect_refusal(lambda: read_image(path), path, "'IDAT'", "claims 4294967295 bytes")
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before_kb < 100_000  # 4 GB before the fix

@@ -27,6 +27,9 @@ def read_image(path: str | Path, *, grey: bool = False) -> np.ndarray:
         data = np.frombuffer(path.read_bytes(), dtype=np.uint8)
     except OSError as exc:
         raise InputError(f"{path}: cannot read image ({exc.strerror})") from None
+    bad_chunk = _png_chunk_overrun(data)
+    if bad_chunk:
+        raise InputError(f"{path}: not a readable image ({bad_chunk})")
     pixels = _claimed_pixels(data)
     if pixels is not None and pixels > MAX_IMAGE_PIXELS:
         raise InputError(f"{path}: the image header claims {pixels / 1e6:.0f} Mpx, more than scope3d reads "
@@ -45,6 +48,28 @@ def read_image(path: str | Path, *, grey: bool = False) -> np.ndarray:
     if img.dtype != np.uint8:
         img = cv2.convertScaleAbs(img, alpha=255.0 / max(float(img.max()), 1.0))
     return img if grey else cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def _png_chunk_overrun(data: np.ndarray) -> str | None:
+    """What is wrong when a PNG chunk claims more bytes than the file holds, else None. OpenCV's PNG reader
+    allocates a chunk's claimed length before reading it: a damaged length (up to 4 GB) must not reach it."""
+    raw = data.tobytes()
+    if not raw.startswith(_PNG_SIGNATURE):
+        return None
+    position = len(_PNG_SIGNATURE)
+    while position + 8 <= len(raw):
+        length = int.from_bytes(raw[position:position + 4], "big")
+        kind = raw[position + 4:position + 8]
+        if position + 12 + length > len(raw):
+            return (f"PNG chunk {kind.decode('latin-1')!r} at byte {position} claims {length} bytes, "
+                    f"the file has {len(raw) - position - 12} left")
+        if kind == b"IEND":
+            return None
+        position += 12 + length
+    return None
 
 
 def _claimed_pixels(data: np.ndarray) -> int | None:
