@@ -28,6 +28,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 REPO = Path(__file__).resolve().parents[1]
 _TEMPORARY = re.compile(r"^\..+\.\d+\.[^.]+\.(tmp|old)(\.[^.]*)?$")
 
@@ -200,10 +202,7 @@ def make_inputs(root: Path) -> dict[str, Path]:
     thread = phantoms.write(phantoms.generate("thread", "axial", seed=0, n_frames=4, size=(160, 160)),
                             root / "thread")
     scene = make_scene(12, 300, observations_per_point=4, pixel_noise_px=0.5, seed=0)
-    flip = [1.0, -1.0, -1.0]
-    import numpy as np
-
-    flip = np.array(flip)
+    flip = np.array([1.0, -1.0, -1.0])  # BAL cameras look down -z with y up (scope3d.estimators.bundle.bal)
     rng = np.random.default_rng(0)
     cameras = np.column_stack([matrix_to_rotvec(flip[None, :, None] * scene.rotations), flip * scene.translations,
                                np.full(12, 500.0), np.zeros(12), np.zeros(12)])

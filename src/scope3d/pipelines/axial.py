@@ -204,8 +204,9 @@ def save_depth_png(path: Path, depth: ImageDepth, *, title: str) -> None:
 
 def run(options: AxialOptions, dataset: Dataset, out_dir: str | Path | None, *,
         progress: Progress | None = None) -> AxialResult:
-    """Reconstruct, evaluate and (when ``out_dir`` is given) write the job's files. progress : tqdm-like
-    or None (:mod:`scope3d.utils.progress`)."""
+    """Reconstruct, evaluate and (when ``out_dir`` is given) write the job's files, atomically: ``out_dir`` is
+    replaced as a whole once the new folder is complete. progress : tqdm-like or None
+    (:mod:`scope3d.utils.progress`)."""
     t0 = time.perf_counter()
     depths, colours, timing = reconstruct(options, dataset, progress=progress)
     cloud, mesh = build_geometry(depths, colours, options.max_mesh_edge_ratio)
@@ -240,4 +241,3 @@ def _write_files(out: Path, options: AxialOptions, cloud: PointCloud, mesh: Mesh
         save_error_histogram_png(out / "error_histogram.png", distances,
                                  title=f"axial {options.method}: distance to the true surface")
     write_json(out / "report.json", report)
-
