@@ -14,7 +14,7 @@ def register(subparsers) -> None:
         "Writes cloud.ply, mesh.ply, depth.png, report.json and, with ground truth, error_histogram.png.",
     )
     p.add_argument("dataset", type=Path, help="dataset folder (see docs/datasets.md)")
-    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--out", type=Path, required=True, help="output folder (written atomically, replaced)")
     p.add_argument("--frames", type=int, nargs=2, metavar=("I", "J"), help="the two frames (default: middle pair)")
     p.add_argument("--method", choices=("sgm", "sad", "multiview"), default="sgm",
                    help="sgm: semi-global matching (default); sad: the reference's 7x7 block matcher; "

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import resource
 import sys
 import time
@@ -68,7 +69,8 @@ def run(args: argparse.Namespace) -> int:
         solve,
         write_bal,
     )
-    from scope3d.utils.atomic import atomic_file
+    from scope3d.errors import InputError
+    from scope3d.utils.atomic import atomic_files
 
     from scope3d.estimators.bundle.jit import parallel_assembly_ready
 
@@ -81,6 +83,9 @@ def run(args: argparse.Namespace) -> int:
     if options.num_threads == 1 and not args.quiet:
         print("first run on this machine: one-thread assembly while the parallel kernel compiles in the "
               "background for the next runs", file=sys.stderr)
+    outputs = [args.report] + [p for p in (args.output, args.plot) if p]
+    if len({os.path.realpath(p) for p in outputs}) != len(outputs):
+        raise InputError("--report, --output and --plot must name different files")
     t0 = time.perf_counter()
     bal = read_bal(args.problem_file)
     problem = bal_to_problem(bal)
@@ -120,11 +125,14 @@ def run(args: argparse.Namespace) -> int:
         "peak_memory_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         "cost_definition": "0.5 * sum over observations of rho(|projected - observed|^2), pixels^2",
     })
-    if args.output:
-        write_bal(args.output, result_to_bal(bal, result))
-    if args.plot:
-        result.plot_convergence(args.plot, title=f"{args.problem_file}: {result.termination}")
-    with atomic_file(args.report) as handle:
-        json.dump(report, handle, indent=2)
+    # the report, the solution and the plot are renamed into place together once all are written, so a
+    # kill never leaves a new solution beside an old report (the report is renamed last)
+    with atomic_files(outputs) as tmps:
+        staged = dict(zip(outputs, tmps))
+        if args.output:
+            write_bal(staged[args.output], result_to_bal(bal, result))
+        if args.plot:
+            result.plot_convergence(staged[args.plot], title=f"{args.problem_file}: {result.termination}")
+        staged[args.report].write_text(json.dumps(report, indent=2))
     # a BAL problem has no run folder: report.json goes where --report says, no page
     return finish_job(args, None, report, [])

@@ -44,6 +44,10 @@ def main(argv: list[str] | None = None) -> int:
     except FileNotFoundError as exc:
         print(f"scope3d {args.command}: error: file not found: {exc.filename or exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # a read-only or full output location, a path under a file: the user's to fix
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"scope3d {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print(f"scope3d {args.command}: interrupted", file=sys.stderr)
         return 130

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -45,17 +46,18 @@ def read_bal(path: str | os.PathLike) -> BALProblem:
     Rotations are rotation vectors: any finite one is a rotation however few digits it is printed
     with, so unlike a printed matrix or quaternion there is no rounding to absorb.
     """
-    with open(path, "r") as handle:
-        text = handle.read()
+    text = read_ascii_text(path, "a BAL file")
     try:
         values = np.array(text.split(), dtype=float)
     except ValueError as exc:
         raise InputError(f"{path}: not a BAL file ({exc})") from None
     if values.size < 3:
         raise InputError(f"{path}: not a BAL file (no header)")
-    m, n, k = (int(v) for v in values[:3])
-    if values[:3].tolist() != [m, n, k] or min(m, n, k) < 1:
-        raise InputError(f"{path}: bad BAL header {values[:3].tolist()}")
+    head = values[:3]
+    # checked before int(): int(nan) and int(inf) raise, and a header is three whole counts >= 1
+    if not np.all(np.isfinite(head)) or np.any(head != np.round(head)) or head.min() < 1:
+        raise InputError(f"{path}: bad BAL header {head.tolist()}")
+    m, n, k = (int(v) for v in head)
     expected = 3 + 4 * k + 9 * m + 3 * n
     if values.size != expected:
         raise InputError(f"{path}: expected {expected} numbers for {m} cameras, {n} points, {k} observations, "
@@ -70,7 +72,26 @@ def read_bal(path: str | os.PathLike) -> BALProblem:
     bad = np.flatnonzero(np.any(obs[:, :2] != np.round(obs[:, :2]), axis=1))
     if bad.size:
         raise InputError(f"{path}: observation {bad[0]} (0-based): camera and point indices must be integers")
+    bad = np.flatnonzero((obs[:, 0] < 0) | (obs[:, 0] >= m) | (obs[:, 1] < 0) | (obs[:, 1] >= n))
+    if bad.size:
+        raise InputError(f"{path}: observation {bad[0]} (0-based): camera {obs[bad[0], 0]:g} or point "
+                         f"{obs[bad[0], 1]:g} is not in the file ({m} cameras, {n} points)")
     return BALProblem(obs[:, 0].astype(np.int64), obs[:, 1].astype(np.int64), obs[:, 2:].copy(), cams, pts)
+
+
+def read_ascii_text(path: str | os.PathLike, what: str) -> str:
+    """The whole file as text; a missing file, or a byte that is not ASCII, is an InputError naming it.
+
+    BAL and bounds files hold numbers and keywords only: a non-ASCII byte means a wrong or damaged file.
+    """
+    try:
+        data = Path(path).read_bytes()
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    try:
+        return data.decode("ascii")
+    except UnicodeDecodeError as exc:
+        raise InputError(f"{path}: not {what} (byte {exc.start} is {data[exc.start]:#04x}, not ASCII text)") from None
 
 
 def write_bal(path: str | os.PathLike, bal: BALProblem) -> None:
@@ -88,20 +109,17 @@ def write_bal(path: str | os.PathLike, bal: BALProblem) -> None:
 def _parse_indices(token: str, count: int, where: str) -> np.ndarray:
     if token == "*":
         return np.arange(count)
-    out = []
+    ranges = []
     for part in token.split(","):
         try:
-            if "-" in part:
-                a, b = (int(v) for v in part.split("-", 1))
-                out.extend(range(a, b + 1))
-            else:
-                out.append(int(part))
+            a, b = (int(v) for v in part.split("-", 1)) if "-" in part else (int(part),) * 2
         except ValueError:
             raise InputError(f"{where}: bad index list {token!r} (use *, 7, 0-9 or 1,4,10-12)") from None
-    idx = np.array(out, dtype=np.int64)
-    if idx.size == 0 or idx.min() < 0 or idx.max() >= count:
-        raise InputError(f"{where}: index out of range [0, {count}) in {token!r}")
-    return idx
+        # checked before expanding: '0-999999999999' must not allocate a trillion indices
+        if a < 0 or b >= count or a > b:
+            raise InputError(f"{where}: index out of range [0, {count}) in {token!r}")
+        ranges.append(np.arange(a, b + 1, dtype=np.int64))
+    return np.concatenate(ranges)
 
 
 def _parse_floats(tokens: list[str], count: int, where: str) -> list[float]:

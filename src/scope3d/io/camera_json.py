@@ -35,7 +35,10 @@ def read_camera_json(path: str | Path) -> Camera:
         # bool is an int subclass in Python; "width": true is a mistake, not 1 pixel.
         if isinstance(data[k], bool) or not isinstance(data[k], (int, float)):
             raise InputError(f"{path}: {k} = {data[k]!r} is not a number")
-        values[k] = float(data[k])
+        try:
+            values[k] = float(data[k])
+        except OverflowError:  # a JSON integer beyond float64 range
+            raise InputError(f"{path}: {k} is too large") from None
     bad = [k for k, v in values.items() if not math.isfinite(v)]
     if bad:
         raise InputError(f"{path}: {', '.join(bad)} is NaN or infinite")
@@ -43,7 +46,7 @@ def read_camera_json(path: str | Path) -> Camera:
         if values[k] != int(values[k]):
             raise InputError(f"{path}: {k} = {data[k]} is not a whole number of pixels")
     mask = data.get("mask_radius_px")
-    if mask is not None and (isinstance(mask, bool) or not isinstance(mask, (int, float)) or not math.isfinite(mask)):
+    if mask is not None and (isinstance(mask, bool) or not isinstance(mask, (int, float)) or not _finite(mask)):
         raise InputError(f"{path}: mask_radius_px = {mask!r} must be a finite number or null")
     try:
         return Camera(
@@ -54,6 +57,13 @@ def read_camera_json(path: str | Path) -> Camera:
         raise InputError(f"{path}: {exc}") from None
 
 
+def _finite(value: int | float) -> bool:
+    try:
+        return math.isfinite(value)
+    except OverflowError:  # an int beyond float64 range
+        return False
+
+
 def _read_json_object(path: Path) -> dict:
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
@@ -61,6 +71,10 @@ def _read_json_object(path: Path) -> dict:
         raise InputError(f"{path}: not valid JSON ({exc.msg} at line {exc.lineno})") from None
     except (UnicodeDecodeError, OSError) as exc:
         raise InputError(f"{path}: cannot read ({exc})") from None
+    except ValueError as exc:  # an integer of more than 4300 digits
+        raise InputError(f"{path}: not valid JSON ({exc})") from None
+    except RecursionError:
+        raise InputError(f"{path}: not valid JSON (arrays or objects nested too deeply)") from None
     if not isinstance(data, dict):
         raise InputError(f"{path}: expected a JSON object {{...}}, found {type(data).__name__}")
     return data

@@ -359,7 +359,10 @@ def _read_images(path: Path, camera_index: dict[int, int], scale: float):
             raise InputError(f"{where}: camera {camera_id} is not in cameras.txt")
         # The name is the rest of the line (COLMAP writes it last; it cannot contain white space).
         name = " ".join(tokens[9:])
-        pose = Pose(quaternion_to_matrix(q), np.array([tx, ty, tz]) * scale)
+        try:
+            pose = Pose(quaternion_to_matrix(q), np.array([tx, ty, tz]) * scale)
+        except ValueError as exc:  # finite in the model's unit, beyond float64 in mm
+            raise InputError(f"{where}: translation in mm: {exc}") from None
         # The next line holds the 2D points, and may be empty: it is read whatever it holds.
         points_line = lines[i][1].strip() if i < len(lines) else ""
         points_number = lines[i][0] if i < len(lines) else number + 1
@@ -396,10 +399,12 @@ def _read_points(path: Path, image_index: dict[int, int], keypoints: list[np.nda
         if len(tokens) < 8 or (len(tokens) - 8) % 2:
             raise InputError(f"{where}: expected POINT3D_ID X Y Z R G B ERROR then (IMAGE_ID POINT2D_IDX) pairs")
         x, y, z, r, g, b, err = _floats(path, number, tokens[1:8], "X Y Z R G B ERROR")
+        if not all(0 <= c <= 255 and c == round(c) for c in (r, g, b)):
+            raise InputError(f"{where}: R G B must be whole numbers from 0 to 255")
         try:
             track = np.array([int(t) for t in tokens[8:]], np.int64).reshape(-1, 2)
             ids.append(int(tokens[0]))
-        except ValueError:
+        except (ValueError, OverflowError):  # OverflowError: beyond int64
             raise InputError(f"{where}: POINT3D_ID and track entries must be integers") from None
         for image_id, kp in track:
             if image_id not in image_index:

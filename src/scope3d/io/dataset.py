@@ -106,14 +106,18 @@ def load_dataset(root: str | Path, *, check_images: bool = False) -> Dataset:
     ground_truth = _load_ground_truth(root / "ground_truth", names, scale)
     if check_images:
         for p in frame_paths + (fluorescence_paths or []):
-            img = read_image(p)
-            if img.shape[:2] != (camera.height, camera.width):
-                raise InputError(
-                    f"{p}: image is {img.shape[1]}x{img.shape[0]}, camera.json says {camera.width}x{camera.height}"
-                )
+            _check_size(p, read_image(p), camera)
         if ground_truth is not None:
             _check_ground_truth_files(ground_truth, camera)
     return Dataset(root, camera, frame_paths, poses, fluorescence_paths, ground_truth, metadata)
+
+
+def _check_size(path: Path, image: np.ndarray, camera: Camera) -> np.ndarray:
+    if image.shape[:2] != (camera.height, camera.width):
+        raise InputError(
+            f"{path}: image is {image.shape[1]}x{image.shape[0]}, camera.json says {camera.width}x{camera.height}"
+        )
+    return image
 
 
 def _load_ground_truth(gt_dir: Path, names: list[str], scale: float) -> GroundTruth | None:
@@ -168,6 +172,7 @@ def write_dataset(
     true_depths: list[np.ndarray] | None = None,
     scene: dict | None = None,
     metadata: dict | None = None,
+    extra_images: dict[str, np.ndarray] | None = None,
 ) -> Path:
     """Write a dataset folder atomically (built beside ``out_dir``, then renamed into place).
 
@@ -177,6 +182,8 @@ def write_dataset(
     poses : measured ``cam_from_world`` per frame, mm. names : plain file names, default ``0000.png``...
     fluorescence : like ``frames``. true_depths : (H, W) z-depth in mm per frame, NaN where no surface.
     metadata : merged into ``dataset.json`` (e.g. ``{"source": {...}}`` provenance).
+    extra_images : file name -> image, written at the top of the folder with the rest (contact sheets),
+        so that the folder appears complete or not at all.
 
     If anything fails, ``out_dir`` is left as it was (absent, or the previous dataset).
     """
@@ -224,6 +231,8 @@ def write_dataset(
                     np.save(gt / "depth" / (Path(name).stem + ".npy"), np.asarray(depth, dtype=np.float32))
             if scene is not None:
                 write_json(gt / "scene.json", scene)
+        for name, image in (extra_images or {}).items():
+            write_image(tmp / name, image)
     return out_dir
 
 
@@ -282,8 +291,10 @@ class Dataset:
         return [p.name for p in self.frame_paths]
 
     def frame(self, index: int, *, grey: bool = False) -> np.ndarray:
-        """(H, W, 3) uint8 RGB, or (H, W) uint8 with ``grey=True``."""
-        return read_image(self.frame_paths[index], grey=grey)
+        """(H, W, 3) uint8 RGB, or (H, W) uint8 with ``grey=True``; a frame of another size than
+        ``camera.json`` says is an InputError naming it (checked here too: ``load_dataset`` decodes
+        no image unless asked)."""
+        return _check_size(self.frame_paths[index], read_image(self.frame_paths[index], grey=grey), self.camera)
 
     def summary(self) -> str:
         """Several lines saying what the dataset holds (what ``scope3d check`` prints)."""
@@ -326,7 +337,7 @@ class Dataset:
         """(H, W) uint8 fluorescence intensity (the green emission channel)."""
         if not self.fluorescence_paths:
             raise InputError(f"{self.root}: dataset has no fluorescence frames")
-        img = read_image(self.fluorescence_paths[index])
+        img = _check_size(self.fluorescence_paths[index], read_image(self.fluorescence_paths[index]), self.camera)
         return img[..., 1]
 
 

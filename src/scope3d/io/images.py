@@ -9,6 +9,10 @@ import numpy as np
 from scope3d.errors import InputError
 from scope3d.utils.atomic import atomic_file
 
+# Larger images are refused before decoding: 100 Mpx is 300 MB of RGB, beyond any endoscope or borescope
+# sensor, while a damaged header can claim up to OpenCV's own limit of 2^30 px (3 GB) and have it allocated.
+MAX_IMAGE_PIXELS = 100_000_000
+
 
 def read_image(path: str | Path, *, grey: bool = False) -> np.ndarray:
     """Read an image as RGB uint8 (H, W, 3), or grey (H, W). A missing or corrupt file is an InputError.
@@ -23,6 +27,13 @@ def read_image(path: str | Path, *, grey: bool = False) -> np.ndarray:
         data = np.frombuffer(path.read_bytes(), dtype=np.uint8)
     except OSError as exc:
         raise InputError(f"{path}: cannot read image ({exc.strerror})") from None
+    bad_chunk = _png_chunk_overrun(data)
+    if bad_chunk:
+        raise InputError(f"{path}: not a readable image ({bad_chunk})")
+    pixels = _claimed_pixels(data)
+    if pixels is not None and pixels > MAX_IMAGE_PIXELS:
+        raise InputError(f"{path}: the image header claims {pixels / 1e6:.0f} Mpx, more than scope3d reads "
+                         f"({MAX_IMAGE_PIXELS / 1e6:.0f} Mpx; a damaged header?)")
     flag = cv2.IMREAD_GRAYSCALE if grey else cv2.IMREAD_COLOR
     old_level = cv2.utils.logging.getLogLevel()
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
@@ -37,6 +48,49 @@ def read_image(path: str | Path, *, grey: bool = False) -> np.ndarray:
     if img.dtype != np.uint8:
         img = cv2.convertScaleAbs(img, alpha=255.0 / max(float(img.max()), 1.0))
     return img if grey else cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def _png_chunk_overrun(data: np.ndarray) -> str | None:
+    """What is wrong when a PNG chunk claims more bytes than the file holds, else None. OpenCV's PNG reader
+    allocates a chunk's claimed length before reading it: a damaged length (up to 4 GB) must not reach it."""
+    raw = data.tobytes()
+    if not raw.startswith(_PNG_SIGNATURE):
+        return None
+    position = len(_PNG_SIGNATURE)
+    while position + 8 <= len(raw):
+        length = int.from_bytes(raw[position:position + 4], "big")
+        kind = raw[position + 4:position + 8]
+        if position + 12 + length > len(raw):
+            return (f"PNG chunk {kind.decode('latin-1')!r} at byte {position} claims {length} bytes, "
+                    f"the file has {len(raw) - position - 12} left")
+        if kind == b"IEND":
+            return None
+        position += 12 + length
+    return None
+
+
+def _claimed_pixels(data: np.ndarray) -> int | None:
+    """Width x height from the file's header without decoding it (Pillow reads headers lazily), or None
+    when Pillow does not know the format (OpenCV then decodes it, or refuses it)."""
+    import io
+    import re
+    import warnings
+
+    from PIL import Image
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # DecompressionBombWarning: the size is checked by the caller
+            with Image.open(io.BytesIO(data.tobytes())) as image:
+                return image.size[0] * image.size[1]
+    except Image.DecompressionBombError as exc:  # beyond twice Pillow's own limit; its message has the count
+        found = re.search(r"\((\d+) pixels\)", str(exc))
+        return int(found[1]) if found else MAX_IMAGE_PIXELS + 1
+    except Exception:  # not a format Pillow knows, or a damaged file: OpenCV has the last word
+        return None
 
 
 def write_image(path: str | Path, image: np.ndarray) -> None:

@@ -57,7 +57,8 @@ def read_middlebury_par(par_path: str | Path) -> tuple[list[str], list[np.ndarra
     if not rows:
         raise InputError(f"{path}: file is empty")
     first_line, first = rows[0]
-    if len(first) != 1 or not first[0].isdigit():
+    # more than 18 digits is no image count (and int() refuses strings of over 4300 digits)
+    if len(first) != 1 or not first[0].isdigit() or len(first[0]) > 18:
         raise InputError(f"{path} line {first_line}: expected the number of images")
     count = int(first[0])
     if len(rows) - 1 != count:
@@ -83,9 +84,13 @@ def read_middlebury_par(par_path: str | Path) -> tuple[list[str], list[np.ndarra
             raise InputError(f"{where}: R is {exc}") from None
         if tokens[0] in names:
             raise InputError(f"{where}: image {tokens[0]} is listed twice")
+        try:
+            pose = Pose(rotation, t * MM_PER_M)
+        except ValueError as exc:  # finite metres, infinite millimetres (t beyond 1.8e305 m)
+            raise InputError(f"{where}: t in mm: {exc}") from None
         names.append(tokens[0])
         ks.append(k)
-        poses.append(Pose(rotation, t * MM_PER_M))
+        poses.append(pose)
         corrections.append(correction)
     return names, ks, poses, corrections
 
@@ -156,7 +161,10 @@ def read_middlebury_bounding_box(readme_path: str | Path) -> np.ndarray | None:
     triples = _TRIPLE.findall(text[at:])[:2]
     if len(triples) < 2:
         return None
-    box = np.array(triples, dtype=float)
+    try:
+        box = np.array(triples, dtype=float)
+    except ValueError:  # the pattern also matches signs and dots that are no number ('--5', '.')
+        return None
     if not np.all(np.isfinite(box)) or np.any(box[0] > box[1]):
         return None
     return box

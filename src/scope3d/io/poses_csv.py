@@ -101,8 +101,12 @@ def _read_pose_rows(path: Path, length_scale_to_mm: float) -> tuple[list[str], l
             np.array([values["tol_x_mm"], values["tol_y_mm"], values["tol_z_mm"]]) * length_scale_to_mm,
             [values["tol_rx_deg"], values["tol_ry_deg"], values["tol_rz_deg"]],
         )
+        try:
+            pose = Pose.from_centre(world_from_cam.T, centre)
+        except ValueError as exc:  # finite in the file's unit, beyond float64 in mm
+            raise InputError(f"{where}: position in mm: {exc}") from None
         names.append(name)
-        poses.append(MeasuredPose(Pose.from_centre(world_from_cam.T, centre), tolerance))
+        poses.append(MeasuredPose(pose, tolerance))
         row_numbers.append(row_number)
     if not poses:
         raise InputError(f"{path}: pose file has a header but no rows")

@@ -23,7 +23,6 @@ import numpy as np
 from scope3d.errors import InputError
 from scope3d.geometry.pose import Pose
 from scope3d.io.dataset import write_dataset
-from scope3d.io.images import write_image
 from scope3d.phantoms.render import RenderOptions, render_frame, sequence_exposure, supersample_factor
 from scope3d.phantoms.scenes import SCENE_TRAJECTORIES, SCENES, THREADS, Scene, build_scene
 from scope3d.phantoms.tool import paint_tool, tool_mask
@@ -242,19 +241,20 @@ def write(sequence: PhantomSequence, out_dir: str | Path, *, contact_sheet_px: i
     """Write the dataset folder (see :mod:`scope3d.io.dataset`), ground truth included, and
     ``contact_sheet.png`` (plus ``contact_sheet_fluorescence.png`` when the scene has targets)."""
     out_dir = Path(out_dir)
+    # the contact sheets go into the dataset's atomic write: a kill never leaves a dataset without them
+    sheets = {"contact_sheet.png": contact_sheet(sequence.frames, thumb_px=contact_sheet_px)}
+    if sequence.fluorescence is not None:
+        sheets["contact_sheet_fluorescence.png"] = contact_sheet(sequence.fluorescence, thumb_px=contact_sheet_px)
+    if sequence.tool_mask is not None:
+        sheets[TOOL_MASK_FILE] = np.where(sequence.tool_mask, 255, 0).astype(np.uint8)
     write_dataset(
         out_dir, sequence.camera, sequence.frames, sequence.measured_poses, names=sequence.names,
         fluorescence=sequence.fluorescence, true_poses=sequence.true_poses, true_surface=sequence.surface,
         true_depths=sequence.depths, scene=sequence.scene_info,
         metadata={"source": "scope3d phantom lab", "scene_name": sequence.scene.name,
                   "trajectory": sequence.trajectory.name},
+        extra_images=sheets,
     )
-    write_image(out_dir / "contact_sheet.png", contact_sheet(sequence.frames, thumb_px=contact_sheet_px))
-    if sequence.tool_mask is not None:
-        write_image(out_dir / TOOL_MASK_FILE, np.where(sequence.tool_mask, 255, 0).astype(np.uint8))
-    if sequence.fluorescence is not None:
-        write_image(out_dir / "contact_sheet_fluorescence.png",
-                    contact_sheet(sequence.fluorescence, thumb_px=contact_sheet_px))
     return out_dir
 
 

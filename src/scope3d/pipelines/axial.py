@@ -28,6 +28,7 @@ from scope3d.mvs.dense_matching import SgmOptions
 from scope3d.mvs.multiview import MultiViewOptions, reconstruct_reference, reference_frames
 from scope3d.mvs.two_view import ImageDepth, TwoViewOptions, grid_mesh_faces, reconstruct_pair, to_image
 from scope3d.scene.mesh import Mesh, PointCloud
+from scope3d.utils.atomic import atomic_directory
 from scope3d.utils.figures import new_figure, save_figure
 from scope3d.utils.jsonio import write_json
 from scope3d.utils.progress import Progress, advance, stage
@@ -134,7 +135,7 @@ def reconstruct(options: AxialOptions, dataset: Dataset, *, progress: Progress |
         res = reconstruct_pair(cam, dataset.frame(i, grey=True), dataset.frame(j, grey=True), poses[i], poses[j], tv)
         depth = to_image(res.pair, res.range_mm, res.reliability.confidence)
         front = j if not res.pair.swapped else i
-        timing = {"pairs": 1, "time_per_pair_s": res.time_s["total"], "stages_s": res.time_s,
+        timing = {"pairs": 1, "timings_s": {"per_pair": res.time_s["total"], "stages": res.time_s},
                   "frames": [i, j], "front_frame": front, "baseline_mm": res.pair.baseline_mm,
                   "axis_angle_deg": float(np.rad2deg(res.pair.axis_angle_rad))}
         return [depth], [dataset.frame(front)], timing
@@ -152,7 +153,7 @@ def reconstruct(options: AxialOptions, dataset: Dataset, *, progress: Progress |
         advance(progress)
     n_pairs = len(refs) * len(mv.baseline_offsets)
     elapsed = time.perf_counter() - t0
-    return depths, colours, {"pairs": n_pairs, "references": refs, "time_per_pair_s": elapsed / n_pairs}
+    return depths, colours, {"pairs": n_pairs, "references": refs, "timings_s": {"per_pair": elapsed / n_pairs}}
 
 
 def build_geometry(depths: list[ImageDepth], colours: list[np.ndarray], max_edge_ratio: float) -> tuple[PointCloud, Mesh]:
@@ -203,8 +204,9 @@ def save_depth_png(path: Path, depth: ImageDepth, *, title: str) -> None:
 
 def run(options: AxialOptions, dataset: Dataset, out_dir: str | Path | None, *,
         progress: Progress | None = None) -> AxialResult:
-    """Reconstruct, evaluate and (when ``out_dir`` is given) write the job's files. progress : tqdm-like
-    or None (:mod:`scope3d.utils.progress`)."""
+    """Reconstruct, evaluate and (when ``out_dir`` is given) write the job's files, atomically: ``out_dir`` is
+    replaced as a whole once the new folder is complete. progress : tqdm-like or None
+    (:mod:`scope3d.utils.progress`)."""
     t0 = time.perf_counter()
     depths, colours, timing = reconstruct(options, dataset, progress=progress)
     cloud, mesh = build_geometry(depths, colours, options.max_mesh_edge_ratio)
@@ -223,16 +225,19 @@ def run(options: AxialOptions, dataset: Dataset, out_dir: str | Path | None, *,
     if summary is not None:
         report["surface_error_mm"] = summary
     if out_dir is not None:
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        write_ply(out / "cloud.ply", cloud)
-        write_ply(out / "mesh.ply", mesh)
-        save_depth_png(out / "depth.png", depths[len(depths) // 2], title=f"axial {options.method}: depth")
-        if distances is not None:
-            from scope3d.metrology.evaluation import save_error_histogram_png
-
-            save_error_histogram_png(out / "error_histogram.png", distances,
-                                     title=f"axial {options.method}: distance to the true surface")
-        write_json(out / "report.json", report)
+        with atomic_directory(Path(out_dir)) as out:  # the previous complete folder until this one is
+            _write_files(out, options, cloud, mesh, depths, distances, report)
     return AxialResult(cloud, mesh, depths, report, Path(out_dir) if out_dir is not None else None)
 
+
+def _write_files(out: Path, options: AxialOptions, cloud: PointCloud, mesh: Mesh, depths: list[ImageDepth],
+                 distances: np.ndarray | None, report: dict) -> None:
+    write_ply(out / "cloud.ply", cloud)
+    write_ply(out / "mesh.ply", mesh)
+    save_depth_png(out / "depth.png", depths[len(depths) // 2], title=f"axial {options.method}: depth")
+    if distances is not None:
+        from scope3d.metrology.evaluation import save_error_histogram_png
+
+        save_error_histogram_png(out / "error_histogram.png", distances,
+                                 title=f"axial {options.method}: distance to the true surface")
+    write_json(out / "report.json", report)

@@ -251,8 +251,9 @@ class MapResult:
             d, i = r["surface_error_mm"]["direct"], r["surface_error_mm"]["after_icp"]
             lines.append(f"surface error: direct mean {d['mean']:.3f} mm ({100 * d['within_1mm_fraction']:.1f} % "
                          f"within 1 mm), after ICP mean {i['mean']:.3f} mm ({100 * i['within_1mm_fraction']:.1f} %)")
-        if r.get("targets"):
-            lines.append(f"targets: {len(r['targets'])} found")
+        if "targets" in r:  # an empty fluorescence channel (no residual tumour) is a result, not an error
+            lines.append(f"targets: {len(r['targets'])} found" if r["targets"] else
+                         f"targets: no targets (no fluorescence above {r['fluorescence_threshold']})")
         return "\n".join(lines)
 
 

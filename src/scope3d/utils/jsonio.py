@@ -28,3 +28,20 @@ def write_json(path: str | os.PathLike, obj, *, indent: int = 2) -> None:
     numpy values and paths are converted by :func:`json_default`."""
     with atomic_file(path) as fh:
         fh.write(json.dumps(obj, indent=indent, default=json_default) + "\n")
+
+
+# What a report measures of the machine rather than of the data: these fields differ between runs.
+TIMING_FIELD_SUFFIXES = ("time_s", "timings_s")
+MACHINE_FIELDS = ("peak_memory_mb",)
+
+
+def without_timings(report):
+    """A copy of a report (nested dicts and lists) without its timing fields: keys ending in ``time_s`` or
+    ``timings_s`` and :data:`MACHINE_FIELDS`. Everything that remains is a function of the input, the
+    options and the seed (``docs/reliability.md``)."""
+    if isinstance(report, dict):
+        return {k: without_timings(v) for k, v in report.items()
+                if not (k.endswith(TIMING_FIELD_SUFFIXES) or k in MACHINE_FIELDS)}
+    if isinstance(report, list):
+        return [without_timings(v) for v in report]
+    return report

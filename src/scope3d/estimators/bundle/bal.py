@@ -41,7 +41,7 @@ import numpy as np
 from scope3d.errors import InputError
 from scope3d.estimators.bundle.problem import BundleProblem
 from scope3d.geometry.rotation import matrix_to_rotvec, rotvec_to_matrix
-from scope3d.io.bal import BALProblem, _parse_floats, _parse_indices
+from scope3d.io.bal import BALProblem, _parse_floats, _parse_indices, read_ascii_text
 
 _FLIP = np.array([1.0, -1.0, -1.0])
 
@@ -103,49 +103,59 @@ def result_to_bal(bal: BALProblem, result) -> BALProblem:
 def apply_bounds_file(problem: BundleProblem, path: str | os.PathLike) -> int:
     """Apply the rules of a bounds file (format in the module docstring) to a problem made by
     :func:`bal_to_problem`. Returns the number of rules applied; raises InputError naming file and line."""
-    with open(path, "r") as handle:
-        lines = handle.readlines()
+    lines = read_ascii_text(path, "a bounds file").splitlines()
     applied = 0
     for number, raw in enumerate(lines, start=1):
         tokens = raw.split("#", 1)[0].split()
         if not tokens:
             continue
         where = f"{path} line {number}"
-        kind = tokens[0]
-        if kind in ("camera", "point"):
-            if len(tokens) < 4:
-                raise InputError(f"{where}: expected '{kind} INDICES COMPONENTS SPEC'")
-            count = problem.num_cameras if kind == "camera" else problem.num_points
-            idx = _parse_indices(tokens[1], count, where)
-            names = []
-            for name in tokens[2].split(","):
-                if kind == "camera" and name in _CAMERA_GROUPS:
-                    names.extend(_CAMERA_GROUPS[name])
-                elif kind == "point" and name == "all":
-                    names.extend(_POINT_COMPONENTS)
-                elif name in (_CAMERA_COMPONENTS if kind == "camera" else _POINT_COMPONENTS):
-                    names.append(name)
-                else:
-                    raise InputError(f"{where}: unknown {kind} component {name!r}")
-            spec = tokens[3:]
-            for name in names:
-                _apply_component(problem, kind, idx, name, spec, where)
-        elif kind == "depth":
-            if len(tokens) != 10:
-                raise InputError(f"{where}: expected 'depth INDICES OX OY OZ AX AY AZ MIN MAX'")
-            idx = _parse_indices(tokens[1], problem.num_points, where)
-            v = _parse_floats(tokens[2:], 8, where)
-            problem.bound_point_depth(v[0:3], v[3:6], v[6], v[7], idx)
-        elif kind == "shell":
-            if len(tokens) != 7:
-                raise InputError(f"{where}: expected 'shell INDICES CX CY CZ RMIN RMAX'")
-            idx = _parse_indices(tokens[1], problem.num_points, where)
-            v = _parse_floats(tokens[2:], 5, where)
-            problem.bound_points_to_shell(v[0:3], v[3], v[4], idx)
-        else:
-            raise InputError(f"{where}: unknown rule {kind!r} (expected camera, point, depth or shell)")
+        try:
+            _apply_rule(problem, tokens, where)
+        except InputError as exc:
+            if str(exc).startswith(where):
+                raise
+            # the problem's own checks (an empty shell, a zero axis) do not know the file: name it
+            raise InputError(f"{where}: {exc}") from None
         applied += 1
     return applied
+
+
+def _apply_rule(problem: BundleProblem, tokens: list[str], where: str) -> None:
+    """Apply one rule of a bounds file (its tokens, comment removed); ``where`` names the file and line."""
+    kind = tokens[0]
+    if kind in ("camera", "point"):
+        if len(tokens) < 4:
+            raise InputError(f"{where}: expected '{kind} INDICES COMPONENTS SPEC'")
+        count = problem.num_cameras if kind == "camera" else problem.num_points
+        idx = _parse_indices(tokens[1], count, where)
+        names = []
+        for name in tokens[2].split(","):
+            if kind == "camera" and name in _CAMERA_GROUPS:
+                names.extend(_CAMERA_GROUPS[name])
+            elif kind == "point" and name == "all":
+                names.extend(_POINT_COMPONENTS)
+            elif name in (_CAMERA_COMPONENTS if kind == "camera" else _POINT_COMPONENTS):
+                names.append(name)
+            else:
+                raise InputError(f"{where}: unknown {kind} component {name!r}")
+        spec = tokens[3:]
+        for name in names:
+            _apply_component(problem, kind, idx, name, spec, where)
+    elif kind == "depth":
+        if len(tokens) != 10:
+            raise InputError(f"{where}: expected 'depth INDICES OX OY OZ AX AY AZ MIN MAX'")
+        idx = _parse_indices(tokens[1], problem.num_points, where)
+        v = _parse_floats(tokens[2:], 8, where)
+        problem.bound_point_depth(v[0:3], v[3:6], v[6], v[7], idx)
+    elif kind == "shell":
+        if len(tokens) != 7:
+            raise InputError(f"{where}: expected 'shell INDICES CX CY CZ RMIN RMAX'")
+        idx = _parse_indices(tokens[1], problem.num_points, where)
+        v = _parse_floats(tokens[2:], 5, where)
+        problem.bound_points_to_shell(v[0:3], v[3], v[4], idx)
+    else:
+        raise InputError(f"{where}: unknown rule {kind!r} (expected camera, point, depth or shell)")
 
 
 def _apply_component(problem: BundleProblem, kind: str, idx: np.ndarray, name: str, spec: list[str], where: str):

@@ -1,0 +1,166 @@
+"""Long fuzzing run of every file reader: hypothesis mutations of valid files, then atheris (coverage-guided,
+libFuzzer) from the same seeds. Writes benchmarks/results/fuzz.json: inputs tried per reader and engine,
+the outcomes (parsed / refused), and every crash (an outcome other than a parse or one InputError line
+naming the file), with the input that caused it.
+
+    PYTHONPATH=src python benchmarks/bench_fuzz.py [--seconds-per-reader 60] [--engines hypothesis,atheris]
+
+atheris runs in a child process per reader (libFuzzer owns its process and exits on the first crash).
+"""
+from __future__ import annotations
+
+import argparse
+import base64
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "tests"))
+sys.path.insert(0, str(REPO / "src"))
+
+from fuzz_targets import MUTATIONS, FuzzCrash, build_targets, mutate  # noqa: E402
+
+RESULTS = REPO / "benchmarks" / "results" / "fuzz.json"
+
+
+def run_hypothesis(target, seconds: float) -> dict:
+    """Random mutation chains (1-4 mutations) for ``seconds``; hypothesis draws them and shrinks crashes."""
+    from hypothesis import HealthCheck, given, settings
+    from hypothesis import strategies as st
+    from hypothesis.errors import HypothesisException
+
+    counts = {"ok": 0, "refused": 0}
+    crashes = []
+    deadline = time.monotonic() + seconds
+    chains = st.lists(st.tuples(st.sampled_from(MUTATIONS), st.floats(0, 1, exclude_max=True),
+                                st.floats(0, 1, exclude_max=True), st.integers(0, 999)), min_size=1, max_size=4)
+
+    class Done(Exception):
+        pass
+
+    @settings(max_examples=10**9, deadline=None, database=None, derandomize=False,
+              suppress_health_check=list(HealthCheck))
+    @given(chains)
+    def check(mutations):
+        if time.monotonic() > deadline:
+            raise Done
+        data = target.seed
+        for kind, a, b, pick in mutations:
+            data = mutate(data, kind, a, b, pick)
+        try:
+            counts[target.run(data)] += 1
+        except FuzzCrash as exc:
+            crashes.append({"error": str(exc)[:300], "input_b64": base64.b64encode(data[:4096]).decode()})
+
+    try:
+        check()
+    except (Done, HypothesisException):
+        pass
+    except Exception as exc:  # hypothesis re-raises the first failure after shrinking
+        if not isinstance(exc, Done):
+            crashes.append({"error": f"{type(exc).__name__}: {exc}"[:300]})
+    target.restore()
+    return {"inputs": counts["ok"] + counts["refused"] + len(crashes), "parsed": counts["ok"],
+            "refused": counts["refused"], "crashes": crashes}
+
+
+_ATHERIS_CHILD = r"""
+import sys, json, tempfile
+from pathlib import Path
+sys.path[:0] = [{src!r}, {tests!r}]
+import atheris
+with atheris.instrument_imports(include=["scope3d"]):
+    import scope3d.io, scope3d.io.dataset, scope3d.io.ply, scope3d.io.images, scope3d.io.bal
+    import scope3d.estimators.bundle
+from fuzz_targets import build_targets, FuzzCrash
+target = build_targets(Path(tempfile.mkdtemp()))[{name!r}]
+counts = {{"ok": 0, "refused": 0}}
+def one(data):
+    counts[target.run(bytes(data))] += 1
+    if sum(counts.values()) % 200 == 1:  # libFuzzer may exit without running atexit handlers
+        Path({progress!r}).write_text(json.dumps(counts))
+atheris.Setup([sys.argv[0], "-max_total_time={seconds}", "-rss_limit_mb=2048", "-timeout=20",
+               "-max_len=65536", "-print_final_stats=1", "-artifact_prefix={work}/", {corpus!r}], one)
+atheris.Fuzz()
+"""
+
+
+def run_atheris(name: str, seed: bytes, seconds: float, work: Path) -> dict:
+    """libFuzzer from the seed file; a crash ends the child (its message and input are recorded)."""
+    corpus = work / f"corpus_{name.replace(' ', '_')}"
+    corpus.mkdir(parents=True, exist_ok=True)
+    (corpus / "seed").write_bytes(seed)
+    progress = work / f"progress_{name.replace(' ', '_')}.json"
+    script = _ATHERIS_CHILD.format(src=str(REPO / "src"), tests=str(REPO / "tests"), name=name,
+                                   progress=str(progress), seconds=int(seconds), corpus=str(corpus), work=str(work))
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=work,
+                          timeout=seconds + 300)
+    stats = {}
+    for line in proc.stderr.splitlines():
+        if line.startswith("stat::number_of_executed_units:"):
+            stats["inputs"] = int(line.split(":")[-1])
+    counts = json.loads(progress.read_text()) if progress.is_file() else {"ok": 0, "refused": 0}
+    crashes = []
+    if proc.returncode != 0:
+        tail = [line for line in proc.stderr.splitlines() if "FuzzCrash" in line or "Error" in line][-3:]
+        crash_files = sorted(p for pattern in ("crash-*", "oom-*", "timeout-*") for p in work.glob(pattern))
+        crashes.append({"error": " | ".join(tail)[:500] or proc.stderr[-500:],
+                        "input_b64": base64.b64encode(crash_files[-1].read_bytes()[:4096]).decode()
+                        if crash_files else None})
+    return {"inputs": stats.get("inputs", counts["ok"] + counts["refused"]), "parsed": counts["ok"],
+            "refused": counts["refused"], "crashes": crashes, "corpus_files": len(list(corpus.iterdir()))}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--seconds-per-reader", type=float, default=60.0)
+    parser.add_argument("--engines", default="hypothesis,atheris")
+    parser.add_argument("--readers", default="", help="comma-separated target names (default: all)")
+    parser.add_argument("--results", type=Path, default=RESULTS, help="JSON to write (benchmarks/results/fuzz.json)")
+    args = parser.parse_args()
+    engines = args.engines.split(",")
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp)
+        targets = build_targets(work / "targets")
+        names = [n for n in targets if not args.readers or n in args.readers.split(",")]
+        report = {
+            "what": "mutated copies of a valid file per reader; acceptable outcomes: a parse, or one InputError "
+                    "line naming the file. A crash is anything else.",
+            "seconds_per_reader_and_engine": args.seconds_per_reader,
+            "load_average_at_start": os.getloadavg(),
+            "python": sys.version.split()[0],
+            "readers": {},
+        }
+        for name in names:
+            entry = {}
+            if "hypothesis" in engines:
+                start = time.process_time()
+                entry["hypothesis"] = run_hypothesis(targets[name], args.seconds_per_reader)
+                entry["hypothesis"]["cpu_s"] = round(time.process_time() - start, 1)
+            if "atheris" in engines:
+                try:
+                    import atheris  # noqa: F401
+
+                    entry["atheris"] = run_atheris(name, targets[name].seed, args.seconds_per_reader, work)
+                except ImportError:
+                    entry["atheris"] = {"skipped": "atheris is not installed"}
+            report["readers"][name] = entry
+            print(name, {k: {kk: (len(vv) if kk == "crashes" else vv) for kk, vv in v.items()}
+                         for k, v in entry.items()}, flush=True)
+        totals = {e: {"inputs": sum(r[e].get("inputs", 0) for r in report["readers"].values() if e in r),
+                      "crashes": sum(len(r[e].get("crashes", [])) for r in report["readers"].values() if e in r)}
+                  for e in engines}
+        report["totals"] = totals
+        report["load_average_at_end"] = os.getloadavg()
+    args.results.parent.mkdir(parents=True, exist_ok=True)
+    args.results.write_text(json.dumps(report, indent=2) + "\n")
+    print("totals", totals)
+
+
+if __name__ == "__main__":
+    main()
