@@ -30,7 +30,9 @@ demo: $(STAMP_CORE)
 	$(BIN)/scope3d map runs/demo/dataset --out runs/demo/map
 	@echo "Open runs/demo/map/ (report.json, *.png, *.ply)."
 
+# Open3D (a peer in the thread benchmark) loads Debian's libusb-1.0-0 when imported.
 test: $(STAMP_ALL)
+	@dpkg -s libusb-1.0-0 >/dev/null 2>&1 || (apt-get update && apt-get install -y libusb-1.0-0)
 	$(BIN)/python -m pytest -q
 
 bench: $(STAMP_ALL)

@@ -378,8 +378,16 @@ def gauge_thread(points: np.ndarray, options: GaugeOptions = GaugeOptions()) -> 
 
     # (4) joint fit
     scale = np.array([1e-3, 1e-3, 1e-2, 1e-2, 1e-3, 1e-2, 1e-2, 1e-2, 1e-2, 1e-2])
+    # Bounds keep a noisy cloud's fit a thread: axis tilt within ~0.1 rad and shift within a thread depth,
+    # the pitch within the searched range, radii within a thread depth of their start, the pitch radius
+    # between them, the half-angle from 15° to 45°.
+    lower = [-0.1, -0.1, -depth_nom, -depth_nom, pitch_nom * (1 - options.pitch_search), -np.inf,
+             r1_0 - depth_nom, r2_0 - depth_nom, r1_0, np.deg2rad(15.0)]
+    upper = [0.1, 0.1, depth_nom, depth_nom, pitch_nom * (1 + options.pitch_search), np.inf,
+             r1_0 + depth_nom, r2_0 + depth_nom, r2_0, np.deg2rad(45.0)]
+    x0 = np.clip(x0, np.array(lower) + 1e-9, np.array(upper) - 1e-9)
     sol = least_squares(residual, x0, loss="soft_l1", f_scale=options.noise_mm, x_scale=scale,
-                        diff_step=1e-6)
+                        diff_step=1e-6, bounds=(lower, upper))
     x = sol.x
     res = sol.fun
     core = np.abs(res) < 3 * options.noise_mm + 3 * 1.4826 * np.median(np.abs(res))

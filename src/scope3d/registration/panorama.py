@@ -35,7 +35,8 @@ class QuadrantCloud:
     """One quadrant's sparse reconstruction in the stacked frame.
 
     index : int, quadrant number (0..k-1, in stage order). angle_deg : float, the stage's rotation.
-    points : (N, 3) float64 mm (stacked frame: the stage's nominal poses).
+    points : (N, 3) float64 mm (stacked frame: the stage's nominal poses; its z axis is the stage's
+        nominal rotation axis through the origin, which the "stage" model needs).
     descriptors : (N, 128) float32, a SIFT descriptor per point (its first observation's).
     colors : (N, 3) uint8 or None.
     """
@@ -56,25 +57,36 @@ class PanoramaOptions:
     """Options of :func:`register_quadrants`.
 
     ratio : float, Lowe's ratio test between the two quadrants' descriptors (default 0.8, the reference's).
-    ransac : RansacOptions of the pairwise rigid fits.
+    ransac : RansacOptions of the pairwise rigid fits (default inlier threshold 0.15 mm: a sparse side-view
+        point triangulated over a 0.1-0.7 mm axial baseline at ~5 mm range is good to ~0.05-0.1 mm along
+        its ray, measured on the phantom's M8 quadrants at 400x320 px).
     min_correspondences : int, a neighbour pair with fewer RANSAC inliers does not overlap (default 12).
-    solve_rotations : bool, solve each quadrant's rotation too (default True: the stage's angle and the
-        camera's tilt are only approximately known); False trusts the stacked rotations (eq. 8.7).
+    model : "stage" (default) or "free". "stage": the rotation stage's model, few unknowns — one rigid
+        mount error ``D`` shared by every quadrant (the camera's offset and tilt from the rotation axis;
+        its rotation about and shift along the axis are the gauge) seen through each quadrant's nominal
+        stage rotation ``S_q`` about the stacked frame's z axis, plus per quadrant a stage-angle error and an
+        axial re-positioning error: ``G_q = Tz(dz_q) Rz(e_q) S_q D S_q^-1`` (quadrant 0: e = dz = 0).
+        "free": a free rigid correction per quadrant (the pose graph; needs no stage, but is noisier).
+    solve_rotations : bool, "free" model only: solve each quadrant's rotation too (default True); False
+        trusts the stacked rotations and solves the offsets only (linear, as eq. 8.7).
     angle_tolerance_deg : float, the quadrants' stage angles must step evenly within this (default 1°).
-    loss_scale_mm : float, scale of the joint solve's robust loss (default 0.03 mm, about the pairwise
-        inlier threshold's half).
+    loss_scale_mm : float, scale of the joint solve's robust loss (default 0.05 mm, a third of the pairwise
+        inlier threshold).
     """
 
     ratio: float = 0.8
-    ransac: RansacOptions = RansacOptions()
+    ransac: RansacOptions = RansacOptions(threshold_mm=0.15)
     min_correspondences: int = 12
+    model: str = "stage"
     solve_rotations: bool = True
     angle_tolerance_deg: float = 1.0
-    loss_scale_mm: float = 0.03
+    loss_scale_mm: float = 0.05
 
     def __post_init__(self) -> None:
         if not 0 < self.ratio <= 1 or self.min_correspondences < 3:
             raise ValueError("need ratio in (0, 1] and min_correspondences >= 3")
+        if self.model not in ("stage", "free"):
+            raise ValueError(f"model must be 'stage' or 'free', got {self.model!r}")
         if not (self.angle_tolerance_deg > 0 and self.loss_scale_mm > 0):
             raise ValueError("need angle_tolerance_deg > 0 and loss_scale_mm > 0")
 
@@ -232,6 +244,41 @@ def solve_panorama(pairs: list[PairRegistration], n_quadrants: int, *, solve_rot
     return poses, rms
 
 
+def _stage_poses(x: np.ndarray, angles_rad: np.ndarray) -> list[Pose]:
+    """``G_q = Tz(dz_q) Rz(e_q) S_q D S_q^-1`` from x = (D's rotation about x, y; D's shift along x, y;
+    e_1..e_k-1; dz_1..dz_k-1)."""
+    k = len(angles_rad)
+    d = Pose(rotvec_to_matrix([x[0], x[1], 0.0]), [x[2], x[3], 0.0])
+    e = np.concatenate([[0.0], x[4:4 + k - 1]])
+    dz = np.concatenate([[0.0], x[4 + k - 1:4 + 2 * (k - 1)]])
+    out = []
+    for q in range(k):
+        s_q = Pose(rotvec_to_matrix([0.0, 0.0, angles_rad[q]]), np.zeros(3))
+        fix = Pose(rotvec_to_matrix([0.0, 0.0, e[q]]), [0.0, 0.0, dz[q]])
+        out.append(fix @ s_q @ d @ s_q.inverse())
+    return out
+
+
+def solve_stage_model(pairs: list[PairRegistration], angles_deg: list[float], *,
+                      loss_scale_mm: float = 0.05) -> tuple[list[Pose], list[float]]:
+    """Joint solve under the rotation-stage model (see :class:`PanoramaOptions`): 4 + 2 (k - 1) unknowns
+    from every pair's correspondences, started at the stacked guess. Returns (world_from_stacked per
+    quadrant, per-pair residual RMS in mm)."""
+    angles = np.deg2rad(np.asarray(angles_deg, float))
+    k = len(angles)
+
+    def residual(x):
+        poses = _stage_poses(x, angles)
+        return np.concatenate([(poses[p.i].transform(p.points_i) - poses[p.j].transform(p.points_j)).ravel()
+                               for p in pairs])
+
+    sol = least_squares(residual, np.zeros(4 + 2 * (k - 1)), loss="soft_l1", f_scale=loss_scale_mm, x_scale="jac")
+    poses = _stage_poses(sol.x, angles)
+    rms = [float(np.sqrt(np.mean(np.sum((poses[p.i].transform(p.points_i) - poses[p.j].transform(p.points_j)) ** 2, 1))))
+           for p in pairs]
+    return poses, rms
+
+
 def loop_closure(pairs: list[PairRegistration], clouds: list[QuadrantCloud]) -> tuple[float, float]:
     """Chain every neighbour pair's ``i_from_j`` round the circle (0 <- 1 <- ... <- k-1 <- 0): its rotation
     angle (degrees) and the displacement of quadrant 0's centroid (mm); both 0 for a perfect loop."""
@@ -264,7 +311,11 @@ def register_quadrants(clouds: list[QuadrantCloud], options: PanoramaOptions = P
     if closed and k > 2:
         loop_deg, loop_mm = loop_closure(pairs, clouds)
         log.append(f"loop closure of the chained pairs: {loop_deg:.3f}°, {loop_mm:.4f} mm")
-    poses, rms = solve_panorama(pairs, k, solve_rotations=options.solve_rotations, loss_scale_mm=options.loss_scale_mm)
+    if options.model == "stage":
+        poses, rms = solve_stage_model(pairs, [c.angle_deg for c in clouds], loss_scale_mm=options.loss_scale_mm)
+    else:
+        poses, rms = solve_panorama(pairs, k, solve_rotations=options.solve_rotations,
+                                    loss_scale_mm=options.loss_scale_mm)
     return PanoramaResult(poses, pairs, loop_deg, loop_mm, rms, step, closed and k > 2, log)
 
 
