@@ -142,7 +142,8 @@ class ThreadDefect:
 @dataclass
 class GaugeResult:
     """What the gauge measured. Diameters, pitch in mm; flank angle in degrees (the included angle, 60 for
-    ISO). axis_point_mm, axis_direction : the fitted axis (cloud frame). verdict : ``pass`` or ``fail``;
+    ISO). axis_point_mm, axis_direction : the fitted axis (cloud frame). verdict : ``pass``, ``fail``, or
+    ``indeterminate`` when the measurement is too uncertain to decide (see :func:`gauge_thread`);
     checks : one line per limit with its outcome; residual_rms_mm : profile fit residual (robust core)."""
 
     minor_diameter_mm: Measured
@@ -434,7 +435,22 @@ def gauge_thread(points: np.ndarray, options: GaugeOptions = GaugeOptions()) -> 
         {"check": f"major diameter {2 * r2:.4f} >= {limits.d_min_mm:.3f}", "ok": bool(2 * r2 >= limits.d_min_mm)},
         {"check": f"{len(defects)} damaged crest(s)", "ok": not defects},
     ]
-    verdict = "pass" if all(c["ok"] for c in checks) else "fail"
+    # A measurement too uncertain to decide (ISO 14253-1: the uncertainty narrows the zone of proven
+    # conformance): expanded uncertainty U = 2 sigma above a quarter of the tolerance (the usual 4:1
+    # gauge-maker's rule; TD1 stands in for the major diameter, which has no width), or a profile
+    # parameter stopped at its bound (the cloud did not show that part of the profile).
+    td1 = limits.d1_max_mm - limits.d1_min_mm
+    td2 = limits.d2_max_mm - limits.d2_min_mm
+    at_bound = bool(np.any(np.isclose(x[6:10], np.array(lower)[6:10], atol=1e-6) |
+                           np.isclose(x[6:10], np.array(upper)[6:10], atol=1e-6)))
+    undecided = [name for name, u, tol in (("minor diameter", 4 * std[6], td1), ("pitch diameter", 4 * std[8], td2),
+                                           ("major diameter", 4 * std[7], td1)) if not u <= tol / 4]
+    if at_bound:
+        undecided.append("profile fit at a bound")
+    checks.append({"check": "uncertainty within a quarter of the tolerance"
+                   + (f" (not: {', '.join(undecided)})" if undecided else ""), "ok": not undecided})
+    failed = [c for c in checks[:-1] if not c["ok"]]
+    verdict = "indeterminate" if undecided else ("fail" if failed else "pass")
     return GaugeResult(
         minor_diameter_mm=Measured(2 * r1, 2 * std[6]), major_diameter_mm=Measured(2 * r2, 2 * std[7]),
         pitch_diameter_mm=Measured(d2, 2 * std[8]), pitch_mm=Measured(pitch, std[4]),

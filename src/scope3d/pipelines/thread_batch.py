@@ -38,12 +38,12 @@ class BatchResult:
     log: list[str] = field(default_factory=list)
 
     def summary(self) -> str:
-        lines = [f"{'hole':24s} {'status':7s} {'verdict':7s} {'D1':>8s} {'D':>8s} {'D2':>8s} {'P':>7s} defects"]
+        lines = [f"{'hole':24s} {'status':7s} {'verdict':13s} {'D1':>8s} {'D':>8s} {'D2':>8s} {'P':>7s} defects"]
         for r in self.rows:
             if r["status"] == "error":
                 lines.append(f"{r['hole']:24s} error   {r['message']}")
                 continue
-            lines.append(f"{r['hole']:24s} {r['status']:7s} {r['verdict']:7s} {r['minor_diameter_mm']:8.4f} "
+            lines.append(f"{r['hole']:24s} {r['status']:7s} {r['verdict']:13s} {r['minor_diameter_mm']:8.4f} "
                          f"{r['major_diameter_mm']:8.4f} {r['pitch_diameter_mm']:8.4f} {r['pitch_mm']:7.4f} {r['defects']}")
         n_done = sum(r["status"] != "error" for r in self.rows)
         lines.append(f"{n_done} of {len(self.rows)} holes measured ({len(self.skipped)} done before) in "
@@ -59,9 +59,13 @@ def hole_names(datasets: list[Path]) -> list[str]:
 
 def _row_from_report(hole: str, report: dict, status: str) -> dict:
     g = report["gauge"]
+
+    def value(key):
+        return g[key]["value"] if key in g else float("nan")
+
     return {"hole": hole, "status": status, "verdict": g["verdict"],
-            "minor_diameter_mm": g["minor_diameter_mm"]["value"], "major_diameter_mm": g["major_diameter_mm"]["value"],
-            "pitch_diameter_mm": g["pitch_diameter_mm"]["value"], "pitch_mm": g["pitch_mm"]["value"],
+            "minor_diameter_mm": value("minor_diameter_mm"), "major_diameter_mm": value("major_diameter_mm"),
+            "pitch_diameter_mm": value("pitch_diameter_mm"), "pitch_mm": value("pitch_mm"),
             "defects": len(g["defects"]), "time_s": sum(v for v in report.get("timings_s", {}).values() if v),
             "message": ""}
 

@@ -65,15 +65,17 @@ class ThreadScanOptions:
 @dataclass
 class ThreadScanResult:
     """clouds : the quadrants (stacked frame); panorama : the registration; points : (N, 3) mm the
-    registered cloud after outlier removal; gauge : the measurement; errors : registration errors
-    against the truth or None; timings_s : per stage."""
+    registered cloud after outlier removal; gauge : the measurement, or None when the cloud shows no
+    gaugeable thread (gauge_message says why; the verdict is then ``indeterminate``); errors :
+    registration errors against the truth or None; timings_s : per stage."""
 
     clouds: list[QuadrantCloud]
     panorama: PanoramaResult
     points: np.ndarray
-    gauge: GaugeResult
+    gauge: GaugeResult | None
     errors: dict | None
     timings_s: dict = field(default_factory=dict)
+    gauge_message: str = ""
 
     def report(self) -> dict:
         g = self.gauge
@@ -87,15 +89,18 @@ class ThreadScanResult:
         }
         if self.errors:
             registration.update(self.errors)
+        gauge = g.to_dict() if g is not None else {"verdict": "indeterminate", "message": self.gauge_message,
+                                                   "defects": []}
         return {
-            "gauge": {**g.to_dict(), "defects": [d.to_dict() for d in g.defects]},
+            "gauge": gauge,
             "registration": registration,
             "points": {"per_quadrant": [len(c.points) for c in self.clouds], "registered": len(self.points)},
             "timings_s": self.timings_s,
         }
 
     def summary(self) -> str:
-        lines = [self.gauge.summary()]
+        lines = [self.gauge.summary() if self.gauge is not None else
+                 f"thread gauge: INDETERMINATE ({self.gauge_message})"]
         p = self.panorama
         if p.loop_closure_deg is not None:
             lines.append(f"registration: loop closure {p.loop_closure_deg:.3f}° / {p.loop_closure_mm:.4f} mm "
@@ -165,10 +170,11 @@ def run(options: ThreadScanOptions, dataset: Dataset, out_dir: str | Path, *,
     t0 = time.perf_counter()
     # The stage's rotation axis (world z, nominal) is the gauge's hint for the hole axis.
     gauge_options = replace(options.gauge, designation=options.designation, axis_hint=(0.0, 0.0, 1.0))
+    gauge, gauge_message = None, ""
     try:
         gauge = gauge_thread(points, gauge_options)
-    except ValueError as exc:
-        raise InputError(f"{dataset.root}: thread gauge: {exc}") from None
+    except ValueError as exc:  # no thread in the cloud: a result to report, not a crash
+        gauge_message = str(exc)
     timings["gauge"] = time.perf_counter() - t0
 
     errors = None
@@ -180,13 +186,13 @@ def run(options: ThreadScanOptions, dataset: Dataset, out_dir: str | Path, *,
                   "rotation_error_per_quadrant_deg": rot.tolist(), "offset_error_per_quadrant_mm": off.tolist(),
                   "stacked_rotation_error_deg": float(rot0.max()), "stacked_offset_error_mm": float(off0.max())}
         made = (dataset.ground_truth.scene.get("thread") or {}).get("as_made")
-        if made:
+        if made and gauge is not None:
             errors["gauge_errors_mm"] = {
                 "minor_diameter": gauge.minor_diameter_mm.value - made["minor_diameter_mm"],
                 "major_diameter": gauge.major_diameter_mm.value - made["major_diameter_mm"],
                 "pitch_diameter": gauge.pitch_diameter_mm.value - made["pitch_diameter_mm"],
                 "pitch": gauge.pitch_mm.value - dataset.ground_truth.scene["thread"]["pitch_mm"]}
-    result = ThreadScanResult(clouds, panorama, points, gauge, errors, timings)
+    result = ThreadScanResult(clouds, panorama, points, gauge, errors, timings, gauge_message)
     write_outputs(result, out_dir)
     return result
 
@@ -201,7 +207,8 @@ def write_outputs(result: ThreadScanResult, out_dir: str | Path) -> None:
             write_ply(tmp / "quadrants" / f"q{c.index:02d}.ply", PointCloud(c.points, c.colors))
         write_json(tmp / "report.json", result.report())
         _registration_figure(result, tmp / "registration.png")
-        _unwrapped_figure(result, tmp / "unwrapped.png")
+        if result.gauge is not None:
+            _unwrapped_figure(result, tmp / "unwrapped.png")
 
 
 def _registration_figure(result: ThreadScanResult, path: Path) -> None:
