@@ -37,7 +37,9 @@ $(BROWSER):
 	DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends chromium chromium-driver || \
 	  { apt-get update && DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends chromium chromium-driver; }
 
+# Open3D (a peer in the thread benchmark) loads Debian's libusb-1.0-0 when imported.
 test: $(STAMP_ALL) $(BROWSER)
+	@dpkg -s libusb-1.0-0 >/dev/null 2>&1 || (apt-get update && apt-get install -y libusb-1.0-0)
 	$(BIN)/python -m pytest -q
 
 bench: $(STAMP_ALL)

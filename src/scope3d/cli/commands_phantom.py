@@ -18,6 +18,16 @@ def _size(text: str) -> tuple[int, int]:
     return w, h
 
 
+def _floats(text: str, n: int, option: str, form: str) -> tuple[float, ...]:
+    try:
+        values = tuple(float(v) for v in text.split(":"))
+    except ValueError:
+        values = ()
+    if len(values) != n or not all(abs(v) < float("inf") for v in values):
+        raise InputError(f"{option} must be {form}, got {text!r}")
+    return values
+
+
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "phantom",
@@ -51,6 +61,18 @@ def register(subparsers) -> None:
                    help="anti-aliasing: K x K rays per pixel (default: the scene's, 2 for thread, 1 elsewhere)")
     p.add_argument("--dome-radius", type=float, default=17.5, metavar="MM", help="dome radius, 15-17.5 mm")
     p.add_argument("--blur", type=float, default=0.0, metavar="PX", help="optical blur sigma in pixels")
+    p.add_argument("--defect", metavar="ANGLE_DEG:WIDTH_DEG:DEPTH_MM",
+                   help="thread: a chipped crest on the middle turn, centred at ANGLE about +z from +x, WIDTH "
+                        "degrees wide, cut back DEPTH mm")
+    p.add_argument("--pitch-diameter-offset", type=float, default=0.0, metavar="MM",
+                   help="thread: pitch diameter D2 above its basic size, mm (6H: 0 to TD2)")
+    p.add_argument("--minor-diameter-offset", type=float, default=0.0, metavar="MM",
+                   help="thread: minor diameter D1 above its basic size, mm (6H: 0 to TD1)")
+    p.add_argument("--major-diameter-offset", type=float, default=0.0, metavar="MM",
+                   help="thread: major diameter D above nominal, mm (6H: >= 0)")
+    p.add_argument("--mount", metavar="DX_MM:DY_MM:TILT_DEG",
+                   help="quadrants: the camera's unknown offset from the rotation axis (mm) and tilt about its "
+                        "image rows (degrees); default 0.08:-0.05:0")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--target", type=int, metavar="N",
                    help="approach trajectory: the target to approach (dome: 1-8); a tool hides part of the view, "
@@ -74,13 +96,19 @@ def run(args) -> int:
         raise InputError(f"--blur must be non-negative, got {args.blur}")
     if args.supersample is not None and not 1 <= args.supersample <= 8:
         raise InputError(f"--supersample must be from 1 to 8, got {args.supersample}")
+    defect = _floats(args.defect, 3, "--defect", "ANGLE_DEG:WIDTH_DEG:DEPTH_MM") if args.defect else None
+    mount = _floats(args.mount, 3, "--mount", "DX_MM:DY_MM:TILT_DEG") if args.mount else None
+    offsets = (args.minor_diameter_offset, args.pitch_diameter_offset, args.major_diameter_offset)
+    if (defect or any(offsets)) and args.scene != "thread":
+        raise InputError("--defect and the diameter offsets apply to the thread scene only")
     with progress_bar(not args.no_progress, "frame") as progress:
         seq = generate(
             args.scene, args.trajectory, seed=args.seed, pose_noise_mm=args.pose_noise, thread=args.thread,
             n_frames=args.frames, size=args.size, fov_deg=args.fov, side_view_deg=args.side_view,
             axis_offset_mm=args.axis_offset, axis_tilt_deg=args.axis_tilt,
             dome_radius_mm=args.dome_radius, options=RenderOptions(blur_sigma_px=args.blur, supersample=args.supersample),
-            progress=progress, target=args.target,
+            progress=progress, target=args.target, thread_offsets_mm=offsets, thread_defect=defect,
+            quadrant_mount=mount,
         )
     out = write(seq, args.out)
     print(f"wrote {len(seq)} frames of {args.scene}/{seq.trajectory.name} "

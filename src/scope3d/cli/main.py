@@ -9,12 +9,18 @@ from scope3d import __version__
 # Each module defines ``register(subparsers)`` which adds one or more sub-commands whose handler is
 # stored as ``func`` and returns an exit status.
 from scope3d.cli import commands_axial, commands_bundle, commands_dataset, commands_map, commands_phantom
-from scope3d.cli import commands_calibrate, commands_localize, commands_report, commands_track_markers
+from scope3d.cli import (
+    commands_calibrate,
+    commands_localize,
+    commands_report,
+    commands_thread,
+    commands_track_markers,
+)
 from scope3d.cli.job_output import EXIT_CODES
 from scope3d.errors import InputError
 
 COMMAND_MODULES = [commands_phantom, commands_dataset, commands_bundle, commands_axial, commands_map, commands_report,
-                   commands_calibrate, commands_localize, commands_track_markers]
+                   commands_calibrate, commands_localize, commands_track_markers, commands_thread]
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -122,6 +122,9 @@ def generate(
     options: RenderOptions = RenderOptions(),
     progress: Progress | None = None,
     target: int | None = None,
+    thread_offsets_mm: tuple = (0.0, 0.0, 0.0),
+    thread_defect: tuple | None = None,
+    quadrant_mount: tuple | None = None,
 ) -> PhantomSequence:
     """Render ``scene`` along ``trajectory`` (the scene's default when None).
 
@@ -140,12 +143,22 @@ def generate(
     target : the ``approach`` trajectory's target id (1..n of the scene's targets); the approach starts
         towards azimuth ``72 * (target - 1)`` degrees, so five targets give five directions. A tool
         (:mod:`scope3d.phantoms.tool`) hides part of every approach frame.
+    thread_offsets_mm : (minor, pitch, major) diameter deviations of the thread as made (mm);
+        thread_defect : (angle_deg, width_deg, depth_mm) chipped crest or None (see
+        :func:`~scope3d.phantoms.scenes.build_thread`).
+    quadrant_mount : (offset_x_mm, offset_y_mm, tilt_deg) of the ``quadrants`` camera from the rotation
+        axis (None: the trajectory's default). For ``quadrants`` the reported poses are the stage's
+        nominal ones (camera on the axis, untilted: what the stage knows), with a tolerance box that covers
+        the mount's offset and tilt; the true poses go to the ground truth, and ``quadrants.json`` maps
+        frames to quadrants (:func:`write`).
     """
     if thread not in THREADS:
         raise InputError(f"unknown thread size {thread!r} (use one of {', '.join(THREADS)})")
     if scene not in SCENES:
         raise InputError(f"unknown scene {scene!r} (use one of {', '.join(SCENES)})")
-    built = build_scene(scene, thread=thread, dome_radius_mm=float(dome_radius_mm), texture_seed=int(texture_seed))
+    built = build_scene(scene, thread=thread, dome_radius_mm=float(dome_radius_mm), texture_seed=int(texture_seed),
+                        thread_offsets_mm=tuple(float(v) for v in thread_offsets_mm),
+                        thread_defect=None if thread_defect is None else tuple(float(v) for v in thread_defect))
     name = trajectory or built.default_trajectory
     if name not in TRAJECTORIES:
         raise InputError(f"unknown trajectory {name!r} (use one of {', '.join(TRAJECTORIES)})")
@@ -160,7 +173,8 @@ def generate(
     try:
         traj = build_trajectory(name, n_frames=n_frames, side_view_deg=side_view_deg,
                                 axis_offset_mm=float(axis_offset_mm), axis_tilt_deg=float(axis_tilt_deg),
-                                target_mm=target_mm, azimuth_deg=72.0 * ((target or 1) - 1))
+                                target_mm=target_mm, azimuth_deg=72.0 * ((target or 1) - 1),
+                                quadrant_mount=quadrant_mount)
     except ValueError as exc:
         raise InputError(str(exc)) from None
     if camera is None:
@@ -188,7 +202,10 @@ def generate(
         fluo = [np.where(blocked[..., None], 0, f).astype(np.uint8) for f in fluo]
         depths = [np.where(blocked, np.nan, d).astype(np.float32) for d in depths]
         tids = [np.where(blocked, 0, t).astype(t.dtype) for t in tids]
-    measured = measure_poses(poses, pose_noise_mm, seed=seed)
+    if name == "quadrants":
+        measured = _stage_reported_quadrant_poses(traj, pose_noise_mm, seed)
+    else:
+        measured = measure_poses(poses, pose_noise_mm, seed=seed)
     info = dict(built.info)
     info.update({
         "trajectory": {"name": name, **traj.params},
@@ -212,6 +229,34 @@ def generate(
         built, camera, frames, fluo if built.targets else None, list(poses), measured, depths, tids, traj, info,
         [f"{i:04d}.png" for i in range(len(poses))], blocked,
     )
+
+
+def _stage_reported_quadrant_poses(traj: Trajectory, pose_noise_mm: float, seed: int) -> list[MeasuredPose]:
+    """What the rotation stage reports for a quadrant scan: its nominal poses (camera on the rotation axis,
+    untilted), with the stage's noise if any, and a tolerance covering the unknown mount."""
+    from scope3d.phantoms.trajectories import quadrant_trajectory
+    from scope3d.sensor.pose_tolerance import PoseTolerance
+
+    p = traj.params
+    nominal = quadrant_trajectory(p["frames_per_quadrant"], step_mm=p["step_mm"], quadrants=p["quadrants"],
+                                  angle_step_deg=p["angle_step_deg"], side_view_deg=p["side_view_deg"],
+                                  start_z_mm=p["start_z_mm"], axis_offset_mm=(0.0, 0.0), axis_tilt_deg=0.0)
+    reported = measure_poses(nominal.poses, pose_noise_mm, seed=seed)
+    mount_mm = float(np.hypot(*p["axis_offset_mm"]))
+    mount_rad = float(np.deg2rad(abs(p["axis_tilt_deg"])))
+    return [MeasuredPose(m.pose, PoseTolerance(m.tolerance.position_mm + mount_mm,
+                                               m.tolerance.orientation_rad + mount_rad)) for m in reported]
+
+
+def quadrant_layout(trajectory: Trajectory, names: list[str]) -> dict:
+    """The ``quadrants.json`` of a quadrant scan: per quadrant its stage angle (degrees) and frames in
+    order of advance, plus the stage's nominal step and side-view angle."""
+    p = trajectory.params
+    m = p["frames_per_quadrant"]
+    return {"angle_step_deg": p["angle_step_deg"], "step_mm": p["step_mm"], "side_view_deg": p["side_view_deg"],
+            "rotation_axis": "world z through the origin (nominal)",
+            "quadrants": [{"index": q, "angle_deg": q * p["angle_step_deg"], "frames": names[q * m:(q + 1) * m]}
+                          for q in range(p["quadrants"])]}
 
 
 def contact_sheet(images: list[np.ndarray], *, columns: int | None = None, thumb_px: int = 160,
@@ -255,6 +300,10 @@ def write(sequence: PhantomSequence, out_dir: str | Path, *, contact_sheet_px: i
                   "trajectory": sequence.trajectory.name},
         extra_images=sheets,
     )
+    if sequence.trajectory.params.get("kind") == "quadrants":
+        from scope3d.utils.jsonio import write_json
+
+        write_json(out_dir / "quadrants.json", quadrant_layout(sequence.trajectory, sequence.names))
     return out_dir
 
 

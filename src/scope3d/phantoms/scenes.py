@@ -488,31 +488,64 @@ def iso_thread_profile(major_mm: float, pitch_mm: float) -> dict:
     }
 
 
-def _thread_segments(pitch: float, r_minor: float, r_major: float):
+def _thread_segments(pitch: float, r_minor: float, r_major: float, r_pitch: float | None = None):
     """One pitch of the profile as straight segments in s (axial phase), each (s0, s1, r0, r1, n_rows).
-    Crest (minor) at s in [0, P/4], falling flank, root (major) flat, rising flank."""
+    Crest (minor) flat centred at s = P/8, falling 60° flank, root (major) flat, rising flank. The tooth is
+    half a pitch wide at the pitch radius ``r_pitch`` (None: the basic one, which gives the ISO 68-1 crest
+    P/4 and root P/8 at the basic diameters)."""
     p = pitch
+    tan30 = np.tan(np.pi / 6)
+    if r_pitch is None:
+        r_pitch = r_minor + 0.25 * p / (2 * tan30)
+    crest = p / 2 - 2 * (r_pitch - r_minor) * tan30
+    root = p / 2 - 2 * (r_major - r_pitch) * tan30
+    if crest <= 0 or root <= 0:
+        raise InputError(f"thread profile impossible: crest flat {crest:.3f} mm, root flat {root:.3f} mm "
+                         "(pitch diameter offset too large)")
+    a0 = p / 8 - crest / 2
+    a1 = a0 + crest
+    a2 = a1 + (r_major - r_minor) * tan30
+    a3 = a2 + root
     return [
-        (0.0, p / 4, r_minor, r_minor, 4),
-        (p / 4, 9 * p / 16, r_minor, r_major, 10),
-        (9 * p / 16, 11 * p / 16, r_major, r_major, 2),
-        (11 * p / 16, p, r_major, r_minor, 10),
+        (a0, a1, r_minor, r_minor, 4),
+        (a1, a2, r_minor, r_major, 10),
+        (a2, a3, r_major, r_major, 2),
+        (a3, a0 + p, r_major, r_minor, 10),
     ]
 
 
-def build_thread(size: str = "M8x1.25", *, texture_seed: int = 0, mm_per_texel: float = 0.006) -> Scene:
+def build_thread(size: str = "M8x1.25", *, texture_seed: int = 0, mm_per_texel: float = 0.006,
+                 minor_diameter_offset_mm: float = 0.0, pitch_diameter_offset_mm: float = 0.0,
+                 major_diameter_offset_mm: float = 0.0, defect: tuple | None = None) -> Scene:
     """Blind hole with an ISO 68-1 internal thread (right-handed), counterbore and drill point.
 
     Axis = z, opening at z = 0. From the top: a plain scored counterbore of diameter D + 0.4 mm and depth
     1 mm, the helical thread over 1.5 D, a plain bore at the minor diameter for 1 mm, and a 118° drill point.
     The helical surface is a grid in (theta, s) with z = s + P theta / (2 pi) and r = profile(s), so its
     vertices lie exactly on the crest and root flats (rows < P/8 apart) and on the crease helices.
+
+    minor_diameter_offset_mm, pitch_diameter_offset_mm, major_diameter_offset_mm : the tapped hole's
+        deviations from the basic sizes D1, D2, D (mm; a real 6H hole sits above them, within its
+        tolerances), with 60° flanks kept.
+    defect : (angle_deg, width_deg, depth_mm) or None: a chipped crest on the turn nearest the middle of
+        the thread, centred at ``angle_deg`` (about +z from +x), ``width_deg`` wide, its crest cut back
+        outwards by ``depth_mm`` (less than the thread depth).
     """
     if size not in THREADS:
         raise InputError(f"unknown thread size {size!r} (use one of {', '.join(THREADS)})")
     major, pitch = THREADS[size]
     prof = iso_thread_profile(major, pitch)
-    r_major, r_minor = major / 2, prof["minor_diameter_mm"] / 2
+    r_major = (major + major_diameter_offset_mm) / 2
+    r_minor = (prof["minor_diameter_mm"] + minor_diameter_offset_mm) / 2
+    r_pitch = (major - 0.649519 * pitch + pitch_diameter_offset_mm) / 2  # ISO 724: D2 = D - 0.6495 P
+    if not r_minor < r_pitch < r_major:
+        raise InputError(f"thread diameters out of order: D1 {2 * r_minor:.3f}, D2 {2 * r_pitch:.3f}, "
+                         f"D {2 * r_major:.3f} mm")
+    if defect is not None:
+        d_angle, d_width, d_depth = (float(v) for v in defect)
+        if not (0 < d_width < 360 and 0 < d_depth < r_major - r_minor):
+            raise InputError(f"defect needs a width in (0, 360) degrees and a depth in (0, {r_major - r_minor:.3f}) "
+                             f"mm, got {d_width} degrees and {d_depth} mm")
     cb_radius, cb_depth = r_major + 0.2, 1.0
     z_top, z_bottom = -cb_depth, -cb_depth - 1.5 * major
     z_bore_end = z_bottom - 1.0
@@ -526,13 +559,25 @@ def build_thread(size: str = "M8x1.25", *, texture_seed: int = 0, mm_per_texel: 
     # Pitches so that, for every theta, the helical grid spans [z_bottom, z_top]; clamped beyond.
     k_lo = int(np.floor((z_bottom - pitch) / pitch)) - 1
     k_hi = int(np.ceil(z_top / pitch)) + 1
+    defect_turn = int(round(((z_top + z_bottom) / 2 - pitch / 8) / pitch))  # crest turn in the middle
+    defect_info = None
     for k in range(k_lo, k_hi):
-        for s0, s1, r0, r1, n_rows in _thread_segments(pitch, r_minor, r_major):
+        for s0, s1, r0, r1, n_rows in _thread_segments(pitch, r_minor, r_major, r_pitch):
             s = k * pitch + np.linspace(s0, s1, n_rows + 1)
             r = np.linspace(r0, r1, n_rows + 1)
             slope = (r1 - r0) / (s1 - s0)  # dr/ds, constant on a segment
             z = s[:, None] + lead * theta[None, :]
             rr = np.broadcast_to(r[:, None], z.shape)
+            if defect is not None and k == defect_turn:
+                # The chip: the crest (and the flanks' inner parts) cut back to r_minor + depth over the
+                # angular window; the cut face's normals point at the axis.
+                off = np.rad2deg(np.angle(np.exp(1j * (theta - np.deg2rad(d_angle)))))
+                window = np.broadcast_to(np.abs(off)[None, :] <= d_width / 2, z.shape)
+                cut = window & (rr < r_minor + d_depth)
+                rr = np.where(cut, r_minor + d_depth, rr)
+                defect_info = {"angle_deg": d_angle, "width_deg": d_width, "depth_mm": d_depth,
+                               "crest_turn_z_mm": float(k * pitch + pitch / 8 + lead * np.deg2rad(d_angle % 360)),
+                               "kind": "chipped crest, cut back to r_minor + depth"}
             c, sn = np.cos(theta)[None, :], np.sin(theta)[None, :]
             # Normal of X(s, t) = (r cos t, r sin t, s + lead t): X_s x X_t, pointed at the axis.
             xs = np.stack(np.broadcast_arrays(slope * c, slope * sn, np.ones_like(z)), -1)
@@ -540,6 +585,8 @@ def build_thread(size: str = "M8x1.25", *, texture_seed: int = 0, mm_per_texel: 
             nrm = np.cross(xs, xt)
             radial = np.stack(np.broadcast_arrays(c, sn, np.zeros_like(z)), -1)
             nrm *= -np.sign(np.sum(nrm * radial, axis=-1, keepdims=True))
+            if defect is not None and k == defect_turn:
+                nrm[cut] = -radial[cut]
             # Beyond the thread's ends the helical surface is flattened onto the end planes (the thread
             # run-out): the shoulder under the counterbore faces up, the last flank's underside faces down.
             top, bottom = z > z_top, z < z_bottom
@@ -603,6 +650,11 @@ def build_thread(size: str = "M8x1.25", *, texture_seed: int = 0, mm_per_texel: 
             "thread_top_z_mm": z_top, "thread_bottom_z_mm": z_bottom,
             "profile_phase": "crest flat (minor diameter) centred at z = P/8 + P*theta/(2 pi) + k P, "
                              "theta = atan2(y, x)",
+            "as_made": {"minor_diameter_mm": 2 * r_minor, "pitch_diameter_mm": 2 * r_pitch,
+                        "major_diameter_mm": 2 * r_major, "flank_angle_deg": 60.0,
+                        "offsets_mm": {"minor": minor_diameter_offset_mm, "pitch": pitch_diameter_offset_mm,
+                                       "major": major_diameter_offset_mm}},
+            "defects": [defect_info] if defect_info else [],
         },
         "counterbore": {"diameter_mm": 2 * cb_radius, "depth_mm": cb_depth, "surface": "scored rings 0.04 mm apart"},
         "bore_below_thread": {"diameter_mm": 2 * r_minor, "from_z_mm": z_bottom, "to_z_mm": z_bore_end},
@@ -625,8 +677,11 @@ SCENES = {
 
 
 @lru_cache(maxsize=8)
-def build_scene(name: str, *, thread: str = "M8x1.25", dome_radius_mm: float = 17.5, texture_seed: int = 0) -> Scene:
-    """Build (and cache) a scene by name. Unknown names or sizes raise :class:`InputError`."""
+def build_scene(name: str, *, thread: str = "M8x1.25", dome_radius_mm: float = 17.5, texture_seed: int = 0,
+                thread_offsets_mm: tuple = (0.0, 0.0, 0.0), thread_defect: tuple | None = None) -> Scene:
+    """Build (and cache) a scene by name. Unknown names or sizes raise :class:`InputError`.
+    thread_offsets_mm : (minor, pitch, major) diameter offsets and thread_defect : (angle_deg, width_deg,
+    depth_mm) or None, for the thread (see :func:`build_thread`)."""
     if name == "dome":
         return build_dome(dome_radius_mm, texture_seed=texture_seed)
     if name == "sheet":
@@ -634,5 +689,8 @@ def build_scene(name: str, *, thread: str = "M8x1.25", dome_radius_mm: float = 1
     if name == "bladder":
         return build_bladder(texture_seed=texture_seed)
     if name == "thread":
-        return build_thread(thread, texture_seed=texture_seed)
+        minor, pitch_d, major = (float(v) for v in thread_offsets_mm)
+        return build_thread(thread, texture_seed=texture_seed, minor_diameter_offset_mm=minor,
+                            pitch_diameter_offset_mm=pitch_d, major_diameter_offset_mm=major,
+                            defect=None if thread_defect is None else tuple(float(v) for v in thread_defect))
     raise InputError(f"unknown scene {name!r} (use one of {', '.join(SCENES)})")

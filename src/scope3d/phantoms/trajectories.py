@@ -99,14 +99,18 @@ def axial_trajectory(
 def quadrant_trajectory(
     frames_per_quadrant: int, *, step_mm: float = QUADRANT_STEP_MM, quadrants: int = QUADRANT_COUNT,
     angle_step_deg: float = QUADRANT_ANGLE_DEG, side_view_deg: float = 45.0, start_z_mm: float = -1.5,
-    axis_offset_mm=QUADRANT_AXIS_OFFSET_MM,
+    axis_offset_mm=QUADRANT_AXIS_OFFSET_MM, axis_tilt_deg: float = 0.0,
 ) -> Trajectory:
     """Side-view scans: per quadrant ``frames_per_quadrant`` frames moving inwards by ``step_mm``; quadrant q
     is quadrant 0 rotated by ``q * angle_step_deg`` about the hole axis (world z through the origin).
 
     side_view_deg : angle between the optical axis and the probe axis (-z); 45 or 90 in the reference.
     axis_offset_mm : (2,) camera centre's (x, y) offset from the rotation axis in quadrant 0.
+    axis_tilt_deg : the camera tilted on its mount by a rotation about its own x axis (image rows),
+        degrees within ±10; the probe still advances along the rotation axis.
     """
+    if not abs(axis_tilt_deg) <= 10.0:
+        raise ValueError(f"quadrant camera tilt must be within ±10 degrees, got {axis_tilt_deg}")
     if frames_per_quadrant < 1 or quadrants < 1 or step_mm <= 0:
         raise ValueError("quadrant trajectory needs frames_per_quadrant, quadrants >= 1 and a positive step")
     if not 0.0 < side_view_deg <= 90.0:
@@ -115,6 +119,7 @@ def quadrant_trajectory(
     view = np.array([np.sin(a), 0.0, -np.cos(a)])
     # Image "down" is towards the hole bottom, so the opening is at the top of the picture.
     rot0 = look_at(np.zeros(3), view, up=(0.0, 0.0, -1.0))
+    rot0 = rotvec_to_matrix(np.array([np.deg2rad(axis_tilt_deg), 0.0, 0.0])) @ rot0
     ox, oy = (float(v) for v in axis_offset_mm)
     poses = []
     for q in range(quadrants):
@@ -125,7 +130,7 @@ def quadrant_trajectory(
     params = {"kind": "quadrants", "quadrants": quadrants, "frames_per_quadrant": frames_per_quadrant,
               "step_mm": step_mm, "angle_step_deg": angle_step_deg, "side_view_deg": side_view_deg,
               "start_z_mm": start_z_mm, "rotation_axis": "world z through the origin",
-              "axis_offset_mm": [ox, oy],
+              "axis_offset_mm": [ox, oy], "axis_tilt_deg": float(axis_tilt_deg),
               "note": "frame q*frames_per_quadrant + i: quadrant q rotated by q*angle_step about z, step i inwards; "
                       "axis_offset_mm is the camera centre's (x, y) in quadrant 0"}
     return Trajectory("quadrants", poses, params)
@@ -217,12 +222,14 @@ def ring_poses(n: int, *, tilt_deg: float, distance_mm: float, target=(0.0, 0.0,
 
 def build_trajectory(name: str, *, n_frames: int | None = None, side_view_deg: float = 45.0,
                      axis_offset_mm: float = 0.0, axis_tilt_deg: float = 0.0, target_mm=None,
-                     azimuth_deg: float = 0.0) -> Trajectory:
+                     azimuth_deg: float = 0.0, quadrant_mount: tuple | None = None) -> Trajectory:
     """Build a named trajectory. ``n_frames`` limits the grids (first frames in scan order), sets the
     length of ``axial`` and ``spiral``, and for ``quadrants`` gives the total (``n_frames // 12`` per
     quadrant, at least one). ``axis_offset_mm`` and ``axis_tilt_deg`` misalign ``axial`` (see
     :func:`axial_trajectory`); other trajectories reject them. ``approach`` needs ``target_mm`` (3,) and
-    starts towards ``azimuth_deg`` (see :func:`approach_trajectory`)."""
+    starts towards ``azimuth_deg`` (see :func:`approach_trajectory`). ``quadrant_mount`` (offset_x_mm,
+    offset_y_mm, tilt_deg) misaligns the ``quadrants`` camera from the rotation axis (None: the default
+    offset :data:`QUADRANT_AXIS_OFFSET_MM`, no tilt)."""
     if name not in TRAJECTORIES:
         raise InputError(f"unknown trajectory {name!r} (use one of {', '.join(TRAJECTORIES)})")
     if n_frames is not None and n_frames < 1:
@@ -238,8 +245,12 @@ def build_trajectory(name: str, *, n_frames: int | None = None, side_view_deg: f
         return traj
     if name == "axial":
         return axial_trajectory(n, axis_offset_mm=axis_offset_mm, axis_tilt_deg=axis_tilt_deg)
+    if quadrant_mount is not None and name != "quadrants":
+        raise InputError(f"a quadrant mount applies to the quadrants trajectory only, not {name!r}")
     if name == "quadrants":
-        return quadrant_trajectory(max(1, n // QUADRANT_COUNT), side_view_deg=side_view_deg)
+        ox, oy, tilt = quadrant_mount if quadrant_mount is not None else (*QUADRANT_AXIS_OFFSET_MM, 0.0)
+        return quadrant_trajectory(max(1, n // QUADRANT_COUNT), side_view_deg=side_view_deg,
+                                   axis_offset_mm=(ox, oy), axis_tilt_deg=tilt)
     if name == "approach":
         if target_mm is None:
             raise InputError("the approach trajectory needs a target (--target N)")

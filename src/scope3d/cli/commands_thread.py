@@ -1,0 +1,72 @@
+"""``scope3d thread-scan`` (one tapped hole) and ``scope3d batch thread-scan`` (many, on Dask)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+
+def register(subparsers) -> None:
+    from scope3d.metrology.thread_gauge import THREAD_SIZES
+
+    p = subparsers.add_parser(
+        "thread-scan",
+        help="measure a tapped hole from a side-view quadrant scan (virtual 6H thread gauge)",
+        description="Side-view thread metrology (reference ch. 8): a sparse map per quadrant with the stage's "
+                    "axial poses, feature-based registration of the quadrants with the loop closure, outlier "
+                    "removal, and a virtual ISO 965-1 6H gauge (minor, major, pitch diameter, pitch, flank angle, "
+                    "damaged crests). Writes cloud.ply, quadrants/, report.json, registration.png, unwrapped.png.",
+    )
+    p.add_argument("dataset", type=Path, help="dataset folder with quadrants.json (see docs/thread_metrology.md)")
+    p.add_argument("--out", type=Path, required=True, help="output folder (replaced when complete)")
+    p.add_argument("--thread", default="M8x1.25", choices=list(THREAD_SIZES), help="nominal thread (default M8x1.25)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=_run_scan)
+
+    b = subparsers.add_parser(
+        "batch", help="run a job over many datasets on a Dask cluster (thread-scan)",
+        description="Production-line runs on Dask: one result folder per dataset and a summary table; a rerun "
+                    "skips finished datasets; a killed worker's dataset is run again.")
+    bsub = b.add_subparsers(dest="job", metavar="JOB")
+    t = bsub.add_parser("thread-scan", help="thread-scan every hole",
+                        description="Thread-scan every DATASET into OUT/<dataset name>/; OUT/summary.csv holds a "
+                                    "verdict per hole.")
+    t.add_argument("datasets", type=Path, nargs="+", metavar="DATASET", help="hole dataset folders")
+    t.add_argument("--out", type=Path, required=True, help="folder of the per-hole results and the summary")
+    t.add_argument("--thread", default="M8x1.25", choices=list(THREAD_SIZES), help="nominal thread (default M8x1.25)")
+    t.add_argument("--scheduler", metavar="ADDRESS",
+                   help="Dask scheduler address (e.g. tcp://host:8786); default: a local cluster")
+    t.add_argument("--workers", type=int, default=2, metavar="N",
+                   help="local cluster worker processes (default 2; ignored with --scheduler)")
+    t.add_argument("--no-progress", action="store_true", help="no progress bar")
+    t.set_defaults(func=_run_batch)
+    b.set_defaults(func=_batch_help, batch_parser=b)
+
+
+def _batch_help(args) -> int:
+    args.batch_parser.print_help()
+    return 2
+
+
+def _run_scan(args) -> int:
+    from scope3d.cli.progress import progress_bar
+    from scope3d.io.dataset import load_dataset
+    from scope3d.pipelines.thread_scan import ThreadScanOptions, run
+
+    dataset = load_dataset(args.dataset)
+    with progress_bar(not args.no_progress, "quadrant") as progress:
+        result = run(ThreadScanOptions(designation=args.thread), dataset, args.out, progress=progress)
+    print(result.summary())
+    print(f"wrote {args.out}/ (cloud.ply, quadrants/, report.json, registration.png, unwrapped.png)")
+    return 0
+
+
+def _run_batch(args) -> int:
+    from scope3d.cli.progress import progress_bar
+    from scope3d.pipelines.thread_batch import run_batch
+    from scope3d.pipelines.thread_scan import ThreadScanOptions
+
+    with progress_bar(not args.no_progress, "hole") as progress:
+        result = run_batch(args.datasets, args.out, ThreadScanOptions(designation=args.thread),
+                           scheduler=args.scheduler, n_workers=args.workers, progress=progress)
+    print(result.summary())
+    print(f"wrote {args.out}/summary.csv")
+    return 0 if all(r["status"] != "error" for r in result.rows) else 1

@@ -1,0 +1,57 @@
+"""``quadrants.json``: which frames of a dataset form each side-view quadrant, and the stage's angle.
+
+Layout (written by the phantom lab for the ``quadrants`` trajectory)::
+
+    {"angle_step_deg": 30, "step_mm": 0.1, "side_view_deg": 45,
+     "quadrants": [{"index": 0, "angle_deg": 0, "frames": ["0000.png", ...]}, ...]}
+
+Frames are listed in order of advance; quadrants in stage order.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+from scope3d.errors import InputError
+
+FILE_NAME = "quadrants.json"
+
+
+@dataclass(frozen=True)
+class Quadrant:
+    """index : stage order; angle_deg : the stage's rotation (degrees); frames : indices into the dataset."""
+
+    index: int
+    angle_deg: float
+    frames: tuple[int, ...]
+
+
+def read_quadrants(root: str | Path, names: list[str]) -> list[Quadrant]:
+    """Read ``root/quadrants.json``; ``names`` are the dataset's frame names. Raises :class:`InputError`
+    naming the file and the quadrant for a missing file, unknown frames or a malformed entry."""
+    path = Path(root) / FILE_NAME
+    if not path.is_file():
+        raise InputError(f"{path}: missing (a thread scan needs the quadrant layout)")
+    try:
+        data = json.loads(path.read_text())
+        entries = data["quadrants"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise InputError(f"{path}: not a quadrant layout ({exc})") from None
+    if not isinstance(entries, list) or len(entries) < 2:
+        raise InputError(f"{path}: needs a list of at least 2 quadrants")
+    index = {n: k for k, n in enumerate(names)}
+    out = []
+    for k, q in enumerate(entries):
+        try:
+            frames = tuple(index[f] for f in q["frames"])
+            angle = float(q["angle_deg"])
+            number = int(q.get("index", k))
+        except KeyError as exc:
+            raise InputError(f"{path}: quadrant {k}: unknown frame or missing field {exc}") from None
+        except (TypeError, ValueError) as exc:
+            raise InputError(f"{path}: quadrant {k}: {exc}") from None
+        if len(frames) < 2:
+            raise InputError(f"{path}: quadrant {number}: needs at least 2 frames, has {len(frames)}")
+        out.append(Quadrant(number, angle, frames))
+    return out

@@ -1,0 +1,265 @@
+"""Side-view thread metrology of a whole tapped hole (reference ch. 8), as one job.
+
+Read top to bottom like the method section::
+
+    quadrants  <- io.quadrants.read_quadrants         (frames of each 30° quadrant, stage angles)
+    maps       <- sfm.quadrant_mapping.map_quadrant   (SIFT, matches, tracks, triangulation with the
+                                                       stage's known axial poses), one per quadrant
+    panorama   <- registration.register_quadrants     (neighbours' 3-D-3-D feature correspondences,
+                                                       RANSAC + SVD, joint solve with the loop closure)
+    cloud      <- registration.statistical_inliers    (30 neighbours, 3 sigma)
+    gauge      <- metrology.gauge_thread              (axis, D1, D, D2, P, flank angle, 6H verdict, defects)
+    errors     <- registration.registration_errors    (when the dataset has true poses)
+    files      <- cloud.ply, quadrants/q??.ply, report.json, registration.png, unwrapped.png
+
+``run(options, dataset, out_dir) -> ThreadScanResult`` is what ``scope3d thread-scan`` calls.
+"""
+from __future__ import annotations
+
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from scope3d.errors import InputError
+from scope3d.geometry.pose import Pose
+from scope3d.io.dataset import Dataset
+from scope3d.io.ply import write_ply
+from scope3d.io.quadrants import read_quadrants
+from scope3d.metrology.thread_gauge import THREAD_SIZES, GaugeOptions, GaugeResult, gauge_thread
+from scope3d.registration.outliers import OutlierOptions, statistical_inliers
+from scope3d.registration.panorama import (PanoramaOptions, PanoramaResult, QuadrantCloud, register_quadrants,
+                                           registration_errors)
+from scope3d.scene.mesh import PointCloud
+from scope3d.sfm.quadrant_mapping import QuadrantMapOptions, map_quadrant
+from scope3d.utils.atomic import atomic_directory
+from scope3d.utils.figures import new_figure, save_figure
+from scope3d.utils.jsonio import write_json
+from scope3d.utils.progress import Progress, advance, stage
+
+
+@dataclass(frozen=True)
+class ThreadScanOptions:
+    """designation : the nominal thread (``M6x1``, ``M8x1.25``, ``M10x1.5``); the gauge's other options
+    come from ``gauge`` (its designation is replaced by this one). mapping, panorama, outliers, gauge :
+    the stages' options. threads : quadrants mapped at once (default 2, the machine's cores; OpenCV
+    releases the GIL). seed : RANSAC's seeds."""
+
+    designation: str = "M8x1.25"
+    mapping: QuadrantMapOptions = QuadrantMapOptions()
+    panorama: PanoramaOptions = PanoramaOptions()
+    outliers: OutlierOptions = OutlierOptions()
+    gauge: GaugeOptions = GaugeOptions()
+    threads: int = 2
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.designation not in THREAD_SIZES:
+            raise InputError(f"unknown thread {self.designation!r} (use one of {', '.join(THREAD_SIZES)})")
+        if self.threads < 1:
+            raise ValueError("threads must be >= 1")
+
+
+@dataclass
+class ThreadScanResult:
+    """clouds : the quadrants (stacked frame); panorama : the registration; points : (N, 3) mm the
+    registered cloud after outlier removal; gauge : the measurement, or None when the cloud shows no
+    gaugeable thread (gauge_message says why; the verdict is then ``indeterminate``); errors :
+    registration errors against the truth or None; timings_s : per stage."""
+
+    clouds: list[QuadrantCloud]
+    panorama: PanoramaResult
+    points: np.ndarray
+    gauge: GaugeResult | None
+    errors: dict | None
+    timings_s: dict = field(default_factory=dict)
+    gauge_message: str = ""
+
+    def report(self) -> dict:
+        g = self.gauge
+        registration = {
+            "loop_closure_residual_deg": self.panorama.loop_closure_deg,
+            "loop_closure_residual_mm": self.panorama.loop_closure_mm,
+            "pair_residual_rms_mm": self.panorama.residual_rms_mm,
+            "pairs": [{"i": p.i, "j": p.j, "matches": p.n_matches, "inliers": len(p.points_i), "rms_mm": p.rms_mm}
+                      for p in self.panorama.pairs],
+            "time_s": self.timings_s.get("registration"),
+        }
+        if self.errors:
+            registration.update(self.errors)
+        gauge = g.to_dict() if g is not None else {"verdict": "indeterminate", "message": self.gauge_message,
+                                                   "defects": []}
+        return {
+            "gauge": gauge,
+            "registration": registration,
+            "points": {"per_quadrant": [len(c.points) for c in self.clouds], "registered": len(self.points)},
+            "timings_s": self.timings_s,
+        }
+
+    def summary(self) -> str:
+        lines = [self.gauge.summary() if self.gauge is not None else
+                 f"thread gauge: INDETERMINATE ({self.gauge_message})"]
+        p = self.panorama
+        if p.loop_closure_deg is not None:
+            lines.append(f"registration: loop closure {p.loop_closure_deg:.3f}° / {p.loop_closure_mm:.4f} mm "
+                         f"before the joint solve; pair residuals {np.median(p.residual_rms_mm):.4f} mm (median)")
+        if self.errors:
+            lines.append(f"against the truth: rotation error {self.errors['rotation_error_deg']:.3f}° (max), "
+                         f"offset error {self.errors['offset_error_mm']:.4f} mm (max over quadrants)")
+        lines.append(f"points: {sum(len(c.points) for c in self.clouds)} in {len(self.clouds)} quadrants, "
+                     f"{len(self.points)} after outlier removal; time "
+                     + ", ".join(f"{k} {v:.1f} s" for k, v in self.timings_s.items()))
+        return "\n".join(lines)
+
+
+def map_quadrants(options: ThreadScanOptions, dataset: Dataset, progress: Progress | None = None) -> list[QuadrantCloud]:
+    """Each quadrant's sparse map with the stage's reported poses (the stacked frame)."""
+    layout = read_quadrants(dataset.root, dataset.names)
+    stage(progress, "mapping quadrants", len(layout))
+
+    def one(q):
+        images = [dataset.frame(i) for i in q.frames]
+        poses = [dataset.poses[i].pose for i in q.frames]
+        m = map_quadrant(images, dataset.camera, poses, options.mapping)
+        advance(progress)
+        return QuadrantCloud(q.index, q.angle_deg, m.points, m.descriptors, m.colors)
+
+    with ThreadPoolExecutor(max_workers=options.threads) as pool:
+        clouds = list(pool.map(one, layout))
+    for c in clouds:
+        if len(c.points) < options.panorama.min_correspondences:
+            raise InputError(f"{dataset.root}: quadrant {c.index} ({c.angle_deg:.1f}°): only {len(c.points)} 3-D points "
+                             "reconstructed (too few features or matches)")
+    return clouds
+
+
+def true_world_from_stacked(dataset: Dataset) -> list[Pose] | None:
+    """Per quadrant, the transform taking its stacked (stage-nominal) frame to the true world: at the
+    quadrant's middle frame, ``true world_from_cam @ reported cam_from_world``. None without true poses."""
+    gt = dataset.ground_truth
+    if gt is None or gt.poses is None:
+        return None
+    out = []
+    for q in read_quadrants(dataset.root, dataset.names):
+        i = q.frames[len(q.frames) // 2]
+        out.append(gt.poses[i].inverse() @ dataset.poses[i].pose)
+    return out
+
+
+def run(options: ThreadScanOptions, dataset: Dataset, out_dir: str | Path, *,
+        progress: Progress | None = None) -> ThreadScanResult:
+    """Measure a tapped hole from a side-view quadrant scan and write the run folder ``out_dir``."""
+    timings = {}
+    t0 = time.perf_counter()
+    clouds = map_quadrants(options, dataset, progress)
+    timings["mapping"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    panorama = register_quadrants(clouds, options.panorama, seed=options.seed, progress=progress)
+    registered = panorama.apply(clouds)
+    timings["registration"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    merged = np.concatenate(registered)
+    keep = statistical_inliers(merged, options.outliers)
+    points = merged[keep]
+    timings["outliers"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    # The stage's rotation axis (world z, nominal) is the gauge's hint for the hole axis.
+    gauge_options = replace(options.gauge, designation=options.designation, axis_hint=(0.0, 0.0, 1.0))
+    gauge, gauge_message = None, ""
+    try:
+        gauge = gauge_thread(points, gauge_options)
+    except ValueError as exc:  # no thread in the cloud: a result to report, not a crash
+        gauge_message = str(exc)
+    timings["gauge"] = time.perf_counter() - t0
+
+    errors = None
+    truth = true_world_from_stacked(dataset)
+    if truth is not None:
+        rot, off = registration_errors(panorama.world_from_stacked, truth, clouds)
+        rot0, off0 = registration_errors([Pose.identity()] * len(clouds), truth, clouds)
+        errors = {"rotation_error_deg": float(rot.max()), "offset_error_mm": float(off.max()),
+                  "rotation_error_per_quadrant_deg": rot.tolist(), "offset_error_per_quadrant_mm": off.tolist(),
+                  "stacked_rotation_error_deg": float(rot0.max()), "stacked_offset_error_mm": float(off0.max())}
+        made = (dataset.ground_truth.scene.get("thread") or {}).get("as_made")
+        if made and gauge is not None:
+            errors["gauge_errors_mm"] = {
+                "minor_diameter": gauge.minor_diameter_mm.value - made["minor_diameter_mm"],
+                "major_diameter": gauge.major_diameter_mm.value - made["major_diameter_mm"],
+                "pitch_diameter": gauge.pitch_diameter_mm.value - made["pitch_diameter_mm"],
+                "pitch": gauge.pitch_mm.value - dataset.ground_truth.scene["thread"]["pitch_mm"]}
+    result = ThreadScanResult(clouds, panorama, points, gauge, errors, timings, gauge_message)
+    write_outputs(result, out_dir)
+    return result
+
+
+def write_outputs(result: ThreadScanResult, out_dir: str | Path) -> None:
+    """cloud.ply (registered, outliers removed), quadrants/qNN.ply (stacked frame), report.json,
+    registration.png (top and side views before and after), unwrapped.png (radius vs angle and depth)."""
+    with atomic_directory(out_dir) as tmp:
+        write_ply(tmp / "cloud.ply", PointCloud(result.points))
+        (tmp / "quadrants").mkdir()
+        for c in result.clouds:
+            write_ply(tmp / "quadrants" / f"q{c.index:02d}.ply", PointCloud(c.points, c.colors))
+        write_json(tmp / "report.json", result.report())
+        _registration_figure(result, tmp / "registration.png")
+        if result.gauge is not None:
+            _unwrapped_figure(result, tmp / "unwrapped.png")
+
+
+def _registration_figure(result: ThreadScanResult, path: Path) -> None:
+    fig = new_figure((10, 9))
+    before = [c.points for c in result.clouds]
+    after = result.panorama.apply(result.clouds)
+    import matplotlib
+
+    colours = [matplotlib.colormaps["hsv"](q / len(before)) for q in range(len(before))]
+    for col, (name, clouds) in enumerate((("stacked (stage poses)", before), ("registered", after))):
+        top = fig.add_subplot(2, 2, 1 + col)
+        side = fig.add_subplot(2, 2, 3 + col)
+        for q, pts in enumerate(clouds):
+            sub = pts[:: max(1, len(pts) // 1500)]
+            top.scatter(sub[:, 0], sub[:, 1], s=0.5, color=colours[q])
+            side.scatter(sub[:, 0], sub[:, 2], s=0.5, color=colours[q])
+        top.set_title(f"top view, {name}")
+        side.set_title(f"side view (x-z), {name}")
+        top.set_aspect("equal")
+        side.set_aspect("equal")
+        for ax in (top, side):
+            ax.set_xlabel("x (mm)")
+        top.set_ylabel("y (mm)")
+        side.set_ylabel("z (mm)")
+    save_figure(fig, path)
+
+
+def _unwrapped_figure(result: ThreadScanResult, path: Path) -> None:
+    g = result.gauge
+    local = result.points - g.axis_point_mm
+    d = g.axis_direction
+    ref = np.array([1.0, 0.0, 0.0]) if abs(d[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    ex = ref - (ref @ d) * d
+    ex /= np.linalg.norm(ex)
+    ey = np.cross(d, ex)
+    x, y, z = local @ ex, local @ ey, local @ d
+    angle = np.degrees(np.mod(np.arctan2(y, x), 2 * np.pi))
+    radius = np.hypot(x, y)
+    fig = new_figure((10, 5))
+    ax = fig.add_subplot(1, 1, 1)
+    lo, hi = g.minor_diameter_mm.value / 2 - 0.05, g.major_diameter_mm.value / 2 + 0.05
+    sc = ax.scatter(angle, z, c=radius, s=1.0, cmap="viridis", vmin=lo, vmax=hi)
+    fig.colorbar(sc, ax=ax, label="radius from the fitted axis (mm)")
+    for defect in g.defects:
+        ax.plot(defect.angle_deg, defect.axial_mm, "o", mfc="none", mec="red", ms=18, mew=2)
+        ax.annotate(f"{defect.depth_mm:.2f} mm", (defect.angle_deg, defect.axial_mm), color="red",
+                    xytext=(12, 12), textcoords="offset points")
+    ax.axhspan(*g.zone_mm, color="0.9", zorder=-1)
+    ax.set_xlim(0, 360)
+    ax.set_xlabel("angle about the axis (deg)")
+    ax.set_ylabel("along the axis (mm)")
+    ax.set_title(f"{g.limits.designation}-{g.limits.tolerance_class} unwrapped: {g.verdict}, "
+                 f"{len(g.defects)} defect(s) (circles); grey band = gauged zone")
+    save_figure(fig, path)

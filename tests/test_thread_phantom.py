@@ -1,0 +1,39 @@
+"""Phantom lab additions for thread metrology: a misaligned side-view mount reported as the stage's
+nominal poses (whose tolerance holds the truth), the quadrant layout, as-made diameters and a chip."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from scope3d.cli.main import main
+from scope3d.phantoms import generate
+
+
+def test_quadrant_mount_is_unknown_to_the_reported_poses():
+    seq = generate("thread", "quadrants", size=(40, 32), n_frames=24, quadrant_mount=(0.2, -0.1, 1.5))
+    true_c = np.array([p.centre for p in seq.true_poses])
+    rep_c = np.array([m.pose.centre for m in seq.measured_poses])
+    np.testing.assert_allclose(np.hypot(rep_c[:, 0], rep_c[:, 1]), 0.0, atol=1e-12)  # on the axis, nominally
+    np.testing.assert_allclose(np.hypot(true_c[:, 0], true_c[:, 1]), np.hypot(0.2, 0.1))
+    tilt = [np.degrees(np.arccos(np.clip((np.trace(t.rotation @ m.pose.rotation.T) - 1) / 2, -1, 1)))
+            for t, m in zip(seq.true_poses, seq.measured_poses)]
+    np.testing.assert_allclose(tilt, 1.5, atol=1e-9)
+    assert all(m.contains(t) for t, m in zip(seq.true_poses, seq.measured_poses))
+
+
+def test_cli_thread_options_reach_the_ground_truth(tmp_path):
+    out = tmp_path / "hole"
+    code = main(["phantom", "thread", "--trajectory", "quadrants", "--frames", "24", "--size", "40x32",
+                 "--defect", "200:20:0.1", "--pitch-diameter-offset", "0.08", "--minor-diameter-offset", "0.1",
+                 "--mount", "0.1:0.1:0.5", "--out", str(out), "--no-progress"])
+    assert code == 0
+    layout = json.loads((out / "quadrants.json").read_text())
+    assert [q["angle_deg"] for q in layout["quadrants"]] == [30.0 * q for q in range(12)]
+    assert layout["quadrants"][3]["frames"] == ["0006.png", "0007.png"]
+    scene = json.loads((out / "ground_truth" / "scene.json").read_text())
+    made = scene["thread"]["as_made"]
+    assert abs(made["pitch_diameter_mm"] - (8 - 0.649519 * 1.25 + 0.08)) < 1e-6
+    assert abs(made["minor_diameter_mm"] - (scene["thread"]["minor_diameter_mm"] + 0.1)) < 1e-9
+    assert scene["thread"]["defects"][0]["angle_deg"] == 200.0
+    assert main(["phantom", "thread", "--defect", "oops", "--out", str(tmp_path / "x")]) == 2

@@ -1,0 +1,86 @@
+"""The thread-scan pipeline, its CLI and the Dask production line on one small rendered hole: an M8x1.25
+scanned in 12 quadrants of 3 frames (320x256 px), the camera 0.22 mm off and 0.5° tilted from the
+rotation axis, unknown to the stage."""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import threading
+import time
+
+import pytest
+
+from scope3d.cli.main import main
+from scope3d.phantoms import generate, write
+
+
+@pytest.fixture(scope="module")
+def hole(tmp_path_factory):
+    root = tmp_path_factory.mktemp("thread")
+    seq = generate("thread", "quadrants", n_frames=36, size=(320, 256), quadrant_mount=(0.2, -0.1, 0.5),
+                   thread_offsets_mm=(0.132, 0.08, 0.05))
+    return write(seq, root / "hole_a")
+
+
+def test_thread_scan_registers_the_quadrants(hole, tmp_path, capsys):
+    out = tmp_path / "scan"
+    assert main(["thread-scan", str(hole), "--out", str(out), "--no-progress"]) == 0
+    printed = capsys.readouterr().out
+    assert "thread gauge" in printed and "against the truth" in printed
+    report = json.loads((out / "report.json").read_text())
+    reg = report["registration"]
+    # the mount's 0.22 mm offset and 0.5° tilt put the stacked quadrants ~0.2 mm and ~1.5° apart; the
+    # registration must remove most of it (the issue's targets, 0.5° and 0.02 mm, are met on finer
+    # frames in benchmarks/bench_thread.py; 320 px frames with 0.2 mm baselines give ~0.1 mm points)
+    assert reg["offset_error_mm"] < reg["stacked_offset_error_mm"] / 4
+    assert reg["rotation_error_deg"] < reg["stacked_rotation_error_deg"]
+    assert reg["loop_closure_residual_deg"] is not None and len(reg["pairs"]) == 12
+    assert report["gauge"]["verdict"] in ("pass", "fail", "indeterminate")
+    assert (out / "cloud.ply").is_file() and (out / "registration.png").is_file()
+    assert len(list((out / "quadrants").glob("q*.ply"))) == 12
+
+
+def test_thread_scan_names_the_missing_layout(hole, tmp_path, capsys):
+    bad = tmp_path / "no_layout"
+    shutil.copytree(hole, bad)
+    (bad / "quadrants.json").unlink()
+    assert main(["thread-scan", str(bad), "--out", str(tmp_path / "o"), "--no-progress"]) == 2
+    assert "quadrants.json" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def test_batch_survives_a_killed_worker_and_resumes(hole, tmp_path):
+    from distributed import Client, LocalCluster
+
+    from scope3d.pipelines.thread_batch import run_batch
+
+    second = tmp_path / "hole_b"
+    shutil.copytree(hole, second)
+    out = tmp_path / "line"
+    killed = []
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
+            Client(cluster) as client:
+        pids = client.run(os.getpid)
+
+        def kill_first_busy_worker():
+            deadline = time.time() + 120
+            while time.time() < deadline and not killed:
+                busy = [w for w, tasks in client.processing().items() if tasks]
+                if busy:
+                    time.sleep(1.0)  # mid-hole
+                    os.kill(pids[busy[0]], signal.SIGKILL)  # a worker process this test started
+                    killed.append(busy[0])
+                time.sleep(0.2)
+
+        killer = threading.Thread(target=kill_first_busy_worker)
+        killer.start()
+        result = run_batch([hole, second], out, client=client)
+        killer.join()
+    assert killed, "no worker was killed"
+    assert [r["status"] for r in result.rows] == ["done", "done"]
+    assert (out / "hole_a" / "report.json").is_file() and (out / "hole_b" / "report.json").is_file()
+    assert "hole_a" in (out / "summary.csv").read_text()
+    again = run_batch([hole, second], out, n_workers=1)
+    assert [r["status"] for r in again.rows] == ["skipped", "skipped"]
