@@ -3,10 +3,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from scope3d.cli.lazy import LazyChoices
+
 
 def register(subparsers) -> None:
-    from scope3d.metrology.thread_gauge import THREAD_SIZES
-
     p = subparsers.add_parser(
         "thread-scan",
         help="measure a tapped hole from a side-view quadrant scan (virtual 6H thread gauge)",
@@ -17,7 +17,9 @@ def register(subparsers) -> None:
     )
     p.add_argument("dataset", type=Path, help="dataset folder with quadrants.json (see docs/thread_metrology.md)")
     p.add_argument("--out", type=Path, required=True, help="output folder (replaced when complete)")
-    p.add_argument("--thread", default="M8x1.25", choices=list(THREAD_SIZES), help="nominal thread (default M8x1.25)")
+    p.add_argument("--thread", default="M8x1.25", metavar="SIZE",
+                   choices=LazyChoices("scope3d.metrology.thread_gauge", "THREAD_SIZES"),
+                   help="nominal thread: %(choices)s (default M8x1.25)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=_run_scan)
 
@@ -31,7 +33,9 @@ def register(subparsers) -> None:
                                     "verdict per hole.")
     t.add_argument("datasets", type=Path, nargs="+", metavar="DATASET", help="hole dataset folders")
     t.add_argument("--out", type=Path, required=True, help="folder of the per-hole results and the summary")
-    t.add_argument("--thread", default="M8x1.25", choices=list(THREAD_SIZES), help="nominal thread (default M8x1.25)")
+    t.add_argument("--thread", default="M8x1.25", metavar="SIZE",
+                   choices=LazyChoices("scope3d.metrology.thread_gauge", "THREAD_SIZES"),
+                   help="nominal thread: %(choices)s (default M8x1.25)")
     t.add_argument("--scheduler", metavar="ADDRESS",
                    help="Dask scheduler address (e.g. tcp://host:8786); default: a local cluster")
     t.add_argument("--workers", type=int, default=2, metavar="N",
