@@ -9,9 +9,11 @@ from scope3d import __version__
 # Each module defines ``register(subparsers)`` which adds one or more sub-commands whose handler is
 # stored as ``func`` and returns an exit status.
 from scope3d.cli import commands_axial, commands_bundle, commands_dataset, commands_map, commands_phantom
+from scope3d.cli import commands_panorama
 from scope3d.errors import InputError
 
 COMMAND_MODULES = [commands_phantom, commands_dataset, commands_bundle, commands_axial, commands_map]
+COMMAND_MODULES.append(commands_panorama)
 
 
 def build_parser() -> argparse.ArgumentParser:
