@@ -68,7 +68,7 @@ def _run_mosaic(args) -> int:
 
     datasets = [load_dataset(d) for d in args.datasets]
     with progress_bar(not args.no_progress, "pair") as progress:
-        report = make_mosaic(MosaicOptions(), datasets, args.out, progress=progress)
+        report, _ = make_mosaic(MosaicOptions(), datasets, args.out, progress=progress)
     err = report["alignment_error_px"]
     print(f"{report['n_registered']}/{report['n_frames']} frames in the mosaic, coverage {report['coverage_fraction']:.1%}"
           + (f", alignment error {err['mean']:.2f} px mean, {err['p95']:.2f} px p95" if err else ""))

@@ -122,13 +122,14 @@ def _planar_truth(datasets) -> tuple[np.ndarray, np.ndarray] | None:
     return o, n
 
 
-def make_mosaic(options, datasets: list, out_dir: str | Path, *, progress=None) -> dict:
+def make_mosaic(options, datasets: list, out_dir: str | Path, *, progress=None):
     """2-D mosaic of one or more datasets (reference sec. 2.3.3) into ``out_dir``: ``mosaic.png`` (with the
     scope's path per scan section), ``coverage.png``, ``report.json``. Returns the report.
 
     options : :class:`~scope3d.registration.mosaic.MosaicOptions`. Frames of all datasets are matched
     together (a 15 mm and a 30 mm scan fill each other's gaps, sec. 2.4.2); frame 0 of the first dataset
     is the mosaic's frame. ``alignment_error_px`` is measured where the truth is a plane.
+    Returns (report dict, :class:`~scope3d.registration.mosaic.Mosaic`).
     """
     import time
 
@@ -184,4 +185,4 @@ def make_mosaic(options, datasets: list, out_dir: str | Path, *, progress=None) 
         report["alignment_error_px"] = None
         report["alignment_error_note"] = "no planar ground truth (a curved wall has no exact 2-D mosaic)"
     write_json(out / "report.json", report)
-    return report
+    return report, result

@@ -208,8 +208,10 @@ def align_globally(n_frames: int, links: list[FrameLink], sizes: list[tuple[int,
                 if frame != reference:
                     sparsity[row:row + 2 * len(pi), 8 * col[frame]:8 * col[frame] + 8] = 1
             row += 2 * len(pi)
+        # lsmr's inner iterations capped: on long scans the exact inner solve of this ill-conditioned
+        # system took minutes per step; an inexact Newton step still converges (measured on the sheet).
         sol = least_squares(residuals, params0, jac_sparsity=sparsity.tocsr(), x_scale="jac", method="trf",
-                            max_nfev=30)
+                            tr_solver="lsmr", tr_options={"maxiter": 100}, max_nfev=30)
         params = sol.x
     else:
         params = params0
