@@ -77,7 +77,31 @@ def register(subparsers) -> None:
     p.add_argument("--target", type=int, metavar="N",
                    help="approach trajectory: the target to approach (dome: 1-8); a tool hides part of the view, "
                         "its mask written as tool_mask.png")
+    bl = p.add_argument_group("bladder and scan plans (reference ch. 2)")
+    bl.add_argument("--plan", metavar="PLAN_JSON", help="render the views of a scan plan (scope3d plan-scan) "
+                    "instead of a trajectory, with its field of view unless --fov is given")
+    bl.add_argument("--video", type=float, metavar="FPS", help="with --plan: render the continuous path through "
+                    "the planned views at FPS frames per second (poses interpolated)")
+    bl.add_argument("--seconds-per-view", type=float, default=600.0 / 529.0, metavar="S",
+                    help="with --video: time from one planned view to the next (default 1.13 s, the reference's "
+                         "10 min for 529 views)")
+    bl.add_argument("--cavity-mm", type=_semi_axes, metavar="A,B,C", help="bladder semi-axes in mm (default 45,38,32)")
+    bl.add_argument("--shape-seed", type=int, default=0, metavar="N",
+                    help="bladder irregularity: 0 the default shape, else a random one of the same size")
+    bl.add_argument("--vessel-density", type=float, default=1.0, metavar="F",
+                    help="bladder vessels and capillary dots as a fraction of the default (1); 0.25 is pale")
+    bl.add_argument("--wet", action="store_true", help="bladder: specular glints of wet mucosa at the tip's light")
     p.set_defaults(func=run)
+
+
+def _semi_axes(text: str) -> tuple[float, float, float]:
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 3 or not all(v > 0 for v in values):
+        raise argparse.ArgumentTypeError(f"--cavity-mm takes three positive lengths A,B,C in mm, got {text!r}")
+    return values
 
 
 def run(args) -> int:
@@ -101,6 +125,22 @@ def run(args) -> int:
     offsets = (args.minor_diameter_offset, args.pitch_diameter_offset, args.major_diameter_offset)
     if (defect or any(offsets)) and args.scene != "thread":
         raise InputError("--defect and the diameter offsets apply to the thread scene only")
+    bladder = {}
+    if args.cavity_mm is not None:
+        bladder["semi_axes_mm"] = args.cavity_mm
+    if args.shape_seed:
+        bladder["shape_seed"] = args.shape_seed
+    if args.vessel_density != 1.0:
+        bladder["vessel_density"] = args.vessel_density
+    if args.wet:
+        bladder["wet"] = True
+    plan = None
+    if args.plan:
+        from scope3d.io.scan_plan import read_scan_plan
+
+        plan = read_scan_plan(args.plan)
+    elif args.video is not None:
+        raise InputError("--video needs --plan")
     with progress_bar(not args.no_progress, "frame") as progress:
         seq = generate(
             args.scene, args.trajectory, seed=args.seed, pose_noise_mm=args.pose_noise, thread=args.thread,
@@ -108,7 +148,8 @@ def run(args) -> int:
             axis_offset_mm=args.axis_offset, axis_tilt_deg=args.axis_tilt,
             dome_radius_mm=args.dome_radius, options=RenderOptions(blur_sigma_px=args.blur, supersample=args.supersample),
             progress=progress, target=args.target, thread_offsets_mm=offsets, thread_defect=defect,
-            quadrant_mount=mount,
+            quadrant_mount=mount, bladder=bladder or None, plan=plan, video_fps=args.video,
+            seconds_per_view=args.seconds_per_view,
         )
     out = write(seq, args.out)
     print(f"wrote {len(seq)} frames of {args.scene}/{seq.trajectory.name} "

@@ -12,6 +12,7 @@ from scope3d.cli import commands_axial, commands_bundle, commands_dataset, comma
 from scope3d.cli import (
     commands_calibrate,
     commands_localize,
+    commands_panorama,
     commands_report,
     commands_thread,
     commands_track_markers,
@@ -20,7 +21,7 @@ from scope3d.cli.job_output import EXIT_CODES
 from scope3d.errors import InputError
 
 COMMAND_MODULES = [commands_phantom, commands_dataset, commands_bundle, commands_axial, commands_map, commands_report,
-                   commands_calibrate, commands_localize, commands_track_markers, commands_thread]
+                   commands_calibrate, commands_localize, commands_track_markers, commands_thread, commands_panorama]
 
 
 def build_parser() -> argparse.ArgumentParser:

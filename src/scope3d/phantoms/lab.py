@@ -23,6 +23,7 @@ import numpy as np
 from scope3d.errors import InputError
 from scope3d.geometry.pose import Pose
 from scope3d.io.dataset import write_dataset
+from scope3d.io.scan_plan import PlanFile
 from scope3d.phantoms.render import RenderOptions, render_frame, sequence_exposure, supersample_factor
 from scope3d.phantoms.scenes import SCENE_TRAJECTORIES, SCENES, THREADS, Scene, build_scene
 from scope3d.phantoms.tool import paint_tool, tool_mask
@@ -34,6 +35,7 @@ from scope3d.utils.progress import Progress, advance, stage
 
 ORIENTATION_NOISE_DEG_PER_MM = 0.5
 TOOL_MASK_FILE = "tool_mask.png"  # white where the tool hides the scene; beside dataset.json
+SECONDS_PER_PLANNED_VIEW = 600.0 / 529.0  # the reference's 15 mm scan: about 10 min for 529 views (sec. 2.3.2)
 ENDOSCOPE_SIZE_PX = (608, 608)  # scanning fibre endoscope (sec. 3.1)
 ENDOSCOPE_MASK_FRACTION = 300.0 / 608.0  # circular field of ~300 px radius
 BORESCOPE_SIZE_PX = (1280, 1024)  # Stryker rigid scope (sec. 8.3)
@@ -125,6 +127,10 @@ def generate(
     thread_offsets_mm: tuple = (0.0, 0.0, 0.0),
     thread_defect: tuple | None = None,
     quadrant_mount: tuple | None = None,
+    bladder: dict | None = None,
+    plan: PlanFile | None = None,
+    video_fps: float | None = None,
+    seconds_per_view: float = SECONDS_PER_PLANNED_VIEW,
 ) -> PhantomSequence:
     """Render ``scene`` along ``trajectory`` (the scene's default when None).
 
@@ -151,32 +157,51 @@ def generate(
         nominal ones (camera on the axis, untilted: what the stage knows), with a tolerance box that covers
         the mount's offset and tilt; the true poses go to the ground truth, and ``quadrants.json`` maps
         frames to quadrants (:func:`write`).
+    bladder : keyword arguments of :func:`~scope3d.phantoms.scenes.build_bladder` (``semi_axes_mm``,
+        ``shape_seed``, ``vessel_density``, ``wet``) for the ``bladder`` scene.
+    plan : a scan plan (:func:`scope3d.io.scan_plan.read_scan_plan`) rendered instead of a named trajectory,
+        with its field of view unless ``fov_deg`` is given. video_fps : render the continuous path through the
+        plan's views at this frame rate, ``seconds_per_view`` apart (poses interpolated; the reference's
+        scan took about 10 min for 529 views, 1.1 s each), instead of one frame per view.
     """
     if thread not in THREADS:
         raise InputError(f"unknown thread size {thread!r} (use one of {', '.join(THREADS)})")
     if scene not in SCENES:
         raise InputError(f"unknown scene {scene!r} (use one of {', '.join(SCENES)})")
+    if bladder and scene != "bladder":
+        raise InputError(f"cavity shape, vessel density and wetness apply to the bladder only, not {scene!r}")
     built = build_scene(scene, thread=thread, dome_radius_mm=float(dome_radius_mm), texture_seed=int(texture_seed),
                         thread_offsets_mm=tuple(float(v) for v in thread_offsets_mm),
-                        thread_defect=None if thread_defect is None else tuple(float(v) for v in thread_defect))
-    name = trajectory or built.default_trajectory
-    if name not in TRAJECTORIES:
-        raise InputError(f"unknown trajectory {name!r} (use one of {', '.join(TRAJECTORIES)})")
-    if name not in built.trajectories:
-        raise InputError(f"trajectory {name!r} does not fit scene {scene!r} (use one of {', '.join(built.trajectories)})")
-    target_mm = None
-    if name == "approach":
-        ids = [t.id for t in built.targets]
-        if target not in ids:
-            raise InputError(f"the approach needs --target, one of {', '.join(map(str, ids))} (the scene's targets)")
-        target_mm = next(t for t in built.info["targets"] if t["id"] == target)["centroid_mm"]
-    try:
-        traj = build_trajectory(name, n_frames=n_frames, side_view_deg=side_view_deg,
-                                axis_offset_mm=float(axis_offset_mm), axis_tilt_deg=float(axis_tilt_deg),
-                                target_mm=target_mm, azimuth_deg=72.0 * ((target or 1) - 1),
-                                quadrant_mount=quadrant_mount)
-    except ValueError as exc:
-        raise InputError(str(exc)) from None
+                        thread_defect=None if thread_defect is None else tuple(float(v) for v in thread_defect),
+                        bladder=tuple(sorted((k, tuple(v) if isinstance(v, (list, np.ndarray)) else v)
+                                             for k, v in (bladder or {}).items())))
+    if plan is not None:
+        if trajectory is not None:
+            raise InputError("give either a trajectory or a plan, not both")
+        traj = plan_trajectory(plan, video_fps=video_fps, seconds_per_view=seconds_per_view, n_frames=n_frames)
+        name = traj.name
+        fov_deg = fov_deg or plan.fov_deg
+    else:
+        if video_fps is not None:
+            raise InputError("a video path needs a plan (--plan) to run through")
+        name = trajectory or built.default_trajectory
+        if name not in TRAJECTORIES:
+            raise InputError(f"unknown trajectory {name!r} (use one of {', '.join(TRAJECTORIES)})")
+        if name not in built.trajectories:
+            raise InputError(f"trajectory {name!r} does not fit scene {scene!r} (use one of {', '.join(built.trajectories)})")
+        target_mm = None
+        if name == "approach":
+            ids = [t.id for t in built.targets]
+            if target not in ids:
+                raise InputError(f"the approach needs --target, one of {', '.join(map(str, ids))} (the scene's targets)")
+            target_mm = next(t for t in built.info["targets"] if t["id"] == target)["centroid_mm"]
+        try:
+            traj = build_trajectory(name, n_frames=n_frames, side_view_deg=side_view_deg,
+                                    axis_offset_mm=float(axis_offset_mm), axis_tilt_deg=float(axis_tilt_deg),
+                                    target_mm=target_mm, azimuth_deg=72.0 * ((target or 1) - 1),
+                                    quadrant_mount=quadrant_mount)
+        except ValueError as exc:
+            raise InputError(str(exc)) from None
     if camera is None:
         try:
             camera = default_camera(built, name, size=size, fov_deg=fov_deg)
@@ -257,6 +282,32 @@ def quadrant_layout(trajectory: Trajectory, names: list[str]) -> dict:
             "rotation_axis": "world z through the origin (nominal)",
             "quadrants": [{"index": q, "angle_deg": q * p["angle_step_deg"], "frames": names[q * m:(q + 1) * m]}
                           for q in range(p["quadrants"])]}
+
+
+def plan_trajectory(plan: PlanFile, *, video_fps: float | None = None,
+                    seconds_per_view: float = SECONDS_PER_PLANNED_VIEW, n_frames: int | None = None) -> Trajectory:
+    """A plan's views as a trajectory: one frame per view, or with ``video_fps`` the continuous path through
+    them (``round(video_fps * seconds_per_view)`` frames from each view to the next, poses interpolated:
+    centres linearly, orientations by slerp). ``n_frames`` keeps the first frames. The frame's section
+    (spiral turn) is in ``params["sections"]``."""
+    poses, sections = list(plan.poses), list(int(k) for k in plan.sections)
+    params = {"kind": "plan", "views": len(poses), "plan": {k: v for k, v in plan.info.items() if k != "camera"}}
+    if video_fps is not None:
+        if not (np.isfinite(video_fps) and video_fps > 0 and np.isfinite(seconds_per_view) and seconds_per_view > 0):
+            raise InputError(f"video frame rate and seconds per view must be positive, got {video_fps}, "
+                             f"{seconds_per_view}")
+        steps = max(1, int(round(video_fps * seconds_per_view)))
+        path, path_sections = [], []
+        for a, b, k in zip(poses[:-1], poses[1:], sections[:-1]):
+            path.extend(a.interpolate(b, j / steps) for j in range(steps))
+            path_sections.extend([k] * steps)
+        poses, sections = path + poses[-1:], path_sections + sections[-1:]
+        params.update({"kind": "plan video", "fps": float(video_fps), "seconds_per_view": float(seconds_per_view),
+                       "frames_per_view": steps})
+    if n_frames is not None:
+        poses, sections = poses[:n_frames], sections[:n_frames]
+    params["sections"] = sections
+    return Trajectory("plan" if video_fps is None else "plan_video", poses, params)
 
 
 def contact_sheet(images: list[np.ndarray], *, columns: int | None = None, thumb_px: int = 160,

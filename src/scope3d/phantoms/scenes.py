@@ -406,16 +406,42 @@ def _bladder_radius_scale(d: np.ndarray) -> np.ndarray:
     return 1.0 + 0.06 * x * y + 0.05 * np.sin(2.0 * x + 1.0) * z + 0.04 * (z * z - 0.3) - 0.03 * y * z * z
 
 
-def build_bladder(*, texture_seed: int = 0, mm_per_texel: float = 0.05) -> Scene:
+def _bladder_shape_scale(d: np.ndarray, shape_seed: int) -> np.ndarray:
+    """Radial scale (N,) of unit directions d (N, 3): today's shape for seed 0, else random smooth bumps
+    of the same amplitude (quadratic and cubic terms of the direction, coefficients within ±0.06)."""
+    if shape_seed == 0:
+        return _bladder_radius_scale(d)
+    x, y, z = d[:, 0], d[:, 1], d[:, 2]
+    terms = np.stack([x * y, y * z, x * z, x * x - y * y, z * z - 1.0 / 3.0, x * y * z, x * z * z, y * y * z,
+                      np.sin(2.0 * x + 1.0) * z], axis=1)
+    coef = np.random.default_rng([shape_seed, 2]).uniform(-0.06, 0.06, terms.shape[1])
+    return 1.0 + terms @ coef
+
+
+# Wet mucosa at the scope-tip light: a sharp, bright Blinn-Phong glint (the dry latex default: 0.06, 25).
+WET_MATERIAL = Material(specular=0.6, shininess=120.0)
+
+
+def build_bladder(*, texture_seed: int = 0, mm_per_texel: float = 0.05, semi_axes_mm=BLADDER_SEMI_AXES_MM,
+                  shape_seed: int = 0, vessel_density: float = 1.0, wet: bool = False) -> Scene:
     """Irregular ellipsoidal closed cavity (about 90 x 76 x 64 mm) with vessels and four 6 mm star markers
-    (reference sec. 2.2, Fig. 2.3)."""
+    (reference sec. 2.2, Fig. 2.3).
+
+    semi_axes_mm : (3,) the ellipsoid's semi-axes before the irregularity; shape_seed : 0 for the default
+    irregularity, else a random one of the same size; vessel_density : fraction of the default vessel and
+    capillary-dot density (a pale, sparsely vascular wall at 0.25); wet : specular glints of wet mucosa.
+    """
     import trimesh
 
+    a = np.asarray(semi_axes_mm, dtype=float).reshape(3)
+    if not (np.all(np.isfinite(a)) and np.all(a > 0)):
+        raise InputError(f"bladder semi-axes must be three positive lengths in mm, got {semi_axes_mm}")
+    if not 0.0 <= vessel_density <= 4.0:
+        raise InputError(f"vessel density must be a fraction from 0 to 4 of the default, got {vessel_density}")
     sphere = trimesh.creation.icosphere(subdivisions=6)
     d = np.asarray(sphere.vertices, dtype=float)
     d /= np.linalg.norm(d, axis=1, keepdims=True)
-    a = np.asarray(BLADDER_SEMI_AXES_MM)
-    verts = d * a * _bladder_radius_scale(d)[:, None]
+    verts = d * a * _bladder_shape_scale(d, int(shape_seed))[:, None]
     faces = np.asarray(sphere.faces, dtype=np.int64)
     tm = trimesh.Trimesh(verts, faces, process=False)
     normals = -np.asarray(tm.vertex_normals)  # into the cavity, towards the camera
@@ -423,8 +449,8 @@ def build_bladder(*, texture_seed: int = 0, mm_per_texel: float = 0.05) -> Scene
 
     size = 2 * a.max() * 1.25 + 4
     texs = [TextureMap(tissue_texture((size, size), mm_per_texel, texture_seed + 10 + k, vessel_width_mm=(0.15, 1.4),
-                                      vessel_density_per_cm2=0.25, speckle_mm=0.5,
-                                      background_rgb=(0.90, 0.66, 0.58)),
+                                      vessel_density_per_cm2=0.25 * vessel_density, speckle_mm=0.5,
+                                      background_rgb=(0.90, 0.66, 0.58), dot_contrast=0.45 * min(vessel_density, 1.0)),
                        (-size / 2, -size / 2), mm_per_texel) for k in range(3)]
 
     def albedo(points, normals, footprint_mm):
@@ -436,7 +462,8 @@ def build_bladder(*, texture_seed: int = 0, mm_per_texel: float = 0.05) -> Scene
         out += texs[2].sample(points[:, [0, 1]], footprint_mm) * w[:, 2:3].astype(np.float32)
         return out
 
-    scene = Scene("bladder", mesh, albedo, Material(specular=0.06, shininess=25.0), (), SCENE_TRAJECTORIES["bladder"],
+    material = WET_MATERIAL if wet else Material(specular=0.06, shininess=25.0)
+    scene = Scene("bladder", mesh, albedo, material, (), SCENE_TRAJECTORIES["bladder"],
                   "endoscope", 70.0)
     targets = []
     directions = [(0.3, 0.8, 0.3), (-0.7, 0.2, -0.1), (0.6, -0.5, -0.5), (-0.2, -0.4, 0.85)]
@@ -455,9 +482,14 @@ def build_bladder(*, texture_seed: int = 0, mm_per_texel: float = 0.05) -> Scene
                        "four 6 mm (outer diameter) fluorescent stars usable as scale references (reference sec. 2.2)",
         "units": "mm",
         "world_frame": "cavity centred on the origin; z up",
-        "bladder": {"semi_axes_mm": list(BLADDER_SEMI_AXES_MM),
+        "bladder": {"semi_axes_mm": a.tolist(), "shape_seed": int(shape_seed),
                     "radius_scale": "1 + 0.06xy + 0.05 sin(2x+1) z + 0.04 (z^2 - 0.3) - 0.03 y z^2 of the unit "
-                                    "direction (x, y, z)",
+                                    "direction (x, y, z)" if shape_seed == 0 else
+                                    "1 + sum of 9 quadratic/cubic terms of the unit direction, coefficients "
+                                    "uniform in ±0.06 drawn with default_rng([shape_seed, 2])",
+                    "vessel_density": float(vessel_density),
+                    "material": {"specular": material.specular, "shininess": material.shininess,
+                                 "kind": "wet mucosa" if wet else "latex"},
                     "extent_mm": (verts.max(0) - verts.min(0)).tolist()},
         "texture": {"kind": "tissue (vessels), triplanar projection", "seed": texture_seed,
                     "mm_per_texel": mm_per_texel},
@@ -678,16 +710,18 @@ SCENES = {
 
 @lru_cache(maxsize=8)
 def build_scene(name: str, *, thread: str = "M8x1.25", dome_radius_mm: float = 17.5, texture_seed: int = 0,
-                thread_offsets_mm: tuple = (0.0, 0.0, 0.0), thread_defect: tuple | None = None) -> Scene:
+                thread_offsets_mm: tuple = (0.0, 0.0, 0.0), thread_defect: tuple | None = None,
+                bladder: tuple = ()) -> Scene:
     """Build (and cache) a scene by name. Unknown names or sizes raise :class:`InputError`.
     thread_offsets_mm : (minor, pitch, major) diameter offsets and thread_defect : (angle_deg, width_deg,
-    depth_mm) or None, for the thread (see :func:`build_thread`)."""
+    depth_mm) or None, for the thread (see :func:`build_thread`). bladder : keyword arguments of
+    :func:`build_bladder` as sorted ``(name, value)`` pairs (hashable)."""
     if name == "dome":
         return build_dome(dome_radius_mm, texture_seed=texture_seed)
     if name == "sheet":
         return build_sheet(texture_seed=texture_seed)
     if name == "bladder":
-        return build_bladder(texture_seed=texture_seed)
+        return build_bladder(texture_seed=texture_seed, **dict(bladder))
     if name == "thread":
         minor, pitch_d, major = (float(v) for v in thread_offsets_mm)
         return build_thread(thread, texture_seed=texture_seed, minor_diameter_offset_mm=minor,

@@ -194,9 +194,11 @@ def tissue_texture(
     vessel_density_per_cm2: float = 0.7,
     speckle_mm: float = 0.12,
     background_rgb: tuple[float, float, float] = (0.86, 0.58, 0.52),
+    dot_contrast: float = 0.45,
 ) -> np.ndarray:
     """Cortex-like reflectance: mottled pink tissue, a branching network of red and blue vessels, and small
-    dark speckles (capillary dots) that give SIFT features at the endoscope's pixel footprint.
+    dark speckles (capillary dots, darkening by up to ``dot_contrast``) that give SIFT features at the
+    endoscope's pixel footprint.
 
     size_mm : (width, height) of the textured area; mm_per_texel : texel size.
     Returns (H, W, 3) uint8 RGB albedo with H = ceil(height / mm_per_texel).
@@ -211,7 +213,7 @@ def tissue_texture(
     rgb = base * (1.0 + 0.10 * mottle[..., None])
     # Capillary dots: where band-limited noise peaks, the tissue is darker and redder.
     dots = np.clip((fine - 1.3) / 0.8, 0.0, 1.0)
-    rgb = rgb * (1.0 - 0.45 * dots[..., None] * np.array([0.6, 1.0, 1.0], np.float32))
+    rgb = rgb * (1.0 - dot_contrast * dots[..., None] * np.array([0.6, 1.0, 1.0], np.float32))
     arteries = vessel_mask(shape, mm_per_texel, rng, density_per_cm2=vessel_density_per_cm2,
                            width_mm=vessel_width_mm, segment_mm=0.6)
     veins = vessel_mask(shape, mm_per_texel, rng, density_per_cm2=vessel_density_per_cm2 * 0.5,
