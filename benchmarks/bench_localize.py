@@ -35,7 +35,7 @@ import numpy as np
 
 from scope3d import phantoms
 from scope3d.cli.main import main as cli
-from scope3d.estimators.absolute_pose import AbsolutePoseOptions, estimate_absolute_pose, undistorted_pixels
+from scope3d.estimators.absolute_pose import estimate_absolute_pose, undistorted_pixels
 from scope3d.feature.detection import FEATURE_PRESETS, detect
 from scope3d.geometry.pose import Pose
 from scope3d.io.dataset import load_dataset

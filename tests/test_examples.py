@@ -6,7 +6,6 @@ import runpy
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 LADYBUG = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "bal_ladybug_49_7776" / \

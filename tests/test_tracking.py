@@ -18,7 +18,7 @@ from scope3d.geometry.pose import Pose
 from scope3d.geometry.rotation import matrix_to_quaternion, rotvec_to_matrix
 from scope3d.io.tracker import read_tracker
 from scope3d.phantoms.trajectories import approach_trajectory
-from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance, perturb_poses_uniform
+from scope3d.sensor.pose_tolerance import PoseTolerance, perturb_poses_uniform
 
 RATE_HZ = 60.0
 MARKER_SIGMA_MM = 0.25
@@ -72,7 +72,7 @@ def _write_ndi(path, truth, markers, *, header=True, missing=(), drop_markers=()
     lines = []
     if header:
         lines.append("Port,Tool,Frame,Face,State,Q0,Qx,Qy,Qz,Tx,Ty,Tz,Error,Markers," +
-                     ",".join(f"State,Tx,Ty,Tz" for _ in range(4)))
+                     ",".join("State,Tx,Ty,Tz" for _ in range(4)))
     for k, p in enumerate(truth):
         tracker_from_tool = (tool_from_plate @ p).inverse()
         q = matrix_to_quaternion(tracker_from_tool.rotation)

@@ -146,6 +146,7 @@ def run_import_colmap(args) -> int:
 
 def run_import_rosbag(args) -> int:
     from scope3d.io.camera_json import read_camera_json
+    from scope3d.io.dataset import load_dataset
     from scope3d.io.rosbag import RosbagOptions, import_rosbag
 
     if not args.slop_ms > 0:

@@ -16,7 +16,7 @@ from pathlib import Path
 from scope3d.errors import InputError
 from scope3d.report.scene import ReportOptions, ViewScene, colour_stops, gather_scene, scene_payload
 from scope3d.utils.atomic import atomic_file
-from scope3d.utils.jsonio import json_default
+from scope3d.utils.jsonio import MACHINE_FIELDS, TIMING_FIELD_SUFFIXES, json_default
 
 # Key suffix -> unit shown beside the value (units live in the report's key names, see STYLE.md).
 UNIT_SUFFIXES = (("_mm2", "mm²"), ("_mm", "mm"), ("_px2", "px²"), ("_px", "px"), ("_deg", "°"), ("_rad", "rad"),
@@ -31,7 +31,6 @@ HEADLINES = (
     ("surface_error_mm.direct.within_1mm_fraction", "points within 1 mm of the truth"),
     ("pose_error.position_mm_mean", "mean camera position error"),
     ("initial_cost", "initial cost"), ("final_cost", "final cost"), ("iterations", "iterations"),
-    ("time_s", "time"),
 )
 COLOURINGS = (("height", "height"), ("error", "error against ground truth"), ("texture", "texture"),
               ("multimodal", "texture + fluorescence"))
@@ -78,7 +77,7 @@ def build_page(run: Path, options: ReportOptions = ReportOptions()) -> str:
         f"<title>{_e(title)}</title><style>{style}</style></head><body>",
         f"<header><h1>{_e(title)}</h1><p>{_e(str(report.get('dataset', '')))}</p></header><main>",
         _merit_section(report), _view_section(scene), _targets_section(scene, report), _pictures_section(run),
-        _files_section(run, scene),
+        _files_section(run, scene), _timings_section(report),
         f'</main><script type="application/json" id="scene-data">{payload}</script>',
         f"<script>{script}</script></body></html>",
     ]
@@ -160,11 +159,31 @@ def _merit_section(report: dict) -> str:
         seen.add(label)
         cards.append(f'<div class="card"><div class="value">{_e(format_value(key, value))} {_e(unit_of(key))}</div>'
                      f'<div class="label">{_e(label)}</div></div>')
-    rows = "".join(f'<tr><td>{_e(k)}</td><td class="num">{_e(format_value(k, v))}</td><td>{_e(unit_of(k))}</td></tr>'
-                   for k, v in flatten(report))
+    rows = _rows((k, v) for k, v in flatten(report) if not is_timing(k))
     return (f'<section id="merit"><h2>Figures of merit</h2><div class="cards">{"".join(cards)}</div>'
             f'<details><summary>every figure in report.json</summary><table id="merit-table"><thead><tr><th>figure'
             f'</th><th>value</th><th>unit</th></tr></thead><tbody>{rows}</tbody></table></details></section>')
+
+
+def is_timing(key: str) -> bool:
+    """Whether a dotted key measures the machine (time, memory) rather than the data: the page keeps those
+    apart, in its last section, so that the rest of it is a function of the input, options and seed."""
+    parts = key.replace("[", ".").split(".")
+    return any(p.endswith(TIMING_FIELD_SUFFIXES) or p in MACHINE_FIELDS for p in parts)
+
+
+def _rows(items) -> str:
+    return "".join(f'<tr><td>{_e(k)}</td><td class="num">{_e(format_value(k, v))}</td><td>{_e(unit_of(k))}</td></tr>'
+                   for k, v in items)
+
+
+def _timings_section(report: dict) -> str:
+    rows = _rows((k, v) for k, v in flatten(report) if is_timing(k))
+    if not rows:
+        return ""
+    return ('<section id="timings"><h2>Time and memory</h2><p>Measured on the machine that ran the job; the '
+            'only part of this page that differs between runs of the same input.</p><table><thead><tr><th>figure'
+            f'</th><th>value</th><th>unit</th></tr></thead><tbody>{rows}</tbody></table></section>')
 
 
 def _view_section(scene: ViewScene) -> str:
