@@ -307,6 +307,9 @@ def positions_from_points(camera: Camera, measured: list[MeasuredPose], rotation
     """
     n = len(measured)
     C = np.asarray(centres, float).copy()
+    solved = np.zeros(n, bool)
+    if not np.all(np.isfinite(C)):  # measurements beyond float range: nothing to weigh the rays by
+        return C, solved
     obs_frame, obs_track = tracks.frame.astype(int), tracks.track.astype(int)
     rays = np.c_[camera.pixel_to_normalised(tracks.pixels), np.ones(len(obs_frame))]
     u = np.einsum("kji,kj->ki", rotations[obs_frame], rays)  # R^T x: world direction of each observation
@@ -316,7 +319,6 @@ def positions_from_points(camera: Camera, measured: list[MeasuredPose], rotation
         counts = np.bincount(obs_frame[keep], minlength=n)
         keep &= counts[obs_frame] >= min_observations
         keep &= np.bincount(obs_track[keep], minlength=tracks.n_tracks)[obs_track] >= 2
-    solved = np.zeros(n, bool)
     if not keep.any():
         return C, solved
     obs_frame, obs_track, u = obs_frame[keep], np.unique(obs_track[keep], return_inverse=True)[1], u[keep]
