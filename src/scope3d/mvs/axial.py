@@ -169,19 +169,31 @@ class AxialPair:
         """cv2.remap maps sampling the image of the camera at ``pose`` on the polar grid.
 
         Returns map_u, map_v : (n_angles, n_radii) float32 pixels; -1 where the grid point is behind the
-        camera or outside its image disc (so remap gives 0 there). Cached per pose.
+        camera or outside its image disc (so remap gives 0 there). The maps depend only on the camera's
+        orientation (the grid is a set of directions), so they are cached per rotation: the two frames of a
+        pure axial step share one pair of maps.
         """
-        key = pose.matrix.tobytes()
+        key = ("polar", self.virtual_from_camera(pose).tobytes())
         if key not in self._maps:
             self._maps[key] = self._compute_polar_maps(pose)
         return self._maps[key]
 
-    def _compute_polar_maps(self, pose: Pose) -> tuple[np.ndarray, np.ndarray]:
-        directions = self.grid.virtual_points() @ self.virtual_from_camera(pose)  # rows: (R_vc^T v)^T
-        pixels = self.camera.project(directions.reshape(-1, 3)).reshape(self.grid.shape + (2,))
-        inside = self.camera.in_image(pixels.reshape(-1, 2)).reshape(self.grid.shape)
-        pixels[~inside] = -1.0
-        return pixels[..., 0].astype(np.float32), pixels[..., 1].astype(np.float32)
+    def _compute_polar_maps(self, pose: Pose, rows_per_block: int = 32) -> tuple[np.ndarray, np.ndarray]:
+        # Blocks of grid rows keep the float64 temporaries in cache (~1.6x faster than one pass over the
+        # whole grid, measured on a 1260x692 grid); every operation is per element, so the maps are the same.
+        camera_from_virtual = self.virtual_from_camera(pose)
+        virtual = self.grid.virtual_points()
+        map_u = np.empty(self.grid.shape, np.float32)
+        map_v = np.empty(self.grid.shape, np.float32)
+        for start in range(0, self.grid.n_angles, rows_per_block):
+            block = slice(start, start + rows_per_block)
+            directions = virtual[block] @ camera_from_virtual  # rows: (R_vc^T v)^T
+            pixels = self.camera.project(directions.reshape(-1, 3))
+            pixels[~self.camera.in_image(pixels)] = -1.0
+            pixels = pixels.reshape(-1, self.grid.n_radii, 2)
+            map_u[block] = pixels[..., 0]
+            map_v[block] = pixels[..., 1]
+        return map_u, map_v
 
     def to_polar(self, image: np.ndarray, pose: Pose, *, interpolation: int = cv2.INTER_CUBIC) -> np.ndarray:
         """Resample ``image`` (H, W) or (H, W, C) taken at ``pose`` onto the grid: (n_angles, n_radii[, C])."""
@@ -194,10 +206,20 @@ class AxialPair:
         return map_u >= 0
 
     def image_to_grid(self, pose: Pose) -> np.ndarray:
-        """(H, W, 2) float32 fractional (row, column) on the grid of every pixel of the camera at ``pose``."""
-        rays = self.camera.unproject(self.camera.pixel_grid().reshape(-1, 2))
-        coords = self.grid.coordinates_of(rays @ self.virtual_from_camera(pose).T)
-        return coords.reshape(self.camera.height, self.camera.width, 2).astype(np.float32)
+        """(H, W, 2) float32 fractional (row, column) on the grid of every pixel of the camera at ``pose``.
+
+        Cached per rotation, like :meth:`polar_maps` (a depth map and its confidence share it)."""
+        key = ("image", self.virtual_from_camera(pose).tobytes())
+        if key not in self._maps:
+            coords = self.grid.coordinates_of(self.camera_rays() @ self.virtual_from_camera(pose).T)
+            self._maps[key] = coords.reshape(self.camera.height, self.camera.width, 2).astype(np.float32)
+        return self._maps[key]
+
+    def camera_rays(self) -> np.ndarray:
+        """(H * W, 3) unit rays of every pixel in the camera frame (cached)."""
+        if "rays" not in self._maps:
+            self._maps["rays"] = self.camera.unproject(self.camera.pixel_grid().reshape(-1, 2))
+        return self._maps["rays"]
 
     def from_polar(self, values: np.ndarray, pose: Pose) -> np.ndarray:
         """Resample a polar map (n_angles, n_radii) float, NaN = no value, back to the image at ``pose``.

@@ -151,7 +151,7 @@ class ImageDepth:
 def to_image(pair: AxialPair, range_polar_mm: np.ndarray, confidence_polar: np.ndarray | None = None) -> ImageDepth:
     """Resample a polar range map (n_angles, n_radii) mm onto the front camera's pixels."""
     rng = pair.from_polar(range_polar_mm, pair.pose_front)
-    rays_cam = pair.camera.unproject(pair.camera.pixel_grid().reshape(-1, 2)).reshape(rng.shape + (3,))
+    rays_cam = pair.camera_rays().reshape(rng.shape + (3,))
     with np.errstate(invalid="ignore"):
         z = (rng * rays_cam[..., 2]).astype(np.float32)
     pts = pair.pose_front.centre + (rays_cam * rng[..., None]) @ pair.pose_front.rotation
