@@ -107,7 +107,8 @@ def reliability(
     """
     w = options.window_px
     mean_f, std_f, grad_f = window_statistics(front_polar, w)
-    mean_r, _, _ = window_statistics(rear_polar, w)
+    # Only the rear image's mean is tested: one box filter, as in window_statistics (same border).
+    mean_r = cv2.boxFilter(np.asarray(rear_polar, dtype=np.float32), cv2.CV_32F, (w, w), borderType=cv2.BORDER_REFLECT)
     d = np.asarray(disparity, dtype=np.float32)
     sigma_d = np.fmax(np.asarray(disparity_sigma, dtype=np.float32), options.disparity_sigma_floor_px)
     sigma_d = np.where(np.isfinite(sigma_d), sigma_d, options.disparity_sigma_floor_px)

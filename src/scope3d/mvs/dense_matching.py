@@ -215,20 +215,25 @@ def refine_subpixel(
     mu_l = mean(left_f)
     var_l = np.maximum(mean(left_f * left_f) - mu_l * mu_l, 1e-6)
 
-    def statistics(d):
+    # The image and its gradient are warped by one remap of a two-channel image: the same per-channel
+    # interpolation as two remaps (bit-identical), with the coordinates worked out once.
+    right_and_grad = cv2.merge([right_f, grad])
+
+    def statistics(d, with_step=True):
         map_x = (xs - d).astype(np.float32)
-        warped = cv2.remap(right_f, map_x, ys, _INTERP, borderMode=cv2.BORDER_REPLICATE)
-        g = cv2.remap(grad, map_x, ys, _INTERP, borderMode=cv2.BORDER_REPLICATE)
+        warped, g = cv2.split(cv2.remap(right_and_grad, map_x, ys, _INTERP, borderMode=cv2.BORDER_REPLICATE))
         mu_w, mu_g = mean(warped), mean(g)
         var_w = np.maximum(mean(warped * warped) - mu_w * mu_w, 1e-6)
         var_g = np.maximum(mean(g * g) - mu_g * mu_g, 0.0)
         cov_lw = mean(left_f * warped) - mu_l * mu_w
-        cov_gl = mean(g * left_f) - mu_g * mu_l
-        cov_gw = mean(g * warped) - mu_g * mu_w
         a = np.sqrt(var_l / var_w)
-        je = a * (cov_gl - a * cov_gw)  # mean of J e over the window
         jj = a * a * var_g  # mean of J^2
         ee = np.maximum(var_l - 2 * a * cov_lw + a * a * var_w, 0.0)  # mean of e^2
+        if not with_step:  # the final call needs only the residual and the Jacobian's energy
+            return None, jj, ee
+        cov_gl = mean(g * left_f) - mu_g * mu_l
+        cov_gw = mean(g * warped) - mu_g * mu_w
+        je = a * (cov_gl - a * cov_gw)  # mean of J e over the window
         return je, jj, ee
 
     for _ in range(max(iterations, 1)):
@@ -237,7 +242,7 @@ def refine_subpixel(
             delta = np.where(jj > 1e-9, -je / jj, 0.0)
         # Damped: a step beyond half a column leaves the linear range of the interpolated gradient.
         d = d + np.clip(delta, -0.5, 0.5).astype(np.float32)
-    _, jj, ee = statistics(d)
+    _, jj, ee = statistics(d, with_step=False)
     with np.errstate(divide="ignore", invalid="ignore"):
         sigma = np.sqrt(ee / (n * jj))
     cost = np.sqrt(ee)
