@@ -2,10 +2,17 @@
 
 Writes benchmarks/results/axial.json, axial_depth.png, axial_cloud.png and prints a table. Run:
     .venv/bin/python benchmarks/bench_axial.py
+
+Speed of one two-view pair only (issue 17), CPU and wall time with the machine load, merged into
+benchmarks/results/axial_speed.json under LABEL (run it with another checkout's src on PYTHONPATH for a
+"before" row; the digest of the output arrays shows whether two rows computed the same result):
+    .venv/bin/python benchmarks/bench_axial.py --speed LABEL
 """
 from __future__ import annotations
 
+import hashlib
 import json
+import os
 import sys
 import tempfile
 import time
@@ -136,7 +143,52 @@ def middlebury() -> dict:
     return out
 
 
+def speed(label: str, repeats: int = 7) -> dict:
+    """Best-of-``repeats`` CPU (process_time) and wall time of one 608x608 thread pair: the two-view
+    reconstruction alone (``reconstruct_pair``, the figure issue 17 targets) and the whole ``run`` without
+    files (reconstruction, image resampling, cloud and mesh). The load average is read before and after."""
+    from scope3d.mvs.two_view import reconstruct_pair as pair_fn
+
+    with tempfile.TemporaryDirectory() as tmp:
+        seq = phantoms.generate("thread", "axial", seed=0, n_frames=4)
+        ds = load_dataset(phantoms.write(seq, Path(tmp) / "thread"))
+        opts = AxialOptions(method="sgm", frames=(1, 2))
+        imgs = [ds.frame(k, grey=True) for k in (1, 2)]
+        poses = [m.pose for m in ds.poses]
+        res = run(opts, ds, None)  # warm: imports, OpenCV's first calls
+        load_before = os.getloadavg()
+        rows = {"pair": [], "run": []}
+        for _ in range(repeats):
+            c, w = time.process_time(), time.perf_counter()
+            pair_fn(ds.camera, imgs[0], imgs[1], poses[1], poses[2], opts.two_view)
+            rows["pair"].append((time.process_time() - c, time.perf_counter() - w))
+            c, w = time.process_time(), time.perf_counter()
+            res = run(opts, ds, None)
+            rows["run"].append((time.process_time() - c, time.perf_counter() - w, res.report["time_s"]))
+        load_after = os.getloadavg()
+    d = res.depths[0]
+    digest = hashlib.sha256()
+    for a in (d.z_depth_mm, d.range_mm, d.points_world, d.confidence, res.cloud.points, res.mesh.faces):
+        digest.update(np.ascontiguousarray(a).tobytes())
+    out = {"label": label, "size_px": [ds.camera.width, ds.camera.height], "repeats": repeats,
+           "pair_cpu_s": min(r[0] for r in rows["pair"]), "pair_wall_s": min(r[1] for r in rows["pair"]),
+           "run_cpu_s": min(r[0] for r in rows["run"]), "run_wall_s": min(r[1] for r in rows["run"]),
+           "run_time_s_reported": min(r[2] for r in rows["run"]),
+           "load_1min_before_after": [load_before[0], load_after[0]], "cpu_count": os.cpu_count(),
+           "n_points": res.report["n_points"], "mean_error_mm": res.report["surface_error_mm"]["mean"],
+           "output_sha256": digest.hexdigest()}
+    path = OUT / "axial_speed.json"
+    table = json.loads(path.read_text()) if path.exists() else {}
+    table[label] = out
+    path.write_text(json.dumps(table, indent=2) + "\n")
+    return out
+
+
 def main() -> int:
+    if len(sys.argv) == 3 and sys.argv[1] == "--speed":
+        OUT.mkdir(parents=True, exist_ok=True)
+        print(json.dumps(speed(sys.argv[2]), indent=2))
+        return 0
     OUT.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as tmp:
         t = time.perf_counter()
