@@ -179,10 +179,17 @@ def grid_mesh_faces(points: np.ndarray, range_mm: np.ndarray, *, max_edge_ratio:
         edge = np.linalg.norm(np.nan_to_num(points[a_sl] - points[b_sl]), axis=-1)
         return edge <= max_edge_ratio * np.maximum(rng[a_sl], rng[b_sl])
 
-    tl, tr = (slice(None, -1), slice(None, -1)), (slice(None, -1), slice(1, None))
-    bl, br = (slice(1, None), slice(None, -1)), (slice(1, None), slice(1, None))
+    # Each edge is tested once: horizontal edges serve as the top of one row of cells and the bottom of
+    # the row above, vertical edges as the right of one cell and the left of the next, and the diagonal
+    # is shared by both triangles (the test is symmetric in its end points).
+    everything, head, tail = slice(None), slice(None, -1), slice(1, None)
+    horizontal = short((everything, head), (everything, tail))  # (h, w-1)
+    vertical = short((head, everything), (tail, everything))  # (h-1, w)
+    diagonal = short((head, tail), (tail, head))  # tr-bl, (h-1, w-1)
+    tl, tr = (head, head), (head, tail)
+    bl, br = (tail, head), (tail, tail)
     quad_ok = ok[tl] & ok[tr] & ok[bl] & ok[br]
-    t1 = quad_ok & short(tl, tr) & short(tr, bl) & short(bl, tl)
-    t2 = quad_ok & short(tr, br) & short(br, bl) & short(bl, tr)
+    t1 = quad_ok & horizontal[:-1] & diagonal & vertical[:, :-1]
+    t2 = quad_ok & vertical[:, 1:] & horizontal[1:] & diagonal
     # cells split along the top-right/bottom-left diagonal: (tl, bl, tr) and (tr, bl, br)
     return grid_faces(h, w, anti_diagonal=True, clockwise=True, keep=(t1, t2))
