@@ -186,3 +186,23 @@ def test_polar_sgm_has_no_disparity_bias_on_a_radial_zoom(z_mm):
     assert err.size > 0.8 * ok.sum()
     assert abs(np.median(err)) < 0.02  # columns
     assert np.percentile(np.abs(err), 90) < 0.1
+
+
+@pytest.mark.parametrize("tilt_deg", [0.0, 2.0])
+def test_polar_maps_are_one_projection_of_the_whole_grid(tilt_deg):
+    """The maps are built in blocks of grid rows and cached per camera orientation (issue 17): they must be
+    exactly (bit for bit) the projection of every grid direction at once, for each frame of a pair, whether
+    the two frames share their orientation (pure step) or not (tilted front frame)."""
+    rear = Pose.from_centre(DOWN, [0, 0, 0.0])
+    tilt = rotvec_to_matrix(np.deg2rad([tilt_deg, 0.0, 0.0]))
+    front = Pose.from_centre(tilt @ DOWN, [0, 0, -0.25])
+    pair = make_axial_pair(CAM, rear, front)
+    for pose in (rear, front):
+        directions = pair.grid.virtual_points() @ pair.virtual_from_camera(pose)
+        pixels = CAM.project(directions.reshape(-1, 3))
+        pixels[~CAM.in_image(pixels)] = -1.0
+        pixels = pixels.reshape(pair.grid.shape + (2,)).astype(np.float32)
+        map_u, map_v = pair.polar_maps(pose)
+        assert np.array_equal(map_u, pixels[..., 0]) and np.array_equal(map_v, pixels[..., 1])
+    shared = pair.polar_maps(rear)[0] is pair.polar_maps(front)[0]
+    assert shared == (tilt_deg == 0.0)
