@@ -117,15 +117,18 @@ def _target_ids(scene: Scene, points: np.ndarray) -> np.ndarray:
     decides point by point, so asking it about those points alone gives the same answer.
     """
     tid = np.zeros(len(points), np.int16)
+    xs = np.ascontiguousarray(points[:, 0]) if scene.targets else None
     for tgt in scene.targets:
         lo_uv, hi_uv = tgt.outline_uv_mm.min(axis=0), tgt.outline_uv_mm.max(axis=0)
         corners_local = np.array([[u, v, h] for u in (lo_uv[0], hi_uv[0]) for v in (lo_uv[1], hi_uv[1])
                                   for h in (-tgt.depth_range_mm, 0.0)])
         corners = tgt.origin_mm + corners_local @ tgt.frame
         lo, hi = corners.min(axis=0) - 1e-3, corners.max(axis=0) + 1e-3
-        cand = ((points[:, 0] >= lo[0]) & (points[:, 0] <= hi[0]) & (points[:, 1] >= lo[1]) & (points[:, 1] <= hi[1])
-                & (points[:, 2] >= lo[2]) & (points[:, 2] <= hi[2]))
-        cand = np.flatnonzero(cand)
+        # Narrow axis by axis: after the first axis only a thin slab of the points is left to test.
+        cand = np.flatnonzero((xs >= lo[0]) & (xs <= hi[0]))
+        for axis in (1, 2):
+            coord = points[cand, axis]
+            cand = cand[(coord >= lo[axis]) & (coord <= hi[axis])]
         if cand.size:
             tid[cand[tgt.contains(points[cand])]] = tgt.id
     return tid
@@ -217,10 +220,19 @@ def _to_image(values: np.ndarray, valid: np.ndarray, gain: float, noise: tuple[f
     if blur > 0:
         img = cv2.GaussianBlur(img, (0, 0), blur).reshape(h, w, -1)
     read, shot = noise
-    sigma = np.sqrt(read**2 + shot**2 * np.clip(img, 0.0, None))
-    img = img + sigma * rng.standard_normal(img.shape, dtype=np.float32)
-    img[~valid] = 0.0
-    return np.clip(np.round(img * 255.0), 0, 255).astype(np.uint8)
+    # In place, in float32, in the order of sqrt(read^2 + shot^2 * max(img, 0)) and round(255 * (img + noise)):
+    # the same values as the plain expressions without their full-frame temporaries.
+    noisy = np.clip(img, 0.0, None)
+    noisy *= shot**2
+    noisy += read**2
+    np.sqrt(noisy, out=noisy)
+    noisy *= rng.standard_normal(img.shape, dtype=np.float32)
+    noisy += img
+    noisy[~valid] = 0.0
+    noisy *= 255.0
+    np.round(noisy, out=noisy)
+    np.clip(noisy, 0, 255, out=noisy)
+    return noisy.astype(np.uint8)
 
 
 def render_frame(
