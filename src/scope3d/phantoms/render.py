@@ -145,14 +145,16 @@ def _shade(scene: Scene, camera: Camera, pose: Pose, origins: np.ndarray, dirs: 
     hits = scene.caster.cast(origins, dirs)
     hit = hits.hit
     m = len(dirs)
+    # Where every ray hits (the usual close-up view), select with a slice: views, no gathers or scatters.
+    sel = slice(None) if hit.all() else hit
     reflect = np.zeros((m, 3), np.float32)
     fluor = np.zeros(m, np.float32)
     target = np.zeros(m, np.int16)
     if geometry_only and np.any(hit):
-        target[hit] = _target_ids(scene, hits.points[hit])
+        target[sel] = _target_ids(scene, hits.points[sel])
     elif np.any(hit):
-        pts, nrm, d = hits.points[hit], hits.normals[hit], dirs[hit]
-        dist = hits.distance_mm[hit]
+        pts, nrm, d = hits.points[sel], hits.normals[sel], dirs[sel]
+        dist = hits.distance_mm[sel]
         cos_i = np.abs(np.einsum("ij,ij->i", nrm, d))
         falloff = (cos_i / dist**2).astype(np.float32)
         # Pixel size on the surface: distance / focal length, widened on oblique surfaces.
@@ -165,9 +167,9 @@ def _shade(scene: Scene, camera: Camera, pose: Pose, origins: np.ndarray, dirs: 
         if scene.material.specular > 0:
             spec = scene.material.specular * cos_i ** scene.material.shininess / dist**2
             shade += spec.astype(np.float32)[:, None]
-        reflect[hit] = shade
-        fluor[hit] = falloff * np.where(on_target, options.fluorescence_efficiency, options.fluorescence_background)
-        target[hit] = tid
+        reflect[sel] = shade
+        fluor[sel] = falloff * np.where(on_target, options.fluorescence_efficiency, options.fluorescence_background)
+        target[sel] = tid
     return hits, reflect, fluor, target
 
 
