@@ -215,3 +215,38 @@ def test_scene_default_supersampling_leaves_the_dome_unchanged():
     assert build_scene("thread").render_supersample == 2 and scene.render_supersample == 1
     with pytest.raises(ValueError, match="supersample"):
         RenderOptions(supersample=0)
+
+
+def test_target_ids_from_the_box_prefilter_equal_contains_on_every_point():
+    # _target_ids asks Target.contains only about points inside each target's world box; the answer must be
+    # exactly the one contains gives on all points (the box bounds the outline box times the depth range).
+    from scope3d.phantoms.render import _target_ids
+
+    scene = build_scene("dome")
+    rng = np.random.default_rng(5)
+    hits_on_targets = []
+    for tgt in scene.targets:  # points on and around each target, lifted onto the surface along -n
+        uv = rng.uniform(-1.5, 1.5, (400, 2)) * np.abs(tgt.outline_uv_mm).max()
+        origins = tgt.origin_mm + uv @ tgt.frame[:2]
+        hits = scene.caster.cast(origins, np.broadcast_to(-tgt.frame[2], origins.shape))
+        hits_on_targets.append(hits.points[hits.hit])
+    points = np.concatenate(hits_on_targets + [rng.uniform(-40, 40, (2000, 3))])
+    expected = np.zeros(len(points), np.int16)
+    for tgt in scene.targets:
+        expected[tgt.contains(points)] = tgt.id
+    assert np.count_nonzero(expected) > 100  # the check covers points on targets, not only misses
+    np.testing.assert_array_equal(_target_ids(scene, points), expected)
+
+
+def test_mip_level_grouping_gives_each_point_its_own_levels_lookup():
+    # TextureMap.sample groups points by mip level; every point must get what a lookup at its level alone gives.
+    from scope3d.phantoms.textures import TextureMap
+
+    rng = np.random.default_rng(2)
+    tex = TextureMap(rng.integers(0, 256, (300, 400, 3), dtype=np.uint8), (0.0, 0.0), 0.05)
+    uv = rng.uniform(0, 15, (5000, 2))
+    footprint = 0.05 * 2.0 ** rng.uniform(-1, 5, 5000)  # levels 0 to 5
+    levels = np.clip(np.floor(np.log2(footprint / 0.05) + 0.5), 0, 8).astype(int)
+    assert len(np.unique(levels)) >= 5
+    expected = np.stack([tex._sample_level(uv[i:i + 1], int(levels[i]))[0] for i in range(len(uv))])
+    np.testing.assert_array_equal(tex.sample(uv, footprint), expected)

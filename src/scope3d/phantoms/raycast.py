@@ -63,11 +63,26 @@ class RayCaster:
             self.backend = "numpy"
         self._intersector = RayMeshIntersector(tm)
         tri = mesh.vertices[mesh.faces]
-        self._v0 = tri[:, 0]
-        self._e1 = tri[:, 1] - tri[:, 0]
-        self._e2 = tri[:, 2] - tri[:, 0]
-        face_normals = np.cross(self._e1, self._e2)
+        # v0, e1, e2 of every face side by side, so that refining M hits gathers one (M, 3, 3) block.
+        self._v0_e1_e2 = np.ascontiguousarray(np.stack([tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]], axis=1))
+        face_normals = np.cross(self._v0_e1_e2[:, 1], self._v0_e1_e2[:, 2])
         self._face_normals = face_normals / np.maximum(np.linalg.norm(face_normals, axis=1, keepdims=True), 1e-300)
+        # The three vertex normals of every face, gathered once here rather than twice per cast.
+        self._face_vertex_normals = (None if mesh.vertex_normals is None
+                                     else np.ascontiguousarray(mesh.vertex_normals[mesh.faces]))
+
+    def _first_triangles(self, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(ray_idx, tri_idx) of the rays that hit something and the face each hits first, rays ascending."""
+        if self.backend == "embree":
+            import trimesh
+
+            # trimesh's own scaled Embree scene, queried in one call: its intersects_id wraps the same query
+            # in copies and bookkeeping that cost more than the query itself for first hits.
+            query = np.asarray(self._intersector._scene.run(origins, trimesh.util.unitize(directions)), dtype=np.int64)
+            ray_idx = np.flatnonzero(query >= 0)
+            return ray_idx, query[ray_idx]
+        tri_idx, ray_idx = self._intersector.intersects_id(origins, directions, multiple_hits=False)[:2]
+        return np.asarray(ray_idx, dtype=np.int64), np.asarray(tri_idx, dtype=np.int64)
 
     def cast(self, origins: np.ndarray, directions: np.ndarray) -> Hits:
         """origins : (N, 3) mm; directions : (N, 3) unit, world frame -> :class:`Hits`."""
@@ -78,34 +93,36 @@ class RayCaster:
         triangle = np.full(n, -1, dtype=np.int64)
         bary = np.full((n, 3), np.nan)
         if n:
-            tri_idx, ray_idx = self._intersector.intersects_id(origins, directions, multiple_hits=False)[:2]
-            tri_idx = np.asarray(tri_idx, dtype=np.int64)
-            ray_idx = np.asarray(ray_idx, dtype=np.int64)
+            ray_idx, tri_idx = self._first_triangles(origins, directions)
             t, b1, b2 = self._refine(origins[ray_idx], directions[ray_idx], tri_idx)
             ok = np.isfinite(t) & (t > 0)
             ray_idx, tri_idx = ray_idx[ok], tri_idx[ok]
             distance[ray_idx] = t[ok]
             triangle[ray_idx] = tri_idx
-            bary[ray_idx] = np.stack([1.0 - b1[ok] - b2[ok], b1[ok], b2[ok]], axis=1)
+            b1, b2 = b1[ok], b2[ok]
+            bary[ray_idx, 0] = 1.0 - b1 - b2
+            bary[ray_idx, 1] = b1
+            bary[ray_idx, 2] = b2
+        else:
+            ray_idx = tri_idx = np.zeros(0, np.int64)
         points = origins + distance[:, None] * directions
         normals = np.full((n, 3), np.nan)
-        hit = triangle >= 0
-        if self.mesh.vertex_normals is not None:
-            vn = self.mesh.vertex_normals[self.mesh.faces[triangle[hit]]]  # (M, 3, 3)
-            nrm = np.einsum("mk,mkj->mj", bary[hit], vn)
+        if self._face_vertex_normals is not None:
+            nrm = np.einsum("mk,mkj->mj", bary[ray_idx], self._face_vertex_normals[tri_idx])
         else:
-            nrm = self._face_normals[triangle[hit]]
-        normals[hit] = nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
+            nrm = self._face_normals[tri_idx]
+        normals[ray_idx] = nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
         return Hits(distance, triangle, bary, points, normals)
 
     def _refine(self, origins, directions, tri_idx):
         """Double-precision Möller–Trumbore on the given triangles; returns (t, b1, b2), each (M,)."""
-        e1, e2 = self._e1[tri_idx], self._e2[tri_idx]
+        tri = self._v0_e1_e2[tri_idx]
+        v0, e1, e2 = tri[:, 0], tri[:, 1], tri[:, 2]
         p = np.cross(directions, e2)
         det = np.einsum("ij,ij->i", e1, p)
         with np.errstate(divide="ignore", invalid="ignore"):
             inv = 1.0 / det
-            s = origins - self._v0[tri_idx]
+            s = origins - v0
             b1 = np.einsum("ij,ij->i", s, p) * inv
             q = np.cross(s, e1)
             b2 = np.einsum("ij,ij->i", directions, q) * inv

@@ -79,11 +79,19 @@ class TextureMap:
         if footprint_mm is None:
             return self._sample_level(uv, 0)
         ratio = np.broadcast_to(np.asarray(footprint_mm, dtype=float), (n,)) / self.mm_per_texel
-        levels = np.clip(np.floor(np.log2(np.maximum(ratio, 1e-9)) + 0.5), 0, 8).astype(int)
+        levels = np.clip(np.floor(np.log2(np.maximum(ratio, 1e-9)) + 0.5), 0, 8).astype(np.intp)
+        counts = np.bincount(levels, minlength=9)
+        if np.count_nonzero(counts) == 1:
+            return self._sample_level(uv, int(levels[0]))
+        # Group the points by level with one sort instead of a boolean mask over all points per level;
+        # each point's lookup is independent of the others, so the grouping changes no value.
+        order = np.argsort(levels, kind="stable")
         out = np.empty((n, self.channels), np.float32)
-        for k in np.unique(levels):
-            sel = levels == k
-            out[sel] = self._sample_level(uv[sel], int(k))
+        start = 0
+        for k in np.flatnonzero(counts):
+            idx = order[start:start + counts[k]]
+            out[idx] = self._sample_level(uv[idx], int(k))
+            start += counts[k]
         return out
 
     def _sample_level(self, uv: np.ndarray, k: int) -> np.ndarray:
