@@ -73,12 +73,14 @@ class RayCaster:
 
     def _first_triangles(self, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(ray_idx, tri_idx) of the rays that hit something and the face each hits first, rays ascending."""
-        if self.backend == "embree":
+        # trimesh's own scaled Embree scene, queried in one call: its intersects_id wraps the same query in
+        # copies and bookkeeping that cost more than the query itself for first hits. The scene is a private
+        # attribute of trimesh's Embree intersector: where a trimesh version lacks it, intersects_id answers
+        scene = getattr(self._intersector, "_scene", None) if self.backend == "embree" else None
+        if scene is not None and hasattr(scene, "run"):
             import trimesh
 
-            # trimesh's own scaled Embree scene, queried in one call: its intersects_id wraps the same query
-            # in copies and bookkeeping that cost more than the query itself for first hits.
-            query = np.asarray(self._intersector._scene.run(origins, trimesh.util.unitize(directions)), dtype=np.int64)
+            query = np.asarray(scene.run(origins, trimesh.util.unitize(directions)), dtype=np.int64)
             ray_idx = np.flatnonzero(query >= 0)
             return ray_idx, query[ray_idx]
         tri_idx, ray_idx = self._intersector.intersects_id(origins, directions, multiple_hits=False)[:2]
