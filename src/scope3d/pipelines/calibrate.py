@@ -160,15 +160,20 @@ def plot_coverage(cal: Calibration, path: str | Path) -> None:
         t = np.linspace(0, 2 * np.pi, 200)
         ax.plot((cal.width - 1) / 2 + cal.mask_radius_px * np.cos(t),
                 (cal.height - 1) / 2 + cal.mask_radius_px * np.sin(t), "k--", lw=0.8)
-    ax.set_xlim(-0.5, cal.width - 0.5)
-    ax.set_ylim(cal.height - 0.5, -0.5)
-    ax.set_aspect("equal")
+    _image_axes(ax, cal)
     ax.set_title(f"corner coverage: {len(cal.views)} views, {sum(len(p) for p in cal.pixels)} corners")
-    ax.set_xlabel("u (px)")
-    ax.set_ylabel("v (px)")
     if len(cal.views) <= 12:
         ax.legend(fontsize=6, loc="upper right")
     save_figure(fig, path)
+
+
+def _image_axes(ax, cal: Calibration) -> None:
+    """Axes in image pixels, v down, as the sensor sees them."""
+    ax.set_xlim(-0.5, cal.width - 0.5)
+    ax.set_ylim(cal.height - 0.5, -0.5)
+    ax.set_aspect("equal")
+    ax.set_xlabel("u (px)")
+    ax.set_ylabel("v (px)")
 
 
 def plot_residuals(cal: Calibration, path: str | Path) -> None:
@@ -182,10 +187,6 @@ def plot_residuals(cal: Calibration, path: str | Path) -> None:
     ax = fig.add_subplot()
     ax.quiver(px[:, 0], px[:, 1], res[:, 0] * gain, res[:, 1] * gain, angles="xy", scale_units="xy", scale=1,
               width=0.003, color="tab:red")
-    ax.set_xlim(-0.5, cal.width - 0.5)
-    ax.set_ylim(cal.height - 0.5, -0.5)
-    ax.set_aspect("equal")
+    _image_axes(ax, cal)
     ax.set_title(f"{cal.model} residuals x{gain:.0f} (RMS {cal.rms_px:.3f} px, longest {longest:.2f} px)")
-    ax.set_xlabel("u (px)")
-    ax.set_ylabel("v (px)")
     save_figure(fig, path)
