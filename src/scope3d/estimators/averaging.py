@@ -372,6 +372,7 @@ def _solve_group(P, weight, obs_frame, obs_track, frames, start, n_points) -> np
     H = np.zeros((n_points, 3, 3))
     np.add.at(H, t, wP)
     H += 1e-12 * np.trace(H, axis1=1, axis2=2)[:, None, None] * np.eye(3)
+    H[np.bincount(t, minlength=n_points) == 0] = np.eye(3)  # another group's points: not in this solve
     Hinv = np.linalg.inv(H)
     S = np.zeros((m, 3, m, 3))
     np.add.at(S, (f, slice(None), f), wP)  # the cameras' own blocks
