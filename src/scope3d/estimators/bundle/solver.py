@@ -40,7 +40,7 @@ import scipy.sparse.linalg
 
 from scope3d.errors import InputError
 from scope3d.estimators.bundle._blas import blas_threads
-from scope3d.estimators.bundle.aot import load_kernels
+from scope3d.estimators.bundle.aot import AOT_MODULE, load_kernels
 from scope3d.estimators.bundle.losses import LOSS_NAMES, loss_rho, loss_weight
 from scope3d.estimators.bundle.problem import BundleParameters, BundleProblem
 
@@ -218,6 +218,8 @@ class BundleResult:
             "solve_time_s": self.solve_time_s,
             "linear_solver": self.linear_solver,
             "assembly_threads": self.threads,
+            # "ahead of time": compiled at install (aot.py); "numba JIT": compiled on first use, then cached
+            "kernels": "ahead of time" if kernels.__name__.endswith(AOT_MODULE) else "numba JIT",
             "loss": self.options.loss,
             "loss_scale_px": self.options.loss_scale_px,
             "num_cameras": self.problem.num_cameras,
