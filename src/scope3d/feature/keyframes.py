@@ -66,8 +66,9 @@ class KeyframeOptions:
 
 @dataclass(frozen=True)
 class KeyframeDecision:
-    """keep : bool, the frame is a key frame. shift_px : (2,) float, translation (dx, dy) of the frame
-    from the last key frame, pixels of the full frame (NaN for the first frame). shift_fraction : float,
+    """keep : bool, the frame is a key frame. shift_px : (2,) float, translation (dx, dy) of the image
+    content from the last key frame to this one (a camera panning right moves it left: dx < 0), pixels
+    of the full frame (NaN for the first frame). shift_fraction : float,
     ``hypot(dx / W, dy / H)``. response : float, phase-correlation peak (1 for the first frame)."""
 
     keep: bool
