@@ -207,10 +207,12 @@ def test_cli_import_video(video, tmp_path, capsys):
     assert "nominal" in source["intrinsics"] and len(load_dataset(tmp_path / "e")) == math.ceil(len(video[1]) / 10)
 
 
-@pytest.mark.parametrize("case", ["missing", "text", "image", "empty", "no_frames"])
+@pytest.mark.parametrize("case", ["missing", "folder", "text", "image", "empty", "no_frames"])
 def test_unusable_videos_are_one_line_errors(case, tmp_path, capsys):
     path = tmp_path / ("still.png" if case == "image" else "clip.mp4")
-    if case == "text":
+    if case == "folder":
+        path.mkdir()
+    elif case == "text":
         path.write_text("not a video\n")
     elif case == "image":
         cv2.imwrite(str(path), np.zeros((32, 32, 3), np.uint8))
