@@ -12,7 +12,9 @@ Written as MPEG-4 with cv2.VideoWriter, then timed in this process, one stage af
 
 1. decode only (``read_video``), the floor any import pays;
 2. decode + key-frame choice (``KeyframeSelector.offer`` on every frame);
-3. the whole ``import_video --keyframes`` (also PNG-encodes the key frames and writes the dataset).
+3. the whole ``import_video --keyframes`` (also PNG-encodes the key frames and writes the dataset);
+4. ``scope3d import video --keyframes`` as a user runs it, in its own process (start-up included), whose
+   peak memory is recorded: the import streams, so it should not grow with the video.
 
 Frames per second are wall and CPU (process) time; the machine is shared by several jobs, so the 1-minute
 load average is recorded around each stage and CPU time is the steadier figure. The 20,000-frame figure is
@@ -22,7 +24,10 @@ PNG writes grow with their number, which grows with the path length, also linear
 Also: the key-frame count against ``min_shift_fraction`` (a sweep on the same video), the true overlap of
 consecutive key frames (from the known window path), and the phase-correlation peak of one view against
 itself moved, rolled, zoomed and against an unrelated view, on a dense and a pale texture, with and
-without the circular field (the numbers behind ``KeyframeOptions.min_response``).
+without the circular field (the numbers behind ``KeyframeOptions.min_response``). And the lab's bladder:
+the 30 mm spiral plan rendered as a 30 fps video (200 x 200, one view per second), written as MP4 and
+imported with ``--keyframes`` and the plan: key frames against the true camera motion, and the planned
+poses against the true ones.
 """
 from __future__ import annotations
 
@@ -44,6 +49,7 @@ from scope3d.io.video import probe_video, read_video, write_video
 from scope3d.phantoms.textures import tissue_texture
 from scope3d.pipelines.video_import import VideoImportOptions, import_video
 from scope3d.sensor.camera import Camera
+from scope3d.sensor.pose_tolerance import PoseTolerance
 from scope3d.utils.figures import new_figure, save_figure
 
 FPS = 30.0
@@ -99,6 +105,7 @@ def timed(label: str, n_frames: int, run) -> dict:
     t0, c0 = time.perf_counter(), time.process_time()
     extra = run() or {}
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    cpu = extra.get("child_cpu_s", cpu)  # a stage run in its own process counts that process's CPU
     row = {"stage": label, "frames": n_frames, "wall_s": round(wall, 3), "cpu_s": round(cpu, 3),
            "frames_per_s_wall": round(n_frames / wall, 1), "frames_per_s_cpu": round(n_frames / cpu, 1),
            "extrapolated_20000_frames_wall_s": round(20000 * wall / n_frames, 1),
@@ -106,6 +113,76 @@ def timed(label: str, n_frames: int, run) -> dict:
            "load_1min": [round(load0, 2), round(os.getloadavg()[0], 2)], **extra}
     print(f"{label:34s} {row['frames_per_s_wall']:7.1f} frames/s wall, {row['frames_per_s_cpu']:7.1f} CPU "
           f"(20,000 frames: {row['extrapolated_20000_frames_wall_s']:.0f} s wall; load {row['load_1min']})")
+    return row
+
+
+def cli_import(video: Path, camera: Camera, out: Path) -> dict:
+    """The command a user runs, in its own process: its wall time is in the stage, its peak memory here."""
+    import subprocess
+    import sys
+
+    from scope3d.io.camera_json import camera_to_dict
+    from scope3d.utils.jsonio import write_json
+
+    write_json(out.parent / "camera.json", camera_to_dict(camera))
+    # the child reports its own VmHWM: getrusage's ru_maxrss would carry this process's size through the
+    # fork (Linux keeps the pre-exec high-water mark)
+    code = ("import sys; from scope3d.cli.main import main; rc = main(sys.argv[1:]); "
+            "sys.stderr.write([l for l in open('/proc/self/status') if l.startswith('VmHWM')][0]); sys.exit(rc)")
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    done = subprocess.run([sys.executable, "-c", code, "import", "video", str(video), "--camera",
+                           str(out.parent / "camera.json"), "--keyframes", "--no-progress", "--out", str(out)],
+                          check=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    hwm_kb = int(done.stderr.strip().splitlines()[-1].split()[1])
+    return {"child_cpu_s": round(after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime, 3),
+            "child_peak_rss_mb": round(hwm_kb / 1024, 1)}
+
+
+def bladder_video(n_frames: int) -> dict:
+    """The lab's bladder, the 30 mm / 70 deg spiral plan rendered as a 30 fps video (one view per second),
+    written as MP4 and imported with --keyframes and the plan: key frames against the true motion."""
+    from scope3d.io.scan_plan import read_scan_plan
+    from scope3d.phantoms import generate
+    from scope3d.pipelines.panorama import plan_scan
+    from scope3d.sfm.scan_planning import ScanPlanOptions
+
+    with tempfile.TemporaryDirectory(prefix="bench-bladder-") as tmp:
+        tmp = Path(tmp)
+        plan_scan(ScanPlanOptions(standoff_mm=30.0, overlap=0.5, fov_deg=70.0), "bladder", tmp / "plan")
+        plan = read_scan_plan(tmp / "plan" / "plan.json")
+        t0 = time.perf_counter()
+        seq = generate("bladder", plan=plan, video_fps=FPS, seconds_per_view=1.0, size=(200, 200), n_frames=n_frames)
+        render_s = time.perf_counter() - t0
+        write_video(tmp / "video.mp4", seq.frames, FPS)
+        options = VideoImportOptions(keyframes=KeyframeOptions(), seconds_per_view=1.0,
+                                     plan_tolerance=PoseTolerance.from_degrees(5.0, 10.0))
+        out = import_video(tmp / "video.mp4", tmp / "dataset", options, camera=seq.camera, plan=plan)
+        source = json.loads((out / "dataset.json").read_text())["source"]
+        from scope3d.io.dataset import load_dataset
+
+        imported = load_dataset(out)
+    kept = source["frame_indices"]
+    truth = seq.true_poses
+    steps = [truth[a].distance_to(truth[b]) for a, b in zip(kept[:-1], kept[1:])]
+    per_frame = [truth[i].distance_to(truth[i + 1]) for i in range(len(truth) - 1)]
+    planned_error = [m.pose.distance_to(truth[i]) for m, i in zip(imported.poses, kept)]
+    row = {
+        "frames": len(seq), "size_px": [200, 200], "fps": FPS, "seconds_per_view": 1.0,
+        "views_covered": round(len(seq) / FPS, 1), "render_s": round(render_s, 1),
+        "key_frames": len(kept), "key_frame_indices": kept,
+        "true_motion_per_frame": {"centre_mm_median": round(float(np.median([d[0] for d in per_frame])), 3),
+                                  "rotation_deg_median": round(float(np.degrees(np.median([d[1] for d in per_frame]))), 2)},
+        "true_motion_between_key_frames": {
+            "centre_mm_median": round(float(np.median([d[0] for d in steps])), 3),
+            "rotation_deg_median": round(float(np.degrees(np.median([d[1] for d in steps]))), 2),
+            "rotation_deg_max": round(float(np.degrees(np.max([d[1] for d in steps]))), 2)},
+        "planned_pose_error": {"centre_mm_max": float(max(e[0] for e in planned_error)),
+                               "rotation_deg_max": float(np.degrees(max(e[1] for e in planned_error)))},
+    }
+    print(f"bladder video: {len(seq)} frames, {len(kept)} key frames; true rotation between key frames "
+          f"{row['true_motion_between_key_frames']['rotation_deg_median']} deg median "
+          f"(per frame {row['true_motion_per_frame']['rotation_deg_median']})")
     return row
 
 
@@ -145,6 +222,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=3000)
     parser.add_argument("--size", type=int, default=608)
+    parser.add_argument("--bladder-frames", type=int, default=240,
+                        help="frames of the rendered bladder video (30 fps, one planned view per second)")
     parser.add_argument("--out", default=str(Path(__file__).parent / "results" / "video_import.json"))
     args = parser.parse_args()
     size, n = args.size, args.frames
@@ -182,7 +261,8 @@ def main() -> None:
             return {"key_frames": len(list((out_dir / "frames").iterdir()))}
 
         stages.append(timed("import_video --keyframes (dataset)", n, whole))
-        peak_rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+        stages.append(timed("scope3d import video --keyframes (CLI process)", n,
+                            lambda: cli_import(video, camera, Path(tmp) / "cli")))
 
         kept = [i for i, d in enumerate(decisions) if d.keep]
         # true motion between consecutive key frames: translation as a fraction of the image, and roll
@@ -212,6 +292,7 @@ def main() -> None:
             print(f"min_shift_fraction {fraction:.2f}: {selector.n_kept} key frames")
 
     responses = response_table()
+    bladder = bladder_video(args.bladder_frames)
     result = {
         "benchmark": "video_import",
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform()},
@@ -223,7 +304,7 @@ def main() -> None:
                           f"noise sigma {NOISE_GREY} grey levels"},
         "goal_frames_per_s": 30.0,
         "stages": stages,
-        "peak_rss_mb": round(peak_rss_mb, 1),
+        "bladder_phantom_video": bladder,
         "key_frames": {
             "options": KeyframeOptions().__dict__, "count": len(kept), "frames": n,
             "frames_static": len(static), "static_frames_kept": len(static_kept),
