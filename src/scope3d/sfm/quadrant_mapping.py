@@ -82,4 +82,3 @@ def map_quadrant(images: list[np.ndarray], camera: Camera, poses: list[Pose],
     first = np.searchsorted(tracks.track, np.arange(tracks.n_tracks))  # tracks are sorted by id
     desc = np.stack([features[f].descriptors[k] for f, k in zip(tracks.frame[first], tracks.feature[first])])
     return QuadrantMap(tracks.points, desc.astype(np.float32), tracks.colors, [len(f) for f in features], counts)
-
