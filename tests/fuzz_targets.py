@@ -10,6 +10,8 @@ no file) is a crash, raised as :class:`FuzzCrash`.
 """
 from __future__ import annotations
 
+import json
+import re
 import struct
 from dataclasses import dataclass
 from pathlib import Path
@@ -306,7 +308,210 @@ def build_targets(root: Path) -> dict[str, Target]:
     add("middlebury readme", readme, README_SEED, lambda: read_middlebury_bounding_box(readme))
     png = root / "image" / "f.png"
     add("image png", png, _png_seed(), lambda: (read_image(png), read_image(png, grey=True)))
+    _add_later_readers(root, add)
     return targets
+
+
+# --- the readers that landed later: tracker, ROS bags, video, scan plans, intrinsic bounds, quadrants, map
+# points, the hand-eye robot poses, report.json ----------------------------------------------------------
+
+
+def _tracker_rows() -> list[list]:
+    """An NDI Track table: a header, three tool rows (one with the tool missing and garbage in its pose
+    fields, as NDI writes it) and three markers (one missing in the last row)."""
+    header = ["Port", "Tool", "Frame", "Face", "State", "Q0", "Qx", "Qy", "Qz", "Tx", "Ty", "Tz", "Error",
+              "Markers"] + ["State", "Tx", "Ty", "Tz"] * 3
+    rows = [header]
+    for k in range(3):
+        ok = k != 1
+        pose = [0.7071, 0.0, 0.7071, 0.0, 10.5 + k, -3.25, 1200.0] if ok else [1e28, -3e27, 0, 0, 123456.0, 0, 0]
+        row = [1, "plate", 1000 + k, 1, "OK" if ok else "Missing", *pose, 0.12, 3]
+        for m in range(3):
+            row += ["Missing", "nan", "", "-1e30"] if (k == 2 and m == 0) else ["OK", 10.0 * m, 5.0 - k, 1190.0 + m]
+        rows.append(row)
+    return rows
+
+
+def _tracker_csv_seed() -> bytes:
+    return ("\n".join(",".join(str(c) for c in row) for row in _tracker_rows()) + "\n").encode()
+
+
+def _tracker_xlsx_seed() -> bytes:
+    import io
+
+    import openpyxl
+
+    book = openpyxl.Workbook()
+    for row in _tracker_rows():
+        book.active.append(row)
+    buffer = io.BytesIO()
+    book.save(buffer)
+    return buffer.getvalue()
+
+
+def _rosbag_seed(path: Path, *, ros1: bool) -> Path:
+    """A bag with two 16 x 12 frames (one raw bgr8, one PNG-compressed on a second topic), camera info and
+    three PoseStamped samples, stamped so that each frame has a pose within 5 ms."""
+    from rosbags.typesys import Stores, get_typestore
+
+    from scope3d.geometry.rotation import look_at, matrix_to_quaternion
+
+    store = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
+    types = store.types
+    serialize = store.serialize_ros1 if ros1 else store.serialize_cdr
+    if ros1:
+        from rosbags.rosbag1 import Writer
+
+        writer = Writer(path)
+    else:
+        from rosbags.rosbag2 import Writer
+
+        writer = Writer(path, version=8)
+    t0 = 1_700_000_000 * 1_000_000_000
+
+    def header(ns):
+        stamp = types["builtin_interfaces/msg/Time"](sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+        return types["std_msgs/msg/Header"](stamp=stamp, frame_id="scope", **({"seq": 0} if ros1 else {}))
+
+    rng = np.random.default_rng(4)
+    with writer:
+        c_img = writer.add_connection("/image", "sensor_msgs/msg/Image", typestore=store)
+        c_info = writer.add_connection("/info", "sensor_msgs/msg/CameraInfo", typestore=store)
+        c_pose = writer.add_connection("/pose", "geometry_msgs/msg/PoseStamped", typestore=store)
+        for k in range(3):
+            ns = t0 + k * 50_000_000
+            centre = np.array([0.01 * k, 0.0, -0.05])
+            x, y, z, w = matrix_to_quaternion(look_at(centre, np.zeros(3)).T)  # world_from_cam
+            pose = types["geometry_msgs/msg/Pose"](
+                position=types["geometry_msgs/msg/Point"](x=centre[0], y=centre[1], z=centre[2]),
+                orientation=types["geometry_msgs/msg/Quaternion"](x=x, y=y, z=z, w=w))
+            msg = types["geometry_msgs/msg/PoseStamped"](header=header(ns), pose=pose)
+            writer.write(c_pose, ns, serialize(msg, "geometry_msgs/msg/PoseStamped"))
+        for k in range(2):
+            ns = t0 + k * 50_000_000 + 2_000_000
+            frame = rng.integers(0, 255, (12, 16, 3), dtype=np.uint8)
+            msg = types["sensor_msgs/msg/Image"](header=header(ns), height=12, width=16, encoding="bgr8",
+                                                 is_bigendian=0, step=48, data=frame.ravel())
+            writer.write(c_img, ns, serialize(msg, "sensor_msgs/msg/Image"))
+            k_matrix = np.array([20.0, 0, 7.5, 0, 20.0, 5.5, 0, 0, 1])
+            fields = {"D" if ros1 else "d": np.zeros(5), "K" if ros1 else "k": k_matrix,
+                      "R" if ros1 else "r": np.eye(3).ravel(), "P" if ros1 else "p": np.zeros(12)}
+            info = types["sensor_msgs/msg/CameraInfo"](
+                header=header(ns), height=12, width=16, distortion_model="plumb_bob", binning_x=0, binning_y=0,
+                roi=types["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0,
+                                                             do_rectify=False), **fields)
+            writer.write(c_info, ns, serialize(info, "sensor_msgs/msg/CameraInfo"))
+    return path
+
+
+def _video_seed(root: Path) -> bytes:
+    from scope3d.io.video import write_video
+
+    rng = np.random.default_rng(5)
+    base = rng.integers(0, 255, (24, 40, 3), dtype=np.uint8)
+    path = write_video(root / "seed.mp4", [np.roll(base, 2 * k, axis=1)[:, :32].copy() for k in range(4)], 10.0)
+    data = path.read_bytes()
+    path.unlink()
+    return data
+
+
+def _plan_seed(root: Path) -> bytes:
+    from scope3d.geometry.pose import Pose
+    from scope3d.geometry.rotation import look_at
+    from scope3d.io.scan_plan import write_scan_plan
+
+    poses = [Pose.from_centre(look_at(np.array([c, 1.0, -20.0]), np.zeros(3)), np.array([c, 1.0, -20.0]))
+             for c in (0.0, 4.0, 8.0)]
+    path = root / "seed_plan.json"
+    write_scan_plan(path, poses, [0, 0, 1], 70.0, wall_points_mm=np.zeros((3, 3)), bend_deg=[0.0, 5.0, 10.0],
+                    info={"coverage_fraction": 0.5, "standoff_mm": 20.0})
+    data = path.read_bytes()
+    path.unlink()
+    return data
+
+
+def _intrinsic_bounds_seed(root: Path) -> bytes:
+    from scope3d.io.intrinsic_bounds import write_intrinsic_bounds
+
+    path = root / "seed_bounds.json"
+    write_intrinsic_bounds(path, np.array([228.6, 228.1, 159.5, 119.5, -0.1, 0.01]),
+                           np.array([0.09, 0.08, 0.3, 0.3, 1e-3, 1e-4]), 3.0, source="fuzz seed")
+    data = path.read_bytes()
+    path.unlink()
+    return data
+
+
+QUADRANT_FRAMES = ["0000.png", "0001.png", "0002.png", "0003.png"]
+QUADRANTS_SEED = (b'{"angle_step_deg": 90, "step_mm": 0.1, "side_view_deg": 45, "quadrants": ['
+                  b'{"index": 0, "angle_deg": 0, "frames": ["0000.png", "0001.png"]}, '
+                  b'{"index": 1, "angle_deg": 90.0, "frames": ["0002.png", "0003.png"]}]}\n')
+
+
+def _map_points_seed(root: Path) -> bytes:
+    from scope3d.io.map_points import MapPoints, write_map_points
+
+    rng = np.random.default_rng(6)
+    path = root / "seed_map_points.npz"
+    write_map_points(path, MapPoints(rng.normal(size=(3, 3)), rng.uniform(0, 200, (3, 128)).astype(np.float32),
+                                     np.array([2, 3, 2], np.int32), rng.integers(0, 255, (3, 3), dtype=np.uint8)))
+    data = path.read_bytes()
+    path.unlink()
+    return data
+
+
+REPORT_SEED = json.dumps({
+    "dataset": "no_such_dataset", "pose_mode": "bcba", "n_frames": 3, "n_points": 2, "time_s": 1.5,
+    "mean_reprojection_error_px": 0.41, "surface_error_mm": {"direct": {"mean": 0.2, "within_1mm_fraction": 0.97}},
+    "targets": [{"label": 1, "centroid_mm": [1.0, 2.0, 3.0], "size_mm": 2.5, "area_mm2": 4.0}],
+    "targets_vs_truth": [{"name": "#1", "true_centre_mm": [1.0, 2.0, 3.1], "true_size_mm": 2.4}],
+    "timings_s": {"features": 0.5, "bundle": 1.0}, "unused_frames": ["0002.png"],
+}, indent=1).encode()
+
+
+def _add_later_readers(root: Path, add) -> None:
+    from scope3d.io.intrinsic_bounds import read_intrinsic_bounds
+    from scope3d.io.map_points import read_map_points
+    from scope3d.io.quadrants import read_quadrants
+    from scope3d.io.rosbag import RosbagOptions, import_rosbag
+    from scope3d.io.scan_plan import read_scan_plan
+    from scope3d.io.tracker import read_tracker
+    from scope3d.io.video import probe_video, read_video
+    from scope3d.pipelines.hand_eye import robot_flange_poses
+    from scope3d.report import build_page
+
+    csv = root / "tracker" / "ndi.csv"
+    add("tracker csv", csv, _tracker_csv_seed(), lambda: read_tracker(csv))
+    xlsx = root / "tracker" / "ndi.xlsx"
+    add("tracker xlsx", xlsx, _tracker_xlsx_seed(), lambda: read_tracker(xlsx))
+
+    options = RosbagOptions(image_topic="/image", pose_topic="/pose", camera_info_topic="/info", slop_s=0.005)
+    (root / "rosbag").mkdir(parents=True, exist_ok=True)
+    bag1 = _rosbag_seed(root / "rosbag" / "seed.bag", ros1=True)
+    add("rosbag ros1", bag1, bag1.read_bytes(), lambda: import_rosbag(bag1, root / "rosbag" / "out1", options))
+    bag2 = _rosbag_seed(root / "rosbag" / "seed2", ros1=False)
+    storage = next(p for p in bag2.iterdir() if p.name != "metadata.yaml")
+    for name, file in (("rosbag2 metadata.yaml", bag2 / "metadata.yaml"), ("rosbag2 storage", storage)):
+        add(name, file, file.read_bytes(), lambda: import_rosbag(bag2, root / "rosbag" / "out2", options), names=bag2)
+
+    video = root / "video" / "v.mp4"
+    (root / "video").mkdir(parents=True, exist_ok=True)
+    add("video mp4", video, _video_seed(root / "video"), lambda: (probe_video(video), list(read_video(video))))
+    plan = root / "plan" / "plan.json"
+    (root / "plan").mkdir(parents=True, exist_ok=True)
+    add("scan plan", plan, _plan_seed(root / "plan"), lambda: read_scan_plan(plan))
+    bounds = root / "intrinsic_bounds" / "intrinsic_bounds.json"
+    (root / "intrinsic_bounds").mkdir(parents=True, exist_ok=True)
+    add("intrinsic bounds", bounds, _intrinsic_bounds_seed(root / "intrinsic_bounds"),
+        lambda: read_intrinsic_bounds(bounds))
+    quadrants = root / "quadrants" / "quadrants.json"
+    add("quadrants", quadrants, QUADRANTS_SEED, lambda: read_quadrants(quadrants.parent, QUADRANT_FRAMES))
+    points = root / "map" / "map_points.npz"
+    (root / "map").mkdir(parents=True, exist_ok=True)
+    add("map points", points, _map_points_seed(root / "map"), lambda: read_map_points(points))
+    robot = root / "hand_eye" / "robot_poses.csv"
+    add("hand-eye robot poses", robot, (root / "dataset" / "poses.csv").read_bytes(), lambda: robot_flange_poses(robot))
+    report = root / "report" / "report.json"
+    add("report.json", report, REPORT_SEED, lambda: build_page(report.parent))
 
 
 def huge_header(target: Target) -> bytes:
@@ -324,12 +529,67 @@ def huge_header(target: Target) -> bytes:
         return seed + b"point 0-999999999999 x,y,z fixed\ncamera 0-1000000000000 f fixed\n"
     if target.name == "poses.csv":
         return seed + b"\n" * 1000 + b"x" + b"," * 100000 + b"\n"
-    if target.name in ("camera.json", "dataset.json"):
+    if target.name == "tracker csv":  # a row announcing 10^9 markers
+        lines = seed.split(b"\n")
+        cells = lines[1].split(b",")
+        cells[13] = HUGE_COUNT
+        return b"\n".join([lines[0], b",".join(cells), *lines[2:]])
+    if target.name == "tracker xlsx":
+        return _xlsx_claiming_a_million_rows(seed)
+    if target.name == "rosbag ros1":  # the bag header's chunk and connection counts
+        for field in (b"chunk_count=", b"conn_count="):
+            at = seed.index(field) + len(field)
+            seed = seed[:at] + struct.pack("<I", 10**9) + seed[at + 4:]
+        return seed
+    if target.name == "rosbag2 metadata.yaml":
+        return re.sub(rb"message_count: \d+", b"message_count: " + HUGE_COUNT, seed)
+    if target.name == "rosbag2 storage":  # SQLite's page count (advisory: SQLite trusts the file's size)
+        return seed[:28] + struct.pack(">I", 10**9) + seed[32:]
+    if target.name == "video mp4":  # the sample table claims 10^9 frames
+        at = seed.index(b"stsz") + 12
+        return seed[:at] + struct.pack(">I", 10**9) + seed[at + 4:]
+    if target.name == "map points":
+        return _npz_claiming_a_billion_points(seed)
+    if target.name in ("camera.json", "dataset.json", "scan plan", "intrinsic bounds", "quadrants", "report.json"):
         return seed.replace(b"{", b'{"pad": [' + b"0," * 100000 + b'0], "deep": ' + b"[" * 100000 + b"]" * 100000
                             + b",", 1)
     if target.name.startswith("colmap"):
         return seed + b"\n1 " + b"0 " * 200000 + b"\n"
     return seed * 1000
+
+
+def _xlsx_claiming_a_million_rows(seed: bytes) -> bytes:
+    """The seed workbook with its sheet's ``<dimension>`` saying A1:XFD1048576: believed, every row is
+    padded to 16,384 cells and a million empty rows are added (1.7 * 10^10 cells from a 5 kB file)."""
+    import io
+    import zipfile
+
+    out = io.BytesIO()
+    with zipfile.ZipFile(io.BytesIO(seed)) as source, zipfile.ZipFile(out, "w", zipfile.ZIP_DEFLATED) as dest:
+        for info in source.infolist():
+            data = source.read(info)
+            if info.filename.startswith("xl/worksheets/"):
+                data = re.sub(rb'<dimension ref="[^"]*"', b'<dimension ref="A1:XFD1048576"', data)
+            dest.writestr(info.filename, data)
+    return out.getvalue()
+
+
+def _npz_claiming_a_billion_points(seed: bytes) -> bytes:
+    """The map points' archive with ``xyz_mm.npy``'s header saying (10^9, 3): 24 GB of float64."""
+    import io
+    import zipfile
+
+    out = io.BytesIO()
+    with zipfile.ZipFile(io.BytesIO(seed)) as source, zipfile.ZipFile(out, "w", zipfile.ZIP_DEFLATED) as dest:
+        for info in source.infolist():
+            data = source.read(info)
+            if info.filename == "xyz_mm.npy":
+                head = data[: data.index(b"\n") + 1]
+                claimed = head.replace(b"(3, 3)", b"(1000000000, 3)")
+                claimed = claimed.replace(b" " * 9 + b"\n", b"\n", 1)  # keep the header's length
+                data = claimed + data[len(head):]
+            dest.writestr(info.filename, data)
+    return out.getvalue()
 
 
 def _replace_ply_count(seed: bytes) -> bytes:

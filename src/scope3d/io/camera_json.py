@@ -1,11 +1,11 @@
 """``camera.json``: the pinhole + k1, k2 camera model of a dataset."""
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
 from scope3d.errors import InputError
+from scope3d.io.json_object import read_json_object
 from scope3d.sensor.camera import Camera
 
 CAMERA_KEYS = ("width", "height", "fx", "fy", "cx", "cy", "k1", "k2")
@@ -27,7 +27,7 @@ def read_camera_json(path: str | Path) -> Camera:
     if not path.is_file():
         raise InputError(f"{path}: camera intrinsics file is missing; scope3d does not guess a camera: calibrate it on "
                          "checkerboard views (`scope3d calibrate`, docs/calibration.md) and put its camera.json here")
-    data = _read_json_object(path)
+    data = read_json_object(path)
     missing = [k for k in CAMERA_KEYS if k not in data]
     if missing:
         raise InputError(f"{path}: missing key(s) {', '.join(missing)}")
@@ -64,18 +64,3 @@ def _finite(value: int | float) -> bool:
     except OverflowError:  # an int beyond float64 range
         return False
 
-
-def _read_json_object(path: Path) -> dict:
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as exc:
-        raise InputError(f"{path}: not valid JSON ({exc.msg} at line {exc.lineno})") from None
-    except (UnicodeDecodeError, OSError) as exc:
-        raise InputError(f"{path}: cannot read ({exc})") from None
-    except ValueError as exc:  # an integer of more than 4300 digits
-        raise InputError(f"{path}: not valid JSON ({exc})") from None
-    except RecursionError:
-        raise InputError(f"{path}: not valid JSON (arrays or objects nested too deeply)") from None
-    if not isinstance(data, dict):
-        raise InputError(f"{path}: expected a JSON object {{...}}, found {type(data).__name__}")
-    return data

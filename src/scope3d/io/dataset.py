@@ -41,8 +41,9 @@ import numpy as np
 
 from scope3d.errors import InputError
 from scope3d.geometry.pose import Pose
-from scope3d.io.camera_json import _read_json_object, camera_to_dict, read_camera_json
+from scope3d.io.camera_json import camera_to_dict, read_camera_json
 from scope3d.io.images import read_image, write_image
+from scope3d.io.json_object import read_json_object
 from scope3d.io.ply import read_ply, write_ply
 from scope3d.io.poses_csv import _read_pose_rows, format_poses_csv, read_poses_csv
 from scope3d.scene.mesh import Mesh
@@ -68,7 +69,7 @@ def load_dataset(root: str | Path, *, check_images: bool = False) -> Dataset:
     if not root.is_dir():
         raise InputError(f"{root}: dataset folder does not exist")
     meta_path = root / "dataset.json"
-    metadata = _read_json_object(meta_path) if meta_path.is_file() else {}
+    metadata = read_json_object(meta_path) if meta_path.is_file() else {}
     fmt = metadata.get("format", "scope3d-dataset")
     if fmt != "scope3d-dataset":
         raise InputError(f"{meta_path}: format is {fmt!r}, expected 'scope3d-dataset'")
@@ -142,7 +143,7 @@ def _load_ground_truth(gt_dir: Path, names: list[str], scale: float) -> GroundTr
             if not p.is_file():
                 raise InputError(f"{p}: ground-truth depth map is missing (every frame needs one)")
     scene_path = gt_dir / "scene.json"
-    scene = _read_json_object(scene_path) if scene_path.is_file() else {}
+    scene = read_json_object(scene_path) if scene_path.is_file() else {}
     return GroundTruth(poses, surface if surface.is_file() else None, depth_paths, scene)
 
 

@@ -27,14 +27,23 @@ def read_image(path: str | Path, *, grey: bool = False) -> np.ndarray:
         data = np.frombuffer(path.read_bytes(), dtype=np.uint8)
     except OSError as exc:
         raise InputError(f"{path}: cannot read image ({exc.strerror})") from None
+    img = decode_image_data(data, path, cv2.IMREAD_GRAYSCALE if grey else cv2.IMREAD_COLOR)
+    if img.dtype != np.uint8:
+        img = cv2.convertScaleAbs(img, alpha=255.0 / max(float(img.max()), 1.0))
+    return img if grey else cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def decode_image_data(data: np.ndarray, where: str | Path, flag: int) -> np.ndarray:
+    """OpenCV's decoding (``cv2.imdecode`` with ``flag``: BGR, grey, or as stored) of an encoded image's bytes
+    (uint8 (N,)), after the checks that keep a damaged header from allocating what it claims. Any problem
+    is one InputError naming ``where`` (a file, or a message in a bag)."""
     bad_chunk = _png_chunk_overrun(data)
     if bad_chunk:
-        raise InputError(f"{path}: not a readable image ({bad_chunk})")
+        raise InputError(f"{where}: not a readable image ({bad_chunk})")
     pixels = _claimed_pixels(data)
     if pixels is not None and pixels > MAX_IMAGE_PIXELS:
-        raise InputError(f"{path}: the image header claims {pixels / 1e6:.0f} Mpx, more than scope3d reads "
+        raise InputError(f"{where}: the image header claims {pixels / 1e6:.0f} Mpx, more than scope3d reads "
                          f"({MAX_IMAGE_PIXELS / 1e6:.0f} Mpx; a damaged header?)")
-    flag = cv2.IMREAD_GRAYSCALE if grey else cv2.IMREAD_COLOR
     old_level = cv2.utils.logging.getLogLevel()
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
     try:
@@ -44,10 +53,8 @@ def read_image(path: str | Path, *, grey: bool = False) -> np.ndarray:
     finally:
         cv2.utils.logging.setLogLevel(old_level)
     if img is None:
-        raise InputError(f"{path}: not a readable image (corrupt or unsupported format)")
-    if img.dtype != np.uint8:
-        img = cv2.convertScaleAbs(img, alpha=255.0 / max(float(img.max()), 1.0))
-    return img if grey else cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+        raise InputError(f"{where}: not a readable image (corrupt or unsupported format)")
+    return img
 
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from scope3d.errors import InputError
-from scope3d.io.camera_json import _read_json_object
+from scope3d.io.json_object import read_json_object
 from scope3d.sensor.camera import INTRINSIC_NAMES
 from scope3d.utils.jsonio import write_json
 
@@ -40,7 +40,7 @@ def read_intrinsic_bounds(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: intrinsic bounds file is missing")
-    data = _read_json_object(path)
+    data = read_json_object(path)
     lower = np.full(6, np.nan)
     upper = np.full(6, np.nan)
     found = 0

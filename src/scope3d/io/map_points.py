@@ -11,6 +11,7 @@ Written by ``scope3d map`` beside ``points.ply``; read by :mod:`scope3d.sfm.loca
 from __future__ import annotations
 
 import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -20,6 +21,10 @@ from scope3d.errors import InputError
 from scope3d.utils.atomic import atomic_path
 
 MAP_POINTS_FILE = "map_points.npz"
+ARRAY_NAMES = ("xyz_mm", "descriptors", "n_observations", "colors")
+# Deflate cannot shrink data by more than ~1032:1 (RFC 1951: a 258-byte match per 2 bits at best); a
+# member claiming more is lying, and believing it would allocate its claim.
+DEFLATE_MAX_RATIO = 1032
 
 
 @dataclass(frozen=True)
@@ -65,12 +70,12 @@ def read_map_points(path: str | Path) -> MapPoints:
     if not path.is_file():
         raise InputError(f"{path}: no map points (run `scope3d map` first; it writes {MAP_POINTS_FILE})")
     try:
-        with np.load(path, allow_pickle=False) as data:
-            arrays = {k: np.asarray(data[k]) for k in ("xyz_mm", "descriptors", "n_observations", "colors")}
-    except KeyError as exc:
-        raise InputError(f"{path}: missing array {exc.args[0]}") from None
-    except (OSError, ValueError) as exc:
+        arrays = _read_arrays(path)
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, NotImplementedError, zlib.error) as exc:
         raise InputError(f"{path}: not a readable .npz file ({exc})") from None
+    if any(arrays[k].dtype.kind not in "biuf" for k in ARRAY_NAMES):
+        raise InputError(f"{path}: arrays must hold numbers, found "
+                         f"{', '.join(f'{k} {arrays[k].dtype}' for k in ARRAY_NAMES)}")
     if not np.all(np.isfinite(arrays["xyz_mm"])) or not np.all(np.isfinite(arrays["descriptors"])):
         raise InputError(f"{path}: points or descriptors hold NaN or infinite values")
     try:
@@ -78,3 +83,32 @@ def read_map_points(path: str | Path) -> MapPoints:
                          arrays["n_observations"].astype(np.int32), arrays["colors"].astype(np.uint8))
     except ValueError as exc:
         raise InputError(f"{path}: {exc}") from None
+
+
+def _read_arrays(path: Path) -> dict[str, np.ndarray]:
+    """The four arrays of the archive, each checked against the archive before it is allocated: the shape
+    in a ``.npy`` header must match the member's size, and that size what its compressed bytes can hold."""
+    arrays = {}
+    with zipfile.ZipFile(path) as archive:
+        members = {info.filename: info for info in archive.infolist()}
+        for name in ARRAY_NAMES:
+            info = members.get(f"{name}.npy")
+            if info is None:
+                raise InputError(f"{path}: missing array {name}")
+            packed = info.compress_size if info.compress_type != zipfile.ZIP_STORED else info.file_size
+            if info.file_size > DEFLATE_MAX_RATIO * packed + 1024:
+                raise InputError(f"{path}: {name}.npy claims {info.file_size} bytes from {info.compress_size} "
+                                 "compressed: more than deflate can hold")
+            with archive.open(info) as member:
+                version = np.lib.format.read_magic(member)
+                read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                               else np.lib.format.read_array_header_2_0)
+                shape, fortran, dtype = read_header(member)
+                header_bytes = member.tell()
+                count = int(np.prod(shape, dtype=object))
+                if dtype.hasobject or count * dtype.itemsize != info.file_size - header_bytes:
+                    raise InputError(f"{path}: {name}.npy's header says {shape} {dtype}, its data holds "
+                                     f"{info.file_size - header_bytes} bytes")
+                data = member.read(info.file_size - header_bytes)
+            arrays[name] = np.frombuffer(data, dtype=dtype).reshape(shape, order="F" if fortran else "C")
+    return arrays

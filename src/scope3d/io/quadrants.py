@@ -9,11 +9,12 @@ Frames are listed in order of advance; quadrants in stage order.
 """
 from __future__ import annotations
 
-import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
 from scope3d.errors import InputError
+from scope3d.io.json_object import read_json_object
 
 FILE_NAME = "quadrants.json"
 
@@ -33,24 +34,24 @@ def read_quadrants(root: str | Path, names: list[str]) -> list[Quadrant]:
     path = Path(root) / FILE_NAME
     if not path.is_file():
         raise InputError(f"{path}: missing (a thread scan needs the quadrant layout)")
-    try:
-        data = json.loads(path.read_text())
-        entries = data["quadrants"]
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise InputError(f"{path}: not a quadrant layout ({exc})") from None
+    entries = read_json_object(path).get("quadrants")
     if not isinstance(entries, list) or len(entries) < 2:
         raise InputError(f"{path}: needs a list of at least 2 quadrants")
     index = {n: k for k, n in enumerate(names)}
     out = []
     for k, q in enumerate(entries):
+        if not isinstance(q, dict):
+            raise InputError(f"{path}: quadrant {k}: expected an object {{...}}, found {type(q).__name__}")
         try:
             frames = tuple(index[f] for f in q["frames"])
             angle = float(q["angle_deg"])
             number = int(q.get("index", k))
         except KeyError as exc:
             raise InputError(f"{path}: quadrant {k}: unknown frame or missing field {exc}") from None
-        except (TypeError, ValueError) as exc:
+        except (TypeError, ValueError, OverflowError) as exc:
             raise InputError(f"{path}: quadrant {k}: {exc}") from None
+        if not math.isfinite(angle):
+            raise InputError(f"{path}: quadrant {k}: angle_deg is {angle}")
         if len(frames) < 2:
             raise InputError(f"{path}: quadrant {number}: needs at least 2 frames, has {len(frames)}")
         out.append(Quadrant(number, angle, frames))

@@ -14,6 +14,7 @@ Images without a pose within the slop are left out; no pair at all is an InputEr
 from __future__ import annotations
 
 import tempfile
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,6 +24,7 @@ import numpy as np
 from scope3d.errors import InputError
 from scope3d.geometry.pose import Pose
 from scope3d.geometry.rotation import quaternion_to_matrix
+from scope3d.io.images import decode_image_data
 from scope3d.sensor.camera import Camera
 from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance
 
@@ -79,23 +81,33 @@ def _stamp_ns(header, fallback_ns: int) -> int:
     return ns if ns > 0 else fallback_ns
 
 
-def _pose_from(position, orientation) -> Pose:
+# A ROS quaternion is written as doubles from a unit one: far from norm 1 it is no rotation (zeros are
+# common from a driver that has no fix yet); 1e-3 is loose for any real writer's rounding.
+_UNIT_QUATERNION_SLACK = 1e-3
+
+
+def _pose_from(position, orientation, where: str) -> Pose:
     """ROS pose of the camera in the world (world_from_cam, metres) -> scope3d cam_from_world (mm)."""
-    world_from_cam = quaternion_to_matrix(np.array([orientation.x, orientation.y, orientation.z, orientation.w]))
-    centre = np.array([position.x, position.y, position.z]) * M_TO_MM
-    return Pose.from_centre(world_from_cam.T, centre)
+    quat = np.array([orientation.x, orientation.y, orientation.z, orientation.w], float)
+    centre = np.array([position.x, position.y, position.z], float) * M_TO_MM
+    if not (np.all(np.isfinite(quat)) and abs(np.linalg.norm(quat) - 1.0) < _UNIT_QUATERNION_SLACK):
+        raise InputError(f"{where}: orientation {quat.tolist()} is not a unit quaternion")
+    if not np.all(np.isfinite(centre)):
+        raise InputError(f"{where}: position {centre.tolist()} mm is not finite")
+    return Pose.from_centre(quaternion_to_matrix(quat / np.linalg.norm(quat)).T, centre)
 
 
-def _poses_of(msg, msgtype: str, time_ns: int, camera_frame: str | None, topic: str) -> list[StampedPose]:
+def _poses_of(msg, msgtype: str, time_ns: int, camera_frame: str | None, topic: str, where: str) -> list[StampedPose]:
     """The camera poses one message holds (none if it is about other frames)."""
     if msgtype == "geometry_msgs/msg/PoseStamped":
-        return [StampedPose(_stamp_ns(msg.header, time_ns), _pose_from(msg.pose.position, msg.pose.orientation))]
+        return [StampedPose(_stamp_ns(msg.header, time_ns), _pose_from(msg.pose.position, msg.pose.orientation,
+                                                                          where))]
     if msgtype in ("geometry_msgs/msg/PoseWithCovarianceStamped", "nav_msgs/msg/Odometry"):
         if msgtype == "nav_msgs/msg/Odometry" and camera_frame and msg.child_frame_id != camera_frame:
             return []
         p = msg.pose.pose
         cov = np.asarray(msg.pose.covariance, float).reshape(6, 6)
-        return [StampedPose(_stamp_ns(msg.header, time_ns), _pose_from(p.position, p.orientation), cov)]
+        return [StampedPose(_stamp_ns(msg.header, time_ns), _pose_from(p.position, p.orientation, where), cov)]
     transforms = msg.transforms if msgtype == "tf2_msgs/msg/TFMessage" else [msg]
     if msgtype == "tf2_msgs/msg/TFMessage" and not camera_frame:
         raise InputError(f"{topic}: a tf stream needs the camera's frame id (--camera-frame)")
@@ -103,16 +115,17 @@ def _poses_of(msg, msgtype: str, time_ns: int, camera_frame: str | None, topic: 
     for t in transforms:
         if camera_frame and t.child_frame_id.lstrip("/") != camera_frame.lstrip("/"):
             continue
-        out.append(StampedPose(_stamp_ns(t.header, time_ns), _pose_from(t.transform.translation, t.transform.rotation)))
+        out.append(StampedPose(_stamp_ns(t.header, time_ns),
+                               _pose_from(t.transform.translation, t.transform.rotation, where)))
     return out
 
 
 def decode_image(msg, msgtype: str, where: str) -> np.ndarray:
     """(H, W, 3) uint8 RGB or (H, W) uint8/uint16 of an Image or CompressedImage message."""
     if msgtype == "sensor_msgs/msg/CompressedImage":
-        img = cv2.imdecode(np.asarray(msg.data, np.uint8), cv2.IMREAD_UNCHANGED)
-        if img is None:
-            raise InputError(f"{where}: compressed image ({msg.format!r}) does not decode")
+        img = decode_image_data(np.asarray(msg.data, np.uint8), where, cv2.IMREAD_UNCHANGED)
+        if img.ndim == 3 and img.shape[2] < 3 or img.dtype not in (np.uint8, np.uint16):
+            raise InputError(f"{where}: compressed image ({msg.format!r}) is {img.dtype} with shape {img.shape}")
         return img if img.ndim == 2 else cv2.cvtColor(img[..., :3], cv2.COLOR_BGR2RGB)
     channels = {"rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4, "mono8": 1, "mono16": 1, "8UC1": 1, "8UC3": 3}
     if msg.encoding not in channels:
@@ -145,7 +158,10 @@ def camera_from_info(msg, where: str) -> Camera:
         raise InputError(f"{where}: distortion terms beyond k1, k2 ({d.tolist()}); undistort first")
     k1, k2 = (list(d[:2]) + [0.0, 0.0])[:2]
     # ROS's pixel centres are at integer coordinates, as scope3d's are: cx, cy carry over unchanged
-    return Camera(int(msg.width), int(msg.height), k[0, 0], k[1, 1], k[0, 2], k[1, 2], k1=float(k1), k2=float(k2))
+    try:
+        return Camera(int(msg.width), int(msg.height), k[0, 0], k[1, 1], k[0, 2], k[1, 2], k1=float(k1), k2=float(k2))
+    except ValueError as exc:
+        raise InputError(f"{where}: camera info is no camera ({exc})") from None
 
 
 def pair_by_time(image_ns: np.ndarray, pose_ns: np.ndarray, slop_ns: int) -> list[tuple[int, int]]:
@@ -167,15 +183,48 @@ def pair_by_time(image_ns: np.ndarray, pose_ns: np.ndarray, slop_ns: int) -> lis
     return sorted(pairs)
 
 
-def tolerance_from_covariance(cov: np.ndarray, sigmas: float) -> PoseTolerance:
+def tolerance_from_covariance(cov: np.ndarray, sigmas: float, where: str = "pose") -> PoseTolerance:
     """Box half-widths from a ROS pose covariance (m², rad²): ``sigmas`` standard deviations per position
     axis (mm); orientation: ROS states it about the parent's axes and scope3d's box is about the camera's,
     so every axis gets the largest of the three (a box that holds the other whatever the rotation)."""
     var = np.diag(np.asarray(cov, float).reshape(6, 6))
     if np.any(var < 0) or not np.all(np.isfinite(var)):
-        raise InputError("pose covariance has a negative or non-finite variance")
+        raise InputError(f"{where}: pose covariance has a negative or non-finite variance")
     position_mm = sigmas * np.sqrt(var[:3]) * M_TO_MM
-    return PoseTolerance(position_mm, np.full(3, sigmas * np.sqrt(var[3:].max())))
+    try:
+        return PoseTolerance(position_mm, np.full(3, sigmas * np.sqrt(var[3:].max())))
+    except ValueError as exc:  # a variance finite in m² whose box is infinite in mm
+        raise InputError(f"{where}: pose covariance gives no tolerance ({exc})") from None
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(f"{type(exc).__name__}: {exc}".split())[:300]
+
+
+def _messages(reader, connections: list, bag: Path, topic: str) -> Iterator[tuple[int, int, object, str]]:
+    """(index on the topic, bag time ns, message, message type) of every message of ``connections``.
+    What the rosbags library fails to read or deserialise is the bag's fault: one InputError naming the
+    bag, the topic and the message (the library raises many kinds of error on a damaged bag)."""
+    messages = reader.messages(connections=connections)
+    index = 0
+    while True:
+        try:
+            item = next(messages)
+        except StopIteration:
+            return
+        except (InputError, MemoryError):
+            raise
+        except Exception as exc:  # noqa: BLE001 - see the docstring
+            raise InputError(f"{bag}: {topic} message {index} cannot be read ({_one_line(exc)})") from None
+        conn, time_ns, raw = item
+        try:
+            message = reader.deserialize(raw, conn.msgtype)
+        except (InputError, MemoryError):
+            raise
+        except Exception as exc:  # noqa: BLE001
+            raise InputError(f"{bag}: {topic} message {index} does not deserialise ({_one_line(exc)})") from None
+        yield index, time_ns, message, conn.msgtype
+        index += 1
 
 
 def import_rosbag(bag: str | Path, out_dir: str | Path, options: RosbagOptions, *,
@@ -185,7 +234,7 @@ def import_rosbag(bag: str | Path, out_dir: str | Path, options: RosbagOptions, 
     bag has no CameraInfo topic (``options.camera_info_topic``). Frames are decoded one at a time (only
     the paired ones), so a long bag never sits in memory. Raises InputError naming the bag for a missing
     topic, an unsupported message type, no intrinsics, or streams that never meet within the slop."""
-    from rosbags.highlevel import AnyReader, AnyReaderError
+    from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
 
     from scope3d.io.dataset import write_dataset
@@ -196,8 +245,10 @@ def import_rosbag(bag: str | Path, out_dir: str | Path, options: RosbagOptions, 
     try:
         reader = AnyReader([bag], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
         reader.open()
-    except (AnyReaderError, OSError, ValueError) as exc:
-        raise InputError(f"{bag}: not a readable ROS 1 or ROS 2 bag ({exc})") from None
+    except MemoryError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - AnyReaderError mostly; a damaged bag raises many kinds of error
+        raise InputError(f"{bag}: not a readable ROS 1 or ROS 2 bag ({_one_line(exc)})") from None
     try:
         topics = {c.topic: c.msgtype for c in reader.connections}
         for topic, allowed in ((options.image_topic, IMAGE_TYPES), (options.pose_topic, POSE_TYPES)):
@@ -210,16 +261,17 @@ def import_rosbag(bag: str | Path, out_dir: str | Path, options: RosbagOptions, 
 
         poses: list[StampedPose] = []
         pose_conns = [c for c in reader.connections if c.topic == options.pose_topic]
-        for conn, time_ns, raw in reader.messages(connections=pose_conns):
-            poses.extend(_poses_of(reader.deserialize(raw, conn.msgtype), conn.msgtype, time_ns,
-                                   options.camera_frame, options.pose_topic))
+        for index, time_ns, msg, msgtype in _messages(reader, pose_conns, bag, options.pose_topic):
+            poses.extend(_poses_of(msg, msgtype, time_ns, options.camera_frame, options.pose_topic,
+                                   f"{bag}: {options.pose_topic} message {index}"))
         if not poses:
             raise InputError(f"{bag}: topic {options.pose_topic!r} has no pose of frame "
                              f"{options.camera_frame!r}" if options.camera_frame else
                              f"{bag}: topic {options.pose_topic!r} has no message")
         image_conns = [c for c in reader.connections if c.topic == options.image_topic]
-        image_ns = np.array([_stamp_ns(reader.deserialize(raw, conn.msgtype).header, time_ns)
-                             for conn, time_ns, raw in reader.messages(connections=image_conns)], dtype=np.int64)
+        image_ns = np.array([_stamp_ns(msg.header, time_ns)
+                             for _, time_ns, msg, _ in _messages(reader, image_conns, bag, options.image_topic)],
+                            dtype=np.int64)
         if len(image_ns) == 0:
             raise InputError(f"{bag}: topic {options.image_topic!r} has no message")
         pose_ns = np.array([p.stamp_ns for p in poses], dtype=np.int64)
@@ -236,17 +288,17 @@ def import_rosbag(bag: str | Path, out_dir: str | Path, options: RosbagOptions, 
             if options.tolerance is not None:
                 tol = options.tolerance
             elif p.covariance is not None:
-                tol = tolerance_from_covariance(p.covariance, options.covariance_sigmas)
+                tol = tolerance_from_covariance(p.covariance, options.covariance_sigmas,
+                                                f"{bag}: {options.pose_topic} pose {j}")
             else:
                 tol = PoseTolerance.exact()
             measured.append(MeasuredPose(p.pose, tol))
         with tempfile.TemporaryDirectory(prefix="scope3d-rosbag-") as tmp:
             frames = []
-            for index, (conn, _time_ns, raw) in enumerate(reader.messages(connections=image_conns)):
+            for index, _time_ns, msg, msgtype in _messages(reader, image_conns, bag, options.image_topic):
                 if index not in pose_of_image:
                     continue
-                img = decode_image(reader.deserialize(raw, conn.msgtype), conn.msgtype,
-                                   f"{bag}: {options.image_topic} message {index}")
+                img = decode_image(msg, msgtype, f"{bag}: {options.image_topic} message {index}")
                 if img.shape[:2] != (camera.height, camera.width):
                     raise InputError(f"{bag}: {options.image_topic} message {index} is {img.shape[1]}x"
                                      f"{img.shape[0]} px, the camera {camera.width}x{camera.height}")
@@ -272,6 +324,6 @@ def _read_camera_info(reader, bag: Path, options: RosbagOptions, topics: dict) -
     if topics.get(options.camera_info_topic) != CAMERA_INFO_TYPE:
         raise InputError(f"{bag}: no {CAMERA_INFO_TYPE} topic {options.camera_info_topic!r}")
     conns = [c for c in reader.connections if c.topic == options.camera_info_topic]
-    for conn, _time_ns, raw in reader.messages(connections=conns):
-        return camera_from_info(reader.deserialize(raw, conn.msgtype), f"{bag}: {options.camera_info_topic}")
+    for _, _time_ns, msg, _ in _messages(reader, conns, bag, options.camera_info_topic):
+        return camera_from_info(msg, f"{bag}: {options.camera_info_topic}")
     raise InputError(f"{bag}: topic {options.camera_info_topic!r} has no message")

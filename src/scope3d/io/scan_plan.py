@@ -12,7 +12,6 @@ Layout (lengths in mm, angles in degrees)::
 """
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -20,6 +19,7 @@ import numpy as np
 
 from scope3d.errors import InputError
 from scope3d.geometry.pose import Pose
+from scope3d.io.json_object import read_json_object
 from scope3d.utils.jsonio import write_json
 
 PLAN_KIND = "scope3d scan plan"
@@ -59,11 +59,8 @@ def read_scan_plan(path: str | Path) -> PlanFile:
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: scan plan is missing")
-    try:
-        data = json.loads(path.read_text())
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise InputError(f"{path}: not a JSON file ({exc})") from None
-    if not isinstance(data, dict) or data.get("kind") != PLAN_KIND:
+    data = read_json_object(path)
+    if data.get("kind") != PLAN_KIND:
         raise InputError(f"{path}: not a scope3d scan plan (kind {PLAN_KIND!r} missing)")
     views = data.get("views")
     if not isinstance(views, list) or not views:

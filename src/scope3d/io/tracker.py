@@ -12,6 +12,7 @@ a unit one — is refused with one :class:`~scope3d.errors.InputError` naming th
 from __future__ import annotations
 
 import csv
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -21,6 +22,7 @@ from scope3d.errors import InputError
 
 TOOL_COLUMNS = 14  # port .. number of markers
 MARKER_COLUMNS = 4  # state, x, y, z
+XLSX_MAX_ROWS = 1_048_576  # a worksheet's limit (Excel's, and the format's)
 _UNIT_QUATERNION_SLACK = 1e-3  # NDI writes 4 decimals: a unit quaternion's norm is 1 within ~2e-4
 
 
@@ -53,24 +55,49 @@ class TrackerRecording:
         return self.markers_mm.shape[1]
 
 
-def _rows(path: Path) -> list[list[str]]:
-    if path.suffix.lower() == ".xlsx":
-        import openpyxl
+def _rows(path: Path) -> Iterator[tuple[int, list[str]]]:
+    """(row number, cells) of every row with a cell, the cells stripped and without trailing empty ones."""
+    if path.suffix.lower() != ".xlsx":
+        try:
+            with open(path, newline="", encoding="utf-8-sig") as handle:
+                for number, raw in enumerate(csv.reader(handle), start=1):
+                    yield number, _trimmed(raw)
+        except UnicodeDecodeError:
+            raise InputError(f"{path}: not a text CSV file") from None
+        except csv.Error as exc:  # a field over csv's size limit, a stray quote character
+            raise InputError(f"{path}: not a CSV file ({exc})") from None
+        return
+    import openpyxl
 
-        try:
-            book = openpyxl.load_workbook(path, read_only=True, data_only=True)
-        except Exception as exc:  # noqa: BLE001 - any failure to open is the file's fault
-            raise InputError(f"{path}: not a readable .xlsx workbook ({exc.__class__.__name__})") from None
-        try:
-            sheet = book.worksheets[0]
-            return [["" if v is None else str(v) for v in row] for row in sheet.iter_rows(values_only=True)]
-        finally:
-            book.close()
     try:
-        with open(path, newline="", encoding="utf-8-sig") as handle:
-            return [row for row in csv.reader(handle)]
-    except UnicodeDecodeError:
-        raise InputError(f"{path}: not a text CSV file") from None
+        book = openpyxl.load_workbook(path, read_only=True, data_only=True)
+    except Exception as exc:  # noqa: BLE001 - any failure to open is the file's fault
+        raise InputError(f"{path}: not a readable .xlsx workbook ({exc.__class__.__name__})") from None
+    try:
+        sheet = book.worksheets[0]
+        # The sheet's <dimension> is a claim; believed, every row would be padded to its width (a 10 kB file
+        # saying A1:XFD1048576 is 1.7e10 cells). Without it, a row is as wide as its last cell.
+        sheet.reset_dimensions()
+        for number, values in enumerate(sheet.iter_rows(values_only=True), start=1):
+            if number > XLSX_MAX_ROWS:
+                raise InputError(f"{path}: row {number}: beyond a worksheet's {XLSX_MAX_ROWS:,} rows")
+            if values:
+                yield number, _trimmed(["" if v is None else str(v) for v in values])
+    except InputError:
+        raise
+    except MemoryError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - the sheet is parsed lazily, row by row: its faults surface here
+        raise InputError(f"{path}: not a readable .xlsx workbook ({exc.__class__.__name__})") from None
+    finally:
+        book.close()
+
+
+def _trimmed(raw: list[str]) -> list[str]:
+    row = [c.strip() for c in raw]
+    while row and row[-1] == "":
+        row.pop()
+    return row
 
 
 def _float(text: str, path: Path, row: int, what: str) -> float:
@@ -88,12 +115,8 @@ def read_tracker(path: str | Path) -> TrackerRecording:
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: tracker file is missing")
-    table = _rows(path)
     records = []
-    for number, raw in enumerate(table, start=1):
-        row = [c.strip() for c in raw]
-        while row and row[-1] == "":
-            row.pop()
+    for number, row in _rows(path):
         if not row:
             continue
         if number == 1 and len(row) > 2:

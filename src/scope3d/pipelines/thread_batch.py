@@ -12,12 +12,12 @@ killed worker's hole again on another worker (Dask reschedules the tasks of a lo
 from __future__ import annotations
 
 import csv
-import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from scope3d.errors import InputError
+from scope3d.io.json_object import read_json_object
 from scope3d.pipelines.thread_scan import ThreadScanOptions
 from scope3d.utils.atomic import atomic_file
 from scope3d.utils.jsonio import write_json
@@ -107,7 +107,7 @@ def run_batch(datasets: list[str | Path], out_dir: str | Path, options: ThreadSc
     for d, name in zip(datasets, names):
         report = out_dir / name / "report.json"
         if report.is_file():
-            rows[name] = _row_from_report(name, json.loads(report.read_text()), "skipped")
+            rows[name] = _row_from_report(name, read_json_object(report), "skipped")
             skipped.append(name)
         else:
             todo.append((str(Path(d).resolve()), name))

@@ -14,6 +14,7 @@ from importlib import resources
 from pathlib import Path
 
 from scope3d.errors import InputError
+from scope3d.io.json_object import read_json_object
 from scope3d.report.scene import ReportOptions, ViewScene, colour_stops, gather_scene, scene_payload
 from scope3d.utils.atomic import atomic_file
 from scope3d.utils.jsonio import MACHINE_FIELDS, TIMING_FIELD_SUFFIXES, json_default
@@ -51,13 +52,7 @@ def read_report_json(run: Path) -> dict:
     path = run / "report.json"
     if not path.is_file():
         raise InputError(f"{path}: no report.json (is {run} a scope3d run folder?)")
-    try:
-        report = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: not JSON ({exc})") from None
-    if not isinstance(report, dict):
-        raise InputError(f"{path}: expected a JSON object")
-    return report
+    return read_json_object(path)
 
 
 def build_page(run: Path, options: ReportOptions = ReportOptions()) -> str:

@@ -214,8 +214,50 @@ def gather_scene(run_dir: Path, report: dict, options: ReportOptions) -> ViewSce
     diagonal = float(np.linalg.norm(np.ptp(extent, axis=0))) if len(extent) else 1.0
     frusta = camera_frusta(camera, poses, options.frustum_depth_fraction * diagonal) if camera and poses \
         else np.zeros((0, 2, 3))
-    truth_targets = [t for t in report.get("targets_vs_truth") or [] if "true_centre_mm" in t]
-    return ViewScene(layers, frusta, centres, list(report.get("targets") or []), truth_targets, up, scales, notes)
+    targets = checked_targets(report, "targets", "centroid_mm", run_dir / "report.json")
+    truth_targets = [t for t in checked_targets(report, "targets_vs_truth", "true_centre_mm", run_dir / "report.json")
+                     if "true_centre_mm" in t]
+    return ViewScene(layers, frusta, centres, targets, truth_targets, up, scales, notes)
+
+
+# The fields of a target entry the page computes with or formats as numbers, and those it shows as labels.
+_TARGET_NUMBERS = ("size_mm", "area_mm2", "true_size_mm", "centroid_error_mm")
+_TARGET_LABELS = ("label", "name", "shape", "found_label")
+
+
+def checked_targets(report: dict, key: str, centre_key: str, path: Path) -> list[dict]:
+    """``report[key]`` (a list of target dicts) with the fields the page uses checked: ``centre_key`` a finite
+    3-vector when present, sizes and errors numbers or null, labels plain values. A damaged entry is one
+    InputError naming the file and the entry (report.json is scope3d's own output: nothing to guess)."""
+    entries = report.get(key) or []
+    if not isinstance(entries, list):
+        raise InputError(f"{path}: {key} must be a list, found {type(entries).__name__}")
+    for i, t in enumerate(entries):
+        where = f"{path}: {key}[{i}]"
+        if not isinstance(t, dict):
+            raise InputError(f"{where}: expected an object, found {type(t).__name__}")
+        if centre_key in t:
+            c = t[centre_key]
+            if (not isinstance(c, list) or len(c) != 3
+                    or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and _finite(v) for v in c)):
+                raise InputError(f"{where}: {centre_key} must be three finite numbers, found {c!r:.80}")
+        for name in _TARGET_NUMBERS:
+            v = t.get(name)
+            if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not _finite(v, True)):
+                raise InputError(f"{where}: {name} must be a number, found {v!r:.80}")
+        for name in _TARGET_LABELS:
+            if isinstance(t.get(name), (list, dict)):
+                raise InputError(f"{where}: {name} must be a plain value, found {t[name]!r:.80}")
+    if key == "targets_vs_truth" and any("name" not in t for t in entries if "true_centre_mm" in t):
+        raise InputError(f"{path}: {key}: every true target needs a name")
+    return entries
+
+
+def _finite(value, nan_ok: bool = False) -> bool:
+    try:
+        return np.isfinite(float(value)) or (nan_ok and np.isnan(float(value)))
+    except OverflowError:  # an integer beyond float64
+        return False
 
 
 def _dataset(run_dir: Path, report: dict, notes: list[str]):
