@@ -77,6 +77,9 @@ import atheris
 with atheris.instrument_imports(include=["scope3d"]):
     import scope3d.io, scope3d.io.dataset, scope3d.io.ply, scope3d.io.images, scope3d.io.bal
     import scope3d.estimators.bundle
+    import scope3d.io.tracker, scope3d.io.rosbag, scope3d.io.video, scope3d.io.scan_plan, scope3d.io.quadrants
+    import scope3d.io.intrinsic_bounds, scope3d.io.map_points, scope3d.io.json_object, scope3d.report
+    import scope3d.pipelines.hand_eye
 from fuzz_targets import build_targets, FuzzCrash
 target = build_targets(Path(tempfile.mkdtemp()))[{name!r}]
 counts = {{"ok": 0, "refused": 0}}

@@ -9,8 +9,10 @@ from __future__ import annotations
 
 import argparse
 import math
+import time
 from pathlib import Path
 
+from scope3d.cli.job_output import add_job_arguments, dataset_report_writer, finish_job, show_progress
 from scope3d.cli.lazy import LazyChoices
 from scope3d.errors import InputError
 
@@ -116,7 +118,8 @@ def register(subparsers) -> None:
                            "10 min for 529 views)")
     plan.add_argument("--plan-start", type=float, default=0.0, metavar="S",
                       help="with --plan: time into the video at which the scope is at the first view (default 0)")
-    vid.add_argument("--no-progress", action="store_true", help="no progress bar")
+    vid.add_argument("--no-progress", action="store_true", help="no progress bar (as --quiet)")
+    add_job_arguments(vid)
     vid.set_defaults(func=run_import_video)
 
 
@@ -127,6 +130,7 @@ def _add_output_arguments(parser: argparse.ArgumentParser) -> None:
                         help="half-width of the camera-centre tolerance per axis, mm (default 0: exact)")
     parser.add_argument("--tolerance-deg", metavar="DEG", type=_non_negative, default=0.0,
                         help="half-width of the orientation tolerance per axis, degrees (default 0)")
+    add_job_arguments(parser)  # --quiet accepted for uniformity: these imports show no progress bar
 
 
 def _non_negative(text: str) -> float:
@@ -163,30 +167,41 @@ def run_check(args) -> int:
     return 0
 
 
-def run_import_middlebury(args) -> int:
+def _finish_import(args, out: Path, report: dict) -> int:
+    """The import's summary (or its report as JSON, --json); report.json and report.html are in ``out``."""
     from scope3d.io.dataset import load_dataset
+
+    return finish_job(args, None, report, [load_dataset(out).summary(), f"wrote {out / 'report.html'}"])
+
+
+def _import_report(args, source: str) -> tuple[dict, object]:
+    """The import's report (completed when the dataset is written) and the hook that writes it there."""
+    report = {"job": f"import {args.format}", "source": source}
+    return report, dataset_report_writer(report, args.out.name, time.perf_counter())
+
+
+def run_import_middlebury(args) -> int:
     from scope3d.io.middlebury import import_middlebury
 
     _check_output(args.out)
-    out = import_middlebury(args.par_file, args.out, tolerance=_tolerance(args))
-    print(load_dataset(out).summary())
-    return 0
+    report, finish = _import_report(args, str(args.par_file))
+    out = import_middlebury(args.par_file, args.out, tolerance=_tolerance(args), finish=finish)
+    return _finish_import(args, out, report)
 
 
 def run_import_colmap(args) -> int:
     from scope3d.io.colmap import import_colmap
-    from scope3d.io.dataset import LENGTH_UNITS_TO_MM, load_dataset
+    from scope3d.io.dataset import LENGTH_UNITS_TO_MM
 
     _check_output(args.out)
+    report, finish = _import_report(args, str(args.model_dir))
     out = import_colmap(args.model_dir, args.images, args.out, tolerance=_tolerance(args),
-                        length_scale_to_mm=LENGTH_UNITS_TO_MM[args.model_unit])
-    print(load_dataset(out).summary())
-    return 0
+                        length_scale_to_mm=LENGTH_UNITS_TO_MM[args.model_unit], finish=finish)
+    return _finish_import(args, out, report)
 
 
 def run_import_rosbag(args) -> int:
     from scope3d.io.camera_json import read_camera_json
-    from scope3d.io.dataset import load_dataset
     from scope3d.io.rosbag import RosbagOptions, import_rosbag
 
     if not args.slop_ms > 0:
@@ -197,16 +212,15 @@ def run_import_rosbag(args) -> int:
                             camera_info_topic=args.camera_info_topic, slop_s=args.slop_ms / 1000.0,
                             tolerance=_tolerance(args) if given else None)
     camera = read_camera_json(args.camera) if args.camera else None
-    out = import_rosbag(args.bag, args.out, options, camera=camera)
-    print(load_dataset(out).summary())
-    return 0
+    report, finish = _import_report(args, str(args.bag))
+    out = import_rosbag(args.bag, args.out, options, camera=camera, finish=finish)
+    return _finish_import(args, out, report)
 
 
 def run_import_video(args) -> int:
     from scope3d.cli.progress import progress_bar
     from scope3d.feature.keyframes import KeyframeOptions
     from scope3d.io.camera_json import read_camera_json
-    from scope3d.io.dataset import load_dataset
     from scope3d.io.scan_plan import read_scan_plan
     from scope3d.io.video import probe_video
     from scope3d.pipelines.video_import import VideoImportOptions, import_video
@@ -244,8 +258,8 @@ def run_import_video(args) -> int:
         info = probe_video(args.video)
         camera = Camera.from_fov(info.width, info.height, args.fov)
         intrinsics = f"nominal, not calibrated: pinhole, {args.fov:g} deg across the width, centred, no distortion"
-    with progress_bar(not args.no_progress, "frame") as progress:
+    report, finish = _import_report(args, str(args.video))
+    with progress_bar(show_progress(args), "frame") as progress:
         out = import_video(args.video, args.out, options, camera=camera, plan=plan, intrinsics=intrinsics,
-                           progress=progress)
-    print(load_dataset(out).summary())
-    return 0
+                           progress=progress, finish=finish)
+    return _finish_import(args, out, report)

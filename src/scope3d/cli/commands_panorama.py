@@ -13,8 +13,8 @@ def register(subparsers) -> None:
         description="Plan a spiral of views inside a closed cavity (a phantom name such as 'bladder', or a PLY "
                     "mesh), each looking along the wall normal from the stand-off distance, neighbours along and "
                     "across the spiral overlapping by the given fraction (reference sec. 2.3.2). Writes "
-                    "DIR/plan.json (n_views, coverage_fraction by ray casting the views onto the mesh, poses) "
-                    "and DIR/plan.png.",
+                    "DIR/plan.json (n_views, coverage_fraction by ray casting the views onto the mesh, poses), "
+                    "DIR/plan.png, DIR/report.json (the plan's figures) and DIR/report.html.",
     )
     p.add_argument("surface", help="phantom name (bladder) or PLY mesh of the cavity wall, mm")
     p.add_argument("--standoff", type=float, default=15.0, metavar="MM", help="distance to the wall, mm (default 15)")
@@ -26,12 +26,14 @@ def register(subparsers) -> None:
                    help="largest angle between the tip's optical axis and the insertion direction (-z); views "
                         "needing more are dropped and the coverage lost is reported (the reference: ~125)")
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder")
+    add_job_arguments(p)  # --quiet accepted for uniformity: the planner shows no progress bar
     p.set_defaults(func=_run_plan)
     register_mosaic(subparsers)
 
 
 def _run_plan(args) -> int:
     from scope3d.errors import InputError
+    from scope3d.io.json_object import read_json_object
     from scope3d.pipelines.panorama import plan_scan
     from scope3d.sfm.scan_planning import ScanPlanOptions
 
@@ -41,9 +43,8 @@ def _run_plan(args) -> int:
     except ValueError as exc:
         raise InputError(str(exc)) from None
     plan = plan_scan(options, args.surface, args.out)
-    print(plan.summary())
-    print(f"wrote {args.out}/plan.json, plan.png")
-    return 0
+    return finish_job(args, args.out, read_json_object(args.out / "report.json"),
+                      [plan.summary(), f"wrote {args.out}/plan.json, plan.png, report.json"])
 
 
 def register_mosaic(subparsers) -> None:

@@ -2,8 +2,10 @@
 from __future__ import annotations
 
 import argparse
-import sys
+import time
+from pathlib import Path
 
+from scope3d.cli.job_output import add_job_arguments, dataset_report_writer, finish_job, show_progress
 from scope3d.cli.lazy import LazyChoices
 from scope3d.errors import InputError
 
@@ -34,7 +36,7 @@ def register(subparsers) -> None:
         help="render a phantom (dome, sheet, bladder, thread) with exact ground truth",
         description="Render an image sequence of a phantom with exact ground truth (true poses, surface mesh, "
                     "depth maps, scene.json; lengths in mm) and write it as a scope3d dataset folder, plus "
-                    "contact_sheet.png.",
+                    "contact_sheet.png, report.json and report.html.",
     )
     p.add_argument("scene", nargs="?", choices=LazyChoices("scope3d.phantoms.scenes", "SCENES"), metavar="SCENE",
                    help="phantom to render: %(choices)s")
@@ -73,7 +75,7 @@ def register(subparsers) -> None:
     p.add_argument("--mount", metavar="DX_MM:DY_MM:TILT_DEG",
                    help="quadrants: the camera's unknown offset from the rotation axis (mm) and tilt about its "
                         "image rows (degrees); default 0.08:-0.05:0")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar (as --quiet)")
     p.add_argument("--target", type=int, metavar="N",
                    help="approach trajectory: the target to approach (dome: 1-8); a tool hides part of the view, "
                         "its mask written as tool_mask.png")
@@ -93,6 +95,7 @@ def register(subparsers) -> None:
     bl.add_argument("--vessel-density", type=float, default=1.0, metavar="F",
                     help="bladder vessels and capillary dots as a fraction of the default (1); 0.25 is pale")
     bl.add_argument("--wet", action="store_true", help="bladder: specular glints of wet mucosa at the tip's light")
+    add_job_arguments(p)
     p.set_defaults(func=run)
 
 
@@ -145,7 +148,8 @@ def run(args) -> int:
         raise InputError("--video needs --plan")
     if args.mp4 and args.video is None:
         raise InputError("--mp4 needs --video FPS")
-    with progress_bar(not args.no_progress, "frame") as progress:
+    started = time.perf_counter()
+    with progress_bar(show_progress(args), "frame") as progress:
         seq = generate(
             args.scene, args.trajectory, seed=args.seed, pose_noise_mm=args.pose_noise, thread=args.thread,
             n_frames=args.frames, size=args.size, fov_deg=args.fov, side_view_deg=args.side_view,
@@ -155,7 +159,9 @@ def run(args) -> int:
             quadrant_mount=mount, bladder=bladder or None, plan=plan, video_fps=args.video,
             seconds_per_view=args.seconds_per_view,
         )
-    out = write(seq, args.out, mp4=args.mp4)
-    print(f"wrote {len(seq)} frames of {args.scene}/{seq.trajectory.name} "
-          f"({seq.camera.width}x{seq.camera.height}) to {out}", file=sys.stderr)
-    return 0
+    report = {"job": "phantom", "scene": args.scene, "trajectory": seq.trajectory.name, "seed": args.seed,
+              "pose_noise_mm": args.pose_noise}
+    out = write(seq, args.out, mp4=args.mp4, finish=dataset_report_writer(report, Path(args.out).name, started))
+    return finish_job(args, None, report, [
+        f"wrote {len(seq)} frames of {args.scene}/{seq.trajectory.name} ({seq.camera.width}x{seq.camera.height}) "
+        f"to {out}", f"wrote {Path(out) / 'report.html'}"])

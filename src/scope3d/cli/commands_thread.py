@@ -31,8 +31,9 @@ def register(subparsers) -> None:
                     "skips finished datasets; a killed worker's dataset is run again.")
     bsub = b.add_subparsers(dest="job", metavar="JOB")
     t = bsub.add_parser("thread-scan", help="thread-scan every hole",
-                        description="Thread-scan every DATASET into OUT/<dataset name>/; OUT/summary.csv holds a "
-                                    "verdict per hole.")
+                        description="Thread-scan every DATASET into OUT/<dataset name>/ (each with its report.json "
+                                    "and report.html); OUT/summary.csv holds a verdict per hole, OUT/report.json "
+                                    "and OUT/report.html the batch's.")
     t.add_argument("datasets", type=Path, nargs="+", metavar="DATASET", help="hole dataset folders")
     t.add_argument("--out", type=Path, required=True, help="folder of the per-hole results and the summary")
     t.add_argument("--thread", default="M8x1.25", metavar="SIZE",
@@ -42,7 +43,9 @@ def register(subparsers) -> None:
                    help="Dask scheduler address (e.g. tcp://host:8786); default: a local cluster")
     t.add_argument("--workers", type=int, default=2, metavar="N",
                    help="local cluster worker processes (default 2; ignored with --scheduler)")
-    t.add_argument("--no-progress", action="store_true", help="no progress bar")
+    t.add_argument("--no-progress", action="store_true", help="no progress bar (as --quiet)")
+    add_job_arguments(t)
+    t.epilog += "\nA batch also exits with 1 when a hole failed (its row in summary.csv says why)."
     t.set_defaults(func=_run_batch)
     b.set_defaults(func=_batch_help, batch_parser=b)
 
@@ -68,10 +71,16 @@ def _run_batch(args) -> int:
     from scope3d.cli.progress import progress_bar
     from scope3d.pipelines.thread_batch import run_batch
     from scope3d.pipelines.thread_scan import ThreadScanOptions
+    from scope3d.report import write_report
+    from scope3d.utils.jsonio import write_json
 
-    with progress_bar(not args.no_progress, "hole") as progress:
+    with progress_bar(show_progress(args), "hole") as progress:
         result = run_batch(args.datasets, args.out, ThreadScanOptions(designation=args.thread),
                            scheduler=args.scheduler, n_workers=args.workers, progress=progress)
-    print(result.summary())
-    print(f"wrote {args.out}/summary.csv")
-    return 0 if all(r["status"] != "error" for r in result.rows) else 1
+    for row in result.rows:  # each measured hole's own page (its folder holds its report.json)
+        if row["status"] != "error":
+            write_report(args.out / row["hole"])
+    report = result.report()
+    write_json(args.out / "report.json", report)
+    finish_job(args, args.out, report, [result.summary(), f"wrote {args.out}/summary.csv, report.json"])
+    return 0 if report["n_errors"] == 0 else 1

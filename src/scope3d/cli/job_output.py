@@ -6,6 +6,8 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import time
+from collections.abc import Callable
 from pathlib import Path
 
 EXIT_CODES = """\
@@ -27,6 +29,31 @@ def add_job_arguments(parser: argparse.ArgumentParser, *, quiet: bool = True) ->
 def show_progress(args) -> bool:
     """Progress bars unless --quiet (or the job's own --no-progress) asks for silence."""
     return not (getattr(args, "quiet", False) or getattr(args, "no_progress", False))
+
+
+def dataset_report_writer(report: dict, name: str, started: float) -> Callable[[Path], None]:
+    """For a job whose output is a dataset folder (phantom, import): the ``finish`` hook of
+    :func:`scope3d.io.dataset.write_dataset`. It completes ``report`` (in place) with what the folder holds
+    and the job's wall time since ``started`` (``time.perf_counter()``), and writes report.json and
+    report.html into the folder being built, so that they appear with the dataset or not at all. name : the
+    folder's final name (the page's title)."""
+
+    def finish(folder: Path) -> None:
+        from scope3d.io.dataset import load_dataset
+        from scope3d.report import write_report
+        from scope3d.utils.jsonio import write_json
+
+        dataset = load_dataset(folder)
+        camera = dataset.camera
+        report.update({
+            "dataset": ".",  # the report's own folder: the page draws its cameras
+            "n_frames": len(dataset), "image_size_px": [camera.width, camera.height], "fov_deg": camera.fov_deg,
+            "fluorescence": dataset.fluorescence_paths is not None, "ground_truth": dataset.ground_truth is not None,
+            "time_s": round(time.perf_counter() - started, 3)})
+        write_json(folder / "report.json", report)
+        write_report(folder, name=name)
+
+    return finish
 
 
 def finish_job(args, out_dir: str | Path | None, report: dict, summary_lines: list[str]) -> int:

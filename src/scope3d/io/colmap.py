@@ -432,8 +432,10 @@ def import_colmap(
     *,
     tolerance: PoseTolerance | None = None,
     length_scale_to_mm: float = 1.0,
+    finish=None,
 ) -> Path:
-    """Turn a COLMAP text model and its image folder into a scope3d dataset (atomically).
+    """Turn a COLMAP text model and its image folder into a scope3d dataset (atomically). finish : see
+    :func:`scope3d.io.dataset.write_dataset`.
 
     Every image of ``images.txt`` becomes a frame, in image-ID order, with its ``cam_from_world`` pose
     reported with ``tolerance`` (default exact: COLMAP's poses are taken as given). The model must have
@@ -480,7 +482,7 @@ def import_colmap(
             "original_names": list(model.image_names),
         }
     }
-    return write_dataset(out_dir, camera, sources, poses, names=names, metadata=metadata)
+    return write_dataset(out_dir, camera, sources, poses, names=names, metadata=metadata, finish=finish)
 
 
 def _check_image_size(path: Path, camera: Camera) -> None:

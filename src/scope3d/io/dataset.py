@@ -33,7 +33,7 @@ pixel, u right, v down (:mod:`scope3d.sensor.camera`).
 from __future__ import annotations
 
 import shutil
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -174,6 +174,7 @@ def write_dataset(
     scene: dict | None = None,
     metadata: dict | None = None,
     extra_images: dict[str, np.ndarray] | None = None,
+    finish: Callable[[Path], None] | None = None,
 ) -> Path:
     """Write a dataset folder atomically (built beside ``out_dir``, then renamed into place).
 
@@ -185,6 +186,8 @@ def write_dataset(
     metadata : merged into ``dataset.json`` (e.g. ``{"source": {...}}`` provenance).
     extra_images : file name -> image, written at the top of the folder with the rest (contact sheets),
         so that the folder appears complete or not at all.
+    finish : called with the folder being built once everything above is in it, before it is put in place
+        (a job's report.json and report.html): what it writes appears with the dataset or not at all.
 
     If anything fails, ``out_dir`` is left as it was (absent, or the previous dataset).
     """
@@ -234,6 +237,8 @@ def write_dataset(
                 write_json(gt / "scene.json", scene)
         for name, image in (extra_images or {}).items():
             write_image(tmp / name, image)
+        if finish is not None:
+            finish(tmp)
     return out_dir
 
 

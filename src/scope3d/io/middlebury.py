@@ -100,8 +100,10 @@ def import_middlebury(
     out_dir: str | Path,
     *,
     tolerance: PoseTolerance | None = None,
+    finish=None,
 ) -> Path:
     """Import a Middlebury multi-view set (images beside ``par_path``) as a scope3d dataset, in mm.
+    finish : see :func:`scope3d.io.dataset.write_dataset`.
 
     tolerance : reported with every pose; default exact (0), since the gantry calibration is the
     reference. All images must share one K and one size. ``dataset.json`` records the provenance
@@ -143,7 +145,7 @@ def import_middlebury(
     if box is not None:
         metadata["bounding_box_mm"] = (box * MM_PER_M).tolist()
     measured = [MeasuredPose(p, tolerance) for p in poses]
-    return write_dataset(out_dir, camera, sources, measured, names=names, metadata=metadata)
+    return write_dataset(out_dir, camera, sources, measured, names=names, metadata=metadata, finish=finish)
 
 
 _TRIPLE = re.compile(r"\(\s*([-+0-9.eE]+)\s+([-+0-9.eE]+)\s+([-+0-9.eE]+)\s*\)")

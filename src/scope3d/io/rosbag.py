@@ -228,10 +228,11 @@ def _messages(reader, connections: list, bag: Path, topic: str) -> Iterator[tupl
 
 
 def import_rosbag(bag: str | Path, out_dir: str | Path, options: RosbagOptions, *,
-                  camera: Camera | None = None) -> Path:
+                  camera: Camera | None = None, finish=None) -> Path:
     """Write the bag's synchronised images and poses as a scope3d dataset folder (see
     :func:`scope3d.io.dataset.write_dataset`); returns ``out_dir``. camera : the intrinsics when the
-    bag has no CameraInfo topic (``options.camera_info_topic``). Frames are decoded one at a time (only
+    bag has no CameraInfo topic (``options.camera_info_topic``). finish : see
+    :func:`scope3d.io.dataset.write_dataset`. Frames are decoded one at a time (only
     the paired ones), so a long bag never sits in memory. Raises InputError naming the bag for a missing
     topic, an unsupported message type, no intrinsics, or streams that never meet within the slop."""
     from rosbags.highlevel import AnyReader
@@ -313,7 +314,8 @@ def import_rosbag(bag: str | Path, out_dir: str | Path, options: RosbagOptions, 
                            "camera_frame": options.camera_frame, "slop_s": options.slop_s,
                            "images_in_bag": int(len(image_ns)), "images_paired": len(pairs),
                            "image_stamps_ns": [int(image_ns[i]) for i, _ in pairs],
-                           "pose_gaps_s": [float(abs(image_ns[i] - pose_ns[j]) / 1e9) for i, j in pairs]}})
+                           "pose_gaps_s": [float(abs(image_ns[i] - pose_ns[j]) / 1e9) for i, j in pairs]}},
+                finish=finish)
     finally:
         reader.close()
 

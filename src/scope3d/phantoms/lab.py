@@ -333,10 +333,12 @@ def contact_sheet(images: list[np.ndarray], *, columns: int | None = None, thumb
     return sheet
 
 
-def write(sequence: PhantomSequence, out_dir: str | Path, *, contact_sheet_px: int = 160, mp4: bool = False) -> Path:
+def write(sequence: PhantomSequence, out_dir: str | Path, *, contact_sheet_px: int = 160, mp4: bool = False,
+          finish=None) -> Path:
     """Write the dataset folder (see :mod:`scope3d.io.dataset`), ground truth included, and
     ``contact_sheet.png`` (plus ``contact_sheet_fluorescence.png`` when the scene has targets).
-    mp4 : also write the frames as ``video.mp4`` at the trajectory's frame rate (a plan video's)."""
+    mp4 : also write the frames as ``video.mp4`` at the trajectory's frame rate (a plan video's).
+    finish : see :func:`scope3d.io.dataset.write_dataset` (a job's report, written with the dataset)."""
     if mp4 and "fps" not in sequence.trajectory.params:
         raise InputError("an MP4 needs a video-rate trajectory (a plan rendered with a frame rate)")
     out_dir = Path(out_dir)
@@ -352,7 +354,7 @@ def write(sequence: PhantomSequence, out_dir: str | Path, *, contact_sheet_px: i
         true_depths=sequence.depths, scene=sequence.scene_info,
         metadata={"source": "scope3d phantom lab", "scene_name": sequence.scene.name,
                   "trajectory": sequence.trajectory.name},
-        extra_images=sheets,
+        extra_images=sheets, finish=finish,
     )
     if sequence.trajectory.params.get("kind") == "quadrants":
         from scope3d.utils.jsonio import write_json

@@ -24,6 +24,7 @@ from scope3d.phantoms.scenes import SCENES, build_scene
 from scope3d.scene.mesh import Mesh
 from scope3d.sfm.scan_planning import ScanPlan, ScanPlanOptions, plan_spiral_scan
 from scope3d.utils.figures import new_figure, save_figure
+from scope3d.utils.jsonio import write_json
 from scope3d.utils.progress import stage
 
 
@@ -42,7 +43,8 @@ def load_surface(surface: str | Path) -> tuple[Mesh, RayCaster, str]:
 
 
 def plan_scan(options: ScanPlanOptions, surface: str | Path, out_dir: str | Path) -> ScanPlan:
-    """Plan a spiral scan of ``surface`` and write ``plan.json`` and ``plan.png`` into ``out_dir``."""
+    """Plan a spiral scan of ``surface`` and write ``plan.json``, ``plan.png`` and ``report.json`` (the plan's
+    figures: views, coverage, options) into ``out_dir``."""
     mesh, caster, source = load_surface(surface)
     try:
         plan = plan_spiral_scan(mesh, options, caster=caster)
@@ -66,6 +68,9 @@ def plan_scan(options: ScanPlanOptions, surface: str | Path, out_dir: str | Path
     write_scan_plan(out / "plan.json", plan.poses, plan.sections, options.fov_deg,
                     wall_points_mm=plan.wall_points_mm, bend_deg=plan.bend_deg, info=info)
     plot_plan(plan, mesh, out / "plan.png")
+    # the plan's figures without its views (those are plan.json's): what the job's report shows
+    write_json(out / "report.json", {"job": "plan-scan", **info, "n_views": len(plan.poses),
+                                     "fov_deg": options.fov_deg})
     return plan
 
 
@@ -135,7 +140,6 @@ def make_mosaic(options, datasets: list, out_dir: str | Path, *, progress=None):
 
     from scope3d.io.images import write_image
     from scope3d.registration import mosaic as mos
-    from scope3d.utils.jsonio import write_json
 
     t0, c0 = time.perf_counter(), time.process_time()
     frames, cameras, sections, owner, true_poses = [], [], [], [], []

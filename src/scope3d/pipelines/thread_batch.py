@@ -37,6 +37,13 @@ class BatchResult:
     workers: int
     log: list[str] = field(default_factory=list)
 
+    def report(self) -> dict:
+        """The batch's report.json: counts, wall time (s) and one row per hole (as in summary.csv)."""
+        n_errors = sum(r["status"] == "error" for r in self.rows)
+        return {"job": "batch thread-scan", "n_holes": len(self.rows), "n_measured": len(self.rows) - n_errors,
+                "n_skipped": len(self.skipped), "n_errors": n_errors, "workers": self.workers,
+                "time_s": self.time_s, "holes": self.rows}
+
     def summary(self) -> str:
         lines = [f"{'hole':24s} {'status':7s} {'verdict':13s} {'D1':>8s} {'D':>8s} {'D2':>8s} {'P':>7s} defects"]
         for r in self.rows:

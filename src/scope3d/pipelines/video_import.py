@@ -78,15 +78,16 @@ def planned_pose(plan: PlanFile, time_s: float, options: VideoImportOptions) -> 
 
 
 def import_video(video: str | Path, out_dir: str | Path, options: VideoImportOptions, *, camera: Camera,
-                 plan: PlanFile | None = None, intrinsics: str = "given", progress: Progress | None = None) -> Path:
+                 plan: PlanFile | None = None, intrinsics: str = "given", progress: Progress | None = None,
+                 finish=None) -> Path:
     """Write the kept frames of ``video`` as a dataset folder; returns ``out_dir``.
 
     camera : the intrinsics (its size must be the video's). plan : planned poses by time (see the module
     docstring), or None for unknown poses. intrinsics : where the camera came from, recorded in
     ``dataset.json`` (e.g. "nominal, not calibrated"). progress : counts frames read (see
     :mod:`scope3d.utils.progress`). ``dataset.json``'s ``source`` records the video, the selection rule,
-    and each kept frame's index and time. Raises InputError naming the file for a missing, unreadable or
-    empty video, or a camera of another size.
+    and each kept frame's index and time. finish : see :func:`scope3d.io.dataset.write_dataset`. Raises
+    InputError naming the file for a missing, unreadable or empty video, or a camera of another size.
     """
     video = Path(video)
     info = probe_video(video)
@@ -124,5 +125,6 @@ def import_video(video: str | Path, out_dir: str | Path, options: VideoImportOpt
             source["plan"] = {"views": len(plan.poses), "seconds_per_view": options.seconds_per_view,
                               "start_s": options.plan_start_s,
                               "frames_with_planned_pose": n_planned}
-        return write_dataset(out_dir, camera, paths, measured, names=names, metadata={"source": source})
+        return write_dataset(out_dir, camera, paths, measured, names=names, metadata={"source": source},
+                             finish=finish)
 

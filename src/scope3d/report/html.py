@@ -37,11 +37,12 @@ COLOURINGS = (("height", "height"), ("error", "error against ground truth"), ("t
               ("multimodal", "texture + fluorescence"))
 
 
-def write_report(run_dir: str | Path, options: ReportOptions = ReportOptions()) -> Path:
+def write_report(run_dir: str | Path, options: ReportOptions = ReportOptions(), *, name: str | None = None) -> Path:
     """Write ``run_dir/report.html`` from the run folder's report.json, pictures and geometry; returns its
-    path. Raises InputError if the folder has no readable report.json."""
+    path. name : the run's name in the page's title (default the folder's: give it when the folder is a
+    temporary one, renamed into place afterwards). Raises InputError if the folder has no readable report.json."""
     run = Path(run_dir)
-    page = build_page(run, options)
+    page = build_page(run, options, name=name)
     out = run / "report.html"
     with atomic_file(out, encoding="utf-8") as handle:
         handle.write(page)
@@ -55,15 +56,16 @@ def read_report_json(run: Path) -> dict:
     return read_json_object(path)
 
 
-def build_page(run: Path, options: ReportOptions = ReportOptions()) -> str:
-    """The whole page as one string (no external references except links to the run's own files)."""
+def build_page(run: Path, options: ReportOptions = ReportOptions(), *, name: str | None = None) -> str:
+    """The whole page as one string (no external references except links to the run's own files); name: see
+    :func:`write_report`."""
     report = read_report_json(run)
     scene = gather_scene(run, report, options)
     assets = resources.files("scope3d.report") / "assets"
     style = (assets / "style.css").read_text(encoding="utf-8")
     script = (assets / "viewer.js").read_text(encoding="utf-8")
     payload = json.dumps(scene_payload(scene), default=json_default).replace("</", "<\\/")
-    title = f"scope3d {job_name(report)}: {run.name}"
+    title = f"scope3d {job_name(report)}: {name or run.name}"
     parts = [
         "<!DOCTYPE html>", '<html lang="en"><head><meta charset="utf-8">',
         # no network at view time, whatever the page holds
@@ -80,7 +82,9 @@ def build_page(run: Path, options: ReportOptions = ReportOptions()) -> str:
 
 
 def job_name(report: dict) -> str:
-    """Which job wrote the report (its keys tell)."""
+    """Which job wrote the report (its ``job`` entry, else its keys tell)."""
+    if isinstance(report.get("job"), str):
+        return report["job"]
     if "pose_mode" in report:
         return "map"
     if report.get("method") in ("sgm", "sad", "multiview"):

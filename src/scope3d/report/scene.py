@@ -261,13 +261,14 @@ def _finite(value, nan_ok: bool = False) -> bool:
 
 
 def _dataset(run_dir: Path, report: dict, notes: list[str]):
-    """The dataset named in report.json (absolute, or relative to the run folder or the working folder)."""
+    """The dataset named in report.json (absolute, or relative to the run folder, or else to the working
+    folder; "." is the run folder itself, as for a job whose output is a dataset)."""
     from scope3d.io.dataset import load_dataset
 
     name = report.get("dataset")
     if not name:
         return None
-    for candidate in (Path(name), run_dir / name):
+    for candidate in (run_dir / name, Path(name)):
         if (candidate / "dataset.json").is_file() or (candidate / "poses.csv").is_file():
             try:
                 return load_dataset(candidate)
