@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 STAMP_CORE := $(VENV)/.installed-core
 STAMP_ALL := $(VENV)/.installed-all
 
-.PHONY: demo test bench clean
+.PHONY: demo test bench fuzz clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -52,6 +52,12 @@ test: $(STAMP_ALL) $(BROWSER)
 
 bench: $(STAMP_ALL)
 	for b in benchmarks/bench_*.py; do $(BIN)/python $$b || exit 1; done
+
+# The long fuzzing run of every file reader (docs/reliability.md section 1): hypothesis, then atheris
+# (coverage-guided) when it is installed, FUZZ_SECONDS per reader and engine; results in benchmarks/results/.
+FUZZ_SECONDS ?= 600
+fuzz: $(STAMP_ALL)
+	$(BIN)/python benchmarks/bench_fuzz.py --seconds-per-reader $(FUZZ_SECONDS)
 
 clean:
 	rm -rf $(VENV) runs

@@ -155,14 +155,18 @@ def main() -> None:
             report["readers"][name] = entry
             print(name, {k: {kk: (len(vv) if kk == "crashes" else vv) for kk, vv in v.items()}
                          for k, v in entry.items()}, flush=True)
-        totals = {e: {"inputs": sum(r[e].get("inputs", 0) for r in report["readers"].values() if e in r),
-                      "crashes": sum(len(r[e].get("crashes", [])) for r in report["readers"].values() if e in r)}
-                  for e in engines}
-        report["totals"] = totals
-        report["load_average_at_end"] = os.getloadavg()
-    args.results.parent.mkdir(parents=True, exist_ok=True)
-    args.results.write_text(json.dumps(report, indent=2) + "\n")
-    print("totals", totals)
+            _write(report, engines, args.results)  # after every reader: a stopped run keeps what it did
+    print("totals", report["totals"])
+
+
+def _write(report: dict, engines: list[str], path: Path) -> None:
+    readers = report["readers"].values()
+    report["totals"] = {e: {"inputs": sum(r[e].get("inputs", 0) for r in readers if e in r),
+                            "crashes": sum(len(r[e].get("crashes", [])) for r in readers if e in r)}
+                        for e in engines}
+    report["load_average_at_end"] = os.getloadavg()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(report, indent=2) + "\n")
 
 
 if __name__ == "__main__":
