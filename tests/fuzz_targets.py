@@ -251,6 +251,18 @@ def _png_seed() -> bytes:
     return buf.tobytes()
 
 
+def _jpeg_seed() -> bytes:
+    board = np.kron((np.indices((3, 4)).sum(axis=0) % 2) * 255, np.ones((4, 4))).astype(np.uint8)
+    ok, buf = cv2.imencode(".jpg", board, [cv2.IMWRITE_JPEG_QUALITY, 90])
+    return buf.tobytes()
+
+
+def _jpeg_claiming_huge_size(seed: bytes) -> bytes:
+    """The seed JPEG with its frame header (SOF0) saying 60,000 x 60,000 pixels (3.6 Gpx)."""
+    at = seed.index(b"\xff\xc0") + 5  # marker, length (2), precision (1): then height, width
+    return seed[:at] + struct.pack(">HH", 60000, 60000) + seed[at + 4:]
+
+
 def _png_claiming_huge_size(seed: bytes) -> bytes:
     """The seed PNG with its IHDR saying 10^5 x 10^5 pixels (40 GB of RGB), its CRC made right again."""
     import zlib
@@ -308,6 +320,8 @@ def build_targets(root: Path) -> dict[str, Target]:
     add("middlebury readme", readme, README_SEED, lambda: read_middlebury_bounding_box(readme))
     png = root / "image" / "f.png"
     add("image png", png, _png_seed(), lambda: (read_image(png), read_image(png, grey=True)))
+    jpeg = root / "image" / "board.jpg"  # calibration boards and scope frames come as JPEG too
+    add("image jpeg", jpeg, _jpeg_seed(), lambda: (read_image(jpeg), read_image(jpeg, grey=True)))
     _add_later_readers(root, add)
     return targets
 
@@ -519,6 +533,8 @@ def huge_header(target: Target) -> bytes:
     seed = target.seed
     if target.name == "image png":
         return _png_claiming_huge_size(seed)
+    if target.name == "image jpeg":
+        return _jpeg_claiming_huge_size(seed)
     if target.name.startswith("ply"):
         return _replace_ply_count(seed)
     if target.name == "bal":

@@ -36,7 +36,7 @@ def targets(tmp_path_factory):
 
 TARGET_NAMES = ["dataset.json", "poses.csv", "camera.json", "bal", "bounds", "colmap cameras.txt",
                 "colmap images.txt", "colmap points3D.txt", "ply ascii", "ply binary cloud", "ply binary mesh",
-                "middlebury par", "middlebury readme", "image png", "tracker csv", "tracker xlsx", "rosbag ros1",
+                "middlebury par", "middlebury readme", "image png", "image jpeg", "tracker csv", "tracker xlsx", "rosbag ros1",
                 "rosbag2 metadata.yaml", "rosbag2 storage", "video mp4", "scan plan", "intrinsic bounds", "quadrants",
                 "map points", "hand-eye robot poses", "report.json"]
 # A bag import compiles the bag's message types (rosbags) and writes a dataset: ~0.3 s an input on this
