@@ -350,3 +350,19 @@ def test_map_points_whose_header_claims_a_billion_points_are_refused_before_allo
             read_map_points(target.path)
     finally:
         target.restore()
+
+
+def test_a_corrupt_frame_is_one_line_on_stderr_without_the_decoders_own(tmp_path):
+    """Found checking the CLI's stderr: libpng printed "libpng error: IDAT: ..." on file descriptor 2 before
+    scope3d's refusal, two lines where one is promised."""
+    from fuzz_targets import _tiny_dataset
+
+    root = _tiny_dataset(tmp_path / "ds")
+    frame = sorted((root / "frames").iterdir())[0]
+    data = bytearray(frame.read_bytes())
+    data[data.index(b"IDAT") + 40] ^= 0xFF  # inside the compressed stream: zlib rejects it while decoding
+    frame.write_bytes(bytes(data))
+    proc = subprocess.run([sys.executable, "-m", "scope3d.cli.main", "check", str(root)], capture_output=True,
+                          text=True, cwd=REPO, env={"PYTHONPATH": str(REPO / "src"), "PATH": "/usr/bin:/bin"},
+                          timeout=120)
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and str(frame) in proc.stderr, proc.stderr

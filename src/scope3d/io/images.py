@@ -1,6 +1,10 @@
 """Image files: read (colour or grey) and write atomically."""
 from __future__ import annotations
 
+import contextlib
+import os
+import sys
+import threading
 from pathlib import Path
 
 import cv2
@@ -47,7 +51,8 @@ def decode_image_data(data: np.ndarray, where: str | Path, flag: int) -> np.ndar
     old_level = cv2.utils.logging.getLogLevel()
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
     try:
-        img = cv2.imdecode(data, flag) if data.size else None
+        with _decoder_stderr_silenced():
+            img = cv2.imdecode(data, flag) if data.size else None
     except cv2.error:
         img = None
     finally:
@@ -56,6 +61,40 @@ def decode_image_data(data: np.ndarray, where: str | Path, flag: int) -> np.ndar
         raise InputError(f"{where}: not a readable image (corrupt or unsupported format)")
     return img
 
+
+class _StderrSilencer:
+    """libpng and libjpeg print their complaints about a damaged file ("libpng error: IDAT: incorrect data
+    check") straight to file descriptor 2, past OpenCV's log level: the CLI's one-line refusal would come
+    with a second line. While any thread decodes, fd 2 points to /dev/null; the first decoder in saves it,
+    the last one out restores it (a count, so that threads decoding at once never restore each other's)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._users = 0
+        self._saved: int | None = None
+
+    @contextlib.contextmanager
+    def __call__(self):
+        with self._lock:
+            if self._users == 0:
+                sys.stderr.flush()
+                self._saved = os.dup(2)
+                null = os.open(os.devnull, os.O_WRONLY)
+                os.dup2(null, 2)
+                os.close(null)
+            self._users += 1
+        try:
+            yield
+        finally:
+            with self._lock:
+                self._users -= 1
+                if self._users == 0:
+                    os.dup2(self._saved, 2)
+                    os.close(self._saved)
+                    self._saved = None
+
+
+_decoder_stderr_silenced = _StderrSilencer()
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
