@@ -366,3 +366,16 @@ def test_a_corrupt_frame_is_one_line_on_stderr_without_the_decoders_own(tmp_path
                           text=True, cwd=REPO, env={"PYTHONPATH": str(REPO / "src"), "PATH": "/usr/bin:/bin"},
                           timeout=120)
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and str(frame) in proc.stderr, proc.stderr
+
+
+def test_a_truncated_video_is_one_line_on_stderr(targets, tmp_path):
+    """Found checking the CLI's stderr: OpenCV's FFmpeg back end logged three lines ("Could not find decoder",
+    "Failed to initialize VideoCapture", ...) before scope3d's refusal."""
+    seed = targets["video mp4"].seed
+    video = tmp_path / "cut.mp4"
+    video.write_bytes(seed[: len(seed) // 2])
+    proc = subprocess.run([sys.executable, "-m", "scope3d.cli.main", "import", "video", str(video), "--fov", "60",
+                           "--out", str(tmp_path / "out")], capture_output=True, text=True, cwd=REPO,
+                          env={"PYTHONPATH": str(REPO / "src"), "PATH": "/usr/bin:/bin"}, timeout=120)
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and str(video) in proc.stderr, proc.stderr
+    assert not (tmp_path / "out").exists()

@@ -48,22 +48,18 @@ def decode_image_data(data: np.ndarray, where: str | Path, flag: int) -> np.ndar
     if pixels is not None and pixels > MAX_IMAGE_PIXELS:
         raise InputError(f"{where}: the image header claims {pixels / 1e6:.0f} Mpx, more than scope3d reads "
                          f"({MAX_IMAGE_PIXELS / 1e6:.0f} Mpx; a damaged header?)")
-    old_level = cv2.utils.logging.getLogLevel()
-    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
     try:
-        with _decoder_stderr_silenced():
+        with quiet_decoders():
             img = cv2.imdecode(data, flag) if data.size else None
     except cv2.error:
         img = None
-    finally:
-        cv2.utils.logging.setLogLevel(old_level)
     if img is None:
         raise InputError(f"{where}: not a readable image (corrupt or unsupported format)")
     return img
 
 
 class _StderrSilencer:
-    """libpng and libjpeg print their complaints about a damaged file ("libpng error: IDAT: incorrect data
+    """libpng, libjpeg and FFmpeg print their complaints about a damaged file ("libpng error: IDAT: incorrect data
     check") straight to file descriptor 2, past OpenCV's log level: the CLI's one-line refusal would come
     with a second line. While any thread decodes, fd 2 points to /dev/null; the first decoder in saves it,
     the last one out restores it (a count, so that threads decoding at once never restore each other's)."""
@@ -95,6 +91,19 @@ class _StderrSilencer:
 
 
 _decoder_stderr_silenced = _StderrSilencer()
+
+
+@contextlib.contextmanager
+def quiet_decoders():
+    """While decoding a file that may be damaged: OpenCV's log silenced, and what libpng, libjpeg or FFmpeg
+    print on stderr themselves discarded (the caller reports the problem in one line)."""
+    old_level = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+    try:
+        with _decoder_stderr_silenced():
+            yield
+    finally:
+        cv2.utils.logging.setLogLevel(old_level)
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 

@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 
 from scope3d.errors import InputError
+from scope3d.io.images import quiet_decoders
 from scope3d.utils.atomic import atomic_path
 
 MP4_FOURCC = "mp4v"  # MPEG-4 Part 2: encodable by the opencv wheel's FFmpeg (H.264 'avc1' is not)
@@ -63,11 +64,18 @@ def _open(path: Path) -> cv2.VideoCapture:
     # FFmpeg also opens still images as one-frame "videos"; a photo given as a video is a mistake
     if cv2.haveImageReader(str(path)):
         raise InputError(f"{path}: is a still image, not a video")
-    capture = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
+    with quiet_decoders():
+        capture = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
     if not capture.isOpened():
         capture.release()
         raise InputError(f"{path}: not a video file OpenCV's FFmpeg can decode (empty, truncated or another format)")
     return capture
+
+
+def _quietly(step):
+    """One demux or decode step with the decoders' own complaints about a damaged stream discarded."""
+    with quiet_decoders():
+        return step()
 
 
 def probe_video(path: str | Path) -> VideoInfo:
@@ -82,7 +90,8 @@ def probe_video(path: str | Path) -> VideoInfo:
         height = int(capture.get(cv2.CAP_PROP_FRAME_HEIGHT))
         fps = float(capture.get(cv2.CAP_PROP_FPS))
         count = capture.get(cv2.CAP_PROP_FRAME_COUNT)
-        ok, _ = capture.read()
+        with quiet_decoders():
+            ok, _ = capture.read()
     finally:
         capture.release()
     if not ok or width <= 0 or height <= 0:
@@ -107,9 +116,9 @@ def read_video(path: str | Path, *, every: int = 1) -> Iterator[VideoFrame]:
     capture = _open(path)
     try:
         index = 0
-        while capture.grab():
+        while _quietly(capture.grab):
             if index % every == 0:
-                ok, bgr = capture.retrieve()
+                ok, bgr = _quietly(capture.retrieve)
                 if not ok:
                     raise InputError(f"{path}: frame {index} does not decode")
                 time_s = capture.get(cv2.CAP_PROP_POS_MSEC) / 1000.0
