@@ -354,17 +354,24 @@ def write(sequence: PhantomSequence, out_dir: str | Path, *, contact_sheet_px: i
         true_depths=sequence.depths, scene=sequence.scene_info,
         metadata={"source": "scope3d phantom lab", "scene_name": sequence.scene.name,
                   "trajectory": sequence.trajectory.name},
-        extra_images=sheets, finish=finish,
+        extra_images=sheets, finish=lambda folder: _complete(sequence, folder, mp4, finish),
     )
+    return out_dir
+
+
+def _complete(sequence: PhantomSequence, folder: Path, mp4: bool, finish) -> None:
+    """The files beside the dataset proper, written into the folder being built (a kill never leaves a
+    thread dataset without its quadrant layout): quadrants.json, video.mp4, then the caller's ``finish``."""
     if sequence.trajectory.params.get("kind") == "quadrants":
         from scope3d.utils.jsonio import write_json
 
-        write_json(out_dir / "quadrants.json", quadrant_layout(sequence.trajectory, sequence.names))
+        write_json(folder / "quadrants.json", quadrant_layout(sequence.trajectory, sequence.names))
     if mp4:
         from scope3d.io.video import write_video
 
-        write_video(out_dir / "video.mp4", sequence.frames, sequence.trajectory.params["fps"])
-    return out_dir
+        write_video(folder / "video.mp4", sequence.frames, sequence.trajectory.params["fps"])
+    if finish is not None:
+        finish(folder)
 
 
 def catalogue() -> str:
