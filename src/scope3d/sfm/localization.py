@@ -86,6 +86,9 @@ class LocalizerOptions:
     refresh_in_thread : bool, with ``refresh_lag_frames >= 1``, compute the refresh on a worker thread
         (default True: OpenCV's SIFT releases the GIL, so it runs on the second core while the first keeps
         tracking). False computes it inline when submitted; the results are identical either way.
+    refresh_image_scale : float in (0, 1], the lagged refresh's SIFT runs on the frame resized by this
+        factor (default 1; 0.5 costs about a quarter: SIFT's cost grows with the pixels). Its keypoints,
+        scaled back, only re-anchor the optical flow; their precision shrinks with the factor.
     pose : :class:`~scope3d.estimators.absolute_pose.AbsolutePoseOptions`.
     """
 
@@ -103,6 +106,7 @@ class LocalizerOptions:
     blocked_margin_px: float = 8.0
     refresh_lag_frames: int = 0
     refresh_in_thread: bool = True
+    refresh_image_scale: float = 1.0
     pose: AbsolutePoseOptions = field(default_factory=AbsolutePoseOptions)
 
     def __post_init__(self) -> None:
@@ -118,6 +122,8 @@ class LocalizerOptions:
             raise ValueError("blocked_margin_px must be >= 0")
         if self.refresh_lag_frames < 0:
             raise ValueError(f"refresh_lag_frames must be >= 0, got {self.refresh_lag_frames}")
+        if not 0 < self.refresh_image_scale <= 1:
+            raise ValueError(f"refresh_image_scale must be in (0, 1], got {self.refresh_image_scale}")
 
 
 @dataclass
@@ -311,12 +317,20 @@ class Localizer:
         prior = DepthPrior(float(np.percentile(depth, 1)), float(depth.max()))
         return self.options.guided_base_radius_px + pose_error_px(self.camera, tolerance, prior)
 
-    def _features(self, grey: np.ndarray, usable: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """SIFT keypoints (K, 2) and descriptors (K, 128) of the frame, those on usable pixels only."""
-        features = detect(grey, self.camera, self.options.features)
-        keep = usable[np.clip(np.rint(features.keypoints[:, 1]).astype(int), 0, grey.shape[0] - 1),
-                      np.clip(np.rint(features.keypoints[:, 0]).astype(int), 0, grey.shape[1] - 1)]
-        return features.keypoints[keep], features.descriptors[keep]
+    def _features(self, grey: np.ndarray, usable: np.ndarray, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+        """SIFT keypoints (K, 2) and descriptors (K, 128) of the frame (resized by ``scale`` for detection),
+        those on usable pixels only."""
+        if scale == 1.0:
+            features = detect(grey, self.camera, self.options.features)
+            keypoints = features.keypoints
+        else:
+            small = cv2.resize(grey, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+            features = detect(small, None, self.options.features)  # the usable mask below drops the rim
+            # pixel centres: full-resolution u = (u_small + 0.5) / scale - 0.5
+            keypoints = (features.keypoints + 0.5) / scale - 0.5
+        keep = usable[np.clip(np.rint(keypoints[:, 1]).astype(int), 0, grey.shape[0] - 1),
+                      np.clip(np.rint(keypoints[:, 0]).astype(int), 0, grey.shape[1] - 1)]
+        return keypoints[keep], features.descriptors[keep]
 
     def _kept(self, result: AbsolutePoseResult, ids: np.ndarray, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The inliers to follow into the next frame: at most ``max_tracked``, evenly through the list."""
@@ -329,7 +343,7 @@ class Localizer:
         """A refresh frame's fresh association: SIFT matched to the map points near where its tracked pose
         ``guide`` projects them, checked by a pose. Returns (point ids, pixels) to follow, or None. Reads
         nothing that changes, so it runs on the worker thread as well as inline."""
-        kp, desc = self._features(grey, usable)
+        kp, desc = self._features(grey, usable, self.options.refresh_image_scale)
         ids, fidx = self._match_guided(guide, kp, desc, self.options.guided_base_radius_px)
         result, ids, px = self._pose(ids, kp[fidx], reported)
         return self._kept(result, ids, px) if result.ok else None
