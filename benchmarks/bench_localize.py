@@ -48,7 +48,7 @@ from scope3d.pipelines.localize import load_blocked_mask
 from scope3d.pipelines.surgical_map import MAP_PRESETS, MapOptions
 from scope3d.pipelines.surgical_map import run as run_map
 from scope3d.sfm.approach import ApproachOptions, plan_approach, save_approach_png
-from scope3d.sfm.localization import Localizer, LocalizerOptions
+from scope3d.sfm.localization import LOCALIZER_PRESETS, Localizer, LocalizerOptions
 from scope3d.utils.figures import new_figure, save_figure
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -61,7 +61,7 @@ LOO_STEP = int(os.environ.get("LOO_STEP", "4"))
 # the lagged refresh: every 5 frames (tracks thin out by ~15 % a frame on an approach, and a refresh every
 # 10 let them fall under min_tracked, forcing synchronous SIFT frames), merged 2 frames later, SIFT at half
 # size (a quarter of the cost, on the second core)
-LAGGED = LocalizerOptions(refresh_every=5, refresh_lag_frames=2, refresh_image_scale=0.5)
+LAGGED = LOCALIZER_PRESETS["threaded"]
 
 
 def prepare(work: Path) -> tuple[Path, list[Path]]:

@@ -126,6 +126,14 @@ class LocalizerOptions:
             raise ValueError(f"refresh_image_scale must be in (0, 1], got {self.refresh_image_scale}")
 
 
+#: Named settings. ``threaded``: the SIFT refresh every 5 frames on a worker thread, at half size, merged 2
+#: frames later (docs/localization.md: the stream's thread then only tracks; same accuracy within noise).
+LOCALIZER_PRESETS: dict[str, LocalizerOptions] = {
+    "default": LocalizerOptions(),
+    "threaded": LocalizerOptions(refresh_every=5, refresh_lag_frames=2, refresh_image_scale=0.5),
+}
+
+
 @dataclass
 class LocalizationResult:
     """One frame's outcome.
