@@ -120,6 +120,11 @@ def test_localization_against_the_truth_on_a_small_phantom(dome_map, tmp_path):
     lines = (out / "poses.csv").read_text().splitlines()
     assert len(lines) == 1 + report["n_localized"] and lines[0].startswith("image,x_mm")
     assert (out / "localization_errors.png").stat().st_size > 10_000
+    # the threaded preset (refresh on a second thread) keeps the same bounds
+    assert main(["localize", str(map_dir), str(approach), "--out", str(tmp_path / "t"), "--no-progress",
+                 "--preset", "threaded"]) == 0
+    threaded = json.loads((tmp_path / "t" / "report.json").read_text())
+    assert threaded["n_localized"] >= 5 and threaded["median_position_error_mm"] < 0.3
 
 
 def test_an_unlocalizable_frame_is_refused_not_guessed(dome_map):
