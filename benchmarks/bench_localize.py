@@ -11,6 +11,10 @@ real photographs (Middlebury temple ring, leave one out).
    all): scope3d's ``estimate_absolute_pose``, pycolmap's ``estimate_and_refine_absolute_pose``, and
    OpenCV's ``solvePnPRansac`` + ``solvePnPRefineLM``: time and error.
 4. The approach path over the map, planned from the first localized pose and re-planned every 10 frames.
+6. Refresh modes (``PARTS=refresh_modes``): the synchronous SIFT refresh (default) against the lagged
+   refresh on a worker thread (``LAGGED``), all five approaches, images alone and with the reports: errors,
+   frames/s wall, CPU per frame (all threads, and the stream's own thread), and the frames/s expected on
+   an idle 2-core machine from those CPU times (an estimate: the shared machine's wall clock is not).
 5. Middlebury templeSparseRing: for each left-out view (every ``LOO_STEP``-th), the map from the other
    views (preset ``photograph``), the left-out view localized from its image alone; error against its
    calibrated pose, and pycolmap's estimate on the same correspondences.
@@ -44,7 +48,7 @@ from scope3d.pipelines.localize import load_blocked_mask
 from scope3d.pipelines.surgical_map import MAP_PRESETS, MapOptions
 from scope3d.pipelines.surgical_map import run as run_map
 from scope3d.sfm.approach import ApproachOptions, plan_approach, save_approach_png
-from scope3d.sfm.localization import Localizer, LocalizerOptions
+from scope3d.sfm.localization import LOCALIZER_PRESETS, Localizer, LocalizerOptions
 from scope3d.utils.figures import new_figure, save_figure
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -54,6 +58,10 @@ TARGETS = (1, 2, 3, 4, 5)
 POSE_NOISE_MM = 1.0
 REFRESH_SWEEP = (1, 3, 5, 10, 20)
 LOO_STEP = int(os.environ.get("LOO_STEP", "4"))
+# the lagged refresh: every 5 frames (tracks thin out by ~15 % a frame on an approach, and a refresh every
+# 10 let them fall under min_tracked, forcing synchronous SIFT frames), merged 2 frames later, SIFT at half
+# size (a quarter of the cost, on the second core)
+LAGGED = LOCALIZER_PRESETS["threaded"]
 
 
 def prepare(work: Path) -> tuple[Path, list[Path]]:
@@ -78,7 +86,9 @@ def localize_sequence(points, ds, blocked, options: LocalizerOptions, use_report
     loc.localize(frames[0], None, blocked=blocked)  # warm-up (first calls of OpenCV and NumPy paths)
     loc.reset()
     rows = []
-    wall0, cpu0 = time.perf_counter(), time.process_time()
+    # process CPU counts every thread (the refresh thread's SIFT, OpenCV's workers); the stream's own
+    # thread is the critical path when the refresh runs beside it
+    wall0, cpu0, main0 = time.perf_counter(), time.process_time(), time.thread_time()
     for k, img in enumerate(frames):
         r = loc.localize(img, ds.poses[k] if use_reported else None, blocked=blocked)
         row = {"status": r.status, "mode": r.mode, "inliers": r.n_inliers, "time_ms": 1000 * r.time_s,
@@ -88,8 +98,9 @@ def localize_sequence(points, ds, blocked, options: LocalizerOptions, use_report
             row.update(position_error_mm=d_mm, orientation_error_deg=float(np.rad2deg(d_rad)),
                        centre_mm=r.pose.centre.tolist())
         rows.append(row)
-    wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
-    return {"frames": rows, "wall_s": wall, "cpu_s": cpu, "frames_per_s_wall": len(rows) / wall,
+    wall, cpu, main = time.perf_counter() - wall0, time.process_time() - cpu0, time.thread_time() - main0
+    loc.close()
+    return {"frames": rows, "wall_s": wall, "cpu_s": cpu, "main_thread_cpu_s": main, "frames_per_s_wall": len(rows) / wall,
             "frames_per_s_cpu": len(rows) / cpu, "n_localized": sum(r["status"] == "ok" for r in rows)}
 
 
@@ -100,7 +111,13 @@ def _medians(runs: list[dict]) -> dict:
     return {"n_frames": n, "n_localized": len(pos), "median_position_error_mm": float(np.median(pos)),
             "median_orientation_error_deg": float(np.median(ori)), "p90_position_error_mm": float(np.percentile(pos, 90)),
             "p90_orientation_error_deg": float(np.percentile(ori, 90)),
-            "frames_per_s_wall": n / sum(r["wall_s"] for r in runs), "frames_per_s_cpu": n / sum(r["cpu_s"] for r in runs)}
+            "frames_per_s_wall": n / sum(r["wall_s"] for r in runs), "frames_per_s_cpu": n / sum(r["cpu_s"] for r in runs),
+            "cpu_ms_per_frame": 1000 * sum(r["cpu_s"] for r in runs) / n,
+            "main_thread_cpu_ms_per_frame": 1000 * sum(r["main_thread_cpu_s"] for r in runs) / n,
+            # estimate for an idle 2-core machine: the work spread over both cores, but never faster than
+            # the stream's own thread
+            "frames_per_s_quiet_2_cores_estimate": n / max(sum(r["cpu_s"] for r in runs) / 2,
+                                                           sum(r["main_thread_cpu_s"] for r in runs))}
 
 
 def correspondences(points, ds, k, blocked, features_options) -> tuple[np.ndarray, np.ndarray]:
@@ -214,6 +231,25 @@ def dome(work: Path) -> dict:
     return result
 
 
+def refresh_modes(work: Path) -> dict:
+    map_dir, approaches = prepare(work)
+    points = read_map_points(map_dir)
+    datasets = [load_dataset(a) for a in approaches]
+    blocked = load_blocked_mask(approaches[0] / "tool_mask.png", datasets[0].camera.width, datasets[0].camera.height)
+    out = {"load_average_at_start": os.getloadavg(),
+           "lagged_options": {"refresh_every": LAGGED.refresh_every, "refresh_lag_frames": LAGGED.refresh_lag_frames,
+                              "refresh_image_scale": LAGGED.refresh_image_scale}}
+    for name, options in (("synchronous", LocalizerOptions()), ("lagged_thread", LAGGED)):
+        for use_reported in (True, False):
+            runs = [localize_sequence(points, ds, blocked, options, use_reported) for ds in datasets]
+            key = f"{name}_{'reported' if use_reported else 'image_only'}"
+            out[key] = _medians(runs) | {"modes": {m: sum(f["mode"] == m for r in runs for f in r["frames"])
+                                                   for m in ("tracking", "guided", "global")}}
+            print(key, out[key], flush=True)
+    out["load_average_at_end"] = os.getloadavg()
+    return out
+
+
 def _peer_summary(cases: list[dict]) -> dict:
     out = {}
     for name in ("scope3d", "pycolmap", "opencv"):
@@ -299,13 +335,21 @@ def main() -> None:
     result = {"machine": {"cpus": os.cpu_count(), "load_average_at_start": load},
               "note": "frames/s: wall time on the shared machine and CPU time (process_time, one core); frames are "
                       "decoded before timing"}
-    parts = os.environ.get("PARTS", "dome,middlebury").split(",")
+    parts = os.environ.get("PARTS", "dome,middlebury,refresh_modes").split(",")
+    if parts == ["refresh_modes"]:  # re-run the refresh modes only, keep every other committed result
+        result = json.loads((OUT / "localize.json").read_text())
+        result["refresh_modes"] = refresh_modes(work)
+        (OUT / "localize.json").write_text(json.dumps(result, indent=1, default=float))
+        print(json.dumps(result["refresh_modes"], indent=1, default=float))
+        return
     if "dome" in parts:
         result["dome"] = dome(work)
     else:  # keep the committed dome results, re-run the rest
         result["dome"] = json.loads((OUT / "localize.json").read_text())["dome"]
     with tempfile.TemporaryDirectory() as tmp:
         result["middlebury"] = middlebury(Path(tmp))
+    if "refresh_modes" in parts:
+        result["refresh_modes"] = refresh_modes(work)
     result["machine"]["load_average_at_end"] = os.getloadavg()
     (OUT / "localize.json").write_text(json.dumps(result, indent=1, default=float))
     print(json.dumps({"dome": result["dome"]["summary"], "peers": result["dome"]["peers"]["summary"],

@@ -27,6 +27,10 @@ def register(subparsers) -> None:
                    help="localize from the images alone, whatever the reported poses' tolerance")
     p.add_argument("--no-tracking", action="store_true",
                    help="match every frame by SIFT (no optical-flow tracking between frames)")
+    p.add_argument("--preset", choices=("default", "threaded"), default="default",
+                   help="threaded: the SIFT refresh of the tracked points runs on a second thread at half size "
+                   "and is merged 2 frames later, so the stream only tracks (same outputs on every run; see "
+                   "docs/localization.md)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_job_arguments(p)
     p.set_defaults(func=_run)
@@ -38,11 +42,11 @@ def _run(args) -> int:
     from scope3d.cli.progress import progress_bar
     from scope3d.io.dataset import load_dataset
     from scope3d.pipelines.localize import LocalizeOptions, run
+    from scope3d.sfm.localization import LOCALIZER_PRESETS
 
     dataset = load_dataset(args.dataset)
-    base = LocalizeOptions()
-    options = replace(base, use_reported_poses=not args.ignore_reported_poses,
-                      localizer=replace(base.localizer, tracking=not args.no_tracking))
+    options = replace(LocalizeOptions(), use_reported_poses=not args.ignore_reported_poses,
+                      localizer=replace(LOCALIZER_PRESETS[args.preset], tracking=not args.no_tracking))
     with progress_bar(show_progress(args), "frame") as progress:
         result = run(options, args.map_dir, dataset, args.out, mask=args.mask, progress=progress)
     return finish_job(args, args.out, result.report,

@@ -210,7 +210,8 @@ def run(options: LocalizeOptions, map_dir: str | Path, dataset: Dataset, out_dir
         localizer = Localizer(points, dataset.camera, options.localizer)
     except ValueError as exc:
         raise InputError(f"{map_dir}: {exc}") from None
-    results, busy = localize_frames(options, localizer, dataset, blocked, progress=progress)
+    with localizer:  # stops the refresh thread, if the options started one
+        results, busy = localize_frames(options, localizer, dataset, blocked, progress=progress)
     rows = evaluate_frames(dataset, results)
     with atomic_directory(Path(out_dir)) as tmp:
         report = write_outputs(options, dataset, tmp, results, rows, busy, Path(map_dir), len(points), blocked)

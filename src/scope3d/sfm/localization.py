@@ -33,6 +33,7 @@ every frame, sec. 5.2). No feature is detected or followed there, nor within ``b
 from __future__ import annotations
 
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import cv2
@@ -76,6 +77,18 @@ class LocalizerOptions:
         (default 0.5 px, the keypoints' own error).
     blocked_margin_px : float, pixels next to the tool that are treated as blocked (default 8 px, half a
         descriptor window at the finest scale, as FeatureOptions.mask_margin_px).
+    refresh_lag_frames : int, 0 (default): the frame due for a refresh is localized by SIFT itself, and the
+        stream waits for it (a SIFT frame costs ~10 tracking frames). L >= 1: the frame due is tracked like
+        the others, its SIFT association (guided by its tracked pose) is computed alongside, and L frames
+        later the tracked points are replaced by the refreshed ones, followed by optical flow from the
+        refresh frame straight into that frame. The merge happens at that frame whatever the timing (the
+        stream waits for a late refresh), so the outputs do not depend on the machine's load.
+    refresh_in_thread : bool, with ``refresh_lag_frames >= 1``, compute the refresh on a worker thread
+        (default True: OpenCV's SIFT releases the GIL, so it runs on the second core while the first keeps
+        tracking). False computes it inline when submitted; the results are identical either way.
+    refresh_image_scale : float in (0, 1], the lagged refresh's SIFT runs on the frame resized by this
+        factor (default 1; 0.5 costs about a quarter: SIFT's cost grows with the pixels). Its keypoints,
+        scaled back, only re-anchor the optical flow; their precision shrinks with the factor.
     pose : :class:`~scope3d.estimators.absolute_pose.AbsolutePoseOptions`.
     """
 
@@ -91,6 +104,9 @@ class LocalizerOptions:
     flow_levels: int = 3
     max_flow_error_px: float = 0.5
     blocked_margin_px: float = 8.0
+    refresh_lag_frames: int = 0
+    refresh_in_thread: bool = True
+    refresh_image_scale: float = 1.0
     pose: AbsolutePoseOptions = field(default_factory=AbsolutePoseOptions)
 
     def __post_init__(self) -> None:
@@ -104,6 +120,18 @@ class LocalizerOptions:
             raise ValueError("need flow_window_px >= 5, flow_levels >= 0 and max_flow_error_px > 0")
         if self.blocked_margin_px < 0:
             raise ValueError("blocked_margin_px must be >= 0")
+        if self.refresh_lag_frames < 0:
+            raise ValueError(f"refresh_lag_frames must be >= 0, got {self.refresh_lag_frames}")
+        if not 0 < self.refresh_image_scale <= 1:
+            raise ValueError(f"refresh_image_scale must be in (0, 1], got {self.refresh_image_scale}")
+
+
+#: Named settings. ``threaded``: the SIFT refresh every 5 frames on a worker thread, at half size, merged 2
+#: frames later (docs/localization.md: the stream's thread then only tracks; same accuracy within noise).
+LOCALIZER_PRESETS: dict[str, LocalizerOptions] = {
+    "default": LocalizerOptions(),
+    "threaded": LocalizerOptions(refresh_every=5, refresh_lag_frames=2, refresh_image_scale=0.5),
+}
 
 
 @dataclass
@@ -141,10 +169,24 @@ class _Track:
     pixels: np.ndarray
 
 
+@dataclass
+class _PendingRefresh:
+    """A refresh submitted at one frame (``grey``), merged ``refresh_lag_frames`` tracking frames later.
+    ``outcome`` is a Future when it runs on the worker thread, else its value: the refreshed ``(point ids,
+    pixels in grey)`` or None when the refresh frame could not be matched."""
+
+    grey: np.ndarray
+    outcome: object
+    age: int = 0
+
+
 class Localizer:
     """Streaming localization against one map (see the module docstring).
 
     map_points : the map. camera : the live frames' intrinsics (those of the map's dataset).
+
+    With ``options.refresh_lag_frames >= 1`` and ``options.refresh_in_thread`` the localizer owns one worker
+    thread: call :meth:`close` (or use it as a context manager) when done.
     """
 
     def __init__(self, map_points: MapPoints, camera: Camera, options: LocalizerOptions = LocalizerOptions()):
@@ -157,6 +199,7 @@ class Localizer:
         self._matcher = cv2.BFMatcher(cv2.NORM_L2)
         self._detect_mask = detection_mask(camera, options.features.mask_margin_px) > 0
         self._usable_cache: tuple[np.ndarray, np.ndarray] | None = None
+        self._executor: ThreadPoolExecutor | None = None
         self.reset()
 
     def reset(self) -> None:
@@ -164,6 +207,19 @@ class Localizer:
         self._poses: list[Pose] = []  # the last two poses, for the constant-velocity prediction
         self._track: _Track | None = None
         self._since_refresh = 0
+        self._pending: _PendingRefresh | None = None  # a refresh still running is simply never merged
+
+    def close(self) -> None:
+        """Stop the refresh thread (if one was started). The localizer stays usable: it starts another."""
+        if self._executor is not None:
+            self._executor.shutdown(wait=True)
+            self._executor = None
+
+    def __enter__(self) -> "Localizer":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
     # --- one frame ------------------------------------------------------------------------------
     def localize(self, image: np.ndarray, reported: MeasuredPose | None = None, *,
@@ -187,9 +243,13 @@ class Localizer:
         o = self.options
         result, mode = None, "global"
         predicted = self._predict()
-        if o.tracking and self._track is not None and predicted is not None and self._since_refresh < o.refresh_every:
+        lagged = o.refresh_lag_frames > 0
+        if o.tracking and self._track is not None and predicted is not None and (
+                lagged or self._since_refresh < o.refresh_every):
             mode = "tracking"
-            ids, px = self._follow(grey, predicted, usable)
+            ids, px = self._merge_refresh(grey, predicted, usable)
+            if ids is None:
+                ids, px = self._follow(self._track, grey, predicted, usable)
             if len(ids) >= o.min_tracked:
                 result, used_ids, used_px = self._pose(ids, px, reported)
                 self._since_refresh += 1
@@ -197,10 +257,7 @@ class Localizer:
             guide = predicted if predicted is not None else (reported.pose if reported is not None else None)
             tolerance = PoseTolerance.exact() if predicted is not None else (
                 reported.tolerance if reported is not None else None)
-            features = detect(grey, self.camera, o.features)
-            keep = usable[np.clip(np.rint(features.keypoints[:, 1]).astype(int), 0, grey.shape[0] - 1),
-                          np.clip(np.rint(features.keypoints[:, 0]).astype(int), 0, grey.shape[1] - 1)]
-            kp, desc = features.keypoints[keep], features.descriptors[keep]
+            kp, desc = self._features(grey, usable)
             result = None
             if guide is not None:
                 radius = self._guided_radius(guide, tolerance)
@@ -214,12 +271,12 @@ class Localizer:
                 ids, fidx = self._match_global(desc)
                 result, used_ids, used_px = self._pose(ids, kp[fidx], reported)
             self._since_refresh = 0
+            self._pending = None  # this frame is fresher than any refresh still to come
         if result.ok:
             self._poses = (self._poses + [result.pose])[-2:]
-            keep = np.flatnonzero(result.inliers)
-            if len(keep) > o.max_tracked:
-                keep = keep[np.linspace(0, len(keep) - 1, o.max_tracked).round().astype(int)]
-            self._track = _Track(grey, used_ids[keep], used_px[keep])
+            self._track = _Track(grey, *self._kept(result, used_ids, used_px))
+            if lagged and mode == "tracking" and self._since_refresh >= o.refresh_every and self._pending is None:
+                self._submit_refresh(grey, result.pose, reported, usable)
         else:
             self.reset()
         return LocalizationResult(result.status, mode, result.pose, len(result.inliers), result.n_inliers,
@@ -268,9 +325,65 @@ class Localizer:
         prior = DepthPrior(float(np.percentile(depth, 1)), float(depth.max()))
         return self.options.guided_base_radius_px + pose_error_px(self.camera, tolerance, prior)
 
-    def _follow(self, grey: np.ndarray, predicted: Pose, usable: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Last frame's inliers followed into ``grey`` by optical flow from their predicted positions."""
-        o, tr = self.options, self._track
+    def _features(self, grey: np.ndarray, usable: np.ndarray, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+        """SIFT keypoints (K, 2) and descriptors (K, 128) of the frame (resized by ``scale`` for detection),
+        those on usable pixels only."""
+        if scale == 1.0:
+            features = detect(grey, self.camera, self.options.features)
+            keypoints = features.keypoints
+        else:
+            small = cv2.resize(grey, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+            features = detect(small, None, self.options.features)  # the usable mask below drops the rim
+            # pixel centres: full-resolution u = (u_small + 0.5) / scale - 0.5
+            keypoints = (features.keypoints + 0.5) / scale - 0.5
+        keep = usable[np.clip(np.rint(keypoints[:, 1]).astype(int), 0, grey.shape[0] - 1),
+                      np.clip(np.rint(keypoints[:, 0]).astype(int), 0, grey.shape[1] - 1)]
+        return keypoints[keep], features.descriptors[keep]
+
+    def _kept(self, result: AbsolutePoseResult, ids: np.ndarray, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The inliers to follow into the next frame: at most ``max_tracked``, evenly through the list."""
+        keep = np.flatnonzero(result.inliers)
+        if len(keep) > self.options.max_tracked:
+            keep = keep[np.linspace(0, len(keep) - 1, self.options.max_tracked).round().astype(int)]
+        return ids[keep], pixels[keep]
+
+    def _refresh(self, grey: np.ndarray, guide: Pose, reported: MeasuredPose | None, usable: np.ndarray):
+        """A refresh frame's fresh association: SIFT matched to the map points near where its tracked pose
+        ``guide`` projects them, checked by a pose. Returns (point ids, pixels) to follow, or None. Reads
+        nothing that changes, so it runs on the worker thread as well as inline."""
+        kp, desc = self._features(grey, usable, self.options.refresh_image_scale)
+        ids, fidx = self._match_guided(guide, kp, desc, self.options.guided_base_radius_px)
+        result, ids, px = self._pose(ids, kp[fidx], reported)
+        return self._kept(result, ids, px) if result.ok else None
+
+    def _submit_refresh(self, grey: np.ndarray, guide: Pose, reported: MeasuredPose | None, usable: np.ndarray) -> None:
+        self._since_refresh = 0  # the refresh frame starts the count to the next one
+        if not self.options.refresh_in_thread:
+            self._pending = _PendingRefresh(grey, self._refresh(grey, guide, reported, usable))
+            return
+        if self._executor is None:
+            self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="scope3d-refresh")
+        self._pending = _PendingRefresh(grey, self._executor.submit(self._refresh, grey, guide, reported, usable))
+
+    def _merge_refresh(self, grey: np.ndarray, predicted: Pose, usable: np.ndarray):
+        """When a pending refresh is due (``refresh_lag_frames`` frames old), its points followed from the
+        refresh frame into ``grey``; (None, None) when none is due, or too few of its points survive."""
+        pending = self._pending
+        if pending is None:
+            return None, None
+        pending.age += 1
+        if pending.age < self.options.refresh_lag_frames:
+            return None, None
+        self._pending = None
+        outcome = pending.outcome.result() if isinstance(pending.outcome, Future) else pending.outcome
+        if outcome is None:
+            return None, None
+        ids, px = self._follow(_Track(pending.grey, *outcome), grey, predicted, usable)
+        return (ids, px) if len(ids) >= self.options.min_tracked else (None, None)
+
+    def _follow(self, tr: _Track, grey: np.ndarray, predicted: Pose, usable: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The points of ``tr`` followed into ``grey`` by optical flow from their predicted positions."""
+        o = self.options
         start = self.camera.project(predicted.transform(self.map.xyz_mm[tr.point_ids]))
         prev = tr.pixels.astype(np.float32).reshape(-1, 1, 2)
         guess = np.where(np.isfinite(start), start, tr.pixels).astype(np.float32).reshape(-1, 1, 2)
@@ -295,14 +408,13 @@ class Localizer:
         ids, px, _ = self._visible(guide)
         if len(ids) == 0 or len(kp) == 0:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
-        lists = cKDTree(kp).query_ball_point(px, radius)
-        counts = np.array([len(c) for c in lists])
-        if counts.sum() == 0:
+        # every (map point, feature) pair within the radius, found in C (a Python list per point cost ~20 ms)
+        pairs = cKDTree(px).sparse_distance_matrix(cKDTree(kp), radius, output_type="ndarray")
+        if len(pairs) == 0:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
-        row = np.repeat(np.arange(len(ids)), counts)
-        feat = np.concatenate([np.asarray(c, np.int64) for c in lists if c])
+        row, feat = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64)
         d2 = np.sum((desc[feat] - self.map.descriptors[ids[row]]) ** 2, axis=1)
-        order = np.lexsort((d2, row))
+        order = np.lexsort((feat, d2, row))  # ties broken the same way whatever the pairs' order
         row, feat, d2 = row[order], feat[order], d2[order]
         first = np.flatnonzero(np.r_[True, row[1:] != row[:-1]])
         second = np.full(len(first), np.inf)
