@@ -12,7 +12,8 @@ with its pitch diameter 0.09 mm above D2 max (must fail, no-go); an M8 mid-class
 Writes benchmarks/results/thread_gauge.json (after every hole) and thread_gauge.png. Run:
     PYTHONPATH=src .venv/bin/python benchmarks/bench_thread_gauge.py [--data DIR] [--holes m8_mid,m8_fail,...]
 ``--data DIR`` keeps the rendered holes there (rendered when missing) so that a rerun measures again
-without rendering (each hole takes ~3 min of CPU to render).
+without rendering (each hole takes ~3 min of CPU to render); a run of some holes keeps the other holes'
+rows in thread_gauge.json.
 """
 from __future__ import annotations
 
@@ -26,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from scope3d.errors import InputError
 from scope3d.io.dataset import load_dataset
 from scope3d.phantoms import generate, write
 from scope3d.pipelines.thread_scan import ThreadScanOptions, run
@@ -70,7 +72,12 @@ def measure(data: Path, name: str, scratch: Path) -> dict:
     options = replace(options, mapping=replace(options.mapping, max_frame_gap=FRAME_GAP))
     row = {"thread": thread, "expected": expected, "step_mm": step, "load_before": load()}
     t0, c0 = time.perf_counter(), time.process_time()
-    result = run(options, ds, scratch / name)
+    try:
+        result = run(options, ds, scratch / name)
+    except InputError as exc:  # a scan the pipeline rejects (e.g. quadrants without overlap) is a result too
+        row.update(verdict="error", message=str(exc), wall_s=time.perf_counter() - t0,
+                   cpu_s=time.process_time() - c0, load_after=load())
+        return row
     row.update(wall_s=time.perf_counter() - t0, cpu_s=time.process_time() - c0, stages_wall_s=result.timings_s,
                load_after=load(), points=len(result.points))
     g = result.gauge
@@ -130,6 +137,8 @@ def main() -> None:
     data.mkdir(parents=True, exist_ok=True)
     results = {"setup": {"frames_per_quadrant": FRAMES_PER_QUADRANT, "frame_gap": FRAME_GAP, "size": [400, 320],
                          "side_view_deg": 90.0, "mount": MOUNT}, "holes": {}}
+    if (OUT / "thread_gauge.json").is_file():  # a run of some holes keeps the other holes' rows
+        results["holes"] = json.loads((OUT / "thread_gauge.json").read_text()).get("holes", {})
     for name in args.holes.split(","):
         results["holes"][name] = measure(data, name, scratch)
         (OUT / "thread_gauge.json").write_text(json.dumps(results, indent=2, default=float))
