@@ -9,6 +9,8 @@
    (0.01 mm noise), against the as-made sizes.
 3. Whole-hole time of ``thread-scan`` (wall and CPU), and batch throughput on 1 and 2 Dask workers.
 
+The gauge from images (pass/fail on rendered 90°-view holes) is benchmarks/bench_thread_gauge.py.
+
 Writes benchmarks/results/thread.json and thread_registration.png. Run:
     .venv/bin/python benchmarks/bench_thread.py
 """

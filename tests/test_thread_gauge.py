@@ -74,3 +74,37 @@ def test_bad_input():
         t, z = rng.uniform(0, 2 * np.pi, 5000), rng.uniform(-10, 0, 5000)
         gauge_thread(np.stack([4 * np.cos(t), 4 * np.sin(t), z], 1))  # a plain bore
     assert thread_limits("M8x1.25").d2_max_mm == pytest.approx(7.348)
+
+
+def test_flank_angle_held_at_60_when_one_flank_is_seen():
+    # A 45° side view sees the flanks facing the opening and hardly those facing the bottom: drop the
+    # surface whose normal points down, and add twice the noise (a reconstruction's, not a scanner's).
+    size, noise = "M8x1.25", 2 * NOISE_MM
+    scene = build_thread(size, minor_diameter_offset_mm=0.132, pitch_diameter_offset_mm=0.08,
+                         major_diameter_offset_mm=0.05)
+    mesh = scene.mesh.to_trimesh()
+    points, faces = trimesh.sample.sample_surface(mesh, 80000, seed=1)
+    seen = (points[:, 2] < -0.05) & (mesh.face_normals[faces][:, 2] > -0.3)
+    points = points[seen] + np.random.default_rng(1).normal(0.0, noise, (int(seen.sum()), 3))
+    truth = scene.info["thread"]["as_made"]
+    result = gauge_thread(points, GaugeOptions(max_points=10000, noise_mm=noise))
+    assert result.profile["flank_angle_held"], result.summary()
+    assert result.verdict == "pass", result.summary()
+    for name in ("minor_diameter_mm", "pitch_diameter_mm", "major_diameter_mm"):  # the 0.02 mm
+        assert abs(getattr(result, name).value - truth[name]) < 0.02, (name, result.summary())
+    # the free fit still measures the angle (the true 60° within 3 of its sigmas + 0.2° of tessellation)
+    assert abs(result.flank_angle_deg.value - 60.0) < 3 * result.flank_angle_deg.uncertainty + 0.2
+
+
+def test_flank_angle_off_the_standard_is_measured_and_used():
+    # Stretching the hole 2 % along its axis makes the pitch 1.275 mm and the flanks
+    # 2 atan(1.02 tan 30°) = 60.98°, and leaves the diameters: the free fit must resolve the angle and give
+    # the sizes (a profile held at 60° would bias them).
+    points, truth = _cloud("M8x1.25", MID_CLASS["M8x1.25"])
+    points[:, 2] *= 1.02
+    result = gauge_thread(points, GaugeOptions(max_points=10000))
+    assert not result.profile["flank_angle_held"]
+    expected = np.rad2deg(2 * np.arctan(1.02 * np.tan(np.deg2rad(30.0))))
+    assert abs(result.flank_angle_deg.value - expected) < 0.3  # ~0.2° of tessellation bias, as at 60°
+    assert abs(result.pitch_mm.value - 1.275) < 0.005
+    assert abs(result.pitch_diameter_mm.value - truth["pitch_diameter_mm"]) < 0.02

@@ -26,7 +26,7 @@ def test_cli_thread_options_reach_the_ground_truth(tmp_path):
     out = tmp_path / "hole"
     code = main(["phantom", "thread", "--trajectory", "quadrants", "--frames", "24", "--size", "40x32",
                  "--defect", "200:20:0.1", "--pitch-diameter-offset", "0.08", "--minor-diameter-offset", "0.1",
-                 "--mount", "0.1:0.1:0.5", "--out", str(out), "--no-progress"])
+                 "--mount", "0.1:0.1:0.5", "--quadrant-step", "0.4", "--out", str(out), "--no-progress"])
     assert code == 0
     layout = json.loads((out / "quadrants.json").read_text())
     assert [q["angle_deg"] for q in layout["quadrants"]] == [30.0 * q for q in range(12)]
@@ -36,4 +36,9 @@ def test_cli_thread_options_reach_the_ground_truth(tmp_path):
     assert abs(made["pitch_diameter_mm"] - (8 - 0.649519 * 1.25 + 0.08)) < 1e-6
     assert abs(made["minor_diameter_mm"] - (scene["thread"]["minor_diameter_mm"] + 0.1)) < 1e-9
     assert scene["thread"]["defects"][0]["angle_deg"] == 200.0
+    assert scene["trajectory"]["step_mm"] == 0.4
+    z = np.loadtxt(out / "ground_truth" / "poses.csv", delimiter=",", skiprows=1, usecols=3)
+    np.testing.assert_allclose(z[1::2] - z[0::2], -0.4, atol=1e-9)  # two frames per quadrant, 0.4 mm apart
+    for bad in (["--trajectory", "quadrants", "--quadrant-step", "-1"], ["--trajectory", "axial", "--quadrant-step", "1"]):
+        assert main(["phantom", "thread", *bad, "--size", "40x32", "--out", str(tmp_path / "y")]) == 2
     assert main(["phantom", "thread", "--defect", "oops", "--out", str(tmp_path / "x")]) == 2

@@ -49,6 +49,9 @@ def test_thread_scan_names_the_missing_layout(hole, tmp_path, capsys):
     assert main(["thread-scan", str(bad), "--out", str(tmp_path / "o"), "--no-progress"]) == 2
     assert "quadrants.json" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+    assert main(["thread-scan", str(hole), "--frame-gap", "0", "--out", str(tmp_path / "o"), "--no-progress"]) == 2
+    assert "--frame-gap" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
 
 
 def test_batch_survives_a_killed_worker_and_resumes(hole, tmp_path):

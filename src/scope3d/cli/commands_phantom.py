@@ -75,6 +75,8 @@ def register(subparsers) -> None:
     p.add_argument("--mount", metavar="DX_MM:DY_MM:TILT_DEG",
                    help="quadrants: the camera's unknown offset from the rotation axis (mm) and tilt about its "
                         "image rows (degrees); default 0.08:-0.05:0")
+    p.add_argument("--quadrant-step", type=float, metavar="MM",
+                   help="quadrants: the scope's advance per frame, mm (default 0.1)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (as --quiet)")
     p.add_argument("--target", type=int, metavar="N",
                    help="approach trajectory: the target to approach (dome: 1-8); a tool hides part of the view, "
@@ -156,7 +158,7 @@ def run(args) -> int:
             axis_offset_mm=args.axis_offset, axis_tilt_deg=args.axis_tilt,
             dome_radius_mm=args.dome_radius, options=RenderOptions(blur_sigma_px=args.blur, supersample=args.supersample),
             progress=progress, target=args.target, thread_offsets_mm=offsets, thread_defect=defect,
-            quadrant_mount=mount, bladder=bladder or None, plan=plan, video_fps=args.video,
+            quadrant_mount=mount, quadrant_step_mm=args.quadrant_step, bladder=bladder or None, plan=plan, video_fps=args.video,
             seconds_per_view=args.seconds_per_view,
         )
     report = {"job": "phantom", "scene": args.scene, "trajectory": seq.trajectory.name, "seed": args.seed,

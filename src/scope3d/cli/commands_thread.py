@@ -21,6 +21,9 @@ def register(subparsers) -> None:
     p.add_argument("--thread", default="M8x1.25", metavar="SIZE",
                    choices=LazyChoices("scope3d.metrology.thread_gauge", "THREAD_SIZES"),
                    help="nominal thread: %(choices)s (default M8x1.25)")
+    p.add_argument("--frame-gap", type=int, metavar="N",
+                   help="match frames up to N steps apart within a quadrant (default 7; 3 for a 90° "
+                        "view advancing 0.5 mm per frame, whose frames farther apart share little wall)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_job_arguments(p)
     p.set_defaults(func=_run_scan)
@@ -39,6 +42,9 @@ def register(subparsers) -> None:
     t.add_argument("--thread", default="M8x1.25", metavar="SIZE",
                    choices=LazyChoices("scope3d.metrology.thread_gauge", "THREAD_SIZES"),
                    help="nominal thread: %(choices)s (default M8x1.25)")
+    t.add_argument("--frame-gap", type=int, metavar="N",
+                   help="match frames up to N steps apart within a quadrant (default 7; 3 for a 90° "
+                        "view advancing 0.5 mm per frame, whose frames farther apart share little wall)")
     t.add_argument("--scheduler", metavar="ADDRESS",
                    help="Dask scheduler address (e.g. tcp://host:8786); default: a local cluster")
     t.add_argument("--workers", type=int, default=2, metavar="N",
@@ -58,11 +64,11 @@ def _batch_help(args) -> int:
 def _run_scan(args) -> int:
     from scope3d.cli.progress import progress_bar
     from scope3d.io.dataset import load_dataset
-    from scope3d.pipelines.thread_scan import ThreadScanOptions, run
+    from scope3d.pipelines.thread_scan import run
 
     dataset = load_dataset(args.dataset)
     with progress_bar(show_progress(args), "quadrant") as progress:
-        result = run(ThreadScanOptions(designation=args.thread), dataset, args.out, progress=progress)
+        result = run(_options(args), dataset, args.out, progress=progress)
     return finish_job(args, args.out, result.report(), [
         result.summary(), f"wrote {args.out}/ (cloud.ply, quadrants/, report.json, registration.png, unwrapped.png)"])
 
@@ -70,12 +76,11 @@ def _run_scan(args) -> int:
 def _run_batch(args) -> int:
     from scope3d.cli.progress import progress_bar
     from scope3d.pipelines.thread_batch import run_batch
-    from scope3d.pipelines.thread_scan import ThreadScanOptions
     from scope3d.report import write_report
     from scope3d.utils.jsonio import write_json
 
     with progress_bar(show_progress(args), "hole") as progress:
-        result = run_batch(args.datasets, args.out, ThreadScanOptions(designation=args.thread),
+        result = run_batch(args.datasets, args.out, _options(args),
                            scheduler=args.scheduler, n_workers=args.workers, progress=progress)
     for row in result.rows:  # each measured hole's own page (its folder holds its report.json)
         if row["status"] != "error":
@@ -84,3 +89,17 @@ def _run_batch(args) -> int:
     write_json(args.out / "report.json", report)
     finish_job(args, args.out, report, [result.summary(), f"wrote {args.out}/summary.csv, report.json"])
     return 0 if report["n_errors"] == 0 else 1
+
+
+def _options(args):
+    from dataclasses import replace
+
+    from scope3d.errors import InputError
+    from scope3d.pipelines.thread_scan import ThreadScanOptions
+
+    options = ThreadScanOptions(designation=args.thread)
+    if args.frame_gap is not None:
+        if args.frame_gap < 1:
+            raise InputError(f"--frame-gap must be at least 1, got {args.frame_gap}")
+        options = replace(options, mapping=replace(options.mapping, max_frame_gap=args.frame_gap))
+    return options

@@ -8,9 +8,11 @@ the basic thread depth (the counterbore, the plain bore and the drill point do n
 each end (the run-outs). (3) The pitch and the phase of the helix: the first harmonic of the radius in
 the helical phase ``2 pi z / P - theta`` is largest at the true pitch (a scan, then refined). (4) One
 joint robust least-squares fit of axis, pitch, phase and a symmetric ISO profile (crest at the minor
-radius, roots at the major radius, straight flanks at a free half-angle, a free pitch radius where the
-tooth is half a pitch wide) to every point's distance from the profile in its axial half-plane.
-Uncertainties come from the fit's Jacobian and residuals (1 sigma, independent point errors assumed).
+radius, roots at the major radius, straight flanks at the standard 60° or a free angle, a free pitch
+radius where the tooth is half a pitch wide) to every point's distance from the profile in its axial
+half-plane; a second fit with the flank angle free measures it (and gives the sizes when it resolves an
+angle other than 60°). Uncertainties come from the fit's Jacobian and residuals (1 sigma, independent
+point errors assumed).
 (5) Defects: on each crest turn, in angular bins, the median distance of the crest points outside the
 fitted profile; bins deeper than a threshold are grouped into defects.
 
@@ -38,6 +40,8 @@ ISO_965_6H = {
     "M10x1.5": (8.376, 8.676, 9.026, 9.206, 10.000),
 }
 THREAD_SIZES = {"M6x1": (6.0, 1.0), "M8x1.25": (8.0, 1.25), "M10x1.5": (10.0, 1.5)}
+# ISO 68-1: every ISO metric (M) thread has a symmetric profile with a 60° included flank angle.
+ISO_METRIC_FLANK_ANGLE_DEG = 60.0
 TOLERANCE_CLASSES = ("6H",)
 
 
@@ -85,6 +89,11 @@ class GaugeOptions:
         virtual pitch diameter (default None: the turns measured).
     axis_hint : (3,) or None, approximate axis direction (default None: the principal axis of the cloud,
         pointed along the cloud's +z).
+    fix_flank_angle : bool, measure the sizes with the flank angle held at the standard's (60° for the ISO
+        metric sizes here; default True). A scope that sees one flank better than the other (a 45° side
+        view) then still places the other by the profile's symmetry. The flank angle is measured by a
+        second fit with it free; when that fit shows it significantly off the standard (beyond 2 sigma),
+        the sizes come from the free fit instead (the fixed profile would bias them).
     seed : int, the subset's seed.
     """
 
@@ -98,6 +107,7 @@ class GaugeOptions:
     min_bin_points: int = 5
     engagement_turns: float | None = None
     axis_hint: tuple | None = None
+    fix_flank_angle: bool = True
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -192,7 +202,9 @@ class GaugeResult:
         for name, m, text in rows:
             lines.append(f"  {name:20s} {m.value:9.4f} {m.uncertainty:8.4f}  {text}")
         f = self.flank_angle_deg
-        lines.append(f"  {'flank angle (deg)':20s} {f.value:9.3f} {f.uncertainty:8.3f}  (60 nominal)")
+        held = " (sizes fitted with 60°: the free fit above does not resolve another)" if self.profile.get(
+            "flank_angle_held") else ""
+        lines.append(f"  {'flank angle (deg)':20s} {f.value:9.3f} {f.uncertainty:8.3f}  60 nominal{held}")
         lines.append(f"  virtual pitch diameter {self.virtual_pitch_diameter_mm:.4f} mm")
         for d in self.defects:
             lines.append(f"  defect: crest turn {d.turn} at {d.angle_deg:.1f}° (width {d.width_deg:.0f}°), "
@@ -369,45 +381,34 @@ def gauge_thread(points: np.ndarray, options: GaugeOptions = GaugeOptions()) -> 
     pitch0, root_phase = _pitch_scan(th, zz, rr, pitch_nom, options.pitch_search)
     crest_phase = root_phase + pitch0 / 2
     r1_0, r2_0 = np.percentile(rr, [3, 97])
-    x0 = np.array([0.0, 0.0, 0.0, 0.0, pitch0, crest_phase, r1_0, r2_0, r1_0 + 0.4 * (r2_0 - r1_0), np.deg2rad(30.0)])
-
-    def residual(x):
-        p, d = _axis_from_params(p0, base, *x[:4])
-        t, rad, zax = _cylindrical(zone_points, p, d)
-        pitch, phase = x[4], x[5]
-        w = np.mod(zax - pitch * t / (2 * np.pi) - phase + pitch / 2, pitch) - pitch / 2
-        return _profile_distance(w, rad, x[6], x[7], x[8], x[9], pitch)
-
+    standard_half = np.deg2rad(ISO_METRIC_FLANK_ANGLE_DEG / 2)
+    x0 = np.array([0.0, 0.0, 0.0, 0.0, pitch0, crest_phase, r1_0, r2_0, r1_0 + 0.4 * (r2_0 - r1_0), standard_half])
     # (4) joint fit
-    scale = np.array([1e-3, 1e-3, 1e-2, 1e-2, 1e-3, 1e-2, 1e-2, 1e-2, 1e-2, 1e-2])
     # Bounds keep a noisy cloud's fit a thread: axis tilt within ~0.1 rad and shift within a thread depth,
     # the pitch within the searched range, radii within a thread depth of their start, the pitch radius
     # between them, the half-angle from 15° to 45°.
-    lower = [-0.1, -0.1, -depth_nom, -depth_nom, pitch_nom * (1 - options.pitch_search), -np.inf,
-             r1_0 - depth_nom, r2_0 - depth_nom, r1_0, np.deg2rad(15.0)]
-    upper = [0.1, 0.1, depth_nom, depth_nom, pitch_nom * (1 + options.pitch_search), np.inf,
-             r1_0 + depth_nom, r2_0 + depth_nom, r2_0, np.deg2rad(45.0)]
-    x0 = np.clip(x0, np.array(lower) + 1e-9, np.array(upper) - 1e-9)
-    sol = least_squares(residual, x0, loss="soft_l1", f_scale=options.noise_mm, x_scale=scale,
-                        diff_step=1e-6, bounds=(lower, upper))
-    x = sol.x
-    res = sol.fun
-    core = np.abs(res) < 3 * options.noise_mm + 3 * 1.4826 * np.median(np.abs(res))
-    dof = max(int(core.sum()) - len(x), 1)
-    sigma2 = float(np.sum(res[core] ** 2) / dof)
-    jac = sol.jac[core]
-    try:
-        cov = np.linalg.inv(jac.T @ jac) * sigma2
-    except np.linalg.LinAlgError:
-        cov = np.full((len(x), len(x)), np.nan)
+    lower = np.array([-0.1, -0.1, -depth_nom, -depth_nom, pitch_nom * (1 - options.pitch_search), -np.inf,
+                      r1_0 - depth_nom, r2_0 - depth_nom, r1_0, np.deg2rad(15.0)])
+    upper = np.array([0.1, 0.1, depth_nom, depth_nom, pitch_nom * (1 + options.pitch_search), np.inf,
+                      r1_0 + depth_nom, r2_0 + depth_nom, r2_0, np.deg2rad(45.0)])
+    x0 = np.clip(x0, lower + 1e-9, upper - 1e-9)
+    if options.fix_flank_angle:
+        held = _fit_profile(zone_points, p0, base, x0, lower, upper, False, options.noise_mm)
+        free = _fit_profile(zone_points, p0, base, held.x, lower, upper, True, options.noise_mm)
+        # The standard angle stands unless the free fit resolves a different one (a bound is no resolution).
+        rejected = not free.flank_at_bound and abs(free.x[9] - standard_half) > 2 * free.std[9]
+        fit = free if rejected else held
+    else:
+        fit = free = _fit_profile(zone_points, p0, base, x0, lower, upper, True, options.noise_mm)
+    x, std, res, core = fit.x, fit.std, fit.residuals, fit.core
     pitch, r1, r2, rp, half = x[4], x[6], x[7], x[8], x[9]
-    std = np.sqrt(np.maximum(np.diag(cov), 0.0))
     axis_point, axis_dir = _axis_from_params(p0, base, *x[:4])
 
     # virtual pitch diameter (ISO 965-1 sec. 3 / ISO 1502): the go side sees D2 reduced by the
     # pitch-diameter equivalents of the pitch error over the engagement, fP = 1.732 |dP| n (60° thread),
     # and of the flank angle error, f_alpha = 0.073 P K (|d_alpha1| + |d_alpha2|) um with P in mm, the
-    # half-angle errors in minutes and K = 3 (the larger factor, conservative).
+    # half-angle errors in minutes and K = 3 (the larger factor, conservative). With the flank angle held
+    # at the standard's (the free fit did not resolve another), its equivalent is zero.
     turns = options.engagement_turns or (z1 - z0) / pitch
     f_p = 1.732 * abs(pitch - pitch_nom) * turns
     d_alpha_min = abs(np.rad2deg(half) - 30.0) * 60.0
@@ -442,8 +443,7 @@ def gauge_thread(points: np.ndarray, options: GaugeOptions = GaugeOptions()) -> 
     # parameter stopped at its bound (the cloud did not show that part of the profile).
     td1 = limits.d1_max_mm - limits.d1_min_mm
     td2 = limits.d2_max_mm - limits.d2_min_mm
-    at_bound = bool(np.any(np.isclose(x[6:10], np.array(lower)[6:10], atol=1e-6) |
-                           np.isclose(x[6:10], np.array(upper)[6:10], atol=1e-6)))
+    at_bound = fit.profile_at_bound
     undecided = [name for name, u, tol in (("minor diameter", 4 * std[6], td1), ("pitch diameter", 4 * std[8], td2),
                                            ("major diameter", 4 * std[7], td1)) if not u <= tol / 4]
     if at_bound:
@@ -455,12 +455,64 @@ def gauge_thread(points: np.ndarray, options: GaugeOptions = GaugeOptions()) -> 
     return GaugeResult(
         minor_diameter_mm=Measured(2 * r1, 2 * std[6]), major_diameter_mm=Measured(2 * r2, 2 * std[7]),
         pitch_diameter_mm=Measured(d2, 2 * std[8]), pitch_mm=Measured(pitch, std[4]),
-        flank_angle_deg=Measured(float(np.rad2deg(2 * half)), float(np.rad2deg(2 * std[9]))),
+        flank_angle_deg=Measured(float(np.rad2deg(2 * free.x[9])), float(np.rad2deg(2 * free.std[9]))),
         virtual_pitch_diameter_mm=float(d2_virtual), axis_point_mm=axis_point, axis_direction=axis_dir,
         zone_mm=(float(z0), float(z1)), defects=defects, limits=limits, verdict=verdict, checks=checks,
         residual_rms_mm=float(np.sqrt(np.mean(res[core] ** 2))), n_points=len(zone_points),
-        profile={"crest_half_width_mm": float(hc), "phase_mm": float(x[5])},
+        profile={"crest_half_width_mm": float(hc), "phase_mm": float(x[5]),
+                 "flank_angle_in_size_fit_deg": float(np.rad2deg(2 * half)),
+                 "flank_angle_held": fit is not free},
     )
+
+
+@dataclass
+class _ProfileFit:
+    """One robust fit of axis, pitch, phase and profile: x (10,) the parameters (see gauge_thread), std (10,)
+    their 1-sigma uncertainties (0 for a held one), residuals (N,) mm, core (N,) the points within the
+    noise that the uncertainties come from; profile_at_bound: a fitted radius or the half-angle stopped at
+    its bound; flank_at_bound: the half-angle did (only when it was free)."""
+
+    x: np.ndarray
+    std: np.ndarray
+    residuals: np.ndarray
+    core: np.ndarray
+    profile_at_bound: bool
+    flank_at_bound: bool
+
+
+def _fit_profile(points, p0, base, x0, lower, upper, free_flank: bool, noise_mm: float) -> _ProfileFit:
+    """Fit the profile to ``points`` from ``x0`` within the bounds, the half-angle x[9] held at x0's
+    unless ``free_flank``."""
+    free = np.ones(len(x0), bool)
+    free[9] = free_flank
+
+    def residual(xf):
+        x = x0.copy()
+        x[free] = xf
+        p, d = _axis_from_params(p0, base, *x[:4])
+        t, rad, zax = _cylindrical(points, p, d)
+        pitch, phase = x[4], x[5]
+        w = np.mod(zax - pitch * t / (2 * np.pi) - phase + pitch / 2, pitch) - pitch / 2
+        return _profile_distance(w, rad, x[6], x[7], x[8], x[9], pitch)
+
+    scale = np.array([1e-3, 1e-3, 1e-2, 1e-2, 1e-3, 1e-2, 1e-2, 1e-2, 1e-2, 1e-2])
+    sol = least_squares(residual, x0[free], loss="soft_l1", f_scale=noise_mm, x_scale=scale[free],
+                        diff_step=1e-6, bounds=(lower[free], upper[free]))
+    x = x0.copy()
+    x[free] = sol.x
+    res = sol.fun
+    core = np.abs(res) < 3 * noise_mm + 3 * 1.4826 * np.median(np.abs(res))
+    dof = max(int(core.sum()) - int(free.sum()), 1)
+    sigma2 = float(np.sum(res[core] ** 2) / dof)
+    jac = sol.jac[core]
+    try:
+        cov = np.linalg.inv(jac.T @ jac) * sigma2
+    except np.linalg.LinAlgError:
+        cov = np.full((int(free.sum()),) * 2, np.nan)
+    std = np.zeros(len(x0))
+    std[free] = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    stopped = (np.isclose(x, lower, atol=1e-6) | np.isclose(x, upper, atol=1e-6)) & free
+    return _ProfileFit(x, std, res, core, bool(stopped[6:10].any()), bool(stopped[9]))
 
 
 def _crest_defects(theta, z, turn, dist, options: GaugeOptions, pitch: float) -> list[ThreadDefect]:

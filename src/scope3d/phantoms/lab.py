@@ -127,6 +127,7 @@ def generate(
     thread_offsets_mm: tuple = (0.0, 0.0, 0.0),
     thread_defect: tuple | None = None,
     quadrant_mount: tuple | None = None,
+    quadrant_step_mm: float | None = None,
     bladder: dict | None = None,
     plan: PlanFile | None = None,
     video_fps: float | None = None,
@@ -156,7 +157,8 @@ def generate(
         axis (None: the trajectory's default). For ``quadrants`` the reported poses are the stage's
         nominal ones (camera on the axis, untilted: what the stage knows), with a tolerance box that covers
         the mount's offset and tilt; the true poses go to the ground truth, and ``quadrants.json`` maps
-        frames to quadrants (:func:`write`).
+        frames to quadrants (:func:`write`). quadrant_step_mm : the ``quadrants`` advance per frame (None:
+        0.1 mm).
     bladder : keyword arguments of :func:`~scope3d.phantoms.scenes.build_bladder` (``semi_axes_mm``,
         ``shape_seed``, ``vessel_density``, ``wet``) for the ``bladder`` scene.
     plan : a scan plan (:func:`scope3d.io.scan_plan.read_scan_plan`) rendered instead of a named trajectory,
@@ -199,7 +201,7 @@ def generate(
             traj = build_trajectory(name, n_frames=n_frames, side_view_deg=side_view_deg,
                                     axis_offset_mm=float(axis_offset_mm), axis_tilt_deg=float(axis_tilt_deg),
                                     target_mm=target_mm, azimuth_deg=72.0 * ((target or 1) - 1),
-                                    quadrant_mount=quadrant_mount)
+                                    quadrant_mount=quadrant_mount, quadrant_step_mm=quadrant_step_mm)
         except ValueError as exc:
             raise InputError(str(exc)) from None
     if camera is None:

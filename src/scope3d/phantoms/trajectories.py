@@ -222,19 +222,26 @@ def ring_poses(n: int, *, tilt_deg: float, distance_mm: float, target=(0.0, 0.0,
 
 def build_trajectory(name: str, *, n_frames: int | None = None, side_view_deg: float = 45.0,
                      axis_offset_mm: float = 0.0, axis_tilt_deg: float = 0.0, target_mm=None,
-                     azimuth_deg: float = 0.0, quadrant_mount: tuple | None = None) -> Trajectory:
+                     azimuth_deg: float = 0.0, quadrant_mount: tuple | None = None,
+                     quadrant_step_mm: float | None = None) -> Trajectory:
     """Build a named trajectory. ``n_frames`` limits the grids (first frames in scan order), sets the
     length of ``axial`` and ``spiral``, and for ``quadrants`` gives the total (``n_frames // 12`` per
     quadrant, at least one). ``axis_offset_mm`` and ``axis_tilt_deg`` misalign ``axial`` (see
     :func:`axial_trajectory`); other trajectories reject them. ``approach`` needs ``target_mm`` (3,) and
     starts towards ``azimuth_deg`` (see :func:`approach_trajectory`). ``quadrant_mount`` (offset_x_mm,
     offset_y_mm, tilt_deg) misaligns the ``quadrants`` camera from the rotation axis (None: the default
-    offset :data:`QUADRANT_AXIS_OFFSET_MM`, no tilt)."""
+    offset :data:`QUADRANT_AXIS_OFFSET_MM`, no tilt). ``quadrant_step_mm`` is the ``quadrants`` advance per
+    frame (None: :data:`QUADRANT_STEP_MM`; a 90° view sees ~3 mm of wall and must advance further to see
+    enough thread turns to gauge)."""
     if name not in TRAJECTORIES:
         raise InputError(f"unknown trajectory {name!r} (use one of {', '.join(TRAJECTORIES)})")
     if n_frames is not None and n_frames < 1:
         raise InputError(f"number of frames must be at least 1, got {n_frames}")
     n = n_frames or TRAJECTORIES[name][1]
+    if quadrant_step_mm is not None and name != "quadrants":
+        raise InputError(f"a quadrant step applies to the quadrants trajectory only, not {name!r}")
+    if quadrant_step_mm is not None and not quadrant_step_mm > 0:
+        raise InputError(f"the quadrant step must be a positive length in mm, got {quadrant_step_mm}")
     if name != "axial" and (axis_offset_mm != 0 or axis_tilt_deg != 0):
         raise InputError(f"axis offset and tilt apply to the axial trajectory only, not {name!r}")
     if name.startswith("grid"):
@@ -250,7 +257,8 @@ def build_trajectory(name: str, *, n_frames: int | None = None, side_view_deg: f
     if name == "quadrants":
         ox, oy, tilt = quadrant_mount if quadrant_mount is not None else (*QUADRANT_AXIS_OFFSET_MM, 0.0)
         return quadrant_trajectory(max(1, n // QUADRANT_COUNT), side_view_deg=side_view_deg,
-                                   axis_offset_mm=(ox, oy), axis_tilt_deg=tilt)
+                                   axis_offset_mm=(ox, oy), axis_tilt_deg=tilt,
+                                   step_mm=quadrant_step_mm or QUADRANT_STEP_MM)
     if name == "approach":
         if target_mm is None:
             raise InputError("the approach trajectory needs a target (--target N)")
