@@ -83,6 +83,8 @@ def main(argv=None) -> int:
     ap.add_argument("--dome56-seeds", default="21", help="seeds for the 56-frame survey (slow)")
     ap.add_argument("--quick", action="store_true", help="one seed, dome12, 0 and 2 mm")
     ap.add_argument("--out", default=str(RESULTS / "pose_outliers.json"))
+    ap.add_argument("--merge", action="store_true",
+                    help="keep the runs of other surveys already in --out (run the surveys one at a time)")
     args = ap.parse_args(argv)
     if args.quick:
         args.surveys, args.seeds, args.glitches, args.turn_glitches, args.counts = "dome12", "21", "0,2", "", "1"
@@ -110,10 +112,16 @@ def main(argv=None) -> int:
                 row["false_alarms"] = sorted(found - set(row["glitched"]))
                 runs.append(row)
                 print(json.dumps(row), flush=True)
-    load = os.getloadavg()
     out = Path(args.out)
+    load = {args.surveys: list(os.getloadavg())}
+    if args.merge and out.is_file():
+        previous = json.loads(out.read_text())
+        done = {r["survey"] for r in runs}
+        runs = [r for r in previous["runs"] if r["survey"] not in done] + runs
+        earlier = previous.get("load_average", {})
+        load = {**(earlier if isinstance(earlier, dict) else {"earlier": earlier}), **load}
     out.parent.mkdir(parents=True, exist_ok=True)
-    write_json(out, {"load_average": list(load), "runs": runs})
+    write_json(out, {"load_average": load, "runs": runs})
     plot(runs, out.with_suffix(".png"))
     return 0
 

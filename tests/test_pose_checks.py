@@ -37,12 +37,17 @@ def test_a_correlated_weak_direction_is_discounted_and_an_unbounded_scalar_never
     assert box_mahalanobis(np.r_[0.0, 0.0, 0.0, 50.0, 0.0, 0.0], cov, unbounded)[0] == pytest.approx(0.0, abs=1e-9)
 
 
-def test_flagged_reports_are_released_and_options_are_checked():
+def test_a_flagged_report_is_replaced_by_its_prediction_in_its_confidence_box():
     m = MeasuredPose(Pose.from_centre(np.eye(3), np.zeros(3)), PoseTolerance.from_degrees(0.5, 0.25))
-    flagged = FramePoseTest(0, "ok", None, np.zeros(6), np.eye(6), 500.0, 1e-20, flagged=True)
+    predicted = Pose.from_centre(np.eye(3), np.array([-3.0, 0.2, 0.0]))
+    cov = np.diag(np.r_[np.full(3, 1e-8), 0.4**2, 0.1**2, 0.1**2])
+    flagged = FramePoseTest(0, "ok", predicted, np.r_[0.0, 0.0, 0.0, -3.0, 0.2, 0.0], cov, 500.0, 1e-20, flagged=True)
     passed = FramePoseTest(1, "ok", None, np.zeros(6), np.eye(6), 1.0, 0.98)
     released = PoseCheck([flagged, passed], 0.01, 25.0).released([m, m])
-    assert not np.isfinite(released[0].tolerance.position_mm).any() and released[0].pose is m.pose
+    assert released[0].pose is predicted
+    # 5 sigma (sqrt of the critical value 25) where that exceeds the reported half-width
+    np.testing.assert_allclose(released[0].tolerance.position_mm, [2.0, 0.5, 0.5])
+    np.testing.assert_allclose(released[0].tolerance.orientation_rad, m.tolerance.orientation_rad)
     assert released[1] is m
     with pytest.raises(ValueError):
         PoseCheckOptions(false_alarm_rate=0.0)
@@ -85,3 +90,11 @@ def test_a_glitched_report_is_flagged_and_released_and_clean_reports_are_not(tmp
     err, err_clean = (r.report["surface_error_mm"]["direct"]["mean"] for r in (result, clean))
     assert err < err_clean + 0.5 * 0.5
     assert result.report["surface_error_mm"]["after_icp"]["mean"] < 1.5 * clean.report["surface_error_mm"]["after_icp"]["mean"]
+
+
+def test_the_map_command_refuses_a_false_alarm_rate_outside_0_1(tmp_path, capsys):
+    from scope3d.cli.main import main
+
+    assert main(["map", str(tmp_path / "none"), "--out", str(tmp_path / "m"), "--pose-false-alarm-rate", "1.5"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--pose-false-alarm-rate" in err[0]
