@@ -155,7 +155,7 @@ class PoseCheck:
                 "beyond_tolerance_mm": float(np.linalg.norm(t.beyond_box[3:])),
                 "beyond_tolerance_deg": float(np.rad2deg(np.linalg.norm(t.beyond_box[:3]))),
                 "tolerance_mm": tol.position_mm.tolist(), "tolerance_deg": tol.orientation_deg.tolist(),
-                "action": "released"})
+                "action": "released to the images' estimate"})
         tested = [t for t in self.tests if np.isfinite(t.statistic)]
         return {"false_alarm_rate": self.false_alarm_rate, "critical_chi2_6dof": self.critical_value,
                 "variance_factor": self.variance_factor,
