@@ -426,11 +426,13 @@ def check_reported_poses(options: MapOptions, dataset: Dataset, features: list[F
                          sparse: SparseResult) -> PoseCheck | None:
     """Each reported pose tested against the images and the other reports
     (:func:`scope3d.sfm.pose_checks.test_reported_poses`: a free adjustment of every match, from the
-    bounded map's poses); None when there is nothing to test (not ``bounded``, or every pose exact)."""
+    coarse pass's image-only poses when it ran, else from the bounded map's); None when there is nothing
+    to test (not ``bounded``, or every pose exact)."""
     if options.pose_check is None or options.pose_mode != "bounded" or all(m.tolerance.is_exact for m in dataset.poses):
         return None
     tracks = build_tracks(features, matching.matches, min_track_length=options.tracks.min_track_length)
-    return test_reported_poses(dataset.camera, dataset.poses, tracks, sparse.poses, options.tracks, options.bundle,
+    start = matching.coarse.poses if matching.coarse is not None else sparse.poses
+    return test_reported_poses(dataset.camera, dataset.poses, tracks, start, options.tracks, options.bundle,
                                options.pose_check)
 
 

@@ -281,13 +281,16 @@ def _quadratic_model(camera: Camera, measured: list[MeasuredPose], tracks: Track
 def box_mahalanobis(offset: np.ndarray, covariance: np.ndarray, half_width: np.ndarray) -> tuple[float, np.ndarray]:
     """``min over |b| <= half_width of (offset - b)^T covariance^-1 (offset - b)`` and the minimiser ``b``.
 
-    offset : (6,), covariance : (6, 6) positive definite, half_width : (6,) (inf: unbounded).
+    offset : (6,), covariance : (6, 6) symmetric positive (semi)definite, half_width : (6,) (inf: unbounded).
     A bounded least-squares problem (scipy's ``lsq_linear``) on the whitened difference.
     """
     from scipy.optimize import lsq_linear
 
-    info = np.linalg.inv(covariance)
-    whiten = np.linalg.cholesky(0.5 * (info + info.T)).T  # info = whiten^T whiten
+    # whiten by the covariance's eigenvectors; a direction of (numerically) zero variance is held to a
+    # standard deviation a millionth of the largest (an exact zero would make round-off an infinite disagreement)
+    values, vectors = np.linalg.eigh(0.5 * (covariance + covariance.T))
+    values = np.maximum(values, 1e-12 * max(float(values.max()), 1e-300))
+    whiten = vectors.T / np.sqrt(values)[:, None]  # covariance^-1 = whiten^T whiten
     lower = -np.asarray(half_width, float)
     upper = np.where(-lower > lower, -lower, lower + 1e-15)  # lsq_linear wants lower < upper
     fit = lsq_linear(whiten, whiten @ offset, bounds=(lower, upper), method="bvls")
@@ -345,14 +348,15 @@ def test_reported_poses(camera: Camera, measured: list[MeasuredPose], tracks: Tr
     """Test every frame's report against the images and the other reports (see the module docstring).
 
     measured : the reports with their boxes; tracks : every matched observation, untriangulated; start :
-    the poses the free adjustment starts from (:func:`image_only_adjustment`), best the bounded map's: the
-    images' cost is linearised about the free solution, and a free adjustment slides along the directions
-    the images barely fix, so a start far along them (the coarse pass's averaging, 3 deg off on the dome)
-    leaves the linearisation too far from the reports (clean frames then fail). Linearising at the
-    estimate of images and reports together instead fails the other way: where a wrong report pulls its
-    frame the images' information on that frame drops (on the dome, 3.5x on the glitched axis) and the
-    report passes. A frame with an exact report (trusted by definition) or without observations is not
-    tested (statistic NaN).
+    the poses the free adjustment starts from (:func:`image_only_adjustment`), best the images' own (the
+    coarse pass's averaging): from the bounded map's poses, where a wrong report has pulled its frame,
+    the first triangulation's gate drops that frame's evidence (dome, a report 5 mm off: not flagged from
+    the bounded map, flagged from the coarse pass). The images' cost is linearised about the free
+    solution; a frame found beyond the critical value is confirmed by Gauss-Newton steps of its own
+    leave-one-out estimate. (Linearising everything at the estimate of images and reports together fails:
+    where a wrong report pulls its frame the images' information on that frame drops, 3.5x on the glitched
+    axis on the dome, and the report passes.) A frame with an exact report (trusted by definition) or
+    without observations is not tested (statistic NaN).
     """
     from scipy.stats import chi2
 
