@@ -84,7 +84,7 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="one seed, dome12, 0 and 2 mm")
     ap.add_argument("--out", default=str(RESULTS / "pose_outliers.json"))
     ap.add_argument("--merge", action="store_true",
-                    help="keep the runs of other surveys already in --out (run the surveys one at a time)")
+                    help="keep the runs already in --out that this one does not repeat (run parts one at a time)")
     args = ap.parse_args(argv)
     if args.quick:
         args.surveys, args.seeds, args.glitches, args.turn_glitches, args.counts = "dome12", "21", "0,2", "", "1"
@@ -116,8 +116,11 @@ def main(argv=None) -> int:
     load = {args.surveys: list(os.getloadavg())}
     if args.merge and out.is_file():
         previous = json.loads(out.read_text())
-        done = {r["survey"] for r in runs}
-        runs = [r for r in previous["runs"] if r["survey"] not in done] + runs
+        def key(r):
+            return r["survey"], r["seed"], r["kind"], r["size"], len(r["glitched"])
+
+        done = {key(r) for r in runs}
+        runs = [r for r in previous["runs"] if key(r) not in done] + runs
         earlier = previous.get("load_average", {})
         load = {**(earlier if isinstance(earlier, dict) else {"earlier": earlier}), **load}
     out.parent.mkdir(parents=True, exist_ok=True)
