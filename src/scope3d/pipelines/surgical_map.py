@@ -19,9 +19,9 @@ Method (reference chapters 3, 4 and 6), one stage per function, run top to botto
    textured from each vertex's best view.
 5. :func:`locate_targets` — fluorescence thresholded and cleaned per frame, voted onto the surface,
    labelled and measured (centroid, area, star edge or disc diameter).
-   :func:`check_reported_poses` — in ``bounded`` mode, each reported pose tested against the images and
-   the other reports (a chi-square test at a stated false-alarm rate); a report found wrong beyond its box
-   has the box widened to what the images say, and matching and adjustment run again.
+   :func:`check_reported_poses` — in ``bounded`` mode after the coarse pass, each reported pose tested
+   against the images and the other reports (a chi-square test at a stated false-alarm rate); a report
+   found wrong beyond its box is replaced by what the images say, and matching and adjustment run again.
 6. :func:`evaluate_map` — where ground truth exists: distances to the true surface, direct and after
    ICP from eight starts, pose errors, targets against the true ones.
 7. :func:`write_outputs` — report.json, PLYs, COLMAP text model, map points with descriptors for
@@ -116,10 +116,11 @@ class MapOptions:
         and poses from the images first (the coarse pass, ``coarse``), adjust the poses by BCBA on its
         matches and predict the fine pass with them (:func:`match_with_image_poses`; default True).
         False: the measured poses guide matching whatever their tolerance (the baseline).
-    pose_check : PoseCheckOptions or None, in ``bounded`` mode test every reported pose against the images
-        and the other reports after the adjustment, and map again with the boxes of the reports found
-        wrong widened to what the images say (:func:`check_reported_poses`; default on, a 1 % false-alarm
-        rate per map). None: every report is trusted to lie in its box.
+    pose_check : PoseCheckOptions or None, in ``bounded`` mode, when the reports' tolerance was wide enough
+        for the coarse pass to run, test every reported pose against the images and the other reports
+        after the adjustment, and map again with the reports found wrong replaced by what the images say
+        (:func:`check_reported_poses`; default on, a 1 % false-alarm rate per map). None: every report is
+        trusted to lie in its box.
     """
 
     pose_mode: str = "bounded"
@@ -426,14 +427,14 @@ def check_reported_poses(options: MapOptions, dataset: Dataset, features: list[F
                          sparse: SparseResult) -> PoseCheck | None:
     """Each reported pose tested against the images and the other reports
     (:func:`scope3d.sfm.pose_checks.test_reported_poses`: a free adjustment of every match, from the
-    coarse pass's image-only poses when it ran, else from the bounded map's); None when there is nothing
-    to test (not ``bounded``, or every pose exact)."""
-    if options.pose_check is None or options.pose_mode != "bounded" or all(m.tolerance.is_exact for m in dataset.poses):
+    coarse pass's image-only poses); None when there is nothing to test: not ``bounded``, or reports so
+    tight that they guided matching themselves (no coarse pass: a micro-stage's 0.01 mm, which the images
+    cannot improve on; there a false alarm would only replace a good report by a worse estimate)."""
+    if options.pose_check is None or options.pose_mode != "bounded" or matching.coarse is None:
         return None
     tracks = build_tracks(features, matching.matches, min_track_length=options.tracks.min_track_length)
-    start = matching.coarse.poses if matching.coarse is not None else sparse.poses
-    return test_reported_poses(dataset.camera, dataset.poses, tracks, start, options.tracks, options.bundle,
-                               options.pose_check)
+    return test_reported_poses(dataset.camera, dataset.poses, tracks, matching.coarse.poses, options.tracks,
+                               options.bundle, options.pose_check)
 
 
 # --- 4. surface -------------------------------------------------------------------------------
@@ -632,7 +633,8 @@ def run(options: MapOptions, dataset: Dataset, out_dir: str | Path, *, progress:
         released = replace(dataset, poses=pose_check.released(dataset.poses))
         matching = match_frames(options, released, features, progress=progress)
         sparse = reconstruct(options, released, features, matching)
-    lap("pose check")
+    if pose_check is not None:
+        lap("pose check")
     surface = build_surface(options, dataset, sparse, frames) if options.surface is not None else None
     lap("surface")
     targets = None
