@@ -130,6 +130,8 @@ def test_dome_outputs_and_report(dome_run):
     # the report rounds to)
     timings = report["timings_s"]
     stages = ("load", "features", "matching", "bundle", "surface", "fluorescence", "evaluation", "outputs")
+    if "reported_pose_test" in report["model_checks"]:  # bounded mode, inexact reports: they were tested
+        stages += ("pose check",)
     assert sorted(timings) == sorted(stages)
     assert all(np.isfinite(timings[k]) and timings[k] > 0 for k in stages), timings
     # the laps tile the call: their sum cannot exceed the wall time around it (plus the rounding of each to
@@ -356,13 +358,20 @@ def test_bounded_poses_stay_in_their_boxes_in_memory_and_on_disk(robot_map):
     from scope3d.io.colmap import read_colmap_text
 
     ds, result = robot_map
-    for measured, pose in zip(ds.poses, result.sparse.poses):
-        assert measured.contains(pose)
+    # a report the images contradict (scope3d.sfm.pose_checks) is replaced, and the report says so: only
+    # the others must hold
+    test = result.report["model_checks"].get("reported_pose_test", {"flagged": []})
+    flagged = {f["frame"] for f in test["flagged"]}
+    kept = [k for k, name in enumerate(ds.names) if name not in flagged]
+    for k in kept:
+        assert ds.poses[k].contains(result.sparse.poses[k])
     for r in result.sparse.bundle_results:  # every adjustment's own solution too
-        for measured, pose in zip(ds.poses, r.poses):
-            assert measured.contains(pose, slack=1e-9)
+        for k in kept:
+            assert ds.poses[k].contains(r.poses[k], slack=1e-9)
     written = read_colmap_text(result.out_dir / "sparse")
     by_name = dict(zip(written.image_names, written.poses))
     for name, measured in zip(ds.names, ds.poses):
+        if name in flagged:
+            continue
         # the text model prints poses to ~1e-10 relative: allow that much beyond the box
         assert measured.contains(by_name[name], slack=1e-7)

@@ -19,6 +19,9 @@ Method (reference chapters 3, 4 and 6), one stage per function, run top to botto
    textured from each vertex's best view.
 5. :func:`locate_targets` — fluorescence thresholded and cleaned per frame, voted onto the surface,
    labelled and measured (centroid, area, star edge or disc diameter).
+   :func:`check_reported_poses` — in ``bounded`` mode after the coarse pass, each reported pose tested
+   against the images and the other reports (a chi-square test at a stated false-alarm rate); a report
+   found wrong beyond its box is replaced by what the images say, and matching and adjustment run again.
 6. :func:`evaluate_map` — where ground truth exists: distances to the true surface, direct and after
    ICP from eight starts, pose errors, targets against the true ones.
 7. :func:`write_outputs` — report.json, PLYs, COLMAP text model, map points with descriptors for
@@ -30,7 +33,7 @@ from __future__ import annotations
 
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -82,6 +85,7 @@ from scope3d.sfm.guided_mapping import (
     refine_poses_for_matching,
 )
 from scope3d.sfm.model_checks import check_model, model_checks_summary
+from scope3d.sfm.pose_checks import PoseCheck, PoseCheckOptions, test_reported_poses
 from scope3d.utils.atomic import atomic_directory
 from scope3d.utils.jsonio import write_json
 from scope3d.utils.progress import Progress, advance, stage
@@ -112,6 +116,11 @@ class MapOptions:
         and poses from the images first (the coarse pass, ``coarse``), adjust the poses by BCBA on its
         matches and predict the fine pass with them (:func:`match_with_image_poses`; default True).
         False: the measured poses guide matching whatever their tolerance (the baseline).
+    pose_check : PoseCheckOptions or None, in ``bounded`` mode, when the reports' tolerance was wide enough
+        for the coarse pass to run, test every reported pose against the images and the other reports
+        after the adjustment, and map again with the reports found wrong replaced by what the images say
+        (:func:`check_reported_poses`; default on, a 1 % false-alarm rate per map). None: every report is
+        trusted to lie in its box.
     """
 
     pose_mode: str = "bounded"
@@ -133,6 +142,7 @@ class MapOptions:
     use_bounding_box: bool = True
     bounding_box_margin_mm: float = 5.0
     refine_poses_for_matching: bool = True
+    pose_check: PoseCheckOptions | None = field(default_factory=PoseCheckOptions)
 
     def __post_init__(self) -> None:
         if self.pose_mode not in POSE_MODES:
@@ -413,6 +423,20 @@ def reconstruct(options: MapOptions, dataset: Dataset, features: list[Features],
                         time.perf_counter() - t0, adjusted.off_surface_points)
 
 
+def check_reported_poses(options: MapOptions, dataset: Dataset, features: list[Features], matching: MatchingResult,
+                         sparse: SparseResult) -> PoseCheck | None:
+    """Each reported pose tested against the images and the other reports
+    (:func:`scope3d.sfm.pose_checks.test_reported_poses`: a free adjustment of every match, from the
+    coarse pass's image-only poses); None when there is nothing to test: not ``bounded``, or reports so
+    tight that they guided matching themselves (no coarse pass: a micro-stage's 0.01 mm, which the images
+    cannot improve on; there a false alarm would only replace a good report by a worse estimate)."""
+    if options.pose_check is None or options.pose_mode != "bounded" or matching.coarse is None:
+        return None
+    tracks = build_tracks(features, matching.matches, min_track_length=options.tracks.min_track_length)
+    return test_reported_poses(dataset.camera, dataset.poses, tracks, matching.coarse.poses, options.tracks,
+                               options.bundle, options.pose_check)
+
+
 # --- 4. surface -------------------------------------------------------------------------------
 
 
@@ -469,7 +493,7 @@ def evaluate_map(options: MapOptions, dataset: Dataset, sparse: SparseResult, ta
 def write_outputs(
     options: MapOptions, dataset: Dataset, out_dir: Path, frames: list[np.ndarray], features: list[Features],
     matching: MatchingResult, sparse: SparseResult, surface: SurfaceResult | None, targets: TargetResult | None,
-    evaluation: dict, timings: dict,
+    evaluation: dict, timings: dict, pose_check: PoseCheck | None = None,
 ) -> dict:
     """Write every output file into ``out_dir`` (already a temporary folder) and return the report."""
     t0 = time.perf_counter()
@@ -499,6 +523,8 @@ def write_outputs(
                             "fov_deg": sparse.camera.fov_deg, "fov_deg_dataset": dataset.camera.fov_deg},
         "model_checks": check_model(dataset.names, dataset.poses, sparse.poses, tr).as_dict(),
     }
+    if pose_check is not None:
+        report["model_checks"]["reported_pose_test"] = pose_check.as_dict(dataset.names, dataset.poses)
     fl = options.fluorescence or FluorescenceOptions()
     if surface is not None:
         s = surface.surface
@@ -601,6 +627,14 @@ def run(options: MapOptions, dataset: Dataset, out_dir: str | Path, *, progress:
     stage(progress, "bundle adjustment")
     sparse = reconstruct(options, dataset, features, matching)
     lap("bundle")
+    stage(progress, "pose check")
+    pose_check = check_reported_poses(options, dataset, features, matching, sparse)
+    if pose_check is not None and pose_check.flagged:  # reports wrong beyond their boxes: map again without trusting them
+        released = replace(dataset, poses=pose_check.released(dataset.poses))
+        matching = match_frames(options, released, features, progress=progress)
+        sparse = reconstruct(options, released, features, matching)
+    if pose_check is not None:
+        lap("pose check")
     surface = build_surface(options, dataset, sparse, frames) if options.surface is not None else None
     lap("surface")
     targets = None
@@ -611,5 +645,6 @@ def run(options: MapOptions, dataset: Dataset, out_dir: str | Path, *, progress:
     lap("evaluation")
     stage(progress, "writing outputs")
     with atomic_directory(Path(out_dir)) as tmp:
-        report = write_outputs(options, dataset, tmp, frames, features, matching, sparse, surface, targets, evaluation, timings)
+        report = write_outputs(options, dataset, tmp, frames, features, matching, sparse, surface, targets, evaluation, timings,
+                               pose_check)
     return MapResult(report, Path(out_dir), features, matching, sparse, surface, targets)

@@ -24,6 +24,7 @@ from scope3d.geometry.pose import Pose
 from scope3d.geometry.rotation import matrix_to_rotvec
 from scope3d.scene.tracks import Tracks
 from scope3d.sensor.pose_tolerance import MeasuredPose
+from scope3d.sfm.pose_checks import pose_check_lines
 
 # A correction within this fraction of its half-width counts as on the box's edge: the bounded solver
 # stops on the bound itself (to round-off), so any small margin separates "on" from "inside".
@@ -72,7 +73,8 @@ class ModelChecks:
 
 
 def model_checks_summary(checks: dict) -> str:
-    """One line for people from :meth:`ModelChecks.as_dict` (as stored in a map's report.json)."""
+    """One line for people from :meth:`ModelChecks.as_dict` (as stored in a map's report.json), and one more per
+    report the images contradict (:func:`scope3d.sfm.pose_checks.pose_check_lines`)."""
     n_used, unused = checks["frames_used"], checks["unused_frames"]
     line = f"{n_used} of {n_used + len(unused)} frames in the map"
     if unused:
@@ -80,6 +82,11 @@ def model_checks_summary(checks: dict) -> str:
     d = checks["pose_correction"]
     if not n_used:
         return line
+    flagged = pose_check_lines(checks["reported_pose_test"]) if "reported_pose_test" in checks else []
+    return "\n".join([_corrections_line(line, d)] + flagged)
+
+
+def _corrections_line(line: str, d: dict) -> str:
     return (f"{line}; reported poses corrected by median {d['position_mm']['median']:.3f} mm / "
             f"{d['orientation_deg']['median']:.3f} deg (max {d['position_mm']['max']:.3f} mm / "
             f"{d['orientation_deg']['max']:.3f} deg); on the edge of their tolerance: "

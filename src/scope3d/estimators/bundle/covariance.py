@@ -61,6 +61,35 @@ def _pose_covariance(problem: BundleProblem, parameters: BundleParameters, loss_
                      noise_px: float | None, prior_sigmas: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
     """The joint pose covariance (6m, 6m) (gauge removed, or held by the priors) and which cameras are
     observed (m,) bool."""
+    S, seen, sigma = reduced_camera_system(problem, parameters, loss_scale_px, noise_px)
+    m = problem.num_cameras
+    free = ~problem.pose_fixed.ravel() & np.repeat(seen, 6)
+    Sf = S[np.ix_(free, free)] / sigma**2
+    if prior_sigmas is not None:
+        # the measurements as Gaussian priors: they hold the gauge and any camera the images leave loose
+        prior = np.asarray(prior_sigmas, float).reshape(-1)[free]
+        cov = np.linalg.inv(Sf + np.diag(1.0 / prior**2))
+    else:
+        gauge = _gauge_basis(problem, parameters)[free]
+        q, _ = np.linalg.qr(gauge)
+        lam = max(float(np.trace(Sf)) / max(len(Sf), 1), 1e-12)
+        projector = np.eye(len(Sf)) - q @ q.T
+        cov = projector @ np.linalg.inv(Sf + lam * q @ q.T) @ projector
+    full = np.zeros((6 * m, 6 * m))
+    full[np.ix_(free, free)] = cov
+    return full, seen
+
+
+def reduced_camera_system(problem: BundleProblem, parameters: BundleParameters, loss_scale_px: float = 1.0,
+                          noise_px: float | None = None) -> tuple[np.ndarray, np.ndarray, float]:
+    """The images' information on every camera's pose scalars, the points eliminated (Schur complement).
+
+    Returns ``S`` (6m, 6m) in px^2 per squared parameter unit (``J^T J`` with the observations' Huber
+    weights at ``loss_scale_px``; divide by ``sigma^2`` for the information), which cameras are observed
+    (m,) bool, and ``sigma`` (px): ``noise_px`` or the residuals' median norm / 1.1774 (the median of a 2-D
+    Gaussian's norm). Fixed scalars are included (rows for every scalar); the 7 gauge directions are in
+    its null space. Needs positions parametrised as centres (``from_measured_poses``).
+    """
     if problem.position_parameter != "centre":
         raise ValueError("relative_pose_sigmas needs poses parametrised by their centres")
     m = problem.num_cameras
@@ -98,22 +127,32 @@ def _pose_covariance(problem: BundleProblem, parameters: BundleParameters, loss_
                 cols = (6 * cb[:, None, None] + np.arange(6)[None, None, :]).repeat(6, axis=1)
                 np.subtract.at(S, (rows, cols), block)
     seen = np.bincount(cam, minlength=m) > 0
-    free = ~problem.pose_fixed.ravel() & np.repeat(seen, 6)
-    Sf = S[np.ix_(free, free)] / sigma**2
-    if prior_sigmas is not None:
-        # the measurements as Gaussian priors: they hold the gauge and any camera the images leave loose
-        prior = np.asarray(prior_sigmas, float).reshape(-1)[free]
-        cov = np.linalg.inv(Sf + np.diag(1.0 / prior**2))
-    else:
-        gauge = _gauge_basis(problem, parameters)[free]
-        q, _ = np.linalg.qr(gauge)
-        lam = max(float(np.trace(Sf)) / max(len(Sf), 1), 1e-12)
-        projector = np.eye(len(Sf)) - q @ q.T
-        cov = projector @ np.linalg.inv(Sf + lam * q @ q.T) @ projector
-    full = np.zeros((6 * m, 6 * m))
-    full[np.ix_(free, free)] = cov
-    return full, seen
+    return S, seen, sigma
 
+
+
+def reduced_gradient(problem: BundleProblem, parameters: BundleParameters, loss_scale_px: float = 1.0) -> np.ndarray:
+    """(6m,) the gradient of the Huber-weighted half sum of squared residuals (px^2) over every camera's
+    pose scalars with the points eliminated (``g_c - W V^-1 g_p``, the right-hand side of the reduced
+    camera system): with :func:`reduced_camera_system` it is the quadratic model of the images' cost in the
+    poses alone, at poses that are not the images' own optimum. Fixed scalars included."""
+    m = problem.num_cameras
+    r, jc, jp = evaluate(problem, parameters)
+    norm = np.linalg.norm(r, axis=1)
+    w = np.sqrt(np.where(norm <= loss_scale_px, 1.0, loss_scale_px / np.maximum(norm, 1e-300)))
+    cam, pt = problem.camera_index, problem.point_index
+    jpose, jpt, rw = jc[:, :, :6] * w[:, None, None], jp * w[:, None, None], r * w[:, None]
+    grad = np.zeros((m, 6))
+    np.add.at(grad, cam, np.einsum("kai,ka->ki", jpose, rw))
+    V = np.zeros((problem.num_points, 3, 3))
+    np.add.at(V, pt, np.einsum("kai,kaj->kij", jpt, jpt))
+    V += 1e-12 * np.eye(3)
+    g_point = np.zeros((problem.num_points, 3))
+    np.add.at(g_point, pt, np.einsum("kai,ka->ki", jpt, rw))
+    W = np.einsum("kai,kaj->kij", jpose, jpt)
+    step = np.linalg.solve(V, g_point[..., None])[..., 0]  # V^-1 g_p per point
+    np.subtract.at(grad, cam, np.einsum("kij,kj->ki", W, step[pt]))
+    return grad.ravel()
 
 def _gauge_basis(problem: BundleProblem, parameters: BundleParameters) -> np.ndarray:
     """(6m, 7) directions in pose space of a common rotation, translation and scale of the whole scene."""
