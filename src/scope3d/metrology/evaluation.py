@@ -25,6 +25,7 @@ import numpy as np
 from scope3d.estimators.icp import IcpOptions, IcpResult, icp_point_to_plane
 from scope3d.geometry.pose import Pose
 from scope3d.geometry.rotation import matrix_to_rotvec, rotvec_to_matrix
+from scope3d.geometry.similarity import Similarity, fit_similarity
 from scope3d.scene.mesh import Mesh, SampledSurface
 from scope3d.sensor.camera import Camera
 from scope3d.sensor.pose_tolerance import MeasuredPose
@@ -212,3 +213,49 @@ def surface_errors(points: np.ndarray, truth: SampledSurface, options: Evaluatio
         "icp_translation_mm": [float(v) for v in best.translation],
     }
     return summary, direct, aligned
+
+
+def similarity_to_surface(points: np.ndarray, truth: SampledSurface, start: Similarity, *, iterations: int = 50,
+                          huber_sigmas: float = 2.0, tolerance: float = 1e-7) -> Similarity:
+    """The 7-DoF similarity (scale, rotation, translation) taking ``points`` (N, 3) onto the true surface,
+    refined from ``start`` by iterated closest points with the scale free (Umeyama on each iteration's
+    nearest samples, Huber-weighted beyond ``huber_sigmas`` robust sigmas of the distances).
+
+    For maps without physical scale (image-only reconstructions, pycolmap's models): the wall error
+    "after similarity" is measured after this. ``start`` must be within the basin, e.g. a fit of the
+    camera centres to the true ones. Stops when the relative change of the transformed points is below
+    ``tolerance`` of their extent."""
+    x = np.asarray(points, float)
+    current = start
+    extent = max(float(np.ptp(x, axis=0).max()), 1e-12)
+    for _ in range(iterations):
+        y = current.apply(x)
+        q, _, d = truth.nearest(y)
+        sigma = max(float(np.median(d)) / 0.6745, 1e-9)
+        w = np.where(d <= huber_sigmas * sigma, 1.0, huber_sigmas * sigma / np.maximum(d, 1e-300))
+        # weighted Umeyama of x onto q
+        a0 = (w[:, None] * x).sum(0) / w.sum()
+        b0 = (w[:, None] * q).sum(0) / w.sum()
+        a, b = x - a0, q - b0
+        U, S, Vt = np.linalg.svd((w[:, None] * b).T @ a)
+        D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+        scale = float(np.trace(np.diag(S) @ D) / np.sum(w * np.sum(a * a, axis=1)))
+        new = Similarity(scale, U @ D @ Vt, a0, b0)
+        moved = float(np.abs(new.apply(x) - y).max())
+        current = new
+        if moved < tolerance * extent * current.scale:
+            break
+    return current
+
+
+def errors_after_similarity(points: np.ndarray, centres: np.ndarray, true_centres: np.ndarray,
+                            truth: SampledSurface) -> tuple[dict, np.ndarray, Similarity]:
+    """Wall error of a map known up to a similarity: the camera centres (M, 3) fitted to the true ones
+    start :func:`similarity_to_surface` on the points (N, 3). Returns (summary of the distances (mm)
+    with ``scale``: true mm per map unit, the distances (N,), the similarity)."""
+    start = fit_similarity(np.asarray(centres, float), np.asarray(true_centres, float))
+    sim = similarity_to_surface(points, truth, start)
+    d = truth.distances(sim.apply(points))
+    summary = distance_summary(d)
+    summary["scale"] = sim.scale
+    return summary, d, sim
