@@ -1,20 +1,22 @@
 """The first run after ``pip install`` vs a warm one: ``scope3d bundle-adjust`` on BAL ladybug-49-7776.
 
-Each run is a fresh process (what a user starts), with the numba kernels' on-disk cache in a folder of
-its own (NUMBA_CACHE_DIR, so the cache the Makefile built beside the sources is not used):
+Two wheels are built from this checkout with pip (as ``pip install`` builds one): the normal one, whose
+build compiles the kernels ahead of time (setup.py, scope3d.estimators.bundle.aot), and one built with
+SCOPE3D_AOT=0 (what a machine without a C compiler gets: numba compiles the kernels on first use).
+Each is installed into a folder of its own (``pip install --no-deps --target``); every run is a fresh
+process importing scope3d from that folder, with an empty numba cache of its own (NUMBA_CACHE_DIR):
 
-* ``cold, API``: an empty cache, as right after ``pip install``; the Python API's ``solve`` with default
-  threads (what ``scope3d bundle-adjust`` did before): every kernel it calls compiles in the run,
-  the parallel Schur assembly included;
-* ``warm, API``: the same cache again: kernels load from disk;
-* ``cold, command``: ``scope3d bundle-adjust`` on an empty cache: it sees the parallel kernel missing,
-  starts the background warm-up (:mod:`scope3d.estimators.bundle.jit`) and assembles on one thread;
-* ``warm, command``: the command again once that warm-up has finished.
+* ``AOT, first run``: right after ``pip install``; ``AOT, second run``: the same again;
+* ``JIT, first run``: every kernel compiles in the run; ``JIT, second run``: they load from numba's cache;
+* ``Ceres, fresh process``: the peer (pycolmap, bench_bundle_bal.ceres_solve) on the same problem, its
+  own import and set-up included in the process time.
 
-Wall time and CPU time (children's user + system; the detached warm-up's CPU is not counted) per run,
-and the solver's own time. Load averages are written with the results: the machine is shared.
+Per run: wall and CPU time of the whole process (children's user + system, from process start: imports
+included) and the solver's own time. Also the wheel builds' times (the compile moved to install).
+Load averages are written with the results: the machine is shared.
 
-Run: ``.venv/bin/python benchmarks/bench_first_run.py [--iterations 5] [--repeats 2]``. Writes
+Run: ``.venv/bin/python benchmarks/bench_first_run.py [--repeats 1]``. Needs pip and the build
+dependencies of pyproject.toml (pip fetches them as for any install). Writes
 benchmarks/results/first_run.json and first_run.png.
 """
 from __future__ import annotations
@@ -33,56 +35,64 @@ ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "bal_ladybug_49_7776" / "problem-49-7776-pre.txt"
 RESULTS = ROOT / "benchmarks" / "results"
 
-
-API_RUN = """
+CERES_RUN = """
 import json, sys, time
-from scope3d.estimators.bundle import SolverOptions, bal_to_problem, read_bal, solve
-result = solve(bal_to_problem(read_bal(sys.argv[1])), SolverOptions(max_iterations=int(sys.argv[2])))
-print(json.dumps(dict(solve_time_s=result.solve_time_s, final_cost=result.final_cost, iterations=result.iterations)))
+sys.path.insert(0, sys.argv[2])
+from bench_bundle_bal import ceres_solve
+from scope3d.estimators.bundle import read_bal
+out = ceres_solve(read_bal(sys.argv[1]), -1)
+print(json.dumps(dict(solve_time_s=out["time_s"], final_cost=out["final_cost_reported"],
+                      iterations=out["iterations"], kernels="Ceres")))
 """
 
 
-def _timed(cmd: list[str], env: dict) -> tuple[dict, float, float]:
+def _timed(cmd: list[str], env: dict) -> tuple[subprocess.CompletedProcess, float, float]:
+    """Run cmd; its wall time and CPU time (s, user + system of the child and its children)."""
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.perf_counter()
-    done = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True)
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True)
     wall = time.perf_counter() - start
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
-    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
-    return json.loads(done.stdout), wall, cpu
+    if done.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)} failed:\n{done.stderr[-3000:]}")
+    return done, wall, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
 
 
-def run_once(cache_dir: Path, iterations: int, *, api: bool = False) -> dict:
-    """One process solving ladybug: ``scope3d bundle-adjust`` (api=False) or the Python API's ``solve``
-    with its default threads (api=True: what the command did before it checked the cache). Its wall
-    and CPU times (s; a detached background warm-up's CPU is not counted: it runs on the other core)."""
-    env = dict(os.environ, NUMBA_CACHE_DIR=str(cache_dir), PYTHONPATH=str(ROOT / "src"))
+def install(target: Path, *, aot: bool) -> dict:
+    """Build a wheel of this checkout with pip and install it into ``target``; the build's times."""
+    env = dict(os.environ, SCOPE3D_AOT="1" if aot else "0")
+    env.pop("PYTHONPATH", None)
+    with tempfile.TemporaryDirectory(prefix="scope3d-wheel-") as wheels:
+        _, wall, cpu = _timed([sys.executable, "-m", "pip", "wheel", "--quiet", "--no-deps", str(ROOT), "-w", wheels],
+                              env)
+        wheel = next(Path(wheels).glob("scope3d-*.whl"))
+        _timed([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--target", str(target), str(wheel)],
+               env)
+    return {"wheel_build_wall_s": wall, "wheel_build_cpu_s": cpu,
+            "aot_module_installed": any((target / "scope3d" / "estimators" / "bundle").glob("_kernels_aot*"))}
+
+
+def run_once(site: Path, cache_dir: Path, *, ceres: bool = False) -> dict:
+    """One fresh process solving ladybug: ``scope3d bundle-adjust`` from the installed ``site`` (or Ceres)."""
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(cache_dir), PYTHONPATH=str(site))
     with tempfile.TemporaryDirectory() as tmp:
-        if api:
-            cmd = [sys.executable, "-c", API_RUN, str(DATA), str(iterations)]
+        if ceres:
+            cmd = [sys.executable, "-c", CERES_RUN, str(DATA), str(ROOT / "benchmarks")]
         else:
             cmd = [sys.executable, "-m", "scope3d.cli.main", "bundle-adjust", str(DATA), "--report",
-                   str(Path(tmp) / "report.json"), "--max-iterations", str(iterations), "--quiet", "--json"]
-        report, wall, cpu = _timed(cmd, env)
-    return {"wall_s": wall, "cpu_s": cpu, "solve_time_s": report.get("solve_time_s"),
-            "final_cost": report["final_cost"], "iterations": report["iterations"],
+                   str(Path(tmp) / "report.json"), "--quiet", "--json"]
+        done, wall, cpu = _timed(cmd, env)
+    report = json.loads(done.stdout)
+    return {"wall_s": wall, "cpu_s": cpu, "solve_time_s": report["solve_time_s"], "final_cost": report["final_cost"],
+            "iterations": report["iterations"], "kernels": report.get("kernels"),
             "assembly_threads": report.get("assembly_threads")}
 
 
-def wait_for_background_warm_up(cache_dir: Path, timeout_s: float = 1800.0) -> float:
-    """Seconds waited until the background warm-up's lock (one per cache folder) is gone."""
-    env = dict(os.environ, NUMBA_CACHE_DIR=str(cache_dir), PYTHONPATH=str(ROOT / "src"))
-    lock = subprocess.run([sys.executable, "-c", "from scope3d.estimators.bundle.jit import _lock_path; "
-                           "print(_lock_path())"], env=env, capture_output=True, text=True, check=True).stdout.strip()
-    start = time.perf_counter()
-    while Path(lock).exists() and time.perf_counter() - start < timeout_s:
-        time.sleep(1.0)
-    return time.perf_counter() - start
+SCENARIOS = ("AOT, first run", "AOT, second run", "JIT, first run", "JIT, second run", "Ceres, fresh process")
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--iterations", type=int, default=5, help="solver iterations per run (5)")
     parser.add_argument("--repeats", type=int, default=1, help="times each scenario runs, fresh caches (1)")
     args = parser.parse_args()
     if not DATA.is_file():
@@ -90,52 +100,52 @@ def main() -> int:
         return 1
     load_before = os.getloadavg()
     runs: dict[str, list[dict]] = {name: [] for name in SCENARIOS}
-    waits = []
-    for _ in range(args.repeats):
-        with tempfile.TemporaryDirectory(prefix="numba-cache-") as cache:
-            runs["cold, API (every kernel compiles)"].append(run_once(Path(cache), args.iterations, api=True))
-            runs["warm, API"].append(run_once(Path(cache), args.iterations, api=True))
-        with tempfile.TemporaryDirectory(prefix="numba-cache-") as cache:
-            runs["cold, command (parallel kernel in the background)"].append(run_once(Path(cache), args.iterations))
-            waits.append(wait_for_background_warm_up(Path(cache)))
-            runs["warm, command"].append(run_once(Path(cache), args.iterations))
-    summary = {name: {key: min(r[key] for r in rs) for key in ("wall_s", "cpu_s", "solve_time_s")}
-               for name, rs in runs.items()}
-    warm = summary["warm, API"]
+    with tempfile.TemporaryDirectory(prefix="scope3d-first-run-") as tmp:
+        sites = {"AOT": Path(tmp) / "aot", "JIT": Path(tmp) / "jit"}
+        installs = {name: install(site, aot=name == "AOT") for name, site in sites.items()}
+        for _ in range(args.repeats):
+            for name, site in sites.items():
+                with tempfile.TemporaryDirectory(prefix="numba-cache-") as cache:
+                    runs[f"{name}, first run"].append(run_once(site, Path(cache)))
+                    runs[f"{name}, second run"].append(run_once(site, Path(cache)))
+            with tempfile.TemporaryDirectory(prefix="numba-cache-") as cache:
+                runs["Ceres, fresh process"].append(run_once(sites["AOT"], Path(cache), ceres=True))
+    best = {name: {key: min(r[key] for r in rs) for key in ("wall_s", "cpu_s", "solve_time_s")}
+            for name, rs in runs.items()}
     result = {
-        "problem": DATA.name, "iterations": args.iterations, "repeats": args.repeats, "runs": runs, "best": summary,
-        "first_run_penalty_before": {k: summary["cold, API (every kernel compiles)"][k] - warm[k] for k in ("wall_s", "cpu_s")},
-        "first_run_penalty_now": {k: summary["cold, command (parallel kernel in the background)"][k]
-                                  - summary["warm, command"][k] for k in ("wall_s", "cpu_s")},
-        "background_warm_up_still_running_after_first_run_s": waits,
+        "problem": DATA.name, "repeats": args.repeats, "installs": installs, "runs": runs, "best": best,
+        "first_run_penalty_aot": {k: best["AOT, first run"][k] - best["AOT, second run"][k] for k in best["AOT, first run"]},
+        "first_run_penalty_jit": {k: best["JIT, first run"][k] - best["JIT, second run"][k] for k in best["JIT, first run"]},
+        "solve_time_ratio_aot_first_run_over_ceres":
+            best["AOT, first run"]["solve_time_s"] / best["Ceres, fresh process"]["solve_time_s"],
+        "process_wall_ratio_aot_first_run_over_ceres":
+            best["AOT, first run"]["wall_s"] / best["Ceres, fresh process"]["wall_s"],
         "load_average_before": load_before, "load_average_after": os.getloadavg(),
     }
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "first_run.json").write_text(json.dumps(result, indent=2) + "\n")
-    _plot(summary, RESULTS / "first_run.png", args.iterations)
-    print(json.dumps({k: result[k] for k in ("best", "first_run_penalty_before", "first_run_penalty_now")}, indent=2))
+    _plot(best, RESULTS / "first_run.png")
+    print(json.dumps({k: result[k] for k in ("installs", "best", "first_run_penalty_aot", "first_run_penalty_jit",
+                                             "solve_time_ratio_aot_first_run_over_ceres")}, indent=2))
     print(f"load average before {load_before[0]:.1f}, after {result['load_average_after'][0]:.1f}")
     return 0
 
 
-SCENARIOS = ("cold, API (every kernel compiles)", "warm, API", "cold, command (parallel kernel in the background)",
-             "warm, command")
-
-
-def _plot(summary: dict, path: Path, iterations: int) -> None:
+def _plot(best: dict, path: Path) -> None:
     sys.path.insert(0, str(ROOT / "src"))
     from scope3d.utils.figures import new_figure, save_figure
 
-    fig = new_figure((7.0, 3.6), dpi=110)
+    fig = new_figure((8.0, 3.6), dpi=110)
     ax = fig.add_subplot()
-    names = list(summary)
+    names = list(best)
     x = range(len(names))
-    ax.bar([i - 0.2 for i in x], [summary[n]["wall_s"] for n in names], width=0.4, label="wall")
-    ax.bar([i + 0.2 for i in x], [summary[n]["cpu_s"] for n in names], width=0.4, label="CPU")
-    ax.set_xticks(list(x), [n.split(" (")[0] for n in names], fontsize=8)
+    ax.bar([i - 0.27 for i in x], [best[n]["wall_s"] for n in names], width=0.27, label="process wall")
+    ax.bar(list(x), [best[n]["cpu_s"] for n in names], width=0.27, label="process CPU")
+    ax.bar([i + 0.27 for i in x], [best[n]["solve_time_s"] for n in names], width=0.27, label="solve (wall)")
+    ax.set_xticks(list(x), names, fontsize=7)
     ax.set_ylabel("seconds (best of the repeats)")
-    ax.set_title(f"scope3d bundle-adjust ladybug-49, {iterations} iterations: first run vs warm")
-    ax.legend()
+    ax.set_title("scope3d bundle-adjust ladybug-49 after pip install: compiled at install (AOT) vs JIT")
+    ax.legend(fontsize=8)
     fig.tight_layout()
     save_figure(fig, path)
 

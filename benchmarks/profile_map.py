@@ -4,8 +4,11 @@ The machine is shared, so wall clock is noisy; CPU time (``time.process_time``: 
 is what a quiet machine would show as wall time for single-threaded stages. The map runs in this process
 exactly as ``scope3d map DATASET --out DIR --no-progress`` (through ``scope3d.cli.main.main``), under cProfile
 with a process-CPU timer; each stage's cumulative CPU is read off its pipeline function. Writes
-benchmarks/results/profile_map.json (and prints a Markdown table for docs/performance.md). Run:
-    PYTHONPATH=src .venv/bin/python benchmarks/profile_map.py DATASET [--out DIR]
+benchmarks/results/profile_map.json (and prints a Markdown table for docs/performance.md), or ``--result PATH``;
+the peak resident memory is the kernel's high-water mark of this process image (``VmHWM`` of
+/proc/self/status: exact, not sampled; unlike ``getrusage``'s ``ru_maxrss`` it does not inherit the peak of
+a parent that forked this process). Run:
+    PYTHONPATH=src .venv/bin/python benchmarks/profile_map.py DATASET [--out DIR] [--result PATH]
 
 DATASET: e.g. ``scope3d phantom dome --out /tmp/dome`` (the 30-frame dome, as bench_map_dome.py renders it).
 """
@@ -21,6 +24,7 @@ import cProfile  # noqa: E402
 import json  # noqa: E402
 import os  # noqa: E402
 import pstats  # noqa: E402
+import resource  # noqa: E402
 import tempfile  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -49,6 +53,17 @@ def _timed(function, cpu: dict, wall: dict, name: str):
     return wrapper
 
 
+def _peak_rss_kb() -> float:
+    """High-water mark of this process's resident memory since exec, kB (Linux: VmHWM; elsewhere ru_maxrss)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return float(line.split()[1])
+    except OSError:
+        pass
+    return float(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("dataset")
@@ -56,6 +71,8 @@ def main() -> None:
     parser.add_argument("--cprofile", type=int, default=0, metavar="N",
                         help="also run under cProfile (process-CPU timer; it slows Python-heavy code) and list "
                              "the N functions with the most own CPU")
+    parser.add_argument("--result", default=str(OUT / "profile_map.json"), metavar="PATH",
+                        help="where to write the JSON (default benchmarks/results/profile_map.json)")
     args = parser.parse_args()
     out = args.out or tempfile.mkdtemp(prefix="profile_map_")
 
@@ -90,7 +107,10 @@ def main() -> None:
         r["wall_s"] = None if r["wall_s"] is None else round(r["wall_s"], 3)
     report = json.loads((Path(out) / "report.json").read_text())
     result = {"dataset": args.dataset, "load_average_1_5_15min": [round(v, 2) for v in os.getloadavg()],
-              "cprofile": bool(profiler), "stages": rows, "n_points": report["n_points"],
+              "cprofile": bool(profiler), "stages": rows, "n_frames": report["n_frames"],
+              "n_features": report["n_features"], "n_pairs": report["n_pairs"], "n_matches": report["n_matches"],
+              "n_points": report["n_points"], "n_observations": report["n_observations"],
+              "peak_rss_mb": round(_peak_rss_kb() / 1024.0, 1),
               "surface_error_mm": {k: report["surface_error_mm"][k] for k in ("direct", "after_icp")}
               if "surface_error_mm" in report else None}
     if profiler:
@@ -99,8 +119,8 @@ def main() -> None:
         result["top_functions_by_own_cpu_s"] = [
             {"function": f"{Path(f).name}:{line}:{n}", "own_cpu_s": round(v[2], 3), "cumulative_cpu_s": round(v[3], 3),
              "calls": v[1]} for (f, line, n), v in top]
-    OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / "profile_map.json").write_text(json.dumps(result, indent=2) + "\n")
+    Path(args.result).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.result).write_text(json.dumps(result, indent=2) + "\n")
     print(f"load average {result['load_average_1_5_15min']}" + (" (under cProfile)" if profiler else ""))
     print("| stage | CPU s | wall s |\n| --- | ---: | ---: |")
     for r in rows:

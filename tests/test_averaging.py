@@ -184,3 +184,22 @@ def test_similarity_fraction_runs_from_identity_to_the_whole():
     X = np.random.default_rng(0).normal(size=(10, 3))
     assert np.allclose(sim.fraction(0.0).apply(X), X)
     assert np.allclose(sim.fraction(1.0).apply(X), sim.apply(X))
+
+
+def test_positions_from_points_solve_two_groups_that_share_no_point():
+    """Two rows of cameras whose tracks never meet are two rigid groups: each is solved on its own (its
+    shape from its rays), and the other group's points must not enter its solve (they made it singular)."""
+    camera, rotations, centres, tracks = _row_of_cameras_and_tracks(0.0, seed=3)
+    second = Tracks(tracks.track + tracks.n_tracks, tracks.frame + 6, tracks.feature, tracks.pixels, tracks.colors)
+    both = Tracks(np.r_[tracks.track, second.track], np.r_[tracks.frame, second.frame],
+                  np.r_[tracks.feature, second.feature], np.r_[tracks.pixels, second.pixels],
+                  np.r_[tracks.colors, second.colors])
+    all_rotations = np.r_[rotations, rotations]
+    all_centres = np.r_[centres, centres + [0.0, 40.0, 0.0]]  # the second row 40 mm aside
+    measured = [MeasuredPose(Pose.from_centre(R, c), PoseTolerance.from_degrees(1.0, 0.5))
+                for R, c in zip(all_rotations, all_centres)]
+    start = all_centres + np.random.default_rng(5).uniform(-0.5, 0.5, all_centres.shape)
+    out, solved = positions_from_points(camera, measured, all_rotations, start, both)
+    assert solved.all()
+    # exact rays and exact measurements: both rows come back exactly (to the solver's round-off)
+    np.testing.assert_allclose(out, all_centres, atol=1e-6)

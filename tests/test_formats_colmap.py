@@ -180,6 +180,17 @@ def test_reader_needs_cameras_and_images_but_not_points(sparse):
         read_colmap_text(sparse)
 
 
+def test_reader_can_skip_the_points(sparse):
+    full = read_colmap_text(sparse)
+    _replace_line(sparse / "points3D.txt", 4, "1 0 0 0 1 2 3 0.5 9 0")  # a broken point is not even read
+    cameras_only = read_colmap_text(sparse, points=False)
+    assert len(cameras_only.points3d) == 0 and cameras_only.image_names == full.image_names
+    for a, b in zip(cameras_only.poses, full.poses):
+        np.testing.assert_array_equal(a.rotation, b.rotation)
+        np.testing.assert_array_equal(a.translation, b.translation)
+    assert cameras_only.cameras[0] == full.cameras[0]
+
+
 # --- import into a dataset -------------------------------------------------------------------------
 
 

@@ -89,7 +89,7 @@ def _write_ndi(path, truth, markers, *, header=True, missing=(), drop_markers=()
     path.write_text("\n".join(lines) + "\n")
 
 
-def test_tracker_csv_with_missing_rows_and_markers(tmp_path):
+def test_tracker_csv_with_missing_rows_and_markers(tmp_path, capsys):
     truth = _truth(120)
     markers = _markers(truth, seed=1)
     missing, dropped = set(range(20, 26)), set(range(40, 46))
@@ -99,8 +99,10 @@ def test_tracker_csv_with_missing_rows_and_markers(tmp_path):
     assert len(rec) == 120 and rec.tool_ok.sum() == 114 and rec.n_markers == 4
     assert np.isnan(rec.markers_mm[40, :2]).all() and np.isfinite(rec.markers_mm[20]).all()
     out = tmp_path / "out"
-    assert main(["track-markers", str(csv), "--out", str(out)]) == 0
+    assert main(["track-markers", str(csv), "--out", str(out), "--json"]) == 0
     report = json.loads((out / "report.json").read_text())
+    assert json.loads(capsys.readouterr().out) == report  # --json: the report and nothing else on stdout
+    assert (out / "report.html").is_file()
     assert report["n_frames"] == 120 and report["n_fitted"] == 114 and report["n_predicted"] == 6
     assert [f["frame"] - 1000 for f in report["frames"] if f["predicted"]] == sorted(dropped)
     # agreement with the tracker's own (noise-free) tool pose after one constant transform: the filtered

@@ -72,17 +72,10 @@ def run(args: argparse.Namespace) -> int:
     from scope3d.errors import InputError
     from scope3d.utils.atomic import atomic_files
 
-    from scope3d.estimators.bundle.jit import parallel_assembly_ready
-
     options = SolverOptions(
         max_iterations=args.max_iterations, loss=args.loss, loss_scale_px=args.loss_scale_px,
         function_tolerance=args.function_tolerance, linear_solver=args.linear_solver,
-        # a fresh install: one-thread assembly while the parallel kernel compiles in the background
-        num_threads=0 if parallel_assembly_ready() else 1,
     )
-    if options.num_threads == 1 and not args.quiet:
-        print("first run on this machine: one-thread assembly while the parallel kernel compiles in the "
-              "background for the next runs", file=sys.stderr)
     outputs = [args.report] + [p for p in (args.output, args.plot) if p]
     if len({os.path.realpath(p) for p in outputs}) != len(outputs):
         raise InputError("--report, --output and --plot must name different files")

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from scope3d.cli.job_output import add_job_arguments, finish_job, show_progress
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -35,6 +37,7 @@ def register(subparsers) -> None:
     p.add_argument("--k-sigma", type=float, default=3.0,
                    help="half-width of the bounds in standard deviations (default 3)")
     p.add_argument("--min-views", type=int, default=3, help="fewest usable views (default 3)")
+    add_job_arguments(p)
     p.set_defaults(func=_run)
     register_hand_eye(subparsers)
 
@@ -55,11 +58,11 @@ def _run(args) -> int:
     options = CalibrateOptions(board, model=args.model, k_sigma=args.k_sigma, mask_circle=args.mask_circle,
                                detection=DetectionOptions(refine_corners=not args.no_refine),
                                calibration=CalibrationOptions(min_views=args.min_views))
-    with progress_bar(len(args.images) > 20, "image") as progress:
+    with progress_bar(show_progress(args) and len(args.images) > 20, "image") as progress:
         result = run(options, args.images, args.out, progress=progress)
-    print(result.summary())
-    print(f"wrote {args.out}/ (camera.json, intrinsic_bounds.json, report.json, coverage.png, residuals.png)")
-    return 0
+    return finish_job(args, args.out, result.report, [
+        result.summary(),
+        f"wrote {args.out}/ (camera.json, intrinsic_bounds.json, report.json, coverage.png, residuals.png)"])
 
 
 def register_hand_eye(subparsers) -> None:
@@ -83,6 +86,7 @@ def register_hand_eye(subparsers) -> None:
     p.add_argument("--no-refine", action="store_true", help="closed form only, no joint refinement")
     p.add_argument("--tolerance-sigmas", type=float, default=3.0,
                    help="pose tolerance = this many residual RMS per axis (default 3)")
+    add_job_arguments(p)  # --quiet accepted for uniformity: the job shows no progress bar
     p.set_defaults(func=_run_hand_eye)
 
 
@@ -99,6 +103,4 @@ def _run_hand_eye(args) -> int:
     options = HandEyeRunOptions(board, hand_eye=HandEyeOptions(refine=not args.no_refine,
                                                                tolerance_sigmas=args.tolerance_sigmas))
     result = run(options, args.images, args.robot_poses, read_camera_json(args.camera), args.out)
-    print(result.summary())
-    print(f"wrote {args.out}/ (hand_eye.json, poses.csv)")
-    return 0
+    return finish_job(args, args.out, result.report, [result.summary(), f"wrote {args.out}/ (hand_eye.json, poses.csv)"])

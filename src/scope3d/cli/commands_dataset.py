@@ -27,7 +27,7 @@ def register(subparsers) -> None:
 
     imp = subparsers.add_parser(
         "import",
-        help="convert a Middlebury or COLMAP set or a ROS bag into a scope3d dataset",
+        help="convert a Middlebury or COLMAP set, a ROS bag or a video into a scope3d dataset",
         description="Convert another tool's multi-view set into a scope3d dataset folder (mm).",
     )
     formats = imp.add_subparsers(dest="format", metavar="FORMAT", required=True)
@@ -78,6 +78,46 @@ def register(subparsers) -> None:
                      help="largest gap between an image's stamp and its pose's, ms (default 20)")
     _add_output_arguments(bag)
     bag.set_defaults(func=run_import_rosbag)
+
+    vid = formats.add_parser(
+        "video",
+        help="video file (MP4, AVI, ...): every Nth frame or the key frames",
+        description="Import a video file (any container and codec OpenCV's FFmpeg decodes): every frame, every "
+                    "Nth frame, or the key frames (a frame is kept when the view has moved by --min-shift of the "
+                    "image since the last key frame, or no longer matches it by a shift). Poses are unknown "
+                    "(tolerance inf) unless --plan assigns the scan plan's poses by time, within --tolerance. "
+                    "See docs/datasets.md.",
+    )
+    vid.add_argument("video", metavar="VIDEO", type=Path, help="the video file")
+    vid.add_argument("--out", metavar="DIR", type=Path, required=True,
+                     help="dataset folder to write (replaced only if it is a scope3d dataset)")
+    pick = vid.add_mutually_exclusive_group()
+    pick.add_argument("--every", type=int, default=1, metavar="N", help="keep frames 0, N, 2N... (default 1: all)")
+    pick.add_argument("--keyframes", action="store_true", help="keep the key frames (looks at every frame)")
+    vid.add_argument("--min-shift", type=float, metavar="F",
+                     help="with --keyframes: the image fraction the view must move by (default 0.2)")
+    vid.add_argument("--min-response", type=float, metavar="R",
+                     help="with --keyframes: also keep a frame whose phase-correlation peak with the last key "
+                          "frame is below R (rolled, zoomed or cut away; default 0.1)")
+    lens = vid.add_mutually_exclusive_group(required=True)
+    lens.add_argument("--camera", metavar="CAMERA_JSON", type=Path, help="camera.json (see docs/datasets.md)")
+    lens.add_argument("--fov", type=float, metavar="DEG",
+                      help="no calibration: a pinhole with this field of view across the width, centred, no "
+                           "distortion (written as such in dataset.json)")
+    plan = vid.add_argument_group("planned poses")
+    plan.add_argument("--plan", metavar="PLAN_JSON", type=Path,
+                      help="scan plan (scope3d plan-scan): each frame gets the planned pose at its time")
+    plan.add_argument("--tolerance", metavar="MM", type=_non_negative,
+                      help="with --plan (required): half-width of the camera-centre box around a planned pose, mm")
+    plan.add_argument("--tolerance-deg", metavar="DEG", type=_non_negative,
+                      help="with --plan (required): half-width of the orientation box, degrees")
+    plan.add_argument("--seconds-per-view", type=float, default=600.0 / 529.0, metavar="S",
+                      help="with --plan: time from one planned view to the next (default 1.13 s, the reference's "
+                           "10 min for 529 views)")
+    plan.add_argument("--plan-start", type=float, default=0.0, metavar="S",
+                      help="with --plan: time into the video at which the scope is at the first view (default 0)")
+    vid.add_argument("--no-progress", action="store_true", help="no progress bar")
+    vid.set_defaults(func=run_import_video)
 
 
 def _add_output_arguments(parser: argparse.ArgumentParser) -> None:
@@ -158,5 +198,54 @@ def run_import_rosbag(args) -> int:
                             tolerance=_tolerance(args) if given else None)
     camera = read_camera_json(args.camera) if args.camera else None
     out = import_rosbag(args.bag, args.out, options, camera=camera)
+    print(load_dataset(out).summary())
+    return 0
+
+
+def run_import_video(args) -> int:
+    from scope3d.cli.progress import progress_bar
+    from scope3d.feature.keyframes import KeyframeOptions
+    from scope3d.io.camera_json import read_camera_json
+    from scope3d.io.dataset import load_dataset
+    from scope3d.io.scan_plan import read_scan_plan
+    from scope3d.io.video import probe_video
+    from scope3d.pipelines.video_import import VideoImportOptions, import_video
+    from scope3d.sensor.camera import Camera
+    from scope3d.sensor.pose_tolerance import PoseTolerance
+
+    if args.every < 1:
+        raise InputError(f"--every must be 1 or more, got {args.every}")
+    tuning = {name: value for name, value in (("min_shift_fraction", args.min_shift),
+                                               ("min_response", args.min_response)) if value is not None}
+    if tuning and not args.keyframes:
+        raise InputError("--min-shift and --min-response apply to --keyframes")
+    given = [flag for flag, value in (("--tolerance", args.tolerance), ("--tolerance-deg", args.tolerance_deg))
+             if value is not None]
+    if args.plan is None and given:
+        raise InputError(f"{given[0]} applies to planned poses: give --plan too")
+    if args.plan is not None and len(given) < 2:
+        raise InputError("--plan needs --tolerance MM and --tolerance-deg DEG: how far the scope may be from its plan")
+    if args.fov is not None and not 0 < args.fov < 180:
+        raise InputError(f"--fov must be between 0 and 180 degrees, got {args.fov}")
+    _check_output(args.out)
+    try:
+        keyframes = KeyframeOptions(**tuning) if args.keyframes else None
+        options = VideoImportOptions(
+            every=args.every, keyframes=keyframes, seconds_per_view=args.seconds_per_view,
+            plan_start_s=args.plan_start,
+            plan_tolerance=PoseTolerance.from_degrees(args.tolerance, args.tolerance_deg) if args.plan else
+            PoseTolerance.unknown())
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    plan = read_scan_plan(args.plan) if args.plan else None
+    if args.camera:
+        camera, intrinsics = read_camera_json(args.camera), f"from {args.camera}"
+    else:
+        info = probe_video(args.video)
+        camera = Camera.from_fov(info.width, info.height, args.fov)
+        intrinsics = f"nominal, not calibrated: pinhole, {args.fov:g} deg across the width, centred, no distortion"
+    with progress_bar(not args.no_progress, "frame") as progress:
+        out = import_video(args.video, args.out, options, camera=camera, plan=plan, intrinsics=intrinsics,
+                           progress=progress)
     print(load_dataset(out).summary())
     return 0

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from scope3d.cli.job_output import add_job_arguments, finish_job, show_progress
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -26,6 +28,7 @@ def register(subparsers) -> None:
     p.add_argument("--no-tracking", action="store_true",
                    help="match every frame by SIFT (no optical-flow tracking between frames)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_job_arguments(p)
     p.set_defaults(func=_run)
 
 
@@ -40,8 +43,7 @@ def _run(args) -> int:
     base = LocalizeOptions()
     options = replace(base, use_reported_poses=not args.ignore_reported_poses,
                       localizer=replace(base.localizer, tracking=not args.no_tracking))
-    with progress_bar(not args.no_progress, "frame") as progress:
+    with progress_bar(show_progress(args), "frame") as progress:
         result = run(options, args.map_dir, dataset, args.out, mask=args.mask, progress=progress)
-    print(result.summary())
-    print(f"wrote {args.out}/ (poses.csv, report.json, localization_errors.png)")
-    return 0
+    return finish_job(args, args.out, result.report,
+                      [result.summary(), f"wrote {args.out}/ (poses.csv, report.json, localization_errors.png)"])

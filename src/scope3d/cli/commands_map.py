@@ -62,7 +62,9 @@ def run(args) -> int:
         with progress_bar(show_progress(args), "step") as progress:
             result = run_map(options, dataset, args.out, progress=progress)
     except ValueError as exc:
-        if isinstance(exc, InputError):
+        from numpy.linalg import LinAlgError
+
+        if isinstance(exc, (InputError, LinAlgError)):  # a singular solve is our bug, not the user's data
             raise
         # a degenerate scene (no overlap, too few points for a surface) is the user's data, not a bug
         raise InputError(f"{args.dataset}: {exc}") from None

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from scope3d.cli.job_output import add_job_arguments, finish_job, show_progress
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -57,6 +59,7 @@ def register_mosaic(subparsers) -> None:
     p.add_argument("datasets", type=Path, nargs="+", metavar="DATASET", help="dataset folder(s)")
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_job_arguments(p)
     p.set_defaults(func=_run_mosaic)
 
 
@@ -67,10 +70,11 @@ def _run_mosaic(args) -> int:
     from scope3d.registration.mosaic import MosaicOptions
 
     datasets = [load_dataset(d) for d in args.datasets]
-    with progress_bar(not args.no_progress, "pair") as progress:
+    with progress_bar(show_progress(args), "pair") as progress:
         report, _ = make_mosaic(MosaicOptions(), datasets, args.out, progress=progress)
     err = report["alignment_error_px"]
-    print(f"{report['n_registered']}/{report['n_frames']} frames in the mosaic, coverage {report['coverage_fraction']:.1%}"
-          + (f", alignment error {err['mean']:.2f} px mean, {err['p95']:.2f} px p95" if err else ""))
-    print(f"wrote {args.out}/ (mosaic.png, mosaic_path.png, coverage.png, report.json)")
-    return 0
+    summary = (f"{report['n_registered']}/{report['n_frames']} frames in the mosaic, coverage "
+               f"{report['coverage_fraction']:.1%}"
+               + (f", alignment error {err['mean']:.2f} px mean, {err['p95']:.2f} px p95" if err else ""))
+    return finish_job(args, args.out, report,
+                      [summary, f"wrote {args.out}/ (mosaic.png, mosaic_path.png, coverage.png, report.json)"])

@@ -82,6 +82,8 @@ def register(subparsers) -> None:
                     "instead of a trajectory, with its field of view unless --fov is given")
     bl.add_argument("--video", type=float, metavar="FPS", help="with --plan: render the continuous path through "
                     "the planned views at FPS frames per second (poses interpolated)")
+    bl.add_argument("--mp4", action="store_true", help="with --video: also write the frames as DIR/video.mp4 "
+                    "(MPEG-4, at FPS), a real video file for `scope3d import video`")
     bl.add_argument("--seconds-per-view", type=float, default=600.0 / 529.0, metavar="S",
                     help="with --video: time from one planned view to the next (default 1.13 s, the reference's "
                          "10 min for 529 views)")
@@ -141,6 +143,8 @@ def run(args) -> int:
         plan = read_scan_plan(args.plan)
     elif args.video is not None:
         raise InputError("--video needs --plan")
+    if args.mp4 and args.video is None:
+        raise InputError("--mp4 needs --video FPS")
     with progress_bar(not args.no_progress, "frame") as progress:
         seq = generate(
             args.scene, args.trajectory, seed=args.seed, pose_noise_mm=args.pose_noise, thread=args.thread,
@@ -151,7 +155,7 @@ def run(args) -> int:
             quadrant_mount=mount, bladder=bladder or None, plan=plan, video_fps=args.video,
             seconds_per_view=args.seconds_per_view,
         )
-    out = write(seq, args.out)
+    out = write(seq, args.out, mp4=args.mp4)
     print(f"wrote {len(seq)} frames of {args.scene}/{seq.trajectory.name} "
           f"({seq.camera.width}x{seq.camera.height}) to {out}", file=sys.stderr)
     return 0

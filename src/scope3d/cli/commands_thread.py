@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from scope3d.cli.job_output import add_job_arguments, finish_job, show_progress
 from scope3d.cli.lazy import LazyChoices
 
 
@@ -21,6 +22,7 @@ def register(subparsers) -> None:
                    choices=LazyChoices("scope3d.metrology.thread_gauge", "THREAD_SIZES"),
                    help="nominal thread: %(choices)s (default M8x1.25)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_job_arguments(p)
     p.set_defaults(func=_run_scan)
 
     b = subparsers.add_parser(
@@ -56,11 +58,10 @@ def _run_scan(args) -> int:
     from scope3d.pipelines.thread_scan import ThreadScanOptions, run
 
     dataset = load_dataset(args.dataset)
-    with progress_bar(not args.no_progress, "quadrant") as progress:
+    with progress_bar(show_progress(args), "quadrant") as progress:
         result = run(ThreadScanOptions(designation=args.thread), dataset, args.out, progress=progress)
-    print(result.summary())
-    print(f"wrote {args.out}/ (cloud.ply, quadrants/, report.json, registration.png, unwrapped.png)")
-    return 0
+    return finish_job(args, args.out, result.report(), [
+        result.summary(), f"wrote {args.out}/ (cloud.ply, quadrants/, report.json, registration.png, unwrapped.png)"])
 
 
 def _run_batch(args) -> int:

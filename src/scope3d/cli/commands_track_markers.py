@@ -3,6 +3,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from scope3d.cli.job_output import add_job_arguments, finish_job
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -21,6 +23,7 @@ def register(subparsers) -> None:
     p.add_argument("--marker-sigma", type=float, default=0.25, metavar="MM",
                    help="noise of one marker position per axis (default 0.25 mm)")
     p.add_argument("--no-filter", action="store_true", help="write the raw per-frame fits (no Kalman filter)")
+    add_job_arguments(p)  # --quiet accepted for uniformity: the job shows no progress bar
     p.set_defaults(func=_run)
 
 
@@ -33,6 +36,4 @@ def _run(args) -> int:
     except ValueError as exc:
         raise InputError(str(exc)) from None
     result = run(options, args.tracker_file, args.out)
-    print(result.summary())
-    print(f"wrote {args.out}/ (poses.csv, report.json)")
-    return 0
+    return finish_job(args, args.out, result.report, [result.summary(), f"wrote {args.out}/ (poses.csv, report.json)"])

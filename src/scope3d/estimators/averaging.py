@@ -336,11 +336,23 @@ def positions_from_points(camera: Camera, measured: list[MeasuredPose], rotation
     frames 0..n-1. min_observations : a frame with fewer observations on points seen twice keeps its start.
     Returns (centres (n, 3), solved (n,) bool: the frames placed by the points).
     """
+    start = np.asarray(centres, float).copy()
+    if not np.all(np.isfinite(start)):  # measurements beyond float range: nothing to weigh the rays by
+        return start, np.zeros(len(measured), bool)
+    try:
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            C, solved = _positions_from_points(camera, measured, rotations, start.copy(), tracks, noise_px,
+                                               min_observations, iterations)
+    except np.linalg.LinAlgError:  # e.g. centres so far out that their squares overflow
+        return start, np.zeros(len(measured), bool)
+    if not np.all(np.isfinite(C)):
+        return start, np.zeros(len(measured), bool)
+    return C, solved
+
+
+def _positions_from_points(camera, measured, rotations, C, tracks, noise_px, min_observations, iterations):
     n = len(measured)
-    C = np.asarray(centres, float).copy()
     solved = np.zeros(n, bool)
-    if not np.all(np.isfinite(C)):  # measurements beyond float range: nothing to weigh the rays by
-        return C, solved
     obs_frame, obs_track = tracks.frame.astype(int), tracks.track.astype(int)
     rays = np.c_[camera.pixel_to_normalised(tracks.pixels), np.ones(len(obs_frame))]
     u = np.einsum("kji,kj->ki", rotations[obs_frame], rays)  # R^T x: world direction of each observation
@@ -403,6 +415,7 @@ def _solve_group(P, weight, obs_frame, obs_track, frames, start, n_points) -> np
     H = np.zeros((n_points, 3, 3))
     np.add.at(H, t, wP)
     H += 1e-12 * np.trace(H, axis1=1, axis2=2)[:, None, None] * np.eye(3)
+    H[np.bincount(t, minlength=n_points) == 0] = np.eye(3)  # another group's points: not in this solve
     Hinv = np.linalg.inv(H)
     S = np.zeros((m, 3, m, 3))
     np.add.at(S, (f, slice(None), f), wP)  # the cameras' own blocks

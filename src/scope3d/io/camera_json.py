@@ -25,7 +25,8 @@ def read_camera_json(path: str | Path) -> Camera:
     """Read ``camera.json`` (pixels; see the module docstring). Problems are InputErrors naming the file."""
     path = Path(path)
     if not path.is_file():
-        raise InputError(f"{path}: camera intrinsics file is missing")
+        raise InputError(f"{path}: camera intrinsics file is missing; scope3d does not guess a camera: calibrate it on "
+                         "checkerboard views (`scope3d calibrate`, docs/calibration.md) and put its camera.json here")
     data = _read_json_object(path)
     missing = [k for k in CAMERA_KEYS if k not in data]
     if missing:

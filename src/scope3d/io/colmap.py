@@ -238,16 +238,17 @@ _CAMERA_MODELS = {
 }
 
 
-def read_colmap_text(model_dir: str | Path, *, length_scale_to_mm: float = 1.0) -> SparseModel:
+def read_colmap_text(model_dir: str | Path, *, length_scale_to_mm: float = 1.0, points: bool = True) -> SparseModel:
     """Read a COLMAP text model. ``points3D.txt`` is optional (an empty point set without it).
 
     length_scale_to_mm : the model's length unit in mm (1 if it was written by scope3d; 1000 for a
-    model in metres). Problems are InputErrors naming the file and line.
+    model in metres). points : False skips ``points3D.txt`` (cameras and poses only: most of a large
+    model's reading time is its points). Problems are InputErrors naming the file and line.
     """
-    return _read_model(Path(model_dir), length_scale_to_mm)[0]
+    return _read_model(Path(model_dir), length_scale_to_mm, read_points=points)[0]
 
 
-def _read_model(model_dir: Path, length_scale_to_mm: float) -> tuple[SparseModel, float]:
+def _read_model(model_dir: Path, length_scale_to_mm: float, *, read_points: bool = True) -> tuple[SparseModel, float]:
     """:func:`read_colmap_text`, also returning the largest ``| |q| - 1 |`` of the quaternions it normalised."""
     if not model_dir.is_dir():
         raise InputError(f"{model_dir}: COLMAP model folder does not exist")
@@ -260,7 +261,7 @@ def _read_model(model_dir: Path, length_scale_to_mm: float) -> tuple[SparseModel
     )
     points_path = model_dir / "points3D.txt"
     points, colors, errors, tracks = np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0), []
-    if points_path.is_file():
+    if read_points and points_path.is_file():
         points, colors, errors, tracks, _ = _read_points(points_path, image_index, keypoints,
                                                                  length_scale_to_mm)
     try:

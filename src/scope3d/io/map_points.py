@@ -10,6 +10,7 @@ Written by ``scope3d map`` beside ``points.ply``; read by :mod:`scope3d.sfm.loca
 """
 from __future__ import annotations
 
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -40,13 +41,20 @@ class MapPoints:
         return len(self.xyz_mm)
 
 
+# zlib level 1 rather than np.savez_compressed's 6: on the dome map's 6,279 points 0.09 s instead of
+# 0.46 s of the map's outputs, for a file 16 % larger (1.25 MB instead of 1.08 MB); np.load reads either
+ZIP_COMPRESS_LEVEL = 1
+
+
 def write_map_points(path: str | Path, points: MapPoints) -> None:
+    """Write ``map_points.npz`` (an .npz archive any ``np.load`` reads), atomically."""
+    arrays = {"xyz_mm": points.xyz_mm.astype(np.float64), "descriptors": points.descriptors.astype(np.float32),
+              "n_observations": points.n_observations.astype(np.int32), "colors": points.colors.astype(np.uint8)}
     with atomic_path(Path(path)) as tmp:
-        with open(tmp, "wb") as handle:
-            np.savez_compressed(handle, xyz_mm=points.xyz_mm.astype(np.float64),
-                                descriptors=points.descriptors.astype(np.float32),
-                                n_observations=points.n_observations.astype(np.int32),
-                                colors=points.colors.astype(np.uint8))
+        with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED, compresslevel=ZIP_COMPRESS_LEVEL) as archive:
+            for name, array in arrays.items():
+                with archive.open(f"{name}.npy", "w", force_zip64=True) as member:
+                    np.lib.format.write_array(member, array, allow_pickle=False)
 
 
 def read_map_points(path: str | Path) -> MapPoints:

@@ -29,7 +29,8 @@ from scipy.optimize import least_squares
 # 1.5 mm; TD2 (pitch diameter, nominal 5.6-11.2 mm) 150 / 160 / 180 um. The limits below are the basic
 # sizes of ISO 724 (D2 = D - 0.6495 P, D1 = D - 1.0825 P) plus these tolerances, as tabulated in ISO 965-2
 # (limits of sizes for general purpose threads). The major diameter of an internal thread has a minimum
-# (= D) only; its maximum is set by the tap and not toleranced.
+# (= D) only; its maximum is set by the tap and not toleranced. tests/test_thread_limits.py checks the table
+# against the published limits (ASME B1.13M = ISO 965-2 for 6H) and against the ISO 724 / 965-1 formulas.
 ISO_965_6H = {
     # designation: (D1 min, D1 max, D2 min, D2 max, D min), mm
     "M6x1": (4.917, 5.153, 5.350, 5.500, 6.000),

@@ -333,9 +333,12 @@ def contact_sheet(images: list[np.ndarray], *, columns: int | None = None, thumb
     return sheet
 
 
-def write(sequence: PhantomSequence, out_dir: str | Path, *, contact_sheet_px: int = 160) -> Path:
+def write(sequence: PhantomSequence, out_dir: str | Path, *, contact_sheet_px: int = 160, mp4: bool = False) -> Path:
     """Write the dataset folder (see :mod:`scope3d.io.dataset`), ground truth included, and
-    ``contact_sheet.png`` (plus ``contact_sheet_fluorescence.png`` when the scene has targets)."""
+    ``contact_sheet.png`` (plus ``contact_sheet_fluorescence.png`` when the scene has targets).
+    mp4 : also write the frames as ``video.mp4`` at the trajectory's frame rate (a plan video's)."""
+    if mp4 and "fps" not in sequence.trajectory.params:
+        raise InputError("an MP4 needs a video-rate trajectory (a plan rendered with a frame rate)")
     out_dir = Path(out_dir)
     # the contact sheets go into the dataset's atomic write: a kill never leaves a dataset without them
     sheets = {"contact_sheet.png": contact_sheet(sequence.frames, thumb_px=contact_sheet_px)}
@@ -355,6 +358,10 @@ def write(sequence: PhantomSequence, out_dir: str | Path, *, contact_sheet_px: i
         from scope3d.utils.jsonio import write_json
 
         write_json(out_dir / "quadrants.json", quadrant_layout(sequence.trajectory, sequence.names))
+    if mp4:
+        from scope3d.io.video import write_video
+
+        write_video(out_dir / "video.mp4", sequence.frames, sequence.trajectory.params["fps"])
     return out_dir
 
 

@@ -371,14 +371,17 @@ def build_dome(radius_mm: float = 17.5, *, texture_seed: int = 0, mm_per_texel: 
 # --- sheet -------------------------------------------------------------------------------------
 
 
-def build_sheet(*, texture_seed: int = 0, mm_per_texel: float = 0.02) -> Scene:
-    """A flat printed sheet, 60 mm square, in the plane z = 0 (reference sec. 4.6)."""
-    half = SHEET_SIZE_MM / 2
+def build_sheet(*, texture_seed: int = 0, mm_per_texel: float = 0.02, size_mm: float = SHEET_SIZE_MM) -> Scene:
+    """A flat printed sheet, ``size_mm`` square (60 mm: reference sec. 4.6), in the plane z = 0. A larger
+    sheet holds a longer survey (benchmarks/bench_map_scaling.py)."""
+    if not size_mm > 0:
+        raise ValueError(f"sheet size must be a positive number of mm, got {size_mm}")
+    half = size_mm / 2
     g = np.linspace(-half, half, 5)
     gx, gy = np.meshgrid(g, g)
     v = np.stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)], 1)
     mesh = _assemble([(v, grid_faces(5, 5, wrap=False), np.tile([0.0, 0.0, 1.0], (len(v), 1)))])
-    size = SHEET_SIZE_MM + 2.0
+    size = size_mm + 2.0
     tex = TextureMap(printed_texture((size, size), mm_per_texel, texture_seed + 1), (-size / 2, -size / 2),
                      mm_per_texel)
 
@@ -390,7 +393,7 @@ def build_sheet(*, texture_seed: int = 0, mm_per_texel: float = 0.02) -> Scene:
         "description": "flat printed sheet (reference sec. 4.6)",
         "units": "mm",
         "world_frame": "z up; sheet in the plane z = 0, centred on the origin",
-        "sheet": {"size_mm": SHEET_SIZE_MM},
+        "sheet": {"size_mm": size_mm},
         "texture": {"kind": "printed tissue photograph", "seed": texture_seed, "mm_per_texel": mm_per_texel},
         "targets": [],
     }

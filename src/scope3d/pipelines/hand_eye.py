@@ -4,7 +4,7 @@
     corners    <- detect_board per image                (images without the board are listed and skipped)
     board      <- board_pose per view                   (solvePnP through the calibrated camera.json)
     hand-eye   <- calibrate_hand_eye                    (Park-Martin closed form, joint refinement)
-    files      <- hand_eye.json (flange_from_cam, cam_from_flange, residuals, tolerance),
+    files      <- hand_eye.json (flange_from_cam, cam_from_flange, residuals, tolerance; report.json the same),
                   poses.csv (cam_from_base of every robot row with the tolerance: a dataset's poses)
 
 ``run(options, image_paths, robot_poses_csv, camera, out_dir) -> HandEyeRun`` is what
@@ -102,7 +102,8 @@ def run(options: HandEyeRunOptions, image_paths: list[str | Path], robot_poses_c
     cameras = result.camera_poses([robot[n] for n in names])
     with atomic_file(out / "poses.csv") as fh:
         fh.write(format_poses_csv(names, [MeasuredPose(c, result.tolerance) for c in cameras]))
-    write_json(out / "hand_eye.json", report)
+    write_json(out / "hand_eye.json", report)  # the calibration product other tools read
+    write_json(out / "report.json", report)  # the run's report, as every job writes one (report.html)
     return HandEyeRun(result, views, skipped, report)
 
 

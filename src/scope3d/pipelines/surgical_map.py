@@ -81,6 +81,7 @@ from scope3d.sfm.guided_mapping import (
     adjust_map,
     refine_poses_for_matching,
 )
+from scope3d.sfm.model_checks import check_model, model_checks_summary
 from scope3d.utils.atomic import atomic_directory
 from scope3d.utils.jsonio import write_json
 from scope3d.utils.progress import Progress, advance, stage
@@ -247,6 +248,8 @@ class MapResult:
         lines = [f"{r['n_frames']} frames, {r['n_points']} points ({r['n_points_off_surface_dropped']} off-surface "
                  f"dropped), {r['n_observations']} observations, "
                  f"mean reprojection error {r['mean_reprojection_error_px']:.3f} px, {r['time_s']:.2f} s"]
+        if "model_checks" in r:
+            lines.append(model_checks_summary(r["model_checks"]))
         if "surface_error_mm" in r:
             d, i = r["surface_error_mm"]["direct"], r["surface_error_mm"]["after_icp"]
             lines.append(f"surface error: direct mean {d['mean']:.3f} mm ({100 * d['within_1mm_fraction']:.1f} % "
@@ -494,6 +497,7 @@ def write_outputs(
         "bundle": [_bundle_summary(r) for r in sparse.bundle_results],
         "camera_adjusted": {"intrinsics": dict(zip(INTRINSIC_NAMES, sparse.camera.intrinsics.tolist())),
                             "fov_deg": sparse.camera.fov_deg, "fov_deg_dataset": dataset.camera.fov_deg},
+        "model_checks": check_model(dataset.names, dataset.poses, sparse.poses, tr).as_dict(),
     }
     fl = options.fluorescence or FluorescenceOptions()
     if surface is not None:

@@ -7,10 +7,15 @@ Read top to bottom like the method section::
                                                        stage's known axial poses), one per quadrant
     panorama   <- registration.register_quadrants     (neighbours' 3-D-3-D feature correspondences,
                                                        RANSAC + SVD, joint solve with the loop closure)
-    cloud      <- registration.statistical_inliers    (30 neighbours, 3 sigma)
+    dense      <- mvs.plane_sweep.dense_quadrant     (plane sweep of each quadrant with its frames'
+                                                       registered poses, straight into the registered
+                                                       world; registration.registered_frame_poses)
+    cloud      <- registration.statistical_inliers    (30 neighbours, 3 sigma) of the dense clouds (the
+                                                       registered sparse ones without dense mapping)
     gauge      <- metrology.gauge_thread              (axis, D1, D, D2, P, flank angle, 6H verdict, defects)
     errors     <- registration.registration_errors    (when the dataset has true poses)
-    files      <- cloud.ply, quadrants/q??.ply, report.json, registration.png, unwrapped.png
+    files      <- cloud.ply, quadrants/q??.ply (+ q??_dense.ply, registered), report.json,
+                  registration.png, unwrapped.png
 
 ``run(options, dataset, out_dir) -> ThreadScanResult`` is what ``scope3d thread-scan`` calls.
 """
@@ -31,8 +36,9 @@ from scope3d.io.quadrants import read_quadrants
 from scope3d.metrology.thread_gauge import THREAD_SIZES, GaugeOptions, GaugeResult, gauge_thread
 from scope3d.registration.outliers import OutlierOptions, statistical_inliers
 from scope3d.registration.panorama import (PanoramaOptions, PanoramaResult, QuadrantCloud, register_quadrants,
-                                           registration_errors)
+                                           registered_frame_poses, registration_errors)
 from scope3d.scene.mesh import PointCloud
+from scope3d.mvs.plane_sweep import DenseQuadrantOptions, dense_quadrant
 from scope3d.sfm.quadrant_mapping import QuadrantMapOptions, map_quadrant
 from scope3d.utils.atomic import atomic_directory
 from scope3d.utils.figures import new_figure, save_figure
@@ -44,7 +50,7 @@ from scope3d.utils.progress import Progress, advance, stage
 class ThreadScanOptions:
     """designation : the nominal thread (``M6x1``, ``M8x1.25``, ``M10x1.5``); the gauge's other options
     come from ``gauge`` (its designation is replaced by this one). mapping, panorama, outliers, gauge :
-    the stages' options. threads : quadrants mapped at once (default 2, the machine's cores; OpenCV
+    the stages' options. dense : the dense clouds' options, or None to gauge the sparse points. threads : quadrants mapped at once (default 2, the machine's cores; OpenCV
     releases the GIL). seed : RANSAC's seeds."""
 
     designation: str = "M8x1.25"
@@ -52,6 +58,10 @@ class ThreadScanOptions:
     panorama: PanoramaOptions = PanoramaOptions()
     outliers: OutlierOptions = OutlierOptions()
     gauge: GaugeOptions = GaugeOptions()
+    # Off by default: on rendered M8 holes (400x320, 4-8 frames per quadrant, 45° view) the dense clouds
+    # measure D1 to 0.01-0.025 mm but not D2 or D (one flank seen), and cost ~1 min of CPU per hole;
+    # see docs/thread_metrology.md.
+    dense: DenseQuadrantOptions | None = None
     threads: int = 2
     seed: int = 0
 
@@ -64,13 +74,15 @@ class ThreadScanOptions:
 
 @dataclass
 class ThreadScanResult:
-    """clouds : the quadrants (stacked frame); panorama : the registration; points : (N, 3) mm the
-    registered cloud after outlier removal; gauge : the measurement, or None when the cloud shows no
+    """clouds : the quadrants (stacked frame); panorama : the registration; dense : per quadrant its
+    dense cloud (registered frame, (M_q, 3) mm; empty without dense mapping); points : (N, 3) mm the
+    registered cloud the gauge measured, after outlier removal (dense, or the sparse points without); gauge : the measurement, or None when the cloud shows no
     gaugeable thread (gauge_message says why; the verdict is then ``indeterminate``); errors :
     registration errors against the truth or None; timings_s : per stage."""
 
     clouds: list[QuadrantCloud]
     panorama: PanoramaResult
+    dense: list[np.ndarray]
     points: np.ndarray
     gauge: GaugeResult | None
     errors: dict | None
@@ -94,7 +106,8 @@ class ThreadScanResult:
         return {
             "gauge": gauge,
             "registration": registration,
-            "points": {"per_quadrant": [len(c.points) for c in self.clouds], "registered": len(self.points)},
+            "points": {"per_quadrant": [len(c.points) for c in self.clouds],
+                       "dense_per_quadrant": [len(d) for d in self.dense], "registered": len(self.points)},
             "timings_s": self.timings_s,
         }
 
@@ -108,7 +121,8 @@ class ThreadScanResult:
         if self.errors:
             lines.append(f"against the truth: rotation error {self.errors['rotation_error_deg']:.3f}° (max), "
                          f"offset error {self.errors['offset_error_mm']:.4f} mm (max over quadrants)")
-        lines.append(f"points: {sum(len(c.points) for c in self.clouds)} in {len(self.clouds)} quadrants, "
+        lines.append(f"points: {sum(len(c.points) for c in self.clouds)} sparse and {sum(map(len, self.dense))} "
+                     f"dense in {len(self.clouds)} quadrants, "
                      f"{len(self.points)} after outlier removal; time "
                      + ", ".join(f"{k} {v:.1f} s" for k, v in self.timings_s.items()))
         return "\n".join(lines)
@@ -133,6 +147,24 @@ def map_quadrants(options: ThreadScanOptions, dataset: Dataset, progress: Progre
             raise InputError(f"{dataset.root}: quadrant {c.index} ({c.angle_deg:.1f}°): only {len(c.points)} 3-D points "
                              "reconstructed (too few features or matches)")
     return clouds
+
+
+def dense_clouds(options: ThreadScanOptions, dataset: Dataset, panorama: PanoramaResult, clouds: list[QuadrantCloud],
+                 progress: Progress | None = None) -> list[np.ndarray]:
+    """Each quadrant's dense cloud in the registered world, swept with its frames' registered poses."""
+    layout = read_quadrants(dataset.root, dataset.names)
+    stage(progress, "dense quadrants", len(layout))
+
+    def one(q):
+        g = panorama.world_from_stacked[q.index]
+        poses = registered_frame_poses(g, [dataset.poses[i].pose for i in q.frames], len(q.frames) // 2)
+        points, _ = dense_quadrant([dataset.frame(i) for i in q.frames], dataset.camera, poses,
+                                   g.transform(clouds[q.index].points), options.dense)
+        advance(progress)
+        return points
+
+    with ThreadPoolExecutor(max_workers=options.threads) as pool:
+        return list(pool.map(one, layout))
 
 
 def true_world_from_stacked(dataset: Dataset) -> list[Pose] | None:
@@ -160,6 +192,13 @@ def run(options: ThreadScanOptions, dataset: Dataset, out_dir: str | Path, *,
     panorama = register_quadrants(clouds, options.panorama, seed=options.seed, progress=progress)
     registered = panorama.apply(clouds)
     timings["registration"] = time.perf_counter() - t0
+
+    dense = [np.zeros((0, 3)) for _ in clouds]
+    if options.dense is not None:
+        t0 = time.perf_counter()
+        dense = dense_clouds(options, dataset, panorama, clouds, progress)
+        registered = dense
+        timings["dense"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     merged = np.concatenate(registered)
@@ -192,7 +231,7 @@ def run(options: ThreadScanOptions, dataset: Dataset, out_dir: str | Path, *,
                 "major_diameter": gauge.major_diameter_mm.value - made["major_diameter_mm"],
                 "pitch_diameter": gauge.pitch_diameter_mm.value - made["pitch_diameter_mm"],
                 "pitch": gauge.pitch_mm.value - dataset.ground_truth.scene["thread"]["pitch_mm"]}
-    result = ThreadScanResult(clouds, panorama, points, gauge, errors, timings, gauge_message)
+    result = ThreadScanResult(clouds, panorama, dense, points, gauge, errors, timings, gauge_message)
     write_outputs(result, out_dir)
     return result
 
@@ -205,6 +244,9 @@ def write_outputs(result: ThreadScanResult, out_dir: str | Path) -> None:
         (tmp / "quadrants").mkdir()
         for c in result.clouds:
             write_ply(tmp / "quadrants" / f"q{c.index:02d}.ply", PointCloud(c.points, c.colors))
+        for c, d in zip(result.clouds, result.dense):
+            if len(d):
+                write_ply(tmp / "quadrants" / f"q{c.index:02d}_dense.ply", PointCloud(d))
         write_json(tmp / "report.json", result.report())
         _registration_figure(result, tmp / "registration.png")
         if result.gauge is not None:

@@ -129,6 +129,23 @@ class PanoramaResult:
         return [g.transform(c.points) for g, c in zip(self.world_from_stacked, clouds)]
 
 
+def registered_frame_poses(world_from_stacked: Pose, poses: list[Pose], anchor: int) -> list[Pose]:
+    """The frames of one quadrant in the registered world, from the stage's reported ``cam_from_world``
+    ``poses`` (the stacked frame) and the quadrant's ``world_from_stacked``. The registration is exact at
+    the ``anchor`` frame; the others keep their orientation relative to it but are displaced from it by the
+    stage's reported axial steps *in the world* (the stage advances along its own axis, whatever the
+    camera's unknown tilt): moving them rigidly with the quadrant would turn a tilted camera's baseline
+    with it, and a 0.5° tilt at a 45° view changes the baseline across the view by ~1 % and every
+    triangulated depth with it."""
+    c_anchor = poses[anchor].centre
+    out = []
+    for p in poses:
+        world_from_cam = world_from_stacked @ p.inverse()
+        centre = world_from_stacked.transform(c_anchor[None])[0] + (p.centre - c_anchor)
+        out.append(Pose.from_centre(world_from_cam.rotation.T, centre))
+    return out
+
+
 def check_quadrant_angles(clouds: list[QuadrantCloud], tolerance_deg: float = 1.0) -> tuple[float, bool]:
     """The stage's angle step and whether the quadrants close a full circle. Raises :class:`InputError`
     naming the first quadrant whose angle breaks the even stepping (or an out-of-order index)."""

@@ -13,7 +13,7 @@ from scope3d.errors import InputError
 from scope3d.geometry.plane import principal_axes
 from scope3d.geometry.pose import Pose
 from scope3d.io.ply import read_ply
-from scope3d.scene.mesh import Mesh
+from scope3d.scene.mesh import Mesh, SampledSurface
 from scope3d.sensor.camera import Camera
 
 # The geometry files a job may leave, in the order the view lists them; ``texture_from`` names a file
@@ -159,7 +159,10 @@ def gather_scene(run_dir: Path, report: dict, options: ReportOptions) -> ViewSce
     camera, poses = _cameras(run_dir, dataset, notes)
     truth = None
     if dataset is not None and dataset.ground_truth is not None and dataset.ground_truth.surface_path is not None:
-        truth = dataset.ground_truth.surface()
+        from scope3d.metrology.evaluation import EvaluationOptions
+
+        # sampled once for every layer, as the map's evaluation samples it (seeded: the same distances)
+        truth = SampledSurface(dataset.ground_truth.surface(), EvaluationOptions().sample_step_mm)
 
     layers: list[Layer] = []
     for name in GEOMETRY_FILES:
@@ -241,7 +244,7 @@ def _cameras(run_dir: Path, dataset, notes: list[str]) -> tuple[Camera | None, l
         from scope3d.io.colmap import read_colmap_text
 
         try:
-            model = read_colmap_text(sparse)
+            model = read_colmap_text(sparse, points=False)  # the cameras only: the points are in points.ply
             return model.cameras[0], list(model.poses)
         except InputError as exc:
             notes.append(f"sparse model not read: {exc}")

@@ -5,6 +5,10 @@ relative to the others is known to the stage's micrometres: SIFT features are ma
 few steps apart (RANSAC on the fundamental matrix), chained into tracks, and triangulated with those
 poses (midpoint, reprojection and ray-angle gates). Every 3-D point keeps the SIFT descriptor of its
 first observation, so that neighbouring quadrants can be matched in 3-D (:mod:`scope3d.registration`).
+
+The sparse points lie mostly on the crests the view faces, too few to gauge flanks and roots.
+:func:`scope3d.mvs.plane_sweep.dense_quadrant` adds a dense cloud: a multi-view plane sweep (:mod:`scope3d.mvs.plane_sweep`) of the
+quadrant's first and last frames against the others, over a depth range bracketing the sparse points.
 """
 from __future__ import annotations
 

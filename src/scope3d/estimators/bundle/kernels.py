@@ -19,12 +19,12 @@ Layout shared by all kernels
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 # --- residuals and Jacobians -------------------------------------------------------------------
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def residuals_and_jacobians(
     observed, cam_index, point_index, intr_index, rotations, translations, rot_jac, centre_param,
     points, point_jac, intrinsics, square_pixels, residuals, jc, jp,
@@ -112,7 +112,7 @@ def residuals_and_jacobians(
             jp[o, 1, k] = g10 * point_jac[j, 0, k] + g11 * point_jac[j, 1, k] + g12 * point_jac[j, 2, k]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def squared_residuals(
     observed, cam_index, point_index, intr_index, rotations, translations, points, intrinsics,
     square_pixels, out,
@@ -143,7 +143,7 @@ def squared_residuals(
 # --- gradient, diagonal, masking ---------------------------------------------------------------
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def gradient_and_diagonal(residuals, jc, jp, cam_blocks, point_index, n_blocks, n_points):
     """g = J^T r and diag(J^T J), camera side (6 n_blocks,) and points (n, 3)."""
     gc = np.zeros(6 * n_blocks)
@@ -169,7 +169,7 @@ def gradient_and_diagonal(residuals, jc, jp, cam_blocks, point_index, n_blocks, 
     return gc, dc, gp, dp
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def zero_frozen_columns(jc, jp, cam_blocks, point_index, frozen_c, frozen_p):
     """Zero the Jacobian columns of frozen (fixed or active) parameters, in place (eq. 6.12)."""
     for o in range(jc.shape[0]):
@@ -189,7 +189,7 @@ def zero_frozen_columns(jc, jp, cam_blocks, point_index, frozen_c, frozen_p):
 # --- reduced camera system (Schur complement, eq. 6.7) ---------------------------------------
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def block_structure_keys(cam_blocks, point_ptr, n_blocks):
     """Keys ``row * n_blocks + col`` (row <= col) of the nonzero 6x6 blocks of the reduced camera
     matrix's upper triangle; it is symmetric, so only the upper triangle is stored."""
@@ -226,7 +226,7 @@ def block_structure_keys(cam_blocks, point_ptr, n_blocks):
     return keys[:pos]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _find_block(indptr, indices, row, col):
     lo = indptr[row]
     hi = indptr[row + 1] - 1
@@ -242,7 +242,7 @@ def _find_block(indptr, indices, row, col):
     return -1
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _inv3(m, out):
     a = m[0, 0]; b = m[0, 1]; c = m[0, 2]
     d = m[1, 0]; e = m[1, 1]; f = m[1, 2]
@@ -260,7 +260,7 @@ def _inv3(m, out):
     return True
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def pair_slots(cam_blocks, point_ptr, indptr, indices):
     """Slot in ``data`` of every (observation pair, quadrant) term of S, in the order
     :func:`assemble_reduced_system` visits them (int32, one binary search each, done once per solve),
@@ -291,7 +291,7 @@ def pair_slots(cam_blocks, point_ptr, indptr, indices):
     return out, slot_ptr
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def assemble_reduced_system(
     residuals, jc, jp, cam_blocks, point_ptr, damp_c, damp_p, indptr, indices, data, rhs, v_inv, gp,
     used_cols, slots,
@@ -308,48 +308,15 @@ def assemble_reduced_system(
     """
     data[:] = 0.0
     rhs[:] = 0.0
-    ok = _assemble_points(0, point_ptr.shape[0] - 1, 0, residuals, jc, jp, cam_blocks, point_ptr, damp_p,
+    ok = assemble_point_range(0, point_ptr.shape[0] - 1, 0, residuals, jc, jp, cam_blocks, point_ptr, damp_p,
                           data, rhs, v_inv, gp, used_cols, slots)
-    _add_diagonal(indptr, indices, data, damp_c)
+    add_diagonal(indptr, indices, data, damp_c)
     return ok
 
 
-@njit(cache=True, parallel=True)
-def assemble_reduced_system_parallel(
-    residuals, jc, jp, cam_blocks, point_ptr, damp_c, damp_p, indptr, indices, data, rhs, v_inv, gp,
-    used_cols, slots, slot_ptr, chunks, data_t, rhs_t,
-):
-    """:func:`assemble_reduced_system` over point chunks in parallel.
-
-    chunks (T + 1,) point boundaries (balanced by Schur terms); data_t (T, nnzb, 6, 6) and
-    rhs_t (T, 6 n_blocks) are per-chunk accumulators, summed into data and rhs at the end.
-    """
-    n_chunks = chunks.shape[0] - 1
-    oks = np.ones(n_chunks, dtype=np.bool_)
-    for t in prange(n_chunks):
-        data_t[t] = 0.0
-        rhs_t[t] = 0.0
-        oks[t] = _assemble_points(chunks[t], chunks[t + 1], slot_ptr[chunks[t]], residuals, jc, jp, cam_blocks,
-                                  point_ptr, damp_p, data_t[t], rhs_t[t], v_inv, gp, used_cols, slots)
-    nnzb = data.shape[0]
-    for p in prange(nnzb):
-        for s in range(6):
-            for u in range(6):
-                acc = 0.0
-                for t in range(n_chunks):
-                    acc += data_t[t, p, s, u]
-                data[p, s, u] = acc
-    for i in range(rhs.shape[0]):
-        acc = 0.0
-        for t in range(n_chunks):
-            acc += rhs_t[t, i]
-        rhs[i] = acc
-    _add_diagonal(indptr, indices, data, damp_c)
-    return oks.all()
-
-
-@njit(cache=True)
-def _add_diagonal(indptr, indices, data, damp_c):
+@njit(cache=True, nogil=True)
+def add_diagonal(indptr, indices, data, damp_c):
+    """Add damp_c (6 n_blocks,) to the diagonal of the diagonal blocks of the BSR ``data``, in place."""
     n_blocks = indptr.shape[0] - 1
     for b in range(n_blocks):
         slot = _find_block(indptr, indices, b, b)
@@ -357,10 +324,16 @@ def _add_diagonal(indptr, indices, data, damp_c):
             data[slot, s, s] += damp_c[6 * b + s]
 
 
-@njit(cache=True)
-def _assemble_points(j_start, j_stop, pos, residuals, jc, jp, cam_blocks, point_ptr, damp_p, data, rhs, v_inv, gp,
+@njit(cache=True, nogil=True)
+def assemble_point_range(j_start, j_stop, pos, residuals, jc, jp, cam_blocks, point_ptr, damp_p, data, rhs, v_inv, gp,
                      used_cols, slots):
-    """Add the Schur terms of points [j_start, j_stop) to data and rhs (see assemble_reduced_system)."""
+    """Add the Schur terms of points [j_start, j_stop) to data and rhs (see assemble_reduced_system);
+    ``pos`` is where their terms start in ``slots`` (``slot_ptr[j_start]`` of :func:`pair_slots`).
+
+    Threads run it on disjoint point ranges with their own data and rhs (the GIL is released), and
+    add the results up: the parallel Schur assembly without numba's parfors, which cost three
+    quarters of the kernels' compile time.
+    """
     nu = used_cols.shape[0]
     # used columns split by quadrant (pose block: h = 0, intrinsic block: h = 1)
     q_count = np.zeros(2, dtype=np.int64)
@@ -473,7 +446,7 @@ def _assemble_points(j_start, j_stop, pos, residuals, jc, jp, cam_blocks, point_
     return ok
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def back_substitute(jc, jp, cam_blocks, point_ptr, v_inv, gp, delta_c):
     """Point steps dp_j = V_j^-1 (-g_p - W_j^T dc) of eq. 6.7; returns (n, 3)."""
     n_points = point_ptr.shape[0] - 1
@@ -498,7 +471,7 @@ def back_substitute(jc, jp, cam_blocks, point_ptr, v_inv, gp, delta_c):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def jacobian_step_norm2(jc, jp, cam_blocks, point_index, delta_c, delta_p):
     """|J delta|^2, the quadratic term of the model decrease (eq. 6.3 with H = J^T J)."""
     total = 0.0
@@ -519,7 +492,7 @@ def jacobian_step_norm2(jc, jp, cam_blocks, point_index, delta_c, delta_p):
     return total
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def bsr_to_dense(indptr, indices, data):
     n_blocks = indptr.shape[0] - 1
     out = np.zeros((6 * n_blocks, 6 * n_blocks))
@@ -533,7 +506,7 @@ def bsr_to_dense(indptr, indices, data):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def scale_rows(residuals, jc, jp, weights):
     """Multiply each observation's residual and Jacobian rows by its weight (robust loss, IRLS)."""
     for o in range(residuals.shape[0]):

@@ -25,22 +25,27 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import time
 import warnings
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
-from typing import Callable
+from typing import Callable, Iterator
 
-import numba
 import numpy as np
 import scipy.linalg
 import scipy.sparse
 import scipy.sparse.linalg
 
 from scope3d.errors import InputError
-from scope3d.estimators.bundle import kernels
 from scope3d.estimators.bundle._blas import blas_threads
+from scope3d.estimators.bundle.aot import AOT_MODULE, load_kernels
 from scope3d.estimators.bundle.losses import LOSS_NAMES, loss_rho, loss_weight
 from scope3d.estimators.bundle.problem import BundleParameters, BundleProblem
+
+# compiled at install (aot.py) or, failing that, by numba on first use; the same functions either way
+kernels = load_kernels()
 
 LINEAR_SOLVERS = ("auto", "dense", "sparse", "pcg")
 TERMINATIONS = (
@@ -213,6 +218,8 @@ class BundleResult:
             "solve_time_s": self.solve_time_s,
             "linear_solver": self.linear_solver,
             "assembly_threads": self.threads,
+            # "ahead of time": compiled at install (aot.py); "numba JIT": compiled on first use, then cached
+            "kernels": "ahead of time" if kernels.__name__.endswith(AOT_MODULE) else "numba JIT",
             "loss": self.options.loss,
             "loss_scale_px": self.options.loss_scale_px,
             "num_cameras": self.problem.num_cameras,
@@ -271,11 +278,12 @@ def evaluate(problem: BundleProblem, parameters: BundleParameters):
 def _linearise(problem, pose, intrinsics, points, r, jc, jp):
     rot, trans, rot_jac = problem.camera_state(pose)
     world, point_jac = problem.points_world(points, with_jacobian=True)
+    # contiguous arrays: the ahead-of-time kernels take exactly the types of aot.SIGNATURES
     kernels.residuals_and_jacobians(
         problem.observations_px, problem.camera_index, problem.point_index,
-        problem.intrinsics_index[problem.camera_index], rot, trans, rot_jac,
-        problem.position_parameter == "centre", np.ascontiguousarray(world), point_jac,
-        np.ascontiguousarray(intrinsics), problem.square_pixels, r, jc, jp,
+        problem.intrinsics_index[problem.camera_index], np.ascontiguousarray(rot), np.ascontiguousarray(trans),
+        np.ascontiguousarray(rot_jac), problem.position_parameter == "centre", np.ascontiguousarray(world),
+        np.ascontiguousarray(point_jac), np.ascontiguousarray(intrinsics), bool(problem.square_pixels), r, jc, jp,
     )
 
 
@@ -283,14 +291,14 @@ def _squared_residuals(problem, pose, intrinsics, points, intr_obs, out):
     rot, trans, _ = problem.camera_state(pose)
     world = np.ascontiguousarray(problem.points_world(points))
     kernels.squared_residuals(
-        problem.observations_px, problem.camera_index, problem.point_index, intr_obs, rot, trans, world,
-        np.ascontiguousarray(intrinsics), problem.square_pixels, out,
+        problem.observations_px, problem.camera_index, problem.point_index, intr_obs, np.ascontiguousarray(rot),
+        np.ascontiguousarray(trans), world, np.ascontiguousarray(intrinsics), bool(problem.square_pixels), out,
     )
     return out
 
 
 def warm_up() -> None:
-    """Load (or compile, the first time) the numba kernels so that timings exclude compilation."""
+    """Load the kernels (compile them the first time, on the JIT path) so that timings exclude it."""
     from scope3d.estimators.bundle.synthetic import make_scene
 
     scene = make_scene(12, 4000, seed=0)
@@ -333,7 +341,7 @@ class _ReducedSystem:
         self.indptr = np.searchsorted(rows, np.arange(n_blocks + 1)).astype(np.int64)
         self.data = np.empty((keys.size, 6, 6))
         self.slots, self.slot_ptr = kernels.pair_slots(cam_blocks, problem.point_ptr, self.indptr, self.indices)
-        threads = num_threads or numba.config.NUMBA_NUM_THREADS
+        threads = num_threads or _available_cores()
         # parallel only when there is enough work to pay for the per-thread copies of S
         if threads > 1 and self.slots.size > 20 * keys.size and self.slots.size > 50_000:
             targets = np.linspace(0, self.slots.size, threads + 1)
@@ -351,15 +359,27 @@ class _ReducedSystem:
             [np.searchsorted(self.indices[self.indptr[b]:self.indptr[b + 1]], b) for b in range(n_blocks)]
         )
 
-    def assemble(self, r, jc, jp, cam_blocks, point_ptr, damp_c, damp_p, v_inv, gp) -> bool:
-        """Fill data and rhs with the damped reduced camera system (eq. 6.7 with eq. 6.13)."""
+    def assemble(self, r, jc, jp, cam_blocks, point_ptr, damp_c, damp_p, v_inv, gp, pool) -> bool:
+        """Fill data and rhs with the damped reduced camera system (eq. 6.7 with eq. 6.13); with point
+        chunks, one thread per chunk (the kernels release the GIL) into its own copy, then summed."""
         if self.chunks is None:
             return kernels.assemble_reduced_system(
                 r, jc, jp, cam_blocks, point_ptr, damp_c, damp_p, self.indptr, self.indices, self.data, self.rhs,
                 v_inv, gp, self.used_cols, self.slots)
-        return kernels.assemble_reduced_system_parallel(
-            r, jc, jp, cam_blocks, point_ptr, damp_c, damp_p, self.indptr, self.indices, self.data, self.rhs,
-            v_inv, gp, self.used_cols, self.slots, self.slot_ptr, self.chunks, self.data_t, self.rhs_t)
+
+        def chunk(t: int) -> bool:
+            self.data_t[t] = 0.0
+            self.rhs_t[t] = 0.0
+            start, stop = int(self.chunks[t]), int(self.chunks[t + 1])
+            return kernels.assemble_point_range(
+                start, stop, int(self.slot_ptr[start]), r, jc, jp, cam_blocks, point_ptr, damp_p, self.data_t[t],
+                self.rhs_t[t], v_inv, gp, self.used_cols, self.slots)
+
+        oks = list(pool.map(chunk, range(self.threads)))
+        np.sum(self.data_t, axis=0, out=self.data)
+        np.sum(self.rhs_t, axis=0, out=self.rhs)
+        kernels.add_diagonal(self.indptr, self.indices, self.data, damp_c)
+        return all(oks)
 
     def solve(self, options: SolverOptions) -> np.ndarray | None:
         """delta_c of eq. 6.7 or None when the matrix is not positive definite."""
@@ -400,6 +420,21 @@ class _ReducedSystem:
         if not np.all(np.isfinite(out)):
             return None
         return out
+
+
+def _available_cores() -> int:
+    """Cores this process may run on (its CPU affinity where the platform tells it)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+@contextmanager
+def _thread_pool(threads: int) -> Iterator[ThreadPoolExecutor | None]:
+    """Threads for the Schur assembly during one solve (None for one thread)."""
+    if threads <= 1:
+        yield None
+        return
+    with ThreadPoolExecutor(max_workers=threads, thread_name_prefix="scope3d-schur") as pool:
+        yield pool
 
 
 def _choose_method(options: SolverOptions, size: int) -> str:
@@ -493,81 +528,82 @@ def solve(
     need_gradient = True
     pg_norm = 0.0
     n_active = 0
-    while termination is None:
-        if need_gradient:
-            gc, dc, gp, dp = kernels.gradient_and_diagonal(r, jc, jp, cam_blocks, point_index, n_blocks, n)
-            # eq. 6.10: a scalar is active at a bound whose gradient points out of the box
-            active_c = fixed_c | ((xc <= lower_c) & (gc > 0)) | ((xc >= upper_c) & (gc < 0))
-            active_p = fixed_p | ((xp <= lower_p) & (gp > 0)) | ((xp >= upper_p) & (gp < 0))
-            n_active = int(active_c.sum() - fixed_c.sum() + active_p.sum() - fixed_p.sum())
-            ghat_c = np.where(active_c, 0.0, gc)  # eq. 6.11
-            ghat_p = np.where(active_p, 0.0, gp)
-            pg_norm = float(max(np.abs(ghat_c).max(initial=0.0), np.abs(ghat_p).max(initial=0.0)))
-            diag_c = np.clip(dc, options.min_diagonal, options.max_diagonal)
-            diag_p = np.clip(dp, options.min_diagonal, options.max_diagonal)
-            kernels.zero_frozen_columns(jc, jp, cam_blocks, point_index, active_c, active_p)  # eq. 6.12
-            need_gradient = False
-            if not log:
-                log.append(IterationRecord(0, cost, 0.0, lam, n_active, pg_norm, 0.0, True,
-                                           time.perf_counter() - start))
-                if callback:
-                    callback(log[-1], params_view(xc, xp))
-            if pg_norm <= options.gradient_tolerance:
-                termination = "gradient_tolerance"
+    with _thread_pool(system.threads) as pool:
+        while termination is None:
+            if need_gradient:
+                gc, dc, gp, dp = kernels.gradient_and_diagonal(r, jc, jp, cam_blocks, point_index, n_blocks, n)
+                # eq. 6.10: a scalar is active at a bound whose gradient points out of the box
+                active_c = fixed_c | ((xc <= lower_c) & (gc > 0)) | ((xc >= upper_c) & (gc < 0))
+                active_p = fixed_p | ((xp <= lower_p) & (gp > 0)) | ((xp >= upper_p) & (gp < 0))
+                n_active = int(active_c.sum() - fixed_c.sum() + active_p.sum() - fixed_p.sum())
+                ghat_c = np.where(active_c, 0.0, gc)  # eq. 6.11
+                ghat_p = np.where(active_p, 0.0, gp)
+                pg_norm = float(max(np.abs(ghat_c).max(initial=0.0), np.abs(ghat_p).max(initial=0.0)))
+                diag_c = np.clip(dc, options.min_diagonal, options.max_diagonal)
+                diag_p = np.clip(dp, options.min_diagonal, options.max_diagonal)
+                kernels.zero_frozen_columns(jc, jp, cam_blocks, point_index, active_c, active_p)  # eq. 6.12
+                need_gradient = False
+                if not log:
+                    log.append(IterationRecord(0, cost, 0.0, lam, n_active, pg_norm, 0.0, True,
+                                               time.perf_counter() - start))
+                    if callback:
+                        callback(log[-1], params_view(xc, xp))
+                if pg_norm <= options.gradient_tolerance:
+                    termination = "gradient_tolerance"
+                    break
+            if iterations >= options.max_iterations:
+                termination = "max_iterations"
                 break
-        if iterations >= options.max_iterations:
-            termination = "max_iterations"
-            break
-        iterations += 1
-        # eq. 6.13: B_hat = H_hat + lambda D_hat; the active scalars keep only their diagonal
-        damp_c = np.where(active_c, diag_c * (1.0 + lam), lam * diag_c)
-        damp_p = np.where(active_p, diag_p * (1.0 + lam), lam * diag_p)
-        ok = system.assemble(r, jc, jp, cam_blocks, problem.point_ptr, damp_c, damp_p, v_inv, gp_buf)
-        delta_c = system.solve(options) if ok else None
-        step_norm = 0.0
-        accepted = False
-        change = 0.0
-        if delta_c is not None:
-            delta_p = kernels.back_substitute(jc, jp, cam_blocks, problem.point_ptr, v_inv, gp_buf, delta_c)
-            trial_c = np.where(active_c, xc, np.clip(xc + delta_c, lower_c, upper_c))  # eq. 6.9
-            trial_p = np.where(active_p, xp, np.clip(xp + delta_p, lower_p, upper_p))
-            step_c = trial_c - xc
-            step_p = trial_p - xp
-            step_norm = math.sqrt(float(step_c @ step_c) + float(np.sum(step_p * step_p)))
-            x_norm = math.sqrt(float(xc @ xc) + float(np.sum(xp * xp)))
-            if step_norm <= options.parameter_tolerance * (x_norm + options.parameter_tolerance):
-                termination = "parameter_tolerance"
+            iterations += 1
+            # eq. 6.13: B_hat = H_hat + lambda D_hat; the active scalars keep only their diagonal
+            damp_c = np.where(active_c, diag_c * (1.0 + lam), lam * diag_c)
+            damp_p = np.where(active_p, diag_p * (1.0 + lam), lam * diag_p)
+            ok = system.assemble(r, jc, jp, cam_blocks, problem.point_ptr, damp_c, damp_p, v_inv, gp_buf, pool)
+            delta_c = system.solve(options) if ok else None
+            step_norm = 0.0
+            accepted = False
+            change = 0.0
+            if delta_c is not None:
+                delta_p = kernels.back_substitute(jc, jp, cam_blocks, problem.point_ptr, v_inv, gp_buf, delta_c)
+                trial_c = np.where(active_c, xc, np.clip(xc + delta_c, lower_c, upper_c))  # eq. 6.9
+                trial_p = np.where(active_p, xp, np.clip(xp + delta_p, lower_p, upper_p))
+                step_c = trial_c - xc
+                step_p = trial_p - xp
+                step_norm = math.sqrt(float(step_c @ step_c) + float(np.sum(step_p * step_p)))
+                x_norm = math.sqrt(float(xc @ xc) + float(np.sum(xp * xp)))
+                if step_norm <= options.parameter_tolerance * (x_norm + options.parameter_tolerance):
+                    termination = "parameter_tolerance"
+                    log.append(IterationRecord(iterations, cost, 0.0, lam, n_active, pg_norm, step_norm, False,
+                                               time.perf_counter() - start))
+                    break
+                new_cost = cost_of(trial_c, trial_p)
+                model_decrease = -(float(ghat_c @ step_c) + float(np.sum(ghat_p * step_p))
+                                   + 0.5 * kernels.jacobian_step_norm2(jc, jp, cam_blocks, point_index, step_c, step_p))
+                change = cost - new_cost
+                accepted = math.isfinite(new_cost) and change > 0
+            if accepted:
+                rho = change / model_decrease if model_decrease > 0 else 0.0
+                used_lam = lam
+                lam = max(lam * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), options.min_damping)
+                nu = 2.0
+                previous = cost
+                xc, xp = trial_c, trial_p
+                cost = linearise(xc, xp)
+                need_gradient = True
+                successes += 1
+                log.append(IterationRecord(iterations, cost, change, used_lam, n_active, pg_norm, step_norm, True,
+                                           time.perf_counter() - start))
+                if change <= options.function_tolerance * previous:
+                    termination = "function_tolerance"
+            else:
                 log.append(IterationRecord(iterations, cost, 0.0, lam, n_active, pg_norm, step_norm, False,
                                            time.perf_counter() - start))
-                break
-            new_cost = cost_of(trial_c, trial_p)
-            model_decrease = -(float(ghat_c @ step_c) + float(np.sum(ghat_p * step_p))
-                               + 0.5 * kernels.jacobian_step_norm2(jc, jp, cam_blocks, point_index, step_c, step_p))
-            change = cost - new_cost
-            accepted = math.isfinite(new_cost) and change > 0
-        if accepted:
-            rho = change / model_decrease if model_decrease > 0 else 0.0
-            used_lam = lam
-            lam = max(lam * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), options.min_damping)
-            nu = 2.0
-            previous = cost
-            xc, xp = trial_c, trial_p
-            cost = linearise(xc, xp)
-            need_gradient = True
-            successes += 1
-            log.append(IterationRecord(iterations, cost, change, used_lam, n_active, pg_norm, step_norm, True,
-                                       time.perf_counter() - start))
-            if change <= options.function_tolerance * previous:
-                termination = "function_tolerance"
-        else:
-            log.append(IterationRecord(iterations, cost, 0.0, lam, n_active, pg_norm, step_norm, False,
-                                       time.perf_counter() - start))
-            lam *= nu
-            nu *= 2.0
-            if lam > options.max_damping:
-                termination = "damping_limit"
-        if callback:
-            callback(log[-1], params_view(xc, xp))
+                lam *= nu
+                nu *= 2.0
+                if lam > options.max_damping:
+                    termination = "damping_limit"
+            if callback:
+                callback(log[-1], params_view(xc, xp))
 
     pose, intr = split(xc)
     solution = BundleParameters(pose.copy(), intr.copy(), xp.copy())

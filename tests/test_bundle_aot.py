@@ -1,0 +1,207 @@
+"""The kernels compiled ahead of time at install (estimators/bundle/aot.py) against numba's JIT of the same source.
+
+Both paths must give the same numbers: the same LLVM code from the same source, tuned for a generic CPU
+(AOT) or for this one (JIT). Instruction selection (fused multiply-adds) may change the last bits of a
+sum, so arrays are compared to 1e-12 relative (a few hundred ulps of float64 over sums of tens of
+terms), not bit for bit.
+"""
+from __future__ import annotations
+
+import importlib.util
+import sys
+import sysconfig
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from scope3d.estimators.bundle import BundleProblem, SolverOptions, aot, kernels
+from scope3d.estimators.bundle import solver as solver_module
+from scope3d.estimators.bundle.synthetic import make_scene
+
+RTOL = 1e-12  # rounding only (see the module docstring)
+
+
+@pytest.fixture(scope="module")
+def aot_kernels(tmp_path_factory):
+    """The module the install built; built here into a temporary folder if this checkout has none
+    (e.g. sources updated without reinstalling), so that the comparison always runs."""
+    try:
+        return aot.load_kernels("aot")
+    except ImportError:
+        path = tmp_path_factory.mktemp("aot") / (aot.AOT_MODULE + sysconfig.get_config_var("EXT_SUFFIX"))
+        aot.compile_kernels(kernels, path)
+        spec = importlib.util.spec_from_file_location(aot.AOT_MODULE, path)
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        return module
+
+
+def scene_problem(num_cameras=6, num_points=150, seed=0, **kw) -> BundleProblem:
+    scene = make_scene(num_cameras, num_points, seed=seed, pixel_noise_px=0.5)
+    return BundleProblem(scene.observations_px, scene.camera_index, scene.point_index, scene.rotations,
+                         scene.translations, scene.points, scene.intrinsics, **kw)
+
+
+def perturbed(problem: BundleProblem, seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    x = problem.initial
+    x.pose[:, :3] += rng.uniform(-0.01, 0.01, x.pose[:, :3].shape)
+    x.pose[:, 3:] += rng.uniform(-0.05, 0.05, x.pose[:, 3:].shape)
+    x.points += rng.uniform(-0.1, 0.1, x.points.shape)
+
+
+def test_aot_module_is_built_from_this_source(aot_kernels):
+    assert aot_kernels.source_digest() == aot.source_digest()
+    assert set(aot.SIGNATURES) <= set(dir(aot_kernels))
+
+
+def test_load_kernels_falls_back_to_jit_when_the_module_is_stale(monkeypatch, aot_kernels):
+    monkeypatch.setattr(aot, "source_digest", lambda path=aot.KERNELS_SOURCE: -1)
+    assert aot.load_kernels("auto") is kernels
+    with pytest.raises(ImportError, match="another kernels.py"):
+        aot.load_kernels("aot")
+    assert aot.load_kernels("jit") is kernels
+    with pytest.raises(ValueError):
+        aot.load_kernels("fast")
+
+
+@pytest.mark.parametrize("position_parameter, square", [("centre", False), ("translation", True)])
+def test_every_kernel_agrees_with_the_jit(aot_kernels, position_parameter, square):
+    problem = scene_problem(position_parameter=position_parameter, square_pixels=square)
+    perturbed(problem, 1)
+    x = problem.initial
+    rot, trans, rot_jac = problem.camera_state(x.pose)
+    world, point_jac = problem.points_world(x.points, with_jacobian=True)
+    args = (problem.observations_px, problem.camera_index, problem.point_index,
+            np.ascontiguousarray(problem.intrinsics_index[problem.camera_index]), np.ascontiguousarray(rot),
+            np.ascontiguousarray(trans), np.ascontiguousarray(rot_jac), position_parameter == "centre",
+            np.ascontiguousarray(world), np.ascontiguousarray(point_jac), np.ascontiguousarray(x.intrinsics), square)
+    k, n = problem.num_observations, problem.num_points
+    out = {}
+    for name, module in (("jit", kernels), ("aot", aot_kernels)):
+        r, jc, jp = np.empty((k, 2)), np.empty((k, 2, 12)), np.empty((k, 2, 3))
+        module.residuals_and_jacobians(*args, r, jc, jp)
+        sq = np.empty(k)
+        module.squared_residuals(*args[:6], args[8], args[10], args[11], sq)
+        cam_blocks = problem.cam_blocks()
+        n_blocks = problem.num_cameras + problem.num_groups
+        grads = module.gradient_and_diagonal(r, jc, jp, cam_blocks, problem.point_index, n_blocks, n)
+        weights = np.linspace(0.5, 1.0, k)
+        module.scale_rows(r, jc, jp, weights)
+        frozen_c = np.zeros(6 * n_blocks, dtype=bool)
+        frozen_c[[0, 5, 6 * problem.num_cameras + 1]] = True
+        frozen_p = np.zeros((n, 3), dtype=bool)
+        frozen_p[::7, 2] = True
+        module.zero_frozen_columns(jc, jp, cam_blocks, problem.point_index, frozen_c, frozen_p)
+        keys = np.unique(module.block_structure_keys(cam_blocks, problem.point_ptr, n_blocks))
+        indices = np.ascontiguousarray(keys % n_blocks)
+        indptr = np.searchsorted(keys // n_blocks, np.arange(n_blocks + 1)).astype(np.int64)
+        slots, slot_ptr = module.pair_slots(cam_blocks, problem.point_ptr, indptr, indices)
+        used = np.arange(12, dtype=np.int64)
+        damp_c, damp_p = np.full(6 * n_blocks, 1e-3), np.full((n, 3), 1e-3)
+        data, rhs = np.empty((keys.size, 6, 6)), np.empty(6 * n_blocks)
+        v_inv, gp = np.empty((n, 3, 3)), np.empty((n, 3))
+        ok = module.assemble_reduced_system(r, jc, jp, cam_blocks, problem.point_ptr, damp_c, damp_p, indptr,
+                                            indices, data, rhs, v_inv, gp, used, slots)
+        # the same system from two point ranges added up (what the threads do)
+        half = n // 2
+        parts = []
+        for start, stop in ((0, half), (half, n)):
+            d, h = np.zeros_like(data), np.zeros_like(rhs)
+            assert module.assemble_point_range(start, stop, int(slot_ptr[start]), r, jc, jp, cam_blocks,
+                                               problem.point_ptr, damp_p, d, h, v_inv, gp, used, slots)
+            parts.append((d, h))
+        data_split = parts[0][0] + parts[1][0]
+        module.add_diagonal(indptr, indices, data_split, damp_c)
+        dense = module.bsr_to_dense(indptr, indices, data)
+        delta_c = np.linspace(-1e-3, 1e-3, 6 * n_blocks)
+        delta_p = module.back_substitute(jc, jp, cam_blocks, problem.point_ptr, v_inv, gp, delta_c)
+        norm2 = module.jacobian_step_norm2(jc, jp, cam_blocks, problem.point_index, delta_c, delta_p)
+        out[name] = dict(r=r, jc=jc, jp=jp, sq=sq, gc=grads[0], dc=grads[1], gp_=grads[2], dp=grads[3], keys=keys,
+                         slots=slots, slot_ptr=slot_ptr, ok=ok, data=data, rhs=rhs, v_inv=v_inv, gp=gp,
+                         data_split=data_split, rhs_split=parts[0][1] + parts[1][1], dense=dense,
+                         delta_p=delta_p, norm2=norm2)
+    assert out["jit"]["ok"] and out["aot"]["ok"]
+    for key, value in out["jit"].items():
+        np.testing.assert_allclose(out["aot"][key], value, rtol=RTOL, atol=0, err_msg=key)
+    # and the split assembly is the one-pass assembly, up to the order of the sums
+    for name in ("jit", "aot"):
+        scale = np.abs(out[name]["data"]).max()
+        np.testing.assert_allclose(out[name]["data_split"], out[name]["data"], rtol=0, atol=1e-12 * scale)
+        np.testing.assert_allclose(out[name]["rhs_split"], out[name]["rhs"], rtol=0,
+                                   atol=1e-12 * np.abs(out[name]["rhs"]).max())
+
+
+@pytest.mark.parametrize("options", [SolverOptions(max_iterations=15),
+                                     SolverOptions(max_iterations=15, loss="huber", loss_scale_px=1.0,
+                                                   linear_solver="sparse")])
+def test_solve_gives_the_same_result_on_both_paths(monkeypatch, aot_kernels, options):
+    problem = scene_problem(num_cameras=8, num_points=300, seed=3)
+    perturbed(problem, 4)
+    problem.fix("pose", [0])
+    results = {}
+    for name, module in (("jit", kernels), ("aot", aot_kernels)):
+        monkeypatch.setattr(solver_module, "kernels", module)
+        results[name] = solver_module.solve(problem, options)
+    jit, aot_ = results["jit"], results["aot"]
+    assert jit.iterations == aot_.iterations and jit.termination == aot_.termination
+    # 15 LM steps amplify rounding differences a little; 1e-9 relative is still far below any pixel effect
+    assert aot_.final_cost == pytest.approx(jit.final_cost, rel=1e-9)
+    np.testing.assert_allclose(aot_.parameters.points, jit.parameters.points, rtol=1e-7, atol=1e-9)
+    # and it converged: 0.5 px of noise per coordinate is sqrt(2) * 0.5 = 0.71 px of RMS error per
+    # observation; fitting the parameters can only leave less (the start is ~3 px)
+    assert aot_.rms_final_px <= 0.5 * np.sqrt(2) < aot_.rms_initial_px
+
+
+def test_parallel_assembly_matches_one_thread():
+    # large enough that the solver splits the points into one chunk per thread (see _ReducedSystem)
+    problem = scene_problem(num_cameras=12, num_points=4000, seed=5)
+    perturbed(problem, 6)
+    one = solver_module.solve(problem, SolverOptions(max_iterations=5, num_threads=1))
+    two = solver_module.solve(problem, SolverOptions(max_iterations=5, num_threads=2))
+    assert one.threads == 1 and two.threads == 2
+    assert two.final_cost == pytest.approx(one.final_cost, rel=1e-10)
+
+
+def _interleaved_stamps(kernel, args, calls: int = 6) -> int:
+    """How many times the main thread ran Python while another thread was inside ``kernel``: zero when
+    the kernel holds the GIL (the switch interval is raised so that the GIL only changes hands when
+    someone releases it), many when it releases it."""
+    spans: list[tuple[float, float]] = []
+    done = threading.Event()
+
+    def worker():
+        for _ in range(calls):
+            start = time.perf_counter()
+            kernel(*args)
+            spans.append((start, time.perf_counter()))
+        done.set()
+
+    stamps = []
+    previous = sys.getswitchinterval()
+    sys.setswitchinterval(5.0)
+    try:
+        thread = threading.Thread(target=worker)
+        thread.start()
+        while not done.is_set():
+            stamps.append(time.perf_counter())
+            time.sleep(0.0005)  # gives the GIL back so the worker can return from the kernel
+        thread.join()
+    finally:
+        sys.setswitchinterval(previous)
+    return sum(any(s < t < e for s, e in spans) for t in stamps)
+
+
+@pytest.mark.parametrize("backend", ["jit", "aot"])
+def test_kernels_release_the_gil(aot_kernels, backend):
+    module = kernels if backend == "jit" else aot_kernels
+    k = 400_000  # ~20 ms per call: long against the main thread's 0.5 ms naps
+    rng = np.random.default_rng(0)
+    jc, jp = rng.normal(size=(k, 2, 12)), rng.normal(size=(k, 2, 3))
+    cam_blocks = np.ascontiguousarray(rng.integers(0, 10, size=(k, 2)))
+    point_index = np.ascontiguousarray(rng.integers(0, 1000, size=k))
+    args = (jc, jp, cam_blocks, point_index, rng.normal(size=60), rng.normal(size=(1000, 3)))
+    module.jacobian_step_norm2(*args)  # compiled (JIT) before the measurement
+    assert _interleaved_stamps(module.jacobian_step_norm2, args) > 0

@@ -1,0 +1,275 @@
+"""Videos in: MP4 files written here (cv2.VideoWriter) by moving a crop window over a tissue texture with
+known static and moving stretches, imported with --every and --keyframes; planned poses by time; errors."""
+from __future__ import annotations
+
+import json
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from scope3d.cli.main import main
+from scope3d.errors import InputError
+from scope3d.feature.keyframes import KeyframeOptions, KeyframeSelector
+from scope3d.geometry.pose import Pose
+from scope3d.io.dataset import load_dataset
+from scope3d.io.scan_plan import read_scan_plan, write_scan_plan
+from scope3d.io.video import probe_video, read_video, write_video
+from scope3d.pipelines.video_import import VideoImportOptions, import_video, planned_pose
+from scope3d.sensor.camera import Camera
+from scope3d.sensor.pose_tolerance import PoseTolerance
+
+WIDTH, HEIGHT = 128, 96
+FPS = 10.0
+NOISE_GREY = 3.0  # sensor noise, grey levels (sigma), independent per frame: a static view is never bit-identical
+
+# The window's centre per frame (texture pixels) and its roll (degrees): static, right, static, down,
+# static, rolled in place. Steps of 3 px and 2.5 px never bring a shift within 1 px of the key-frame
+# threshold (0.2 of the image: 25.6 px across, 19.2 px down), checked in _expected_keyframes.
+_SEGMENTS = [("static", 8, (0.0, 0.0)), ("move", 20, (3.0, 0.0)), ("static", 10, (0.0, 0.0)),
+             ("move", 16, (0.0, 2.5)), ("static", 6, (0.0, 0.0))]
+ROLL_FRAMES, ROLL_STEP_DEG = 15, 3.0
+
+
+def _path():
+    """(centres (N, 2) texture px, rolls (N,) deg, segment label per frame)."""
+    centre = np.array([300.0, 300.0])
+    centres, labels = [], []
+    for label, n, step in _SEGMENTS:
+        for _ in range(n):
+            if labels:  # the first frame is where the window starts
+                centre = centre + step
+            centres.append(centre.copy())
+            labels.append(label)
+    rolls = [0.0] * len(centres) + [ROLL_STEP_DEG * (k + 1) for k in range(ROLL_FRAMES)]
+    centres += [centres[-1]] * ROLL_FRAMES
+    labels += ["roll"] * ROLL_FRAMES
+    return np.array(centres), np.array(rolls), labels
+
+
+@pytest.fixture(scope="module")
+def texture():
+    from scope3d.phantoms.textures import tissue_texture
+
+    return tissue_texture((26.0, 26.0), 0.04, seed=3)  # 650 x 650 texels
+
+
+def _frames(texture, centres, rolls, seed=0):
+    rng = np.random.default_rng(seed)
+    out = []
+    for (cx, cy), roll in zip(centres, rolls):
+        m = cv2.getRotationMatrix2D((float(cx), float(cy)), float(roll), 1.0)
+        m[:, 2] += [(WIDTH - 1) / 2 - cx, (HEIGHT - 1) / 2 - cy]
+        view = cv2.warpAffine(texture, m, (WIDTH, HEIGHT), flags=cv2.INTER_LINEAR).astype(np.float32)
+        out.append(np.clip(view + rng.normal(0, NOISE_GREY, view.shape), 0, 255).astype(np.uint8))
+    return out
+
+
+@pytest.fixture(scope="module")
+def video(texture, tmp_path_factory):
+    centres, rolls, labels = _path()
+    path = tmp_path_factory.mktemp("video") / "scan.mp4"
+    write_video(path, _frames(texture, centres, rolls), FPS)
+    return path, centres, rolls, labels
+
+
+@pytest.fixture(scope="module")
+def camera():
+    return Camera.from_fov(WIDTH, HEIGHT, 60.0)
+
+
+def _expected_keyframes(centres, threshold):
+    """Key frames by the rule applied to the true shifts (translation part only)."""
+    size = np.array([WIDTH, HEIGHT], float)
+    keys = [0]
+    for i in range(1, len(centres)):
+        shift = math.hypot(*((centres[i] - centres[keys[-1]]) / size))
+        # design margin: no true shift within 1 px of the threshold, so phase correlation's sub-pixel
+        # error (MPEG-4 artefacts and noise: a few tenths of a pixel) cannot flip a decision
+        assert abs(shift - threshold) * WIDTH > 1.0 or abs(shift - threshold) * HEIGHT > 1.0
+        if shift >= threshold:
+            keys.append(i)
+    return keys
+
+
+def test_written_video_probes_and_streams_back(video):
+    path, centres, _, _ = video
+    info = probe_video(path)
+    assert (info.width, info.height, info.fps, info.n_frames) == (WIDTH, HEIGHT, FPS, len(centres))
+    frames = list(read_video(path, every=4))
+    assert [f.index for f in frames] == list(range(0, len(centres), 4))
+    # presentation times of a constant-rate video: index / fps, to the container's millisecond
+    assert np.allclose([f.time_s for f in frames], [f.index / FPS for f in frames], atol=1e-3)
+    assert frames[0].image.shape == (HEIGHT, WIDTH, 3) and frames[0].image.dtype == np.uint8
+
+
+def test_keyframes_follow_motion_and_skip_static_repeats(video, texture):
+    path, centres, rolls, labels = video
+    options = KeyframeOptions()
+    selector = KeyframeSelector(options)
+    decisions = [selector.offer(f.image) for f in read_video(path)]
+    kept = [i for i, d in enumerate(decisions) if d.keep]
+    n_translate = len(labels) - ROLL_FRAMES
+    assert kept[:len(_expected_keyframes(centres[:n_translate], options.min_shift_fraction))] == \
+        _expected_keyframes(centres[:n_translate], options.min_shift_fraction)
+    # no static repeat is ever kept
+    static = [i for i in range(1, len(labels)) if labels[i] == "static" and np.all(centres[i] == centres[i - 1])]
+    assert not set(kept) & set(static)
+    # measured shifts against the true ones (MPEG-4 at this size, 3 grey levels of noise); the window moving
+    # right moves the content left
+    last_key, errors = 0, []
+    for i in range(1, n_translate):
+        true = centres[last_key] - centres[i]
+        errors.append(np.abs(np.subtract(decisions[i].shift_px, true)).max())
+        if decisions[i].keep:
+            last_key = i
+    # the key-frame decisions above need the shift to within the 1 px design margin; measured here: median
+    # 0.2 px, largest 0.54 px (phase correlation's sub-pixel bias grows as the overlap shrinks)
+    assert max(errors) < 1.0
+    # a roll in place moves nothing by translation: the correlation peak's fall keeps frames (edges of the
+    # view move by r * angle: 45 deg sweeps them ~0.5 of the image)
+    roll_kept = [i for i in kept if labels[i] == "roll"]
+    assert roll_kept, "rolling 45 degrees in place kept no frame"
+    assert all(abs(decisions[i].shift_fraction) < options.min_shift_fraction for i in roll_kept)
+
+
+def test_import_every_and_keyframes_write_datasets_with_unknown_poses(video, camera, tmp_path):
+    path, centres, _, labels = video
+    every = import_video(path, tmp_path / "every", VideoImportOptions(every=7), camera=camera)
+    ds = load_dataset(every, check_images=True)
+    assert ds.names == [f"{i:06d}.png" for i in range(0, len(centres), 7)]
+    assert all(np.all(np.isinf(m.tolerance.position_mm)) and np.all(np.isinf(m.tolerance.orientation_rad))
+               for m in ds.poses)
+    source = json.loads((every / "dataset.json").read_text())["source"]
+    assert source["frame_indices"] == list(range(0, len(centres), 7))
+
+    keys = import_video(path, tmp_path / "keys", VideoImportOptions(keyframes=KeyframeOptions()), camera=camera)
+    selector = KeyframeSelector()
+    expected = [f.index for f in read_video(path) if selector.offer(f.image).keep]
+    assert load_dataset(keys).names == [f"{i:06d}.png" for i in expected]
+    # the stored frame is the decoded video frame, losslessly (PNG)
+    first = next(read_video(path))
+    assert np.array_equal(load_dataset(keys).frame(0), first.image)
+
+
+def _plan(tmp_path):
+    """Three views 10 mm apart along x, each rolled 30 degrees more about its optical axis."""
+    poses = [Pose.from_rotvec(np.array([0.0, 0.0, np.deg2rad(30.0 * k)]), np.array([-10.0 * k, 0.0, 50.0]))
+             for k in range(3)]
+    write_scan_plan(tmp_path / "plan.json", poses, [0, 0, 1], 60.0)
+    return read_scan_plan(tmp_path / "plan.json")
+
+
+def test_planned_poses_by_time(tmp_path, video, camera):
+    plan = _plan(tmp_path)
+    options = VideoImportOptions(seconds_per_view=2.0, plan_start_s=1.0)
+    assert planned_pose(plan, 0.99, options) is None  # before the scan: insertion
+    assert planned_pose(plan, 1.0, options).distance_to(plan.poses[0]) == pytest.approx((0, 0), abs=1e-9)
+    mid = planned_pose(plan, 4.0, options)  # 1.5 views in: halfway from view 1 to view 2
+    assert np.allclose(mid.centre, (plan.poses[1].centre + plan.poses[2].centre) / 2)
+    assert mid.distance_to(plan.poses[1])[1] == pytest.approx(np.deg2rad(15.0))
+    assert planned_pose(plan, 5.0, options).distance_to(plan.poses[2])[0] == pytest.approx(0, abs=1e-9)
+    assert planned_pose(plan, 5.1, options) is None  # after the last view: retraction
+
+    path = video[0]
+    tolerance = PoseTolerance.from_degrees(5.0, 10.0)
+    out = import_video(path, tmp_path / "planned", VideoImportOptions(every=5, seconds_per_view=2.0, plan_start_s=1.0,
+                                                                      plan_tolerance=tolerance),
+                       camera=camera, plan=plan)
+    ds = load_dataset(out)
+    for name, measured in zip(ds.names, ds.poses):
+        time_s = int(name[:6]) / FPS
+        expected = planned_pose(plan, time_s, VideoImportOptions(seconds_per_view=2.0, plan_start_s=1.0))
+        if expected is None:
+            assert np.all(np.isinf(measured.tolerance.position_mm))
+        else:
+            # poses.csv keeps 12 significant digits
+            assert measured.pose.distance_to(expected)[0] < 1e-6
+            assert np.allclose(measured.tolerance.position_mm, 5.0)
+    source = json.loads((out / "dataset.json").read_text())["source"]
+    assert source["plan"]["frames_with_planned_pose"] == sum(1.0 <= i / FPS <= 5.0 for i in range(0, len(video[1]), 5))
+
+
+def test_cli_import_video(video, tmp_path, capsys):
+    path = video[0]
+    cam = tmp_path / "camera.json"
+    from scope3d.io.camera_json import camera_to_dict
+    from scope3d.utils.jsonio import write_json
+
+    write_json(cam, camera_to_dict(Camera.from_fov(WIDTH, HEIGHT, 60.0)))
+    assert main(["import", "video", str(path), "--camera", str(cam), "--keyframes", "--out", str(tmp_path / "k"),
+                 "--no-progress"]) == 0
+    assert "frames" in capsys.readouterr().out
+    assert main(["import", "video", str(path), "--fov", "70", "--every", "10", "--out", str(tmp_path / "e"),
+                 "--no-progress"]) == 0
+    source = json.loads((tmp_path / "e" / "dataset.json").read_text())["source"]
+    assert "nominal" in source["intrinsics"] and len(load_dataset(tmp_path / "e")) == math.ceil(len(video[1]) / 10)
+
+
+@pytest.mark.parametrize("case", ["missing", "folder", "text", "image", "empty", "no_frames"])
+def test_unusable_videos_are_one_line_errors(case, tmp_path, capsys):
+    path = tmp_path / ("still.png" if case == "image" else "clip.mp4")
+    if case == "folder":
+        path.mkdir()
+    elif case == "text":
+        path.write_text("not a video\n")
+    elif case == "image":
+        cv2.imwrite(str(path), np.zeros((32, 32, 3), np.uint8))
+    elif case == "empty":
+        path.write_bytes(b"")
+    elif case == "no_frames":  # a writer opened and closed without a frame: a header and nothing else
+        cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 10.0, (32, 32)).release()
+    with pytest.raises(InputError) as err:
+        probe_video(path)
+    assert str(path) in str(err.value) and "\n" not in str(err.value)
+    out = tmp_path / "out"
+    assert main(["import", "video", str(path), "--fov", "60", "--out", str(out), "--no-progress"]) == 2
+    message = capsys.readouterr().err
+    assert str(path) in message and "Traceback" not in message
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--every", "0"], "--every"),
+    (["--min-shift", "0.3"], "--keyframes"),
+    (["--keyframes", "--min-shift", "1.5"], "min_shift_fraction"),
+    (["--tolerance", "5"], "--plan"),
+    (["--plan", "PLAN"], "--tolerance"),
+])
+def test_bad_options_are_one_line_errors(video, tmp_path, capsys, args, words):
+    plan = _plan(tmp_path)
+    del plan
+    args = [str(tmp_path / "plan.json") if a == "PLAN" else a for a in args]
+    out = tmp_path / "out"
+    assert main(["import", "video", str(video[0]), "--fov", "60", "--out", str(out), "--no-progress", *args]) == 2
+    assert words in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_camera_of_another_size_is_refused(video, tmp_path):
+    with pytest.raises(InputError, match=r"128x96 px, the camera 64x48"):
+        import_video(video[0], tmp_path / "out", VideoImportOptions(), camera=Camera.from_fov(64, 48, 60.0))
+    assert not (tmp_path / "out").exists()
+
+
+def test_phantom_mp4_imports_back_with_the_true_poses(tmp_path):
+    """The lab's video path as an MP4, imported with the plan: every frame's planned pose is its true one."""
+    plan_file = tmp_path / "plan.json"
+    # two views inside the default bladder (semi-axes 45, 38, 32 mm), looking at the wall 5 degrees apart
+    poses = [Pose.from_rotvec(np.array([0.0, np.deg2rad(5.0 * k), 0.0]), np.array([0.0, 0.0, 10.0])) for k in range(2)]
+    write_scan_plan(plan_file, poses, [0, 0], 70.0)
+    out = tmp_path / "bladder"
+    assert main(["phantom", "bladder", "--plan", str(plan_file), "--video", "4", "--seconds-per-view", "1",
+                 "--mp4", "--size", "48x48", "--no-progress", "--out", str(out)]) == 0
+    assert probe_video(out / "video.mp4").n_frames == 5
+    imported = tmp_path / "imported"
+    assert main(["import", "video", str(out / "video.mp4"), "--camera", str(out / "camera.json"), "--plan",
+                 str(plan_file), "--tolerance", "3", "--tolerance-deg", "5", "--seconds-per-view", "1",
+                 "--out", str(imported), "--no-progress"]) == 0
+    truth = load_dataset(out).ground_truth.poses
+    got = load_dataset(imported).poses
+    assert len(got) == 5
+    for measured, true in zip(got, truth):
+        centre_mm, angle_rad = measured.pose.distance_to(true)
+        assert centre_mm < 1e-6 and angle_rad < 1e-6  # poses.csv's 12 significant digits
