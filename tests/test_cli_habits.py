@@ -11,7 +11,7 @@ from scope3d.cli.main import build_parser
 
 # The commands that do a job and write a report (not `check`, `report`, `phantom --list`...).
 JOBS = ["map", "bundle-adjust", "axial", "localize", "track-markers", "calibrate", "calibrate-hand-eye",
-        "thread-scan", "mosaic"]
+        "thread-scan", "mosaic", "panorama"]
 
 
 def _subparsers(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:

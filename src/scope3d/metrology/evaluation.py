@@ -215,47 +215,58 @@ def surface_errors(points: np.ndarray, truth: SampledSurface, options: Evaluatio
     return summary, direct, aligned
 
 
-def similarity_to_surface(points: np.ndarray, truth: SampledSurface, start: Similarity, *, iterations: int = 50,
-                          huber_sigmas: float = 2.0, tolerance: float = 1e-7) -> Similarity:
-    """The 7-DoF similarity (scale, rotation, translation) taking ``points`` (N, 3) onto the true surface,
-    refined from ``start`` by iterated closest points with the scale free (Umeyama on each iteration's
-    nearest samples, Huber-weighted beyond ``huber_sigmas`` robust sigmas of the distances).
+def true_track_points(camera: Camera, true_poses: list[Pose], depth_of, frame: np.ndarray, track: np.ndarray,
+                      pixels: np.ndarray, n_tracks: int) -> np.ndarray:
+    """(n_tracks, 3) mm: where each track's observations truly lie, from the true z-depth maps and poses
+    (the median over the track's observations; NaN where no observation hits a depth). ``depth_of(k)``
+    gives frame k's (H, W) z-depth map (mm, NaN where none), e.g. ``GroundTruth.depth``; read once per
+    frame. Keypoints are looked up at their nearest pixel."""
+    hits = np.full((len(frame), 3), np.nan)
+    for k in np.unique(frame):
+        sel = np.flatnonzero(frame == k)
+        depth = depth_of(int(k))
+        col = np.clip(np.rint(pixels[sel, 0]).astype(int), 0, depth.shape[1] - 1)
+        row = np.clip(np.rint(pixels[sel, 1]).astype(int), 0, depth.shape[0] - 1)
+        z = depth[row, col].astype(float)
+        ray = np.c_[camera.pixel_to_normalised(pixels[sel]), np.ones(len(sel))] * z[:, None]
+        pose = true_poses[int(k)]
+        hits[sel] = (ray - pose.translation) @ pose.rotation  # R^T (x - t)
+    out = np.full((n_tracks, 3), np.nan)
+    order = np.argsort(track, kind="stable")
+    bounds = np.r_[0, np.flatnonzero(np.diff(track[order])) + 1, len(order)]
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        h = hits[order[a:b]]
+        h = h[np.all(np.isfinite(h), axis=1)]
+        if len(h):
+            out[track[order[a]]] = np.median(h, axis=0)
+    return out
 
-    For maps without physical scale (image-only reconstructions, pycolmap's models): the wall error
-    "after similarity" is measured after this. ``start`` must be within the basin, e.g. a fit of the
-    camera centres to the true ones. Stops when the relative change of the transformed points is below
-    ``tolerance`` of their extent."""
+
+def errors_after_similarity(points: np.ndarray, true_points: np.ndarray, truth: SampledSurface, *,
+                            iterations: int = 10) -> tuple[dict, np.ndarray, Similarity]:
+    """Wall error of a map known up to a similarity (image-only maps, pycolmap's models).
+
+    The 7-DoF similarity is fitted to the tracks' true positions (:func:`true_track_points`), robustly
+    (Umeyama, then refitted on the pairs within 3 robust sigmas of the residual, a few rounds): fitting it
+    to the surface by ICP with a free scale collapses the map onto a patch of a closed cavity. The
+    distances are then taken to the true surface. points, true_points : (N, 3). Returns (summary of the
+    distances (mm) with ``scale``: true mm per map unit and ``n_aligned``, the distances (N,), the
+    similarity)."""
     x = np.asarray(points, float)
-    current = start
-    extent = max(float(np.ptp(x, axis=0).max()), 1e-12)
+    y = np.asarray(true_points, float)
+    use = np.all(np.isfinite(y), axis=1) & np.all(np.isfinite(x), axis=1)
+    if use.sum() < 3:
+        raise ValueError("need at least 3 points with a true position to fit a similarity")
+    sim = fit_similarity(x[use], y[use])
     for _ in range(iterations):
-        y = current.apply(x)
-        q, _, d = truth.nearest(y)
-        sigma = max(float(np.median(d)) / 0.6745, 1e-9)
-        w = np.where(d <= huber_sigmas * sigma, 1.0, huber_sigmas * sigma / np.maximum(d, 1e-300))
-        # weighted Umeyama of x onto q
-        a0 = (w[:, None] * x).sum(0) / w.sum()
-        b0 = (w[:, None] * q).sum(0) / w.sum()
-        a, b = x - a0, q - b0
-        U, S, Vt = np.linalg.svd((w[:, None] * b).T @ a)
-        D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-        scale = float(np.trace(np.diag(S) @ D) / np.sum(w * np.sum(a * a, axis=1)))
-        new = Similarity(scale, U @ D @ Vt, a0, b0)
-        moved = float(np.abs(new.apply(x) - y).max())
-        current = new
-        if moved < tolerance * extent * current.scale:
+        r = np.linalg.norm(sim.apply(x) - y, axis=1)
+        sigma = max(float(np.median(r[use])) / 0.6745, 1e-9)
+        keep = use & (r <= 3.0 * sigma)
+        if keep.sum() < 3:
             break
-    return current
-
-
-def errors_after_similarity(points: np.ndarray, centres: np.ndarray, true_centres: np.ndarray,
-                            truth: SampledSurface) -> tuple[dict, np.ndarray, Similarity]:
-    """Wall error of a map known up to a similarity: the camera centres (M, 3) fitted to the true ones
-    start :func:`similarity_to_surface` on the points (N, 3). Returns (summary of the distances (mm)
-    with ``scale``: true mm per map unit, the distances (N,), the similarity)."""
-    start = fit_similarity(np.asarray(centres, float), np.asarray(true_centres, float))
-    sim = similarity_to_surface(points, truth, start)
-    d = truth.distances(sim.apply(points))
+        sim = fit_similarity(x[keep], y[keep])
+    d = truth.distances(sim.apply(x))
     summary = distance_summary(d)
-    summary["scale"] = sim.scale
+    summary["scale"] = float(sim.scale)
+    summary["n_aligned"] = int(use.sum())
     return summary, d, sim
