@@ -132,6 +132,7 @@ def main() -> None:
         ax.text(0, k, f" {r.get('n_registered', 0)}/{len(ds)} frames, {r.get('wall_s', 0):.0f} s", va="center")
     ax.set_xlabel("mean wall error after similarity, mm")
     ax.set_title(f"{args.dataset.name}: {len(ds)} frames {ds.camera.width}x{ds.camera.height}")
+    fig.subplots_adjust(left=0.38)
     save_figure(fig, RESULTS / f"{name}.png")
     print(json.dumps(result, indent=1, default=float))
 
