@@ -383,7 +383,7 @@ def adjust_cavity(camera: Camera, tracks: Tracks, poses: list[Pose], options: Ca
         centre, radius = fit_sphere(good.points)
     else:  # the scope turns about the cavity's centre: the cameras' centroid, the nominal radius
         centre = np.mean([p.centre for p in poses], axis=0)
-        radius = options.nominal_radius_mm * (1.0 if knows_poses(measured) else _provisional_mm(poses, options))
+        radius = options.nominal_radius_mm
     s = radius / options.nominal_radius_mm  # provisional units per mm of the prior
     X = points_on_sphere(camera, poses, tracks, centre, radius)
     ids = _track_ids_like(tracks, good)
@@ -410,11 +410,6 @@ def adjust_cavity(camera: Camera, tracks: Tracks, poses: list[Pose], options: Ca
 
 #: a sphere is fitted to the start's triangulations when at least this many pass the gates
 _MIN_SPHERE_POINTS = 20
-
-
-def _provisional_mm(poses: list[Pose], options: CavityOptions) -> float:
-    """Provisional units per mm when the start has no usable triangulation: 1 (the nominal radius)."""
-    return 1.0
 
 
 def _track_ids_like(tracks: Tracks, subset: Tracks) -> np.ndarray:
