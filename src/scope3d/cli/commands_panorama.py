@@ -1,4 +1,4 @@
-"""``scope3d plan-scan`` and ``scope3d mosaic``: organ panorama commands (reference ch. 2)."""
+"""``scope3d plan-scan``, ``scope3d mosaic`` and ``scope3d panorama``: organ panorama commands (reference ch. 2)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -29,6 +29,7 @@ def register(subparsers) -> None:
     add_job_arguments(p)  # --quiet accepted for uniformity: the planner shows no progress bar
     p.set_defaults(func=_run_plan)
     register_mosaic(subparsers)
+    register_panorama(subparsers)
 
 
 def _run_plan(args) -> int:
@@ -79,3 +80,55 @@ def _run_mosaic(args) -> int:
                + (f", alignment error {err['mean']:.2f} px mean, {err['p95']:.2f} px p95" if err else ""))
     return finish_job(args, args.out, report,
                       [summary, f"wrote {args.out}/ (mosaic.png, mosaic_path.png, coverage.png, report.json)"])
+
+
+def register_panorama(subparsers) -> None:
+    p = subparsers.add_parser(
+        "panorama",
+        help="image-only 3-D panorama of a cavity's wall (poses and points from the images, star scale)",
+        description="Camera poses and points of a cavity seen from inside, from the images alone: pairs by "
+                    "retrieval, relative poses chosen by the wall's shape, rotation averaging, centres from the "
+                    "rays, points started on a sphere and adjusted inside an anatomical shell (20-70 mm radius), "
+                    "then released. Planned poses (finite tolerance in poses.csv) start and bound the poses "
+                    "instead. The physical scale comes from the 6 mm star targets in the fluorescence frames. "
+                    "Writes DIR/report.json (n_frames, n_registered, n_points, time_s; with ground truth "
+                    "scale_error_fraction and surface_error_mm.after_similarity), sparse/ (COLMAP text), "
+                    "points.ply, mesh.ply (closed wall), panorama_3d.png.",
+    )
+    p.add_argument("dataset", type=Path, metavar="DATASET", help="dataset folder")
+    p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder (replaced atomically)")
+    p.add_argument("--no-scale", action="store_true",
+                   help="no star targets: an unscaled model (scale_source none) or the plan's scale")
+    p.add_argument("--star-mm", type=float, default=6.0, metavar="MM",
+                   help="outer (tip circle) diameter of the star targets, mm (default 6)")
+    p.add_argument("--ignore-poses", action="store_true",
+                   help="do not use planned poses even when poses.csv gives finite tolerances (image-only)")
+    add_job_arguments(p)
+    p.set_defaults(func=_run_panorama)
+
+
+def _run_panorama(args) -> int:
+    from scope3d.cli.progress import progress_bar
+    from scope3d.errors import InputError
+    from scope3d.io.dataset import load_dataset
+    from scope3d.metrology.star_scale import StarScaleOptions
+    from scope3d.pipelines.panorama_3d import PanoramaOptions, run
+
+    try:
+        stars = None if args.no_scale else StarScaleOptions(outer_diameter_mm=args.star_mm)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    options = PanoramaOptions(stars=stars, use_planned_poses=not args.ignore_poses)
+    dataset = load_dataset(args.dataset)
+    with progress_bar(show_progress(args), "frame") as progress:
+        report, _ = run(options, dataset, args.out, progress=progress)
+    summary = (f"{report['n_registered']}/{report['n_frames']} frames registered, {report['n_points']} points, "
+               f"scale from {report['scale_source']}, {report['time_s']:.1f} s")
+    lines = [summary]
+    err = report.get("surface_error_mm", {}).get("after_similarity")
+    if err:
+        lines.append(f"wall error after similarity: mean {err['mean']:.3f}, median {err['median']:.3f}, "
+                     f"p95 {err['p95']:.3f} mm" + (f"; scale error {report['scale_error_fraction']:+.2%}"
+                                                  if "scale_error_fraction" in report else ""))
+    lines.append(f"wrote {args.out}/ (report.json, sparse/, points.ply, mesh.ply, panorama_3d.png)")
+    return finish_job(args, args.out, report, lines)

@@ -116,6 +116,37 @@ def relative_pose(camera: Camera, pixels_i: np.ndarray, pixels_j: np.ndarray, *,
     return RelativePose(i, j, R, t, inliers, float(sigma_rot), float(sigma_dir))
 
 
+def refine_relative_pose(camera: Camera, pixels_i: np.ndarray, pixels_j: np.ndarray, rotation: np.ndarray,
+                         direction: np.ndarray, *, threshold_px: float, noise_px: float = 0.5, i: int = 0,
+                         j: int = 1) -> RelativePose | None:
+    """The relative pose refined from one given start ``(R_ji, t_ji)`` (as :func:`relative_pose` refines each
+    of its candidates: inliers by Sampson distance, refined, re-selected, refined again; the sign of t by
+    cheirality). For callers that judge the candidates by something the inlier count cannot see (e.g. a
+    shape prior: with short baselines several starts fit the same inliers). None when fewer than eight
+    inliers remain."""
+    xi = camera.pixel_to_normalised(np.asarray(pixels_i, float))
+    xj = camera.pixel_to_normalised(np.asarray(pixels_j, float))
+    thr = threshold_px / (0.5 * (camera.fx + camera.fy))
+    R, t = np.asarray(rotation, float), np.asarray(direction, float)
+    if len(xi) < 8 or not np.linalg.norm(t) > 0:
+        return None
+    inliers = np.abs(_sampson(xi, xj, R, t / np.linalg.norm(t))) <= thr
+    cov = None
+    for _ in range(2):
+        if inliers.sum() < 8:
+            return None
+        R, t, cov = _refine_relative_pose(xi[inliers], xj[inliers], R, t, thr)
+        inliers = np.abs(_sampson(xi, xj, R, t)) <= thr
+    if inliers.sum() < 8:
+        return None
+    noise = noise_px / (0.5 * (camera.fx + camera.fy))
+    sigma_rot = noise * np.sqrt(max(np.linalg.eigvalsh(cov[:3, :3]).max(), 0.0))
+    sigma_dir = noise * np.sqrt(max(np.linalg.eigvalsh(cov[3:, 3:]).max(), 0.0))
+    if _in_front_fraction(xi[inliers], xj[inliers], R, t) < 0.5:
+        t = -t
+    return RelativePose(i, j, R, t, inliers, float(sigma_rot), float(sigma_dir))
+
+
 def _sampson(xi: np.ndarray, xj: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Signed Sampson distance (normalised image units) of rays xi, xj (M, 2) to ``E = [t]x R``."""
     E = np.cross(t, R.T).T  # [t]x R, column by column

@@ -157,3 +157,9 @@ def triangulate_tracks(camera: Camera, poses: list[Pose], tracks: Tracks, option
     angle = _max_ray_angle_deg(camera, poses, current, X)
     good_track = np.all(np.isfinite(X), axis=1) & (worst <= options.max_reprojection_error_px) & (angle >= options.min_angle_deg)
     return current.subset(good_track[current.track])
+
+
+def ray_angles_deg(camera: Camera, poses: list[Pose], tracks: Tracks) -> np.ndarray:
+    """(n_tracks,) largest angle (deg) between the viewing rays of each triangulated track (its depth is
+    good to about the keypoint noise over this angle)."""
+    return _max_ray_angle_deg(camera, poses, tracks, tracks.points)

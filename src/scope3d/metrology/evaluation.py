@@ -25,6 +25,7 @@ import numpy as np
 from scope3d.estimators.icp import IcpOptions, IcpResult, icp_point_to_plane
 from scope3d.geometry.pose import Pose
 from scope3d.geometry.rotation import matrix_to_rotvec, rotvec_to_matrix
+from scope3d.geometry.similarity import Similarity, fit_similarity
 from scope3d.scene.mesh import Mesh, SampledSurface
 from scope3d.sensor.camera import Camera
 from scope3d.sensor.pose_tolerance import MeasuredPose
@@ -212,3 +213,60 @@ def surface_errors(points: np.ndarray, truth: SampledSurface, options: Evaluatio
         "icp_translation_mm": [float(v) for v in best.translation],
     }
     return summary, direct, aligned
+
+
+def true_track_points(camera: Camera, true_poses: list[Pose], depth_of, frame: np.ndarray, track: np.ndarray,
+                      pixels: np.ndarray, n_tracks: int) -> np.ndarray:
+    """(n_tracks, 3) mm: where each track's observations truly lie, from the true z-depth maps and poses
+    (the median over the track's observations; NaN where no observation hits a depth). ``depth_of(k)``
+    gives frame k's (H, W) z-depth map (mm, NaN where none), e.g. ``GroundTruth.depth``; read once per
+    frame. Keypoints are looked up at their nearest pixel."""
+    hits = np.full((len(frame), 3), np.nan)
+    for k in np.unique(frame):
+        sel = np.flatnonzero(frame == k)
+        depth = depth_of(int(k))
+        col = np.clip(np.rint(pixels[sel, 0]).astype(int), 0, depth.shape[1] - 1)
+        row = np.clip(np.rint(pixels[sel, 1]).astype(int), 0, depth.shape[0] - 1)
+        z = depth[row, col].astype(float)
+        ray = np.c_[camera.pixel_to_normalised(pixels[sel]), np.ones(len(sel))] * z[:, None]
+        pose = true_poses[int(k)]
+        hits[sel] = (ray - pose.translation) @ pose.rotation  # R^T (x - t)
+    out = np.full((n_tracks, 3), np.nan)
+    order = np.argsort(track, kind="stable")
+    bounds = np.r_[0, np.flatnonzero(np.diff(track[order])) + 1, len(order)]
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        h = hits[order[a:b]]
+        h = h[np.all(np.isfinite(h), axis=1)]
+        if len(h):
+            out[track[order[a]]] = np.median(h, axis=0)
+    return out
+
+
+def errors_after_similarity(points: np.ndarray, true_points: np.ndarray, truth: SampledSurface, *,
+                            iterations: int = 10) -> tuple[dict, np.ndarray, Similarity]:
+    """Wall error of a map known up to a similarity (image-only maps, pycolmap's models).
+
+    The 7-DoF similarity is fitted to the tracks' true positions (:func:`true_track_points`), robustly
+    (Umeyama, then refitted on the pairs within 3 robust sigmas of the residual, a few rounds): fitting it
+    to the surface by ICP with a free scale collapses the map onto a patch of a closed cavity. The
+    distances are then taken to the true surface. points, true_points : (N, 3). Returns (summary of the
+    distances (mm) with ``scale``: true mm per map unit and ``n_aligned``, the distances (N,), the
+    similarity)."""
+    x = np.asarray(points, float)
+    y = np.asarray(true_points, float)
+    use = np.all(np.isfinite(y), axis=1) & np.all(np.isfinite(x), axis=1)
+    if use.sum() < 3:
+        raise ValueError("need at least 3 points with a true position to fit a similarity")
+    sim = fit_similarity(x[use], y[use])
+    for _ in range(iterations):
+        r = np.linalg.norm(sim.apply(x) - y, axis=1)
+        sigma = max(float(np.median(r[use])) / 0.6745, 1e-9)
+        keep = use & (r <= 3.0 * sigma)
+        if keep.sum() < 3:
+            break
+        sim = fit_similarity(x[keep], y[keep])
+    d = truth.distances(sim.apply(x))
+    summary = distance_summary(d)
+    summary["scale"] = float(sim.scale)
+    summary["n_aligned"] = int(use.sum())
+    return summary, d, sim

@@ -1,0 +1,168 @@
+"""Image-only 3-D organ panorama (reference sec. 2.4), ``scope3d panorama``. :func:`run` reads as the method::
+
+    features  <- SIFT in every frame's circular field
+    map       <- pairs by retrieval, relative poses chosen by the wall's shape, rotation averaging,
+                 centres from the rays, points on a sphere, adjustment in an anatomical shell, released
+                 (sfm.cavity_mapping; planned poses with finite tolerances start and bound the poses)
+    scale     <- the 6 mm star targets in the fluorescence frames (metrology.star_scale), unless not asked
+    wall      <- a star-shaped cavity mesh: the convex hull of the points' directions from the cavity's centre
+    truth     <- where the dataset has it: the wall error after a 7-DoF similarity fitted to the tracks'
+                 true positions, and the scale error of the stars
+    files     <- report.json, sparse/ (COLMAP text), points.ply, mesh.ply, panorama_3d.png (atomic folder)
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import ConvexHull
+
+from scope3d.errors import InputError
+from scope3d.feature.detection import FeatureOptions
+from scope3d.feature.matching import MatchOptions
+from scope3d.io.colmap import SparseModel, write_colmap_text
+from scope3d.io.dataset import Dataset
+from scope3d.io.ply import write_ply
+from scope3d.metrology.evaluation import errors_after_similarity, true_track_points
+from scope3d.metrology.star_scale import StarScaleOptions, star_scale
+from scope3d.pipelines.surgical_map import MapOptions, detect_features
+from scope3d.scene.mesh import Mesh, PointCloud, SampledSurface
+from scope3d.sfm.cavity_mapping import CavityMap, CavityOptions, map_cavity
+from scope3d.utils.atomic import atomic_directory
+from scope3d.utils.figures import new_figure, save_figure
+from scope3d.utils.jsonio import write_json
+from scope3d.utils.progress import stage
+
+
+@dataclass(frozen=True)
+class PanoramaOptions:
+    """features, matching, cavity : the stages' options. stars : the scale targets, or None for an unscaled
+    model (``scale_source: none``; or the plan's scale when the poses are planned). use_planned_poses :
+    planned poses with finite tolerances start and bound the adjustment (default True); False ignores them
+    (image-only). evaluation_step_mm : sample spacing of the true surface for the wall error (default 0.25).
+    figures : write panorama_3d.png (default True)."""
+
+    features: FeatureOptions = field(default_factory=FeatureOptions)
+    matching: MatchOptions = field(default_factory=MatchOptions)
+    cavity: CavityOptions = field(default_factory=CavityOptions)
+    stars: StarScaleOptions | None = field(default_factory=StarScaleOptions)
+    use_planned_poses: bool = True
+    evaluation_step_mm: float = 0.25
+    figures: bool = True
+
+    def __post_init__(self) -> None:
+        if self.evaluation_step_mm <= 0:
+            raise ValueError("evaluation_step_mm must be > 0")
+
+
+def cavity_mesh(points: np.ndarray, centre: np.ndarray, colors: np.ndarray | None = None) -> Mesh:
+    """A closed mesh through the points (N, 3) of a cavity seen from inside: the convex hull of their unit
+    directions from ``centre`` (a star-shaped cavity's triangulation), faces turned to face the centre."""
+    rel = np.asarray(points, float) - centre
+    hull = ConvexHull(rel / np.linalg.norm(rel, axis=1, keepdims=True))
+    faces = hull.simplices.copy()
+    v = rel[faces]
+    outward = np.einsum("ij,ij->i", np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), v.mean(axis=1)) > 0
+    faces[outward] = faces[outward][:, ::-1]  # normals towards the centre: the wall seen from inside
+    return Mesh(np.asarray(points, float), faces, colors)
+
+
+def evaluate(dataset: Dataset, cavity: CavityMap, step_mm: float) -> dict:
+    """Wall error after a 7-DoF similarity fitted to the tracks' true positions (true depth maps and poses),
+    in mm of the truth; {} without ground truth."""
+    gt = dataset.ground_truth
+    if gt is None or gt.poses is None or gt.surface_path is None or not gt.depth_paths:
+        return {}
+    tr = cavity.tracks
+    true_points = true_track_points(dataset.camera, gt.poses, gt.depth, tr.frame, tr.track, tr.pixels, tr.n_tracks)
+    summary, distances, sim = errors_after_similarity(tr.points, true_points, SampledSurface(gt.surface(), step_mm))
+    return {"surface_error_mm": {"after_similarity": summary}, "scale_error_fraction": summary["scale"] - 1.0,
+            "_distances": distances}
+
+
+def save_panorama_png(path: Path, cavity: CavityMap, distances: np.ndarray | None) -> None:
+    """Three orthogonal views of the points (coloured by their wall error when known, else their colour)
+    with the camera centres."""
+    pts = cavity.tracks.points
+    centres = np.stack([p.centre for p in cavity.poses])
+    fig = new_figure(figsize=(12, 4.2))
+    for k, (a, b, name) in enumerate([(0, 1, "x-y"), (0, 2, "x-z"), (1, 2, "y-z")]):
+        ax = fig.add_subplot(1, 3, k + 1)
+        if distances is not None:
+            sc = ax.scatter(pts[:, a], pts[:, b], c=distances, s=2, cmap="viridis", vmin=0,
+                            vmax=max(float(np.percentile(distances, 95)), 1e-3))
+        else:
+            ax.scatter(pts[:, a], pts[:, b], c=cavity.tracks.colors / 255.0, s=2)
+        ax.plot(centres[:, a], centres[:, b], "r.-", lw=0.8, ms=3)
+        ax.set_aspect("equal")
+        ax.set_title(f"{name} (mm)")
+    if distances is not None:
+        fig.colorbar(sc, ax=fig.axes, label="distance to the true wall after similarity, mm", shrink=0.8)
+    save_figure(fig, path)
+
+
+def run(options: PanoramaOptions, dataset: Dataset, out_dir: str | Path, *, progress=None) -> tuple[dict, CavityMap]:
+    """The 3-D panorama of ``dataset`` into ``out_dir`` (written atomically). Returns (report, map)."""
+    t0, c0 = time.perf_counter(), time.process_time()
+    n = len(dataset)
+    if n < 2:
+        raise InputError(f"{dataset.root}: need at least 2 frames for a panorama, found {n}")
+    if options.stars is not None and dataset.fluorescence_paths is None:
+        raise InputError(f"{dataset.root}: no fluorescence frames, so no star targets to set the scale "
+                         "(use --no-scale for an unscaled model)")
+    timings = {}
+    stage(progress, "panorama: features", n)
+    features = detect_features(MapOptions(features=options.features), dataset, [dataset.frame(k) for k in range(n)],
+                               progress=progress)
+    timings["features_s"] = time.perf_counter() - t0
+    stage(progress, "panorama: pairs", None)
+    measured = dataset.poses if options.use_planned_poses else None
+    cavity = map_cavity(dataset.camera, features, measured, options.cavity, options.matching,
+                        where=str(dataset.root), progress=progress)
+    timings.update(cavity.time_s)
+    scale_info = None
+    if options.stars is not None:
+        t1 = time.perf_counter()
+        fluorescence = [dataset.fluorescence_frame(k) for k in range(n)]
+        scale_info = star_scale(dataset.camera, cavity.poses, cavity.tracks, fluorescence, options.stars,
+                                where=str(dataset.root))
+        cavity = cavity.scaled(scale_info.scale)
+        timings["scale_s"] = time.perf_counter() - t1
+    scale_source = "stars" if scale_info is not None else ("plan" if cavity.scale_known else "none")
+    evaluation = evaluate(dataset, cavity, options.evaluation_step_mm)
+    distances = evaluation.pop("_distances", None)
+    if scale_source == "none":
+        evaluation.pop("scale_error_fraction", None)
+    tr = cavity.tracks
+    report = {
+        "n_frames": n,
+        "n_registered": int(cavity.registered.sum()),
+        "n_points": int(tr.n_tracks),
+        "n_observations": int(tr.n_observations),
+        "n_pairs": len(cavity.matches),
+        "n_pairs_tried": cavity.n_pairs_tried,
+        "poses": "planned (bounded)" if cavity.scale_known else "images only",
+        "scale_source": scale_source,
+        "stars": None if scale_info is None else scale_info.to_dict(),
+        "cavity_radius": cavity.radius_mm,
+        "length_unit": "mm" if scale_source != "none" else "map units (no physical scale)",
+        "stages": cavity.stages,
+        **evaluation,
+        "timings_s": timings,
+        "time_s": time.perf_counter() - t0,
+        "cpu_s": time.process_time() - c0,
+    }
+    with atomic_directory(out_dir) as tmp:
+        write_ply(tmp / "points.ply", PointCloud(tr.points, tr.colors))
+        if tr.n_tracks >= 4:
+            write_ply(tmp / "mesh.ply", cavity_mesh(tr.points, cavity.centre_mm, tr.colors))
+        model = SparseModel.from_observations(dataset.camera, dataset.names, cavity.poses, tr.points, tr.frame,
+                                              tr.track, tr.pixels, colors=tr.colors)
+        write_colmap_text(model, tmp / "sparse")
+        if options.figures:
+            save_panorama_png(tmp / "panorama_3d.png", cavity, distances)
+        report["time_s"] = time.perf_counter() - t0
+        write_json(tmp / "report.json", report)
+    return report, cavity

@@ -1,0 +1,111 @@
+"""Image-only 3-D panorama (sfm.cavity_mapping, metrology.star_scale, ``scope3d panorama``) on the bladder
+phantom: star scale, the map from planned poses, clear errors for unusable input."""
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from scope3d.cli.main import main
+from scope3d.errors import InputError
+from scope3d.estimators.triangulation import triangulate_tracks
+from scope3d.feature.detection import detect
+from scope3d.feature.matching import match_exhaustive
+from scope3d.feature.tracks import build_tracks
+from scope3d.io.dataset import load_dataset
+from scope3d.metrology.star_scale import pentagram_area_mm2, star_scale
+from scope3d.phantoms import generate, write
+from scope3d.sfm.cavity_mapping import map_cavity
+
+# frames 10-23 of the 36-frame spiral: one turn, with three stars seen whole (frames 13, 14, 17, 22)
+FIRST, LAST = 10, 23
+
+
+def _subset(src, dst, keep):
+    """A copy of dataset ``src`` holding only the frames whose index is in ``keep``."""
+    shutil.copytree(src, dst)
+    for table in (dst / "poses.csv", dst / "ground_truth" / "poses.csv"):
+        rows = list(csv.reader(table.open()))
+        kept = [rows[0]] + [r for k, r in enumerate(rows[1:]) if k in keep]
+        with table.open("w", newline="") as f:
+            csv.writer(f).writerows(kept)
+    names = sorted(p.name for p in (src / "frames").iterdir())
+    for k, name in enumerate(names):
+        if k not in keep:
+            for folder in ("frames", "fluorescence"):
+                (dst / folder / name).unlink()
+            for p in (dst / "ground_truth" / "depth").glob(name.rsplit(".", 1)[0] + ".*"):
+                p.unlink()
+    return dst
+
+
+@pytest.fixture(scope="module")
+def bladder(tmp_path_factory):
+    seq = generate("bladder", size=(200, 200))
+    root = tmp_path_factory.mktemp("panorama") / "bladder"
+    write(seq, root)
+    return _subset(root, root.parent / "turn", set(range(FIRST, LAST + 1)))
+
+
+def test_pentagram_area():
+    # the phantom's 6 mm star: outer radius 3 mm, flat area 10.103 mm^2 (scene.json flat_area_mm2)
+    assert pentagram_area_mm2(6.0) == pytest.approx(10.1031, abs=1e-4)
+
+
+def test_star_scale_on_a_map_with_the_true_poses_is_within_one_percent(bladder):
+    ds = load_dataset(bladder)
+    features = [detect(ds.frame(k), ds.camera) for k in range(len(ds))]
+    # consecutive frames matched (fundamental-matrix RANSAC): the points only need true poses here
+    matches = [match_exhaustive(ds.camera, features[k], features[k + 1], i=k, j=k + 1) for k in range(len(ds) - 1)]
+    tracks = triangulate_tracks(ds.camera, ds.ground_truth.poses, build_tracks(features, matches))
+    fluorescence = [ds.fluorescence_frame(k) for k in range(len(ds))]
+    scale = star_scale(ds.camera, ds.ground_truth.poses, tracks, fluorescence)
+    # the map is in true mm here, so the stars must say 1. The area is counted by each pixel's fluorescence
+    # over the star's level, so edge pixels count by their coverage; what is left is the local plane's
+    # depth error (two-view points, ~0.5 mm at 25 mm = 2 % of area, averaged over 10+ points: < 1 %)
+    assert len(scale.views) >= 2
+    assert scale.scale == pytest.approx(1.0, abs=0.01)
+    # and a blank fluorescence channel is no scale: refused, not invented
+    with pytest.raises(InputError, match="no star"):
+        star_scale(ds.camera, ds.ground_truth.poses, tracks, [np.zeros_like(f) for f in fluorescence])
+
+
+def test_panorama_from_planned_exact_poses_registers_every_frame_near_the_true_wall(bladder, tmp_path):
+    out = tmp_path / "pano"
+    assert main(["panorama", str(bladder), "--out", str(out), "--quiet"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["n_registered"] == report["n_frames"] == LAST - FIRST + 1
+    assert report["scale_source"] == "stars"
+    err = report["surface_error_mm"]["after_similarity"]
+    # the phantom's poses are exact (0.01 mm tolerance); points are mostly two-view with ~7 deg of
+    # parallax at 20-30 mm, 0.5 px keypoint noise at f = 143 px: depth error 25 mm x 0.5 / 143 / 0.12 rad
+    # ~ 0.7 mm per point, half of it on average, so a mean of 1 mm bounds a correct map
+    assert err["mean"] < 1.0
+    # scale from the stars on this map: the same 1 % as on the true map
+    assert abs(report["scale_error_fraction"]) < 0.01
+    for name in ("points.ply", "mesh.ply", "panorama_3d.png", "sparse/images.txt", "report.html"):
+        assert (out / name).stat().st_size > 0
+
+
+def test_frames_without_overlap_are_refused(bladder, tmp_path, capsys):
+    # three frames a third of a turn apart see different parts of the wall
+    far = _subset(bladder, tmp_path / "far", {0, 6, 12})
+    ds = load_dataset(far)
+    features = [detect(ds.frame(k), ds.camera) for k in range(len(ds))]
+    with pytest.raises(InputError, match="overlap"):
+        map_cavity(ds.camera, features)
+    assert main(["panorama", str(far), "--out", str(tmp_path / "p"), "--quiet"]) == 2
+    assert "overlap" in capsys.readouterr().err
+    assert not (tmp_path / "p").exists()
+
+
+def test_scale_requested_without_star_frames_is_refused(bladder, tmp_path, capsys):
+    bare = tmp_path / "bare"
+    shutil.copytree(bladder, bare)
+    shutil.rmtree(bare / "fluorescence")
+    assert main(["panorama", str(bare), "--out", str(tmp_path / "p"), "--quiet"]) == 2
+    assert "--no-scale" in capsys.readouterr().err
+    assert not (tmp_path / "p").exists()
