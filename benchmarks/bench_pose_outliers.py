@@ -41,6 +41,7 @@ from scope3d.geometry.rotation import rotvec_to_matrix  # noqa: E402
 from scope3d.io.dataset import load_dataset  # noqa: E402
 from scope3d.pipelines.surgical_map import MapOptions, run  # noqa: E402
 from scope3d.sensor.pose_tolerance import MeasuredPose  # noqa: E402
+from scope3d.sfm.pose_checks import PoseCheckOptions  # noqa: E402
 from scope3d.utils.jsonio import write_json  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
@@ -57,9 +58,7 @@ def glitched(dataset, frames: list[int], shift_mm: float, turn_deg: float):
 
 
 def one_map(dataset, out: Path, check: bool) -> dict:
-    options = replace(MapOptions(), figures=False, fluorescence=None)
-    if not check:
-        options = replace(options, pose_check=None)
+    options = replace(MapOptions(), figures=False, fluorescence=None, pose_check=PoseCheckOptions() if check else None)
     t0 = time.process_time()
     result = run(options, dataset, out)
     cpu = time.process_time() - t0

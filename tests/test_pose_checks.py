@@ -68,9 +68,10 @@ def test_a_glitched_report_is_flagged_and_released_and_clean_reports_are_not(tmp
     accurate as the clean one to within the scatter of the surface fit (without the test the glitch
     raised the mean direct error from 0.21 to 1.6 mm on seed 11, docs/reliability.md section 5)."""
     from scope3d.pipelines.surgical_map import MapOptions, run
+    from scope3d.sfm.pose_checks import PoseCheckOptions
 
     dataset = _dome(tmp_path, 11)
-    options = replace(MapOptions(), figures=False, fluorescence=None)
+    options = replace(MapOptions(), figures=False, fluorescence=None, pose_check=PoseCheckOptions())
     clean = run(options, dataset, tmp_path / "clean")
     test = clean.report["model_checks"]["reported_pose_test"]
     assert test["flagged"] == [] and test["frames_tested"] >= 9

@@ -271,6 +271,11 @@ def _quadratic_model(camera: Camera, measured: list[MeasuredPose], tracks: Track
                                                 current.track, refine_intrinsics=False)
     problem.start_from(poses)
     system, seen, _ = reduced_camera_system(problem, problem.initial, loss_scale_px, noise_px=noise_px)
+    # positive semidefinite in exact arithmetic; a point whose rays are nearly parallel makes its 3x3 block
+    # nearly singular and the Schur complement's round-off then has negative eigenvalues larger than the
+    # reports' weights (on the 56-frame survey every leave-one-out system failed to factor)
+    values, vectors = np.linalg.eigh(0.5 * (system + system.T))
+    system = (vectors * np.maximum(values, 0.0)) @ vectors.T
     gradient = reduced_gradient(problem, problem.initial, loss_scale_px)
     return _QuadraticModel(problem.initial.pose.copy(), system / noise_px**2, gradient / noise_px**2, seen)
 
