@@ -379,3 +379,18 @@ def test_a_truncated_video_is_one_line_on_stderr(targets, tmp_path):
                           env={"PYTHONPATH": str(REPO / "src"), "PATH": "/usr/bin:/bin"}, timeout=120)
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and str(video) in proc.stderr, proc.stderr
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("old, new, fragment", [(b'"section": 0', b'"section": Infinity', "view 0"),
+                                                (b'"fov_deg": 70.0', b'"fov_deg": 1' + b"0" * 400, "fov_deg")])
+def test_a_scan_plan_with_an_infinite_section_or_an_enormous_fov_is_refused(targets, old, new, fragment):
+    """Found by the long hypothesis run: int(Infinity) and float(10^400) raised OverflowError."""
+    from scope3d.io.scan_plan import read_scan_plan
+
+    target = targets["scan plan"]
+    assert old in target.seed
+    target.path.write_bytes(target.seed.replace(old, new, 1))
+    try:
+        _expect_refusal(lambda: read_scan_plan(target.path), target.path, fragment)
+    finally:
+        target.restore()

@@ -67,7 +67,7 @@ def read_scan_plan(path: str | Path) -> PlanFile:
         raise InputError(f"{path}: the plan has no views")
     try:
         fov = float(data["fov_deg"])
-    except (KeyError, TypeError, ValueError):
+    except (KeyError, TypeError, ValueError, OverflowError):
         raise InputError(f"{path}: fov_deg missing or not a number") from None
     if not 0 < fov < 180:
         raise InputError(f"{path}: fov_deg must be in (0, 180), got {fov}")
@@ -80,7 +80,7 @@ def read_scan_plan(path: str | Path) -> PlanFile:
                 raise ValueError("quaternion is not unit")
             poses.append(Pose.from_quaternion(q, t))
             sections.append(int(v.get("section", 0)))
-        except (KeyError, TypeError, ValueError) as exc:
+        except (KeyError, TypeError, ValueError, OverflowError) as exc:  # "section": Infinity
             raise InputError(f"{path}: view {i}: bad pose ({exc})") from None
     info = {k: val for k, val in data.items() if k not in ("views", "fov_deg", "kind", "version")}
     return PlanFile(poses, np.asarray(sections, dtype=int), fov, info)
