@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import base64
+import importlib.util
 import json
 import os
 import subprocess
@@ -146,12 +147,10 @@ def main() -> None:
                 entry["hypothesis"] = run_hypothesis(targets[name], args.seconds_per_reader)
                 entry["hypothesis"]["cpu_s"] = round(time.process_time() - start, 1)
             if "atheris" in engines:
-                try:
-                    import atheris  # noqa: F401
-
-                    entry["atheris"] = run_atheris(name, targets[name].seed, args.seconds_per_reader, work)
-                except ImportError:
+                if importlib.util.find_spec("atheris") is None:
                     entry["atheris"] = {"skipped": "atheris is not installed"}
+                else:
+                    entry["atheris"] = run_atheris(name, targets[name].seed, args.seconds_per_reader, work)
             report["readers"][name] = entry
             print(name, {k: {kk: (len(vv) if kk == "crashes" else vv) for kk, vv in v.items()}
                          for k, v in entry.items()}, flush=True)
