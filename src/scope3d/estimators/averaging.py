@@ -107,13 +107,7 @@ def relative_pose(camera: Camera, pixels_i: np.ndarray, pixels_j: np.ndarray, *,
     if best is None:
         return None
     R, t, inliers, cov = best
-    noise = noise_px / (0.5 * (camera.fx + camera.fy))
-    sigma_rot = noise * np.sqrt(max(np.linalg.eigvalsh(cov[:3, :3]).max(), 0.0))
-    sigma_dir = noise * np.sqrt(max(np.linalg.eigvalsh(cov[3:, 3:]).max(), 0.0))
-    # the Sampson distance does not see the sign of t: most inliers must lie in front of both cameras
-    if _in_front_fraction(xi[inliers], xj[inliers], R, t) < 0.5:
-        t = -t
-    return RelativePose(i, j, R, t, inliers, float(sigma_rot), float(sigma_dir))
+    return _relative_pose_with_sigmas(camera, xi, xj, R, t, inliers, cov, noise_px, i, j)
 
 
 def refine_relative_pose(camera: Camera, pixels_i: np.ndarray, pixels_j: np.ndarray, rotation: np.ndarray,
@@ -139,9 +133,17 @@ def refine_relative_pose(camera: Camera, pixels_i: np.ndarray, pixels_j: np.ndar
         inliers = np.abs(_sampson(xi, xj, R, t)) <= thr
     if inliers.sum() < 8:
         return None
+    return _relative_pose_with_sigmas(camera, xi, xj, R, t, inliers, cov, noise_px, i, j)
+
+
+def _relative_pose_with_sigmas(camera: Camera, xi: np.ndarray, xj: np.ndarray, R: np.ndarray, t: np.ndarray,
+                               inliers: np.ndarray, cov: np.ndarray, noise_px: float, i: int, j: int) -> RelativePose:
+    """The refined pose with its rotation and direction sigmas (largest eigenvalue of the refinement's
+    covariance scaled by the pixel noise), t's sign fixed by cheirality."""
     noise = noise_px / (0.5 * (camera.fx + camera.fy))
     sigma_rot = noise * np.sqrt(max(np.linalg.eigvalsh(cov[:3, :3]).max(), 0.0))
     sigma_dir = noise * np.sqrt(max(np.linalg.eigvalsh(cov[3:, 3:]).max(), 0.0))
+    # the Sampson distance does not see the sign of t: most inliers must lie in front of both cameras
     if _in_front_fraction(xi[inliers], xj[inliers], R, t) < 0.5:
         t = -t
     return RelativePose(i, j, R, t, inliers, float(sigma_rot), float(sigma_dir))
