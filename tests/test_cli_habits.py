@@ -107,8 +107,8 @@ def test_plan_scan_reports_its_plan(capsys, tmp_path):
 
 
 def test_batch_writes_the_batch_report_and_each_hole_page(capsys, tmp_path, monkeypatch):
-    """The batch command's own work after the Dask run (the run itself: tests/test_thread_scan.py): a page
-    per measured hole, the batch's report.json and report.html, exit status 1 when a hole failed."""
+    """The batch command's own work around the Dask run (the run itself: tests/test_thread_scan.py): a page
+    per measured hole (through the hook each hole's task calls), the batch's report.json and report.html, exit status 1 when a hole failed."""
     import scope3d.pipelines.thread_batch as thread_batch
 
     out = tmp_path / "batch"
@@ -116,7 +116,11 @@ def test_batch_writes_the_batch_report_and_each_hole_page(capsys, tmp_path, monk
     (out / "hole_a" / "report.json").write_text(json.dumps({"designation": "M8x1.25", "verdict": "GO"}))
     rows = [{"hole": "hole_a", "status": "done", "verdict": "GO"},
             {"hole": "hole_b", "status": "error", "verdict": "", "message": "no quadrants.json"}]
-    monkeypatch.setattr(thread_batch, "run_batch", lambda *a, **k: thread_batch.BatchResult(rows, [], 1.5, 2))
+    def run_batch(*args, finish, **kwargs):  # a worker calls finish on the hole's folder before its rename
+        finish(out / "hole_a", "hole_a")
+        return thread_batch.BatchResult(rows, [], 1.5, 2)
+
+    monkeypatch.setattr(thread_batch, "run_batch", run_batch)
     monkeypatch.setattr(thread_batch.BatchResult, "summary", lambda self: "2 holes")
     assert main(["batch", "thread-scan", "hole_a", "hole_b", "--out", str(out), "--json", "--quiet"]) == 1
     report = json.loads(capsys.readouterr().out)
@@ -125,3 +129,41 @@ def test_batch_writes_the_batch_report_and_each_hole_page(capsys, tmp_path, monk
     assert report["holes"] == rows
     assert (out / "report.html").is_file() and (out / "hole_a" / "report.html").is_file()
     assert not (out / "hole_b").exists()
+
+
+def test_job_folder_puts_the_page_in_before_the_folder_appears(tmp_path):
+    """The run folder appears whole, report.html included (a kill can no longer leave a run without its
+    page), or not at all when the job fails."""
+    from scope3d.cli.job_output import job_folder
+
+    out = tmp_path / "run"
+    with job_folder(out) as staged:
+        assert staged != out and not out.exists()
+        (staged / "report.json").write_text(json.dumps({"job": "map", "n_points": 3}))
+    assert (out / "report.html").is_file() and (out / "report.json").is_file()
+    assert [p.name for p in tmp_path.iterdir()] == ["run"]  # no temporary left beside it
+
+    with pytest.raises(RuntimeError), job_folder(out) as staged:  # a failing job keeps the previous run
+        (staged / "report.json").write_text(json.dumps({"job": "map", "n_points": 99}))
+        raise RuntimeError("the job failed")
+    assert json.loads((out / "report.json").read_text())["n_points"] == 3
+    assert [p.name for p in tmp_path.iterdir()] == ["run"]
+
+
+def test_a_job_refuses_to_replace_a_folder_that_is_not_a_run(capsys, tmp_path):
+    """The job replaces its --out folder whole: a folder of the user's own files is refused (exit 2, one
+    line) and left untouched, before any work."""
+    mine = tmp_path / "my_notes"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("keep me")
+    import trimesh
+
+    from scope3d.io.ply import write_ply
+    from scope3d.scene.mesh import Mesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=20.0)
+    write_ply(tmp_path / "sphere.ply", Mesh(sphere.vertices, sphere.faces))
+    assert main(["plan-scan", str(tmp_path / "sphere.ply"), "--out", str(mine), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "my_notes" in err[0] and "not a scope3d run" in err[0]
+    assert (mine / "notes.txt").read_text() == "keep me" and len(list(mine.iterdir())) == 1

@@ -57,6 +57,7 @@ def test_thread_scan_names_the_missing_layout(hole, tmp_path, capsys):
 def test_batch_survives_a_killed_worker_and_resumes(hole, tmp_path):
     from distributed import Client, LocalCluster
 
+    from scope3d.cli.commands_thread import hole_page
     from scope3d.pipelines.thread_batch import run_batch
 
     second = tmp_path / "hole_b"
@@ -79,11 +80,13 @@ def test_batch_survives_a_killed_worker_and_resumes(hole, tmp_path):
 
         killer = threading.Thread(target=kill_first_busy_worker)
         killer.start()
-        result = run_batch([hole, second], out, client=client)
+        # the CLI's page hook travels to the workers and runs before each hole's folder is renamed
+        result = run_batch([hole, second], out, client=client, finish=hole_page)
         killer.join()
     assert killed, "no worker was killed"
     assert [r["status"] for r in result.rows] == ["done", "done"]
-    assert (out / "hole_a" / "report.json").is_file() and (out / "hole_b" / "report.json").is_file()
+    for name in ("hole_a", "hole_b"):
+        assert (out / name / "report.json").is_file() and (out / name / "report.html").is_file()
     assert "hole_a" in (out / "summary.csv").read_text()
     again = run_batch([hole, second], out, n_workers=1)
     assert [r["status"] for r in again.rows] == ["skipped", "skipped"]

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from scope3d.cli.job_output import add_job_arguments, finish_job, show_progress
+from scope3d.cli.job_output import add_job_arguments, finish_job, job_folder, show_progress
 
 
 def register(subparsers) -> None:
@@ -43,7 +43,8 @@ def _run(args) -> int:
     options = replace(base, method=args.method, frames=tuple(args.frames) if args.frames else None,
                       use_true_poses=args.true_poses,
                       two_view=replace(base.two_view, min_depth_mm=args.min_depth_mm))
-    with progress_bar(args.method == "multiview" and show_progress(args), "frame") as progress:
-        result = run(options, dataset, args.out, progress=progress)
+    show = args.method == "multiview" and show_progress(args)
+    with job_folder(args.out) as staged, progress_bar(show, "frame") as progress:
+        result = run(options, dataset, staged, progress=progress)
     return finish_job(args, args.out, result.report,
                       [result.summary(), f"wrote {args.out}/ (cloud.ply, mesh.ply, depth.png, report.json)"])

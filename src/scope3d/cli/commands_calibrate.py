@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from scope3d.cli.job_output import add_job_arguments, finish_job, show_progress
+from scope3d.cli.job_output import add_job_arguments, finish_job, job_folder, show_progress
 
 
 def register(subparsers) -> None:
@@ -21,7 +21,7 @@ def register(subparsers) -> None:
     p.add_argument("--board", required=True, metavar="COLSxROWS",
                    help="inner corners, OpenCV's convention (a 10x7-square board is 9x6)")
     p.add_argument("--square", type=float, required=True, metavar="MM", help="side of one square, mm")
-    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--out", type=Path, required=True, help="output folder (written atomically, replaced)")
     p.add_argument("--model", choices=("pinhole", "fisheye"), default="pinhole",
                    help="pinhole: fx, fy, cx, cy, k1, k2 (default, scope3d's camera); fisheye: "
                    "equidistant with k1..k4 (capsule and wide-angle scopes); camera.json and the bounds "
@@ -58,8 +58,9 @@ def _run(args) -> int:
     options = CalibrateOptions(board, model=args.model, k_sigma=args.k_sigma, mask_circle=args.mask_circle,
                                detection=DetectionOptions(refine_corners=not args.no_refine),
                                calibration=CalibrationOptions(min_views=args.min_views))
-    with progress_bar(show_progress(args) and len(args.images) > 20, "image") as progress:
-        result = run(options, args.images, args.out, progress=progress)
+    show = show_progress(args) and len(args.images) > 20
+    with job_folder(args.out) as staged, progress_bar(show, "image") as progress:
+        result = run(options, args.images, staged, progress=progress)
     return finish_job(args, args.out, result.report, [
         result.summary(),
         f"wrote {args.out}/ (camera.json, intrinsic_bounds.json, report.json, coverage.png, residuals.png)"])
@@ -82,7 +83,7 @@ def register_hand_eye(subparsers) -> None:
     p.add_argument("--board", required=True, metavar="COLSxROWS", help="inner corners (use one odd, one even "
                    "side: an even x even board's orientation is ambiguous)")
     p.add_argument("--square", type=float, required=True, metavar="MM", help="side of one square, mm")
-    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--out", type=Path, required=True, help="output folder (written atomically, replaced)")
     p.add_argument("--no-refine", action="store_true", help="closed form only, no joint refinement")
     p.add_argument("--tolerance-sigmas", type=float, default=3.0,
                    help="pose tolerance = this many residual RMS per axis (default 3)")
@@ -102,5 +103,7 @@ def _run_hand_eye(args) -> int:
     board = BoardSpec.parse(args.board, args.square)
     options = HandEyeRunOptions(board, hand_eye=HandEyeOptions(refine=not args.no_refine,
                                                                tolerance_sigmas=args.tolerance_sigmas))
-    result = run(options, args.images, args.robot_poses, read_camera_json(args.camera), args.out)
+    camera = read_camera_json(args.camera)
+    with job_folder(args.out) as staged:
+        result = run(options, args.images, args.robot_poses, camera, staged)
     return finish_job(args, args.out, result.report, [result.summary(), f"wrote {args.out}/ (hand_eye.json, poses.csv)"])

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from scope3d.cli.job_output import add_job_arguments, finish_job, show_progress
+from scope3d.cli.job_output import add_job_arguments, finish_job, job_folder, show_progress
 
 
 def register(subparsers) -> None:
@@ -47,7 +47,7 @@ def _run(args) -> int:
     dataset = load_dataset(args.dataset)
     options = replace(LocalizeOptions(), use_reported_poses=not args.ignore_reported_poses,
                       localizer=replace(LOCALIZER_PRESETS[args.preset], tracking=not args.no_tracking))
-    with progress_bar(show_progress(args), "frame") as progress:
-        result = run(options, args.map_dir, dataset, args.out, mask=args.mask, progress=progress)
+    with job_folder(args.out) as staged, progress_bar(show_progress(args), "frame") as progress:
+        result = run(options, args.map_dir, dataset, staged, mask=args.mask, progress=progress)
     return finish_job(args, args.out, result.report,
                       [result.summary(), f"wrote {args.out}/ (poses.csv, report.json, localization_errors.png)"])

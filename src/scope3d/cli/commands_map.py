@@ -2,7 +2,7 @@
 :mod:`scope3d.pipelines.surgical_map`). A thin layer: parse, load, call ``run``, print the summary."""
 from __future__ import annotations
 
-from scope3d.cli.job_output import add_job_arguments, finish_job, show_progress
+from scope3d.cli.job_output import add_job_arguments, finish_job, job_folder, show_progress
 from scope3d.cli.lazy import LazyChoices
 from scope3d.errors import InputError
 
@@ -73,8 +73,8 @@ def run(args) -> int:
         options = replace(options, bundle=replace(options.bundle, refine_intrinsics=True,
                                                   intrinsic_bounds=(tuple(lower), tuple(upper))))
     try:
-        with progress_bar(show_progress(args), "step") as progress:
-            result = run_map(options, dataset, args.out, progress=progress)
+        with job_folder(args.out) as staged, progress_bar(show_progress(args), "step") as progress:
+            result = run_map(options, dataset, staged, progress=progress)
     except ValueError as exc:
         from numpy.linalg import LinAlgError
 

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from scope3d.cli.job_output import add_job_arguments, finish_job, show_progress
+from scope3d.cli.job_output import add_job_arguments, finish_job, job_folder, show_progress
 
 
 def register(subparsers) -> None:
@@ -25,7 +25,7 @@ def register(subparsers) -> None:
     p.add_argument("--bend-limit", type=float, metavar="DEG",
                    help="largest angle between the tip's optical axis and the insertion direction (-z); views "
                         "needing more are dropped and the coverage lost is reported (the reference: ~125)")
-    p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder")
+    p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder (written atomically, replaced)")
     add_job_arguments(p)  # --quiet accepted for uniformity: the planner shows no progress bar
     p.set_defaults(func=_run_plan)
     register_mosaic(subparsers)
@@ -43,8 +43,10 @@ def _run_plan(args) -> int:
                                   bend_limit_deg=args.bend_limit)
     except ValueError as exc:
         raise InputError(str(exc)) from None
-    plan = plan_scan(options, args.surface, args.out)
-    return finish_job(args, args.out, read_json_object(args.out / "report.json"),
+    with job_folder(args.out) as staged:
+        plan = plan_scan(options, args.surface, staged)
+        report = read_json_object(staged / "report.json")
+    return finish_job(args, args.out, report,
                       [plan.summary(), f"wrote {args.out}/plan.json, plan.png, report.json"])
 
 
@@ -59,7 +61,7 @@ def register_mosaic(subparsers) -> None:
                     "coverage_fraction, and alignment_error_px against the truth for planar phantoms).",
     )
     p.add_argument("datasets", type=Path, nargs="+", metavar="DATASET", help="dataset folder(s)")
-    p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder")
+    p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder (written atomically, replaced)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_job_arguments(p)
     p.set_defaults(func=_run_mosaic)
@@ -72,8 +74,8 @@ def _run_mosaic(args) -> int:
     from scope3d.registration.mosaic import MosaicOptions
 
     datasets = [load_dataset(d) for d in args.datasets]
-    with progress_bar(show_progress(args), "pair") as progress:
-        report, _ = make_mosaic(MosaicOptions(), datasets, args.out, progress=progress)
+    with job_folder(args.out) as staged, progress_bar(show_progress(args), "pair") as progress:
+        report, _ = make_mosaic(MosaicOptions(), datasets, staged, progress=progress)
     err = report["alignment_error_px"]
     summary = (f"{report['n_registered']}/{report['n_frames']} frames in the mosaic, coverage "
                f"{report['coverage_fraction']:.1%}"
@@ -120,8 +122,8 @@ def _run_panorama(args) -> int:
         raise InputError(str(exc)) from None
     options = PanoramaOptions(stars=stars, use_planned_poses=not args.ignore_poses)
     dataset = load_dataset(args.dataset)
-    with progress_bar(show_progress(args), "frame") as progress:
-        report, _ = run(options, dataset, args.out, progress=progress)
+    with job_folder(args.out) as staged, progress_bar(show_progress(args), "frame") as progress:
+        report, _ = run(options, dataset, staged, progress=progress)
     summary = (f"{report['n_registered']}/{report['n_frames']} frames registered, {report['n_points']} points, "
                f"scale from {report['scale_source']}, {report['time_s']:.1f} s")
     lines = [summary]

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from scope3d.cli.job_output import add_job_arguments, finish_job, show_progress
+from scope3d.cli.job_output import add_job_arguments, finish_job, job_folder, show_progress
 from scope3d.cli.lazy import LazyChoices
 
 
@@ -67,8 +67,8 @@ def _run_scan(args) -> int:
     from scope3d.pipelines.thread_scan import run
 
     dataset = load_dataset(args.dataset)
-    with progress_bar(show_progress(args), "quadrant") as progress:
-        result = run(_options(args), dataset, args.out, progress=progress)
+    with job_folder(args.out) as staged, progress_bar(show_progress(args), "quadrant") as progress:
+        result = run(_options(args), dataset, staged, progress=progress)
     return finish_job(args, args.out, result.report(), [
         result.summary(), f"wrote {args.out}/ (cloud.ply, quadrants/, report.json, registration.png, unwrapped.png)"])
 
@@ -80,15 +80,23 @@ def _run_batch(args) -> int:
     from scope3d.utils.jsonio import write_json
 
     with progress_bar(show_progress(args), "hole") as progress:
-        result = run_batch(args.datasets, args.out, _options(args),
-                           scheduler=args.scheduler, n_workers=args.workers, progress=progress)
-    for row in result.rows:  # each measured hole's own page (its folder holds its report.json)
-        if row["status"] != "error":
-            write_report(args.out / row["hole"])
+        result = run_batch(args.datasets, args.out, _options(args), scheduler=args.scheduler,
+                           n_workers=args.workers, progress=progress, finish=hole_page)
     report = result.report()
+    # the batch folder is resumable (holes done before are kept), so it is not built whole: its page follows
+    # its report.json, each written atomically
     write_json(args.out / "report.json", report)
+    write_report(args.out)
     finish_job(args, args.out, report, [result.summary(), f"wrote {args.out}/summary.csv, report.json"])
     return 0 if report["n_errors"] == 0 else 1
+
+
+def hole_page(folder, hole: str) -> None:
+    """A hole's report.html, written in its folder before the folder is renamed into place (a cluster task:
+    module-level, so that it pickles)."""
+    from scope3d.report import write_report
+
+    write_report(folder, name=hole)
 
 
 def _options(args):

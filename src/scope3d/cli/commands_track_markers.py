@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from scope3d.cli.job_output import add_job_arguments, finish_job
+from scope3d.cli.job_output import add_job_arguments, finish_job, job_folder
 
 
 def register(subparsers) -> None:
@@ -35,5 +35,6 @@ def _run(args) -> int:
         options = TrackOptions(rate_hz=args.rate, marker_sigma_mm=args.marker_sigma, filter=not args.no_filter)
     except ValueError as exc:
         raise InputError(str(exc)) from None
-    result = run(options, args.tracker_file, args.out)
+    with job_folder(args.out) as staged:
+        result = run(options, args.tracker_file, staged)
     return finish_job(args, args.out, result.report, [result.summary(), f"wrote {args.out}/ (poses.csv, report.json)"])

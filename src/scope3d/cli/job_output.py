@@ -1,5 +1,6 @@
-"""What every job does on the command line after its work: write the run folder's report.html (the
-report layer), and speak the habits shared by every job: ``--json`` prints the report as JSON on stdout
+"""What every job does on the command line around its work: build its run folder in a temporary sibling
+with report.html (the report layer) inside before the folder is renamed into place, and speak the habits
+shared by every job: ``--json`` prints the report as JSON on stdout
 (nothing else goes there), ``--quiet`` silences progress; the exit codes are in every job's ``--help``."""
 from __future__ import annotations
 
@@ -7,7 +8,8 @@ import argparse
 import json
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 EXIT_CODES = """\
@@ -56,15 +58,38 @@ def dataset_report_writer(report: dict, name: str, started: float) -> Callable[[
     return finish
 
 
-def finish_job(args, out_dir: str | Path | None, report: dict, summary_lines: list[str]) -> int:
-    """Write ``out_dir/report.html`` (when the job has an output folder), then print the report as JSON
-    (``--json``) or the summary lines. Returns the exit status 0."""
+@contextmanager
+def job_folder(out_dir: str | Path) -> Iterator[Path]:
+    """The run folder ``out_dir`` built whole: yields a temporary sibling for the job to write into; when the
+    block succeeds, report.html is written there and the folder is renamed onto ``out_dir`` (replacing a
+    previous run's), so that a kill or an error never leaves a run without its page or half-written. A
+    pipeline that writes its own folder atomically is given the temporary path and simply swaps it too.
+
+    Raises InputError, before any work, if ``out_dir`` is a file, or a non-empty folder that is not a
+    scope3d run (no report.json): the job replaces its folder whole and must not delete a user's files."""
+    from scope3d.errors import InputError
     from scope3d.report import write_report
+    from scope3d.utils.atomic import atomic_directory
+
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out}: is a file; --out needs a folder (it is replaced whole)")
+    if out.is_dir() and any(out.iterdir()) and not (out / "report.json").is_file():
+        raise InputError(f"{out}: a non-empty folder that is not a scope3d run (no report.json); the job "
+                         "replaces its --out folder whole: give a new folder or a previous run's")
+    with atomic_directory(out) as staged:
+        yield staged
+        write_report(staged, name=out.resolve().name)
+
+
+def finish_job(args, out_dir: str | Path | None, report: dict, summary_lines: list[str]) -> int:
+    """Print the report as JSON (``--json``) or the summary lines, with the page :func:`job_folder` wrote
+    into ``out_dir`` (when the job has an output folder). Returns the exit status 0."""
     from scope3d.utils.jsonio import json_default
 
     lines = list(summary_lines)
     if out_dir is not None:
-        lines.append(f"wrote {write_report(out_dir)}")
+        lines.append(f"wrote {Path(out_dir) / 'report.html'}")
     if getattr(args, "json", False):
         sys.stdout.write(json.dumps(report, indent=2, default=json_default) + "\n")
     else:

@@ -13,13 +13,14 @@ from __future__ import annotations
 
 import csv
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from scope3d.errors import InputError
 from scope3d.io.json_object import read_json_object
 from scope3d.pipelines.thread_scan import ThreadScanOptions
-from scope3d.utils.atomic import atomic_file
+from scope3d.utils.atomic import atomic_directory, atomic_file
 from scope3d.utils.jsonio import write_json
 from scope3d.utils.progress import Progress, advance, stage
 
@@ -77,14 +78,20 @@ def _row_from_report(hole: str, report: dict, status: str) -> dict:
             "message": ""}
 
 
-def scan_hole(dataset_dir: str, out_dir: str, options: ThreadScanOptions, hole: str) -> dict:
+def scan_hole(dataset_dir: str, out_dir: str, options: ThreadScanOptions, hole: str,
+              finish: Callable[[Path, str], None] | None = None) -> dict:
     """One hole, as a cluster task: scan ``dataset_dir`` into ``out_dir`` (written atomically) and return
-    its summary row. Bad input gives an ``error`` row (retrying would not help)."""
+    its summary row. Bad input gives an ``error`` row (retrying would not help). finish : called with the
+    hole's folder, still temporary, and the hole's name before the folder is renamed into place (the CLI
+    writes the hole's report.html there; it must be picklable for the cluster)."""
     from scope3d.io.dataset import load_dataset
     from scope3d.pipelines.thread_scan import run
 
     try:
-        result = run(options, load_dataset(dataset_dir), out_dir)
+        with atomic_directory(Path(out_dir)) as staged:
+            result = run(options, load_dataset(dataset_dir), staged)
+            if finish is not None:
+                finish(staged, hole)
     except InputError as exc:
         return {"hole": hole, "status": "error", "verdict": "", "message": str(exc)}
     return _row_from_report(hole, result.report(), "done")
@@ -92,11 +99,12 @@ def scan_hole(dataset_dir: str, out_dir: str, options: ThreadScanOptions, hole: 
 
 def run_batch(datasets: list[str | Path], out_dir: str | Path, options: ThreadScanOptions = ThreadScanOptions(), *,
               scheduler: str | None = None, n_workers: int = 2, progress: Progress | None = None,
-              client=None) -> BatchResult:
+              client=None, finish: Callable[[Path, str], None] | None = None) -> BatchResult:
     """Scan every hole in ``datasets`` on a Dask cluster into ``out_dir/<hole>/``, skipping holes done
     before; write ``out_dir/summary.csv`` and ``summary.json``. scheduler : a Dask scheduler's address
     (``tcp://host:8786``) or None for a LocalCluster of ``n_workers`` single-threaded processes.
-    client : an existing ``distributed.Client`` (tests), used as is and not closed."""
+    client : an existing ``distributed.Client`` (tests), used as is and not closed. finish : see
+    :func:`scan_hole`."""
     from distributed import Client, LocalCluster, as_completed
 
     if not datasets:
@@ -134,7 +142,8 @@ def run_batch(datasets: list[str | Path], out_dir: str | Path, options: ThreadSc
                 client = Client(cluster)
         if todo:
             workers = len(client.scheduler_info()["workers"]) or n_workers
-            futures = {client.submit(scan_hole, d, str(out_dir / name), job_options, name, key=f"hole-{name}",
+            futures = {client.submit(scan_hole, d, str(out_dir / name), job_options, name, finish,
+                                     key=f"hole-{name}",
                                      pure=False): name for d, name in todo}
             for future in as_completed(futures):
                 name = futures[future]
