@@ -79,7 +79,8 @@ class LocalizerOptions:
     max_tracked : int, at most this many inliers are followed into the next frame, evenly through the
         list (default 250: the flow's cost grows with the count, a pose's precision only as its square
         root; 250 points hold the centre to ~0.02 mm on the dome).
-    flow_window_px : int, Lucas-Kanade window side (default 21 px); flow_levels : pyramid levels (3).
+    flow_window_px : int, Lucas-Kanade window side (default 21 px); flow_levels : pyramid levels of the
+        forward flow (3; the backward check needs none).
     max_flow_error_px : float, forwards-backwards disagreement beyond which a followed point is dropped
         (default 0.5 px, the keypoints' own error).
     blocked_margin_px : float, pixels next to the tool that are treated as blocked (default 8 px, half a
@@ -412,7 +413,10 @@ class Localizer:
         criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
         nxt, st, _ = cv2.calcOpticalFlowPyrLK(tr.grey, grey, prev, guess, winSize=win, maxLevel=o.flow_levels,
                                               criteria=criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
-        back, st2, _ = cv2.calcOpticalFlowPyrLK(grey, tr.grey, nxt, prev.copy(), winSize=win, maxLevel=o.flow_levels,
+        # the backward flow starts where the point was, the answer of a consistent track, and any answer
+        # farther than max_flow_error_px from it is rejected: a pyramid would only widen a capture range
+        # the check does not use, and building it is a third of the flow's cost
+        back, st2, _ = cv2.calcOpticalFlowPyrLK(grey, tr.grey, nxt, prev.copy(), winSize=win, maxLevel=0,
                                                 criteria=criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
         nxt, back = nxt.reshape(-1, 2).astype(float), back.reshape(-1, 2)
         ok = (st.ravel() == 1) & (st2.ravel() == 1)
