@@ -244,7 +244,12 @@ def refresh_modes(work: Path) -> dict:
             runs = [localize_sequence(points, ds, blocked, options, use_reported) for ds in datasets]
             key = f"{name}_{'reported' if use_reported else 'image_only'}"
             out[key] = _medians(runs) | {"modes": {m: sum(f["mode"] == m for r in runs for f in r["frames"])
-                                                   for m in ("tracking", "guided", "global")}}
+                                                   for m in ("tracking", "guided", "global")},
+                                         "tracking_frame_median_cpu_ms": float(np.median(
+                                             [f["cpu_ms"] for r in runs for f in r["frames"] if f["mode"] == "tracking"])),
+                                         "sift_frame_median_cpu_ms": float(np.median(
+                                             [f["cpu_ms"] for r in runs for f in r["frames"] if f["mode"] != "tracking"])),
+                                         "load_average": os.getloadavg()}
             print(key, out[key], flush=True)
     out["load_average_at_end"] = os.getloadavg()
     return out

@@ -85,6 +85,8 @@ def test_absolute_pose_refuses_what_it_cannot_support():
     assert r.status in ("degenerate", "too_few_matches") and r.pose is None
     with pytest.raises(ValueError):
         AbsolutePoseOptions(min_inliers=3)
+    with pytest.raises(ValueError):
+        LocalizerOptions(min_tracked_fraction=0.0)
 
 
 @pytest.fixture(scope="module")

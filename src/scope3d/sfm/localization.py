@@ -43,6 +43,7 @@ from scipy.spatial import cKDTree
 from scope3d.estimators.absolute_pose import AbsolutePoseOptions, AbsolutePoseResult, estimate_absolute_pose
 from scope3d.feature.depth_prior import DepthPrior, pose_error_px
 from scope3d.feature.detection import FeatureOptions, detect, detection_mask, to_grey
+from scope3d.feature.matching import _pair_d2
 from scope3d.geometry.pose import Pose
 from scope3d.io.map_points import MapPoints
 from scope3d.sensor.camera import Camera
@@ -68,11 +69,18 @@ class LocalizerOptions:
     refresh_every : int, re-anchor the tracked points on fresh SIFT keypoints every this many frames
         (default 10: optical flow drifts by ~0.05 px a frame, 0.5 px after ten).
     min_tracked : int, fewer points surviving the flow triggers a guided frame (default 60: four times
-        the absolute pose's minimum of inliers, so a tool moving into view does not starve the pose).
+        the absolute pose's minimum of inliers, so a tool moving into view does not starve the pose) —
+        unless they are still at least ``min_tracked_fraction`` of what the last SIFT association gave.
+    min_tracked_fraction : float in (0, 1], where the map is sparse (a close-up of a patch the survey saw
+        from afar) SIFT itself finds fewer than ``min_tracked`` inliers, and a SIFT frame would bring back
+        no more points than tracking holds: tracking goes on while at least this fraction of the last
+        association's points survive (default 0.5: the pose's sigma, growing as 1/sqrt(points), is then
+        within sqrt(2) of a fresh SIFT frame's), never below the pose's ``min_inliers``.
     max_tracked : int, at most this many inliers are followed into the next frame, evenly through the
         list (default 250: the flow's cost grows with the count, a pose's precision only as its square
         root; 250 points hold the centre to ~0.02 mm on the dome).
-    flow_window_px : int, Lucas-Kanade window side (default 21 px); flow_levels : pyramid levels (3).
+    flow_window_px : int, Lucas-Kanade window side (default 21 px); flow_levels : pyramid levels of the
+        forward flow (3; the backward check needs none).
     max_flow_error_px : float, forwards-backwards disagreement beyond which a followed point is dropped
         (default 0.5 px, the keypoints' own error).
     blocked_margin_px : float, pixels next to the tool that are treated as blocked (default 8 px, half a
@@ -99,6 +107,7 @@ class LocalizerOptions:
     tracking: bool = True
     refresh_every: int = 10
     min_tracked: int = 60
+    min_tracked_fraction: float = 0.5
     max_tracked: int = 250
     flow_window_px: int = 21
     flow_levels: int = 3
@@ -116,6 +125,8 @@ class LocalizerOptions:
             raise ValueError("need 0 < guided_base_radius_px <= max_guided_radius_px")
         if self.refresh_every < 1 or not self.pose.min_inliers <= self.min_tracked <= self.max_tracked:
             raise ValueError("need refresh_every >= 1 and pose.min_inliers <= min_tracked <= max_tracked")
+        if not 0 < self.min_tracked_fraction <= 1:
+            raise ValueError(f"min_tracked_fraction must be in (0, 1], got {self.min_tracked_fraction}")
         if self.flow_window_px < 5 or self.flow_levels < 0 or self.max_flow_error_px <= 0:
             raise ValueError("need flow_window_px >= 5, flow_levels >= 0 and max_flow_error_px > 0")
         if self.blocked_margin_px < 0:
@@ -207,6 +218,7 @@ class Localizer:
         self._poses: list[Pose] = []  # the last two poses, for the constant-velocity prediction
         self._track: _Track | None = None
         self._since_refresh = 0
+        self._anchored = 0  # points the last SIFT association (a SIFT frame or a merged refresh) gave
         self._pending: _PendingRefresh | None = None  # a refresh still running is simply never merged
 
     def close(self) -> None:
@@ -250,7 +262,7 @@ class Localizer:
             ids, px = self._merge_refresh(grey, predicted, usable)
             if ids is None:
                 ids, px = self._follow(self._track, grey, predicted, usable)
-            if len(ids) >= o.min_tracked:
+            if len(ids) >= self._enough_tracked(self._anchored):
                 result, used_ids, used_px = self._pose(ids, px, reported)
                 self._since_refresh += 1
         if result is None or not result.ok:
@@ -275,6 +287,8 @@ class Localizer:
         if result.ok:
             self._poses = (self._poses + [result.pose])[-2:]
             self._track = _Track(grey, *self._kept(result, used_ids, used_px))
+            if mode != "tracking":
+                self._anchored = len(self._track.point_ids)
             if lagged and mode == "tracking" and self._since_refresh >= o.refresh_every and self._pending is None:
                 self._submit_refresh(grey, result.pose, reported, usable)
         else:
@@ -347,6 +361,11 @@ class Localizer:
             keep = keep[np.linspace(0, len(keep) - 1, self.options.max_tracked).round().astype(int)]
         return ids[keep], pixels[keep]
 
+    def _enough_tracked(self, anchored: int) -> int:
+        """Fewest followed points to go on tracking, after an association that gave ``anchored`` points."""
+        o = self.options
+        return max(o.pose.min_inliers, min(o.min_tracked, int(np.ceil(o.min_tracked_fraction * anchored))))
+
     def _refresh(self, grey: np.ndarray, guide: Pose, reported: MeasuredPose | None, usable: np.ndarray):
         """A refresh frame's fresh association: SIFT matched to the map points near where its tracked pose
         ``guide`` projects them, checked by a pose. Returns (point ids, pixels) to follow, or None. Reads
@@ -379,7 +398,10 @@ class Localizer:
         if outcome is None:
             return None, None
         ids, px = self._follow(_Track(pending.grey, *outcome), grey, predicted, usable)
-        return (ids, px) if len(ids) >= self.options.min_tracked else (None, None)
+        if len(ids) < self._enough_tracked(len(outcome[0])):
+            return None, None
+        self._anchored = len(outcome[0])
+        return ids, px
 
     def _follow(self, tr: _Track, grey: np.ndarray, predicted: Pose, usable: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The points of ``tr`` followed into ``grey`` by optical flow from their predicted positions."""
@@ -391,7 +413,10 @@ class Localizer:
         criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
         nxt, st, _ = cv2.calcOpticalFlowPyrLK(tr.grey, grey, prev, guess, winSize=win, maxLevel=o.flow_levels,
                                               criteria=criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
-        back, st2, _ = cv2.calcOpticalFlowPyrLK(grey, tr.grey, nxt, prev.copy(), winSize=win, maxLevel=o.flow_levels,
+        # the backward flow starts where the point was, the answer of a consistent track, and any answer
+        # farther than max_flow_error_px from it is rejected: a pyramid would only widen a capture range
+        # the check does not use, and building it is a third of the flow's cost
+        back, st2, _ = cv2.calcOpticalFlowPyrLK(grey, tr.grey, nxt, prev.copy(), winSize=win, maxLevel=0,
                                                 criteria=criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
         nxt, back = nxt.reshape(-1, 2).astype(float), back.reshape(-1, 2)
         ok = (st.ravel() == 1) & (st2.ravel() == 1)
@@ -413,7 +438,7 @@ class Localizer:
         if len(pairs) == 0:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
         row, feat = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64)
-        d2 = np.sum((desc[feat] - self.map.descriptors[ids[row]]) ** 2, axis=1)
+        d2 = _pair_d2(desc, self.map.descriptors, feat, ids[row])  # in place: no (pairs, 128) gathers
         order = np.lexsort((feat, d2, row))  # ties broken the same way whatever the pairs' order
         row, feat, d2 = row[order], feat[order], d2[order]
         first = np.flatnonzero(np.r_[True, row[1:] != row[:-1]])
