@@ -174,6 +174,19 @@ def _spread_px(pixels: np.ndarray) -> float:
     return float(np.sqrt(max(np.linalg.eigvalsh(np.cov(pixels.T))[0], 0.0)))
 
 
+def pose_residuals(camera: Camera, points_world: np.ndarray, pixels: np.ndarray, ref_rotation: np.ndarray,
+                   x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Reprojection residuals (N, 2) px (projection minus observation) of a pose and their Jacobian
+    (N, 2, 6) with respect to its scalars ``x = (w (rad), C (mm))``: ``R = exp([w]x) ref_rotation``, centre
+    ``C`` (the tolerance's parametrisation). points_world : (N, 3) mm; pixels : (N, 2) observed."""
+    rotation = rotvec_to_matrix(x[:3]) @ ref_rotation
+    x_cam = (points_world - x[3:]) @ rotation.T
+    px, d_cam = project_with_camera_jacobian(x_cam, camera.intrinsics)  # d px / d x_cam
+    # x_cam = exp(w) R_ref (X - C): d x_cam / d w = -[x_cam]x J_l(w), one J_l for every point
+    d_w = -d_cam @ hat(x_cam) @ so3_left_jacobian(x[:3])
+    return px - pixels, np.concatenate([d_w, -d_cam @ rotation], axis=2)
+
+
 def refine_pose(camera: Camera, points_world: np.ndarray, pixels: np.ndarray, start: Pose,
                 reported: MeasuredPose | None, options: AbsolutePoseOptions) -> tuple[Pose, np.ndarray]:
     """Pose-only bound-constrained adjustment: points and intrinsics fixed, the pose kept inside
@@ -202,16 +215,9 @@ def refine_pose(camera: Camera, points_world: np.ndarray, pixels: np.ndarray, st
     x[~free] = value[~free]
     points_world = np.asarray(points_world, float)
     pixels = np.asarray(pixels, float)
-    intrinsics = camera.intrinsics
 
     def linearise(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Residuals (N, 2) px and their Jacobian (N, 2, 6) with respect to (w, C)."""
-        rotation = rotvec_to_matrix(x[:3]) @ ref_rotation
-        x_cam = (points_world - x[3:]) @ rotation.T
-        px, d_cam = project_with_camera_jacobian(x_cam, intrinsics)  # d px / d x_cam
-        # x_cam = exp(w) R_ref (X - C): d x_cam / d w = -[x_cam]x J_l(w), one J_l for every point
-        d_w = -d_cam @ hat(x_cam) @ so3_left_jacobian(x[:3])
-        return px - pixels, np.concatenate([d_w, -d_cam @ rotation], axis=2)
+        return pose_residuals(camera, points_world, pixels, ref_rotation, x)
 
     def robust(r: np.ndarray) -> tuple[float, np.ndarray]:
         """Huber cost and IRLS weights (N,) of residuals (N, 2)."""
