@@ -89,14 +89,16 @@ class FramePoseTest:
     """The test of one frame's report.
 
     frame : index. status : ``"ok"`` (tested), ``"exact"`` (a zero tolerance: trusted by definition),
-        ``"unseen"`` (too few observations of the other frames' points) or ``"unplaced"`` (the images do
-        not fix a pose: the PnP's status, e.g. ``"too_few_inliers"``).
+        ``"unseen"`` (fewer observations than ``absolute_pose.min_inliers``) or ``"unplaced"`` (too few kept
+        at its start, or the other reports cannot place the images without it).
     predicted_pose : ``cam_from_world`` the images predict from the other frames, or None. offset : (6,)
         it relative to the report, ``(w (rad), centre (mm))``; covariance : (6, 6) of it.
     statistic : ``d2`` (at most ``6 F(6, dof)`` under a right report); p_value : its upper tail (an upper
         bound on the probability of a ``d2`` this large under a right report); critical_value : the ``d2``
         this frame was held to.
-    noise_px : the inliers' residual sigma ``s``; inliers : how many; dof : ``2 inliers - 6``.
+    noise_px : the keypoint noise ``s`` of the frame's leave-one-out adjustment (a-posteriori); inliers :
+        the frame's observations it kept; dof : its redundancy ``nu`` (observations x 2 - points x 3 -
+        observed frames x 6 + 7).
     beyond_box : (6,) how far the prediction lies outside the box per scalar (0 inside; rad, mm).
     flagged : the report disagrees with the images (set aside by the data snooping).
     """
@@ -173,7 +175,8 @@ class PoseCheck:
                 "tolerance_mm": tol.position_mm.tolist(), "tolerance_deg": tol.orientation_deg.tolist(),
                 "action": "released to the images' estimate"})
         tested = [t for t in self.tests if np.isfinite(t.statistic)]
-        return {"false_alarm_rate": self.false_alarm_rate, "variance_factor": self.variance_factor, "test": "d2 / 6 ~ F(6, 2 inliers - 6), Bonferroni",
+        return {"false_alarm_rate": self.false_alarm_rate, "variance_factor": self.variance_factor,
+                "test": "d2 / 6 ~ F(6, redundancy), Bonferroni",
                 "frames_tested": len(tested),
                 "untested_frames": [names[t.frame] for t in self.tests if not np.isfinite(t.statistic)],
                 "p_values": {names[t.frame]: t.p_value for t in tested},
