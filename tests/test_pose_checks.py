@@ -41,9 +41,10 @@ def test_a_flagged_report_is_replaced_by_its_prediction_in_its_confidence_box():
     m = MeasuredPose(Pose.from_centre(np.eye(3), np.zeros(3)), PoseTolerance.from_degrees(0.5, 0.25))
     predicted = Pose.from_centre(np.eye(3), np.array([-3.0, 0.2, 0.0]))
     cov = np.diag(np.r_[np.full(3, 1e-8), 0.4**2, 0.1**2, 0.1**2])
-    flagged = FramePoseTest(0, "ok", predicted, np.r_[0.0, 0.0, 0.0, -3.0, 0.2, 0.0], cov, 500.0, 1e-20, flagged=True)
-    passed = FramePoseTest(1, "ok", None, np.zeros(6), np.eye(6), 1.0, 0.98)
-    released = PoseCheck([flagged, passed], 0.01, 25.0).released([m, m])
+    flagged = FramePoseTest(0, "ok", predicted, np.r_[0.0, 0.0, 0.0, -3.0, 0.2, 0.0], cov, 500.0, 1e-20, 25.0,
+                            flagged=True)
+    passed = FramePoseTest(1, "ok", None, np.zeros(6), np.eye(6), 1.0, 0.98, 25.0)
+    released = PoseCheck([flagged, passed], 0.01).released([m, m])
     assert released[0].pose is predicted
     # 5 sigma (sqrt of the critical value 25) where that exceeds the reported half-width
     np.testing.assert_allclose(released[0].tolerance.position_mm, [2.0, 0.5, 0.5])

@@ -20,7 +20,8 @@ Method (reference chapters 3, 4 and 6), one stage per function, run top to botto
 5. :func:`locate_targets` — fluorescence thresholded and cleaned per frame, voted onto the surface,
    labelled and measured (centroid, area, star edge or disc diameter).
    :func:`check_reported_poses` — in ``bounded`` mode after the coarse pass, each reported pose tested
-   against the images and the other reports (a chi-square test at a stated false-alarm rate); a report
+   against the images and the other reports (an exact leave-one-out adjustment per frame, tested at a
+   stated false-alarm rate); a report
    found wrong beyond its box is replaced by what the images say, and matching and adjustment run again.
 6. :func:`evaluate_map` — where ground truth exists: distances to the true surface, direct and after
    ICP from eight starts, pose errors, targets against the true ones.
@@ -426,16 +427,16 @@ def reconstruct(options: MapOptions, dataset: Dataset, features: list[Features],
 
 def check_reported_poses(options: MapOptions, dataset: Dataset, features: list[Features], matching: MatchingResult,
                          sparse: SparseResult) -> PoseCheck | None:
-    """Each reported pose tested against the images and the other reports
-    (:func:`scope3d.sfm.pose_checks.test_reported_poses`: a free adjustment of every match, from the
-    coarse pass's image-only poses); None when there is nothing to test: not ``bounded``, or reports so
-    tight that they guided matching themselves (no coarse pass: a micro-stage's 0.01 mm, which the images
-    cannot improve on; there a false alarm would only replace a good report by a worse estimate)."""
+    """Each reported pose tested against the images and the other frames
+    (:func:`scope3d.sfm.pose_checks.test_reported_poses`: every frame's pose estimated again from its
+    observations of the points the other frames triangulate at the bounded map's poses); None when there
+    is nothing to test: not ``bounded``, or reports so tight that they guided matching themselves (no
+    coarse pass: a micro-stage's 0.01 mm, which the images cannot improve on; there a false alarm would
+    only replace a good report by a worse estimate)."""
     if options.pose_check is None or options.pose_mode != "bounded" or matching.coarse is None:
         return None
     tracks = build_tracks(features, matching.matches, min_track_length=options.tracks.min_track_length)
-    return test_reported_poses(dataset.camera, dataset.poses, tracks, matching.coarse.poses, options.tracks,
-                               options.bundle, options.pose_check)
+    return test_reported_poses(sparse.camera, dataset.poses, tracks, sparse.poses, options.tracks, options.pose_check)
 
 
 # --- 4. surface -------------------------------------------------------------------------------
