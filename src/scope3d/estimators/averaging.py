@@ -184,8 +184,8 @@ def _refine_relative_pose(xi, xj, R0, t0, scale):
     """Least squares (soft-L1 loss at ``scale``) on the Sampson distances over a rotation ``exp(w) R0``
     and a unit translation ``t0 + a u + b v`` normalised (u, v span the tangent plane at t0).
 
-    The Jacobian is analytic (:class:`_RelativePoseModel`): the minimum finite differences reach, for a
-    sixth of the Sampson evaluations. Returns R, t and the (5, 5) covariance factor ``(J^T J)^-1`` at the
+    The Jacobian is analytic (:class:`_RelativePoseModel`): the minimum finite differences reach, without
+    their five extra Sampson evaluations per Jacobian (on the dome's coarse pass 2.5x less CPU). Returns R, t and the (5, 5) covariance factor ``(J^T J)^-1`` at the
     solution (times the residuals' variance it is the parameters' covariance; an ill-posed pair gives a
     huge one)."""
     from scipy.optimize import least_squares
