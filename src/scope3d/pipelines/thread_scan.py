@@ -138,7 +138,8 @@ def map_quadrants(options: ThreadScanOptions, dataset: Dataset, progress: Progre
         poses = [dataset.poses[i].pose for i in q.frames]
         m = map_quadrant(images, dataset.camera, poses, options.mapping)
         advance(progress)
-        return QuadrantCloud(q.index, q.angle_deg, m.points, m.descriptors, m.colors)
+        return QuadrantCloud(q.index, q.angle_deg, m.points, m.descriptors, m.colors, m.observation_point,
+                             m.observation_frame, m.observation_descriptors)
 
     with ThreadPoolExecutor(max_workers=options.threads) as pool:
         clouds = list(pool.map(one, layout))
