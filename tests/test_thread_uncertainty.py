@@ -14,7 +14,7 @@ from scope3d.registration.panorama import PanoramaResult, _stage_poses
 
 NOISE_MM = 0.01  # a sparse reconstruction's point noise
 MOUNT_SHIFT_SIGMA_MM = 0.005  # the mount offset's 1-sigma, the size the joint solve states on the 90° scans
-DRAWS = 24
+DRAWS = 16
 
 
 def _panorama() -> PanoramaResult:
@@ -54,9 +54,10 @@ def test_registration_uncertainty_gives_the_verdict_its_guard_band():
         assert alone.pitch_diameter_mm.uncertainty < 0.0015
         assert abs(alone.pitch_diameter_mm.value - d2) < 0.005  # sampling + tessellation, as the gauge tests
         systematic = registration_systematic(alone, _panorama(), points, quadrant_of, DRAWS, options, seed=3)
-        # each diameter moves by twice the mount shift; the spread of 24 draws is good to ~15 % (1 sigma)
+        # each diameter moves by twice the mount shift; the spread of 16 draws is good to 1/sqrt(30) = 18 %
+        # (1 sigma): within 3 sigma
         for key in ("minor_diameter", "pitch_diameter", "major_diameter"):
-            assert abs(systematic[key] / (2 * MOUNT_SHIFT_SIGMA_MM) - 1) < 0.45, (key, systematic)
+            assert abs(systematic[key] / (2 * MOUNT_SHIFT_SIGMA_MM) - 1) < 0.55, (key, systematic)
         assert systematic["pitch"] < 2e-4  # a radial shift does not change the pitch
         combined = with_systematic(alone, systematic, options)
         assert combined.pitch_diameter_mm.systematic == systematic["pitch_diameter"]
