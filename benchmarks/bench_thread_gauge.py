@@ -7,7 +7,13 @@ off and 0.5° tilted from the rotation axis, unknown to the stage. A 90° view s
 so the scope must advance ~4.5 mm to show the ~5 pitches the gauge needs (2 gauged + a pitch of run-out
 at each end + the zone's one-pitch window). Holes: mid-class 6H M8x1.25, M6x1, M10x1.5 (must pass); an M8
 with its pitch diameter 0.09 mm above D2 max (must fail, no-go); an M8 mid-class hole with a chipped crest
-(200°, 20° wide, 0.15 mm deep; must fail with the defect at 200° ± 10°).
+(200°, 20° wide, 0.15 mm deep, on the crest turn nearest z = -4 mm, inside the scanned stretch; must fail
+with the defect at 200° ± 10°).
+
+Uncertainty check: each size's stated 1-sigma (statistical from the fit, systematic from the registration's
+covariance, combined) against its error; ``calibration`` gives the fraction of |error| / sigma within 1 and 2
+over every hole and seed (a standard normal: 68 % and 95 %). ``--seeds 0,1`` repeats each hole with other
+RANSAC / draw seeds.
 
 Writes benchmarks/results/thread_gauge.json (after every hole) and thread_gauge.png. Run:
     PYTHONPATH=src .venv/bin/python benchmarks/bench_thread_gauge.py [--data DIR] [--holes m8_mid,m8_fail,...]
@@ -40,7 +46,7 @@ MOUNT = (0.2, -0.1, 0.5)
 HOLES = {
     "m8_mid": ("M8x1.25", (0.132, 0.08, 0.05), None, 0.5, "pass"),
     "m8_fail": ("M8x1.25", (0.132, 0.25, 0.05), None, 0.5, "fail"),
-    "m8_defect": ("M8x1.25", (0.132, 0.08, 0.05), (200.0, 20.0, 0.15), 0.5, "fail"),
+    "m8_defect": ("M8x1.25", (0.132, 0.08, 0.05), (200.0, 20.0, 0.15, -4.0), 0.5, "fail"),
     "m6_mid": ("M6x1", (0.118, 0.075, 0.05), None, 0.5, "pass"),
     "m10_mid": ("M10x1.5", (0.15, 0.09, 0.05), None, 0.6, "pass"),
 }
@@ -65,12 +71,12 @@ def dataset(data: Path, name: str) -> Path:
     return path
 
 
-def measure(data: Path, name: str, scratch: Path) -> dict:
+def measure(data: Path, name: str, scratch: Path, seed: int = 0) -> dict:
     thread, _, defect, step, expected = HOLES[name]
     ds = load_dataset(dataset(data, name))
-    options = ThreadScanOptions(designation=thread)
+    options = ThreadScanOptions(designation=thread, seed=seed)
     options = replace(options, mapping=replace(options.mapping, max_frame_gap=FRAME_GAP))
-    row = {"thread": thread, "expected": expected, "step_mm": step, "load_before": load()}
+    row = {"thread": thread, "expected": expected, "step_mm": step, "seed": seed, "load_before": load()}
     t0, c0 = time.perf_counter(), time.process_time()
     try:
         result = run(options, ds, scratch / name)
@@ -79,6 +85,7 @@ def measure(data: Path, name: str, scratch: Path) -> dict:
                    cpu_s=time.process_time() - c0, load_after=load())
         return row
     row.update(wall_s=time.perf_counter() - t0, cpu_s=time.process_time() - c0, stages_wall_s=result.timings_s,
+               pair_inliers=[len(p.points_i) for p in result.panorama.pairs],
                load_after=load(), points=len(result.points))
     g = result.gauge
     if g is None:
@@ -94,6 +101,9 @@ def measure(data: Path, name: str, scratch: Path) -> dict:
                    "pitch": g.pitch_mm.value - pitch},
         sigma_mm={"minor_diameter": g.minor_diameter_mm.uncertainty, "pitch_diameter": g.pitch_diameter_mm.uncertainty,
                   "major_diameter": g.major_diameter_mm.uncertainty, "pitch": g.pitch_mm.uncertainty},
+        sigma_parts_mm={k: {"statistical": m.statistical, "systematic": m.systematic} for k, m in (
+            ("minor_diameter", g.minor_diameter_mm), ("pitch_diameter", g.pitch_diameter_mm),
+            ("major_diameter", g.major_diameter_mm), ("pitch", g.pitch_mm))},
         flank_angle_deg=g.flank_angle_deg.to_dict(), flank_angle_held=g.profile["flank_angle_held"],
         zone_mm=list(g.zone_mm), defects=[d.to_dict() for d in g.defects],
         registration={k: result.errors[k] for k in ("rotation_error_deg", "offset_error_mm")} if result.errors else None)
@@ -103,6 +113,20 @@ def measure(data: Path, name: str, scratch: Path) -> dict:
     return row
 
 
+def calibration(rows: dict) -> dict:
+    """|error| / stated sigma over every measured hole, seed and size (D1, D2, D, P): fraction within 1 and
+    2 sigma, with the statistical sigma alone and with the combined one."""
+    out = {}
+    for label, get in (("statistical", lambda r, k: r["sigma_parts_mm"][k]["statistical"] or r["sigma_mm"][k]),
+                       ("combined", lambda r, k: r["sigma_mm"][k])):
+        z = np.array([abs(r["errors_mm"][k]) / get(r, k) for r in rows.values() if "sigma_parts_mm" in r
+                      for k in ("minor_diameter", "pitch_diameter", "major_diameter", "pitch")])
+        if len(z):
+            out[label] = {"n": int(len(z)), "within_1_sigma": float(np.mean(z <= 1)),
+                          "within_2_sigma": float(np.mean(z <= 2)), "median_ratio": float(np.median(z))}
+    return out
+
+
 def figure(rows: dict, path: Path) -> None:
     fig = new_figure((11, 4.5))
     names = [n for n in rows if "errors_mm" in rows[n]]
@@ -110,11 +134,11 @@ def figure(rows: dict, path: Path) -> None:
     x = np.arange(len(names))
     for k, key in enumerate(("minor_diameter", "pitch_diameter", "major_diameter")):
         ax.bar(x + 0.25 * (k - 1), [rows[n]["errors_mm"][key] for n in names], 0.25,
-               yerr=[2 * rows[n]["sigma_mm"][key] for n in names], label=key.replace("_", " "))
+               yerr=[2 * rows[n]["sigma_mm"][key] for n in names], capsize=3, label=key.replace("_", " "))
     for y in (-0.02, 0.02):
         ax.axhline(y, color="red", ls="--")
     ax.set_xticks(x, [f"{n}\n{rows[n]['verdict']}" for n in names], fontsize=8)
-    ax.set_ylabel("measured - as made (mm); bars ±2σ stated")
+    ax.set_ylabel("measured - as made (mm)\nbars: ±2σ stated (fit + registration)")
     ax.legend(fontsize=7)
     ax = fig.add_subplot(1, 2, 2)
     ax.bar(x, [1000 * rows[n]["errors_mm"]["pitch"] for n in names], 0.5)
@@ -130,6 +154,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, help="folder keeping the rendered holes (default: a temporary one)")
     parser.add_argument("--holes", default=",".join(HOLES), help="comma-separated subset of " + ", ".join(HOLES))
+    parser.add_argument("--seeds", default="0", help="comma-separated seeds of RANSAC and the registration draws "
+                                                     "(rows of seeds other than 0 are named HOLE@SEED)")
     args = parser.parse_args()
     OUT.mkdir(parents=True, exist_ok=True)
     scratch = Path(tempfile.mkdtemp(prefix="bench_thread_gauge_"))
@@ -139,11 +165,14 @@ def main() -> None:
                          "side_view_deg": 90.0, "mount": MOUNT}, "holes": {}}
     if (OUT / "thread_gauge.json").is_file():  # a run of some holes keeps the other holes' rows
         results["holes"] = json.loads((OUT / "thread_gauge.json").read_text()).get("holes", {})
-    for name in args.holes.split(","):
-        results["holes"][name] = measure(data, name, scratch)
-        (OUT / "thread_gauge.json").write_text(json.dumps(results, indent=2, default=float))
-        print(name, json.dumps(results["holes"][name], default=float), flush=True)
-    figure(results["holes"], OUT / "thread_gauge.png")
+    for seed in (int(v) for v in args.seeds.split(",")):
+        for name in args.holes.split(","):
+            key = name if seed == 0 else f"{name}@{seed}"
+            results["holes"][key] = measure(data, name, scratch, seed)
+            results["calibration"] = calibration(results["holes"])
+            (OUT / "thread_gauge.json").write_text(json.dumps(results, indent=2, default=float))
+            print(key, json.dumps(results["holes"][key], default=float), flush=True)
+    figure({k: v for k, v in results["holes"].items() if "@" not in k}, OUT / "thread_gauge.png")
 
 
 if __name__ == "__main__":

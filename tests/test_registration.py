@@ -139,3 +139,24 @@ def test_errors_name_the_quadrant():
     lost[5] = QuadrantCloud(5, 150.0, clouds[5].points, rng.uniform(0, 100, clouds[5].descriptors.shape))
     with pytest.raises(InputError, match="quadrants 4 and 5.*do not overlap"):
         register_quadrants(lost)
+
+
+def test_views_at_the_same_advance_are_matched_when_first_views_differ():
+    from scope3d.registration.panorama import match_quadrants
+
+    rng = np.random.default_rng(5)
+    n = 40
+    shared = rng.uniform(0, 100, (n, 128)).astype(np.float32)  # the points seen from frame 1 in both quadrants
+
+    def cloud(index):
+        first = rng.uniform(0, 100, (n, 128)).astype(np.float32)  # first views: from elsewhere, unalike
+        return QuadrantCloud(index, 30.0 * index, rng.normal(size=(n, 3)), first, None,
+                             np.concatenate([np.arange(n), np.arange(n)]), np.repeat([0, 1], n),
+                             np.concatenate([first, shared + rng.normal(0, 1, shared.shape).astype(np.float32)]))
+
+    a, b = cloud(0), cloud(1)
+    i, j = match_quadrants(a, b, 0.8)
+    np.testing.assert_array_equal(i, np.arange(n))  # every point found, each with its own partner
+    np.testing.assert_array_equal(j, np.arange(n))
+    first_only = QuadrantCloud(1, 30.0, b.points, b.descriptors)  # no views kept: first views only
+    assert len(match_quadrants(a, first_only, 0.8)[0]) == 0

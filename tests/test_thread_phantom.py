@@ -42,3 +42,19 @@ def test_cli_thread_options_reach_the_ground_truth(tmp_path):
     for bad in (["--trajectory", "quadrants", "--quadrant-step", "-1"], ["--trajectory", "axial", "--quadrant-step", "1"]):
         assert main(["phantom", "thread", *bad, "--size", "40x32", "--out", str(tmp_path / "y")]) == 2
     assert main(["phantom", "thread", "--defect", "oops", "--out", str(tmp_path / "x")]) == 2
+
+
+def test_chip_placed_at_a_height_lies_on_the_crest_turn_nearest_it():
+    from scope3d.errors import InputError
+    from scope3d.phantoms.scenes import build_thread
+
+    # a 4.5 mm scan of an M8 shows thread from -1.5 to ~-7.5 mm; the default chip is at ~-7 mm
+    info = build_thread("M8x1.25", defect=(200.0, 20.0, 0.15, -4.3)).info["thread"]["defects"][0]
+    # the crest turns at the chip's angle are one pitch apart: the nearest is within half a pitch
+    assert abs(info["crest_turn_z_mm"] - -4.3) <= 1.25 / 2 + 1e-9
+    try:
+        build_thread("M8x1.25", defect=(200.0, 20.0, 0.15, -0.5))  # above the thread
+    except InputError as exc:
+        assert "defect height" in str(exc)
+    else:
+        raise AssertionError("a chip above the thread must be refused")

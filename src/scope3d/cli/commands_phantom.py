@@ -63,9 +63,10 @@ def register(subparsers) -> None:
                    help="anti-aliasing: K x K rays per pixel (default: the scene's, 2 for thread, 1 elsewhere)")
     p.add_argument("--dome-radius", type=float, default=17.5, metavar="MM", help="dome radius, 15-17.5 mm")
     p.add_argument("--blur", type=float, default=0.0, metavar="PX", help="optical blur sigma in pixels")
-    p.add_argument("--defect", metavar="ANGLE_DEG:WIDTH_DEG:DEPTH_MM",
-                   help="thread: a chipped crest on the middle turn, centred at ANGLE about +z from +x, WIDTH "
-                        "degrees wide, cut back DEPTH mm")
+    p.add_argument("--defect", metavar="ANGLE_DEG:WIDTH_DEG:DEPTH_MM[:Z_MM]",
+                   help="thread: a chipped crest on the middle turn (or the crest turn nearest height Z, mm, "
+                        "negative into the hole), centred at ANGLE about +z from +x, WIDTH degrees wide, cut "
+                        "back DEPTH mm")
     p.add_argument("--pitch-diameter-offset", type=float, default=0.0, metavar="MM",
                    help="thread: pitch diameter D2 above its basic size, mm (6H: 0 to TD2)")
     p.add_argument("--minor-diameter-offset", type=float, default=0.0, metavar="MM",
@@ -127,7 +128,10 @@ def run(args) -> int:
         raise InputError(f"--blur must be non-negative, got {args.blur}")
     if args.supersample is not None and not 1 <= args.supersample <= 8:
         raise InputError(f"--supersample must be from 1 to 8, got {args.supersample}")
-    defect = _floats(args.defect, 3, "--defect", "ANGLE_DEG:WIDTH_DEG:DEPTH_MM") if args.defect else None
+    defect = None
+    if args.defect:
+        form = "ANGLE_DEG:WIDTH_DEG:DEPTH_MM[:Z_MM]"
+        defect = _floats(args.defect, 4 if args.defect.count(":") == 3 else 3, "--defect", form)
     mount = _floats(args.mount, 3, "--mount", "DX_MM:DY_MM:TILT_DEG") if args.mount else None
     offsets = (args.minor_diameter_offset, args.pitch_diameter_offset, args.major_diameter_offset)
     if (defect or any(offsets)) and args.scene != "thread":

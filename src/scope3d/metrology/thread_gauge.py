@@ -21,7 +21,7 @@ the axis, counter-clockwise seen from the axis' tip (the axis points the way of 
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -94,6 +94,10 @@ class GaugeOptions:
         view) then still places the other by the profile's symmetry. The flank angle is measured by a
         second fit with it free; when that fit shows it significantly off the standard (beyond 2 sigma),
         the sizes come from the free fit instead (the fixed profile would bias them).
+    coverage_factor : float, k of the expanded uncertainty U = k u that guards each limit (ISO 14253-1:
+        conformance is proven when the value lies inside the limit by more than U, non-conformance when
+        outside by more than U; in between the verdict is ``indeterminate``; default 2, ~95 % for a normal
+        error).
     seed : int, the subset's seed.
     """
 
@@ -108,6 +112,7 @@ class GaugeOptions:
     engagement_turns: float | None = None
     axis_hint: tuple | None = None
     fix_flank_angle: bool = True
+    coverage_factor: float = 2.0
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -116,6 +121,8 @@ class GaugeOptions:
             raise ValueError("need noise_mm > 0, max_points >= 100 and pitch_search in (0, 0.5)")
         if not (0 < self.defect_bin_deg <= 90 and self.min_defect_depth_mm > 0 and self.min_bin_points >= 1):
             raise ValueError("need defect_bin_deg in (0, 90], min_defect_depth_mm > 0 and min_bin_points >= 1")
+        if not self.coverage_factor > 0:
+            raise ValueError("coverage_factor must be positive")
         if self.engagement_turns is not None and self.engagement_turns <= 0:
             raise ValueError("engagement_turns must be positive")
         if self.axis_hint is not None and (len(self.axis_hint) != 3 or not np.linalg.norm(self.axis_hint) > 0):
@@ -124,13 +131,20 @@ class GaugeOptions:
 
 @dataclass(frozen=True)
 class Measured:
-    """A measured value and its standard uncertainty (1 sigma), in the unit of the field's name."""
+    """A measured value and its standard uncertainty (1 sigma), in the unit of the field's name; when a
+    systematic term was added (:func:`with_systematic`), ``uncertainty`` is the combined one and
+    ``statistical``, ``systematic`` its two parts (combined in quadrature)."""
 
     value: float
     uncertainty: float
+    statistical: float | None = None
+    systematic: float | None = None
 
     def to_dict(self) -> dict:
-        return {"value": float(self.value), "uncertainty": float(self.uncertainty)}
+        out = {"value": float(self.value), "uncertainty": float(self.uncertainty)}
+        if self.systematic is not None:
+            out.update(statistical=float(self.statistical), systematic=float(self.systematic))
+        return out
 
 
 @dataclass(frozen=True)
@@ -173,6 +187,10 @@ class GaugeResult:
     residual_rms_mm: float
     n_points: int
     profile: dict = field(default_factory=dict)
+    virtual_pitch_diameter_uncertainty_mm: float = 0.0
+    # what :func:`remeasure` needs to fit the same points again: their indices in the input cloud, the
+    # axis base frame, the parameters and bounds, which fit gave the sizes
+    fit_state: dict = field(default_factory=dict, repr=False)
 
     def to_dict(self) -> dict:
         return {
@@ -200,7 +218,8 @@ class GaugeResult:
         lines = [f"thread gauge {lim.designation}-{lim.tolerance_class}: {self.verdict.upper()}",
                  f"  {'':20s} {'value':>9s} {'± 1σ':>8s}  limits (mm)"]
         for name, m, text in rows:
-            lines.append(f"  {name:20s} {m.value:9.4f} {m.uncertainty:8.4f}  {text}")
+            parts = "" if m.systematic is None else f"  (fit {m.statistical:.4f}, registration {m.systematic:.4f})"
+            lines.append(f"  {name:20s} {m.value:9.4f} {m.uncertainty:8.4f}  {text}{parts}")
         f = self.flank_angle_deg
         held = " (sizes fitted with 60°: the free fit above does not resolve another)" if self.profile.get(
             "flank_angle_held") else ""
@@ -354,7 +373,8 @@ def gauge_thread(points: np.ndarray, options: GaugeOptions = GaugeOptions()) -> 
     points = np.asarray(points, float)
     if points.ndim != 2 or points.shape[1] != 3 or len(points) < 200:
         raise ValueError(f"need (N, 3) points with N >= 200, got shape {points.shape}")
-    points = points[np.all(np.isfinite(points), axis=1)]
+    index = np.flatnonzero(np.all(np.isfinite(points), axis=1))  # into the input, for remeasure
+    points = points[index]
     limits = thread_limits(options.designation, options.tolerance_class)
     major_nom, pitch_nom = THREAD_SIZES[options.designation]
     depth_nom = 0.625 * np.sqrt(3) / 2 * pitch_nom  # ISO 68-1 basic thread depth (5/8 H)
@@ -369,10 +389,10 @@ def gauge_thread(points: np.ndarray, options: GaugeOptions = GaugeOptions()) -> 
     # (2) zone
     theta, r, z = _cylindrical(points, p0, d0)
     z0, z1 = _thread_zone(z, r, pitch_nom, depth_nom, major_nom / 2 - depth_nom, major_nom / 2)
-    inside = (z >= z0) & (z <= z1)
-    zone_points = points[inside]
-    if len(zone_points) > options.max_points:
-        zone_points = zone_points[rng.choice(len(zone_points), options.max_points, replace=False)]
+    zone_index = np.flatnonzero((z >= z0) & (z <= z1))
+    if len(zone_index) > options.max_points:
+        zone_index = np.sort(rng.choice(zone_index, options.max_points, replace=False))
+    zone_points = points[zone_index]
     # the axis again, from the thread alone (the counterbore and the bore are not coaxial in general)
     p0, d0, _ = fit_cylinder_axis(zone_points, direction_hint=d0, scale_mm=depth_nom / 4)
     base = _frame(d0)
@@ -428,30 +448,10 @@ def gauge_thread(points: np.ndarray, options: GaugeOptions = GaugeOptions()) -> 
     defects = _crest_defects(t_all[on_crest], z_all[on_crest], np.round((s[on_crest] - w[on_crest]) / pitch).astype(int),
                              dist[on_crest], options, pitch)
 
-    checks = [
-        {"check": f"minor diameter {2 * r1:.4f} >= {limits.d1_min_mm:.3f}", "ok": bool(2 * r1 >= limits.d1_min_mm)},
-        {"check": f"minor diameter {2 * r1:.4f} <= {limits.d1_max_mm:.3f}", "ok": bool(2 * r1 <= limits.d1_max_mm)},
-        {"check": f"virtual pitch diameter {d2_virtual:.4f} >= {limits.d2_min_mm:.3f} (go)",
-         "ok": bool(d2_virtual >= limits.d2_min_mm)},
-        {"check": f"pitch diameter {d2:.4f} <= {limits.d2_max_mm:.3f} (no-go)", "ok": bool(d2 <= limits.d2_max_mm)},
-        {"check": f"major diameter {2 * r2:.4f} >= {limits.d_min_mm:.3f}", "ok": bool(2 * r2 >= limits.d_min_mm)},
-        {"check": f"{len(defects)} damaged crest(s)", "ok": not defects},
-    ]
-    # A measurement too uncertain to decide (ISO 14253-1: the uncertainty narrows the zone of proven
-    # conformance): expanded uncertainty U = 2 sigma above a quarter of the tolerance (the usual 4:1
-    # gauge-maker's rule; TD1 stands in for the major diameter, which has no width), or a profile
-    # parameter stopped at its bound (the cloud did not show that part of the profile).
-    td1 = limits.d1_max_mm - limits.d1_min_mm
-    td2 = limits.d2_max_mm - limits.d2_min_mm
-    at_bound = fit.profile_at_bound
-    undecided = [name for name, u, tol in (("minor diameter", 4 * std[6], td1), ("pitch diameter", 4 * std[8], td2),
-                                           ("major diameter", 4 * std[7], td1)) if not u <= tol / 4]
-    if at_bound:
-        undecided.append("profile fit at a bound")
-    checks.append({"check": "uncertainty within a quarter of the tolerance"
-                   + (f" (not: {', '.join(undecided)})" if undecided else ""), "ok": not undecided})
-    failed = [c for c in checks[:-1] if not c["ok"]]
-    verdict = "indeterminate" if undecided else ("fail" if failed else "pass")
+    # the pitch's share of the virtual D2 moves with the pitch: u(D2v)^2 = u(D2)^2 + (1.732 n u(P))^2
+    u_d2v = float(np.hypot(2 * std[8], 1.732 * turns * std[4]))
+    verdict, checks = _judge(limits, options, 2 * r1, 2 * std[6], d2, 2 * std[8], float(d2_virtual), u_d2v, 2 * r2,
+                             2 * std[7], defects, fit.profile_at_bound)
     return GaugeResult(
         minor_diameter_mm=Measured(2 * r1, 2 * std[6]), major_diameter_mm=Measured(2 * r2, 2 * std[7]),
         pitch_diameter_mm=Measured(d2, 2 * std[8]), pitch_mm=Measured(pitch, std[4]),
@@ -462,7 +462,89 @@ def gauge_thread(points: np.ndarray, options: GaugeOptions = GaugeOptions()) -> 
         profile={"crest_half_width_mm": float(hc), "phase_mm": float(x[5]),
                  "flank_angle_in_size_fit_deg": float(np.rad2deg(2 * half)),
                  "flank_angle_held": fit is not free},
+        virtual_pitch_diameter_uncertainty_mm=u_d2v,
+        fit_state={"index": index[zone_index], "p0": p0, "base": base, "x": x.copy(), "lower": lower,
+                   "upper": upper, "free_flank": fit is free, "turns": float(turns), "f_alpha": float(f_alpha),
+                   "pitch_nominal": float(pitch_nom), "at_bound": fit.profile_at_bound},
     )
+
+
+def _judge(limits: ThreadLimits, options: GaugeOptions, d1: float, u_d1: float, d2: float, u_d2: float,
+           d2_virtual: float, u_d2v: float, d: float, u_d: float, defects: list, at_bound: bool) -> tuple[str, list[dict]]:
+    """The verdict and its checks from the sizes and their standard uncertainties (mm).
+
+    Each limit is guarded by the expanded uncertainty U = k u (ISO 14253-1, k = ``coverage_factor``): a
+    value inside the limit by more than U proves conformance there, outside by more than U proves
+    non-conformance; within U of the limit it proves neither. ``fail``: a limit proven broken, or a
+    damaged crest. ``pass``: every limit proven kept, and the gauge capable — U at most a quarter of the
+    tolerance (the usual 4:1 gauge-maker's rule; TD1 stands in for the major diameter, which has no
+    width) and no profile parameter stopped at its bound (the cloud did not show that part of the
+    profile). Anything else is ``indeterminate``; a profile at its bound proves nothing either way."""
+    k = options.coverage_factor
+    checks = []
+    for name, value, u, limit, upper in (
+            ("minor diameter", d1, u_d1, limits.d1_min_mm, False), ("minor diameter", d1, u_d1, limits.d1_max_mm, True),
+            ("virtual pitch diameter", d2_virtual, u_d2v, limits.d2_min_mm, False),
+            ("pitch diameter", d2, u_d2, limits.d2_max_mm, True), ("major diameter", d, u_d, limits.d_min_mm, False)):
+        margin = (limit - value) if upper else (value - limit)  # > 0 inside the limit
+        gauge = " (go)" if name == "virtual pitch diameter" else " (no-go)" if name == "pitch diameter" else ""
+        checks.append({"check": f"{name} {value:.4f} {'<=' if upper else '>='} {limit:.3f}{gauge}", "quantity": name,
+                       "ok": bool(margin >= 0), "margin_mm": float(margin), "expanded_uncertainty_mm": float(k * u),
+                       "decided": bool(abs(margin) > k * u)})
+    checks.append({"check": f"{len(defects)} damaged crest(s)", "ok": not defects, "decided": True})
+    td1 = limits.d1_max_mm - limits.d1_min_mm
+    td2 = limits.d2_max_mm - limits.d2_min_mm
+    incapable = [name for name, u, tol in (("minor diameter", u_d1, td1), ("pitch diameter", u_d2, td2),
+                                           ("major diameter", u_d, td1)) if not k * u <= tol / 4]
+    undecided = [c["check"] for c in checks if not c["decided"]]
+    notes = ([f"uncertainty over a quarter of the tolerance: {', '.join(incapable)}"] if incapable else []) + \
+        (["profile fit at a bound"] if at_bound else []) + \
+        ([f"within the expanded uncertainty of a limit: {', '.join(undecided)}"] if undecided else [])
+    checks.append({"check": "measurement decides every limit" + (f" (not: {'; '.join(notes)})" if notes else ""),
+                   "ok": not notes, "decided": True})
+    proven_out = [c for c in checks[:-1] if not c["ok"] and c["decided"]]
+    if at_bound:
+        verdict = "indeterminate"
+    elif proven_out:
+        verdict = "fail"
+    else:
+        verdict = "indeterminate" if notes else "pass"
+    return verdict, checks
+
+
+def remeasure(result: GaugeResult, points: np.ndarray, noise_mm: float = 0.01) -> dict:
+    """Fit the profile of ``result`` again to the same points moved (``points``: the cloud ``result`` was
+    measured on, (N, 3) mm, each point displaced, e.g. by another draw of the registration), warm-started
+    at ``result``'s solution with the same flank-angle choice: returns the sizes ``minor_diameter``,
+    ``pitch_diameter``, ``major_diameter``, ``virtual_pitch_diameter``, ``pitch`` (mm)."""
+    st = result.fit_state
+    fit = _fit_profile(np.asarray(points, float)[st["index"]], st["p0"], st["base"], st["x"], st["lower"], st["upper"],
+                       st["free_flank"], noise_mm)
+    x = fit.x
+    d2 = 2 * x[8]
+    return {"minor_diameter": 2 * x[6], "pitch_diameter": d2, "major_diameter": 2 * x[7], "pitch": x[4],
+            "virtual_pitch_diameter": d2 - 1.732 * abs(x[4] - st["pitch_nominal"]) * st["turns"] - st["f_alpha"]}
+
+
+def with_systematic(result: GaugeResult, systematic_mm: dict, options: GaugeOptions) -> GaugeResult:
+    """``result`` with a systematic standard uncertainty (mm; keys as :func:`remeasure`'s, missing = 0)
+    added in quadrature to each size's statistical one, and the verdict judged again on the combined
+    uncertainties (:func:`_judge`)."""
+    def comb(m: Measured, key: str) -> Measured:
+        stat = m.statistical if m.statistical is not None else m.uncertainty
+        sys_ = float(systematic_mm.get(key, 0.0))
+        return Measured(m.value, float(np.hypot(stat, sys_)), stat, sys_)
+
+    d1, d2 = comb(result.minor_diameter_mm, "minor_diameter"), comb(result.pitch_diameter_mm, "pitch_diameter")
+    d, p = comb(result.major_diameter_mm, "major_diameter"), comb(result.pitch_mm, "pitch")
+    u_d2v_stat = result.fit_state.get("u_d2v_statistical", result.virtual_pitch_diameter_uncertainty_mm)
+    u_d2v = float(np.hypot(u_d2v_stat, systematic_mm.get("virtual_pitch_diameter", 0.0)))
+    verdict, checks = _judge(result.limits, options, d1.value, d1.uncertainty, d2.value, d2.uncertainty,
+                             result.virtual_pitch_diameter_mm, u_d2v, d.value, d.uncertainty, result.defects,
+                             bool(result.fit_state.get("at_bound", False)))
+    state = dict(result.fit_state, u_d2v_statistical=u_d2v_stat)
+    return replace(result, minor_diameter_mm=d1, pitch_diameter_mm=d2, major_diameter_mm=d, pitch_mm=p,
+                    virtual_pitch_diameter_uncertainty_mm=u_d2v, verdict=verdict, checks=checks, fit_state=state)
 
 
 @dataclass

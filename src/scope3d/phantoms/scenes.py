@@ -562,9 +562,11 @@ def build_thread(size: str = "M8x1.25", *, texture_seed: int = 0, mm_per_texel: 
     minor_diameter_offset_mm, pitch_diameter_offset_mm, major_diameter_offset_mm : the tapped hole's
         deviations from the basic sizes D1, D2, D (mm; a real 6H hole sits above them, within its
         tolerances), with 60° flanks kept.
-    defect : (angle_deg, width_deg, depth_mm) or None: a chipped crest on the turn nearest the middle of
-        the thread, centred at ``angle_deg`` (about +z from +x), ``width_deg`` wide, its crest cut back
-        outwards by ``depth_mm`` (less than the thread depth).
+    defect : (angle_deg, width_deg, depth_mm[, z_mm]) or None: a chipped crest on the turn nearest the
+        middle of the thread (or, with ``z_mm``, the crest turn nearest that height at ``angle_deg``: a
+        scan that shows only part of the thread can then have the chip in view), centred at ``angle_deg``
+        (about +z from +x), ``width_deg`` wide, its crest cut back outwards by ``depth_mm`` (less than
+        the thread depth).
     """
     if size not in THREADS:
         raise InputError(f"unknown thread size {size!r} (use one of {', '.join(THREADS)})")
@@ -577,7 +579,9 @@ def build_thread(size: str = "M8x1.25", *, texture_seed: int = 0, mm_per_texel: 
         raise InputError(f"thread diameters out of order: D1 {2 * r_minor:.3f}, D2 {2 * r_pitch:.3f}, "
                          f"D {2 * r_major:.3f} mm")
     if defect is not None:
-        d_angle, d_width, d_depth = (float(v) for v in defect)
+        if len(defect) not in (3, 4):
+            raise InputError(f"defect needs angle, width, depth and optionally z, got {len(defect)} values")
+        d_angle, d_width, d_depth = (float(v) for v in defect[:3])
         if not (0 < d_width < 360 and 0 < d_depth < r_major - r_minor):
             raise InputError(f"defect needs a width in (0, 360) degrees and a depth in (0, {r_major - r_minor:.3f}) "
                              f"mm, got {d_width} degrees and {d_depth} mm")
@@ -595,6 +599,13 @@ def build_thread(size: str = "M8x1.25", *, texture_seed: int = 0, mm_per_texel: 
     k_lo = int(np.floor((z_bottom - pitch) / pitch)) - 1
     k_hi = int(np.ceil(z_top / pitch)) + 1
     defect_turn = int(round(((z_top + z_bottom) / 2 - pitch / 8) / pitch))  # crest turn in the middle
+    if defect is not None and len(defect) == 4:
+        # the crest turn nearest z_mm at the chip's angle (crest centre z = k P + P/8 + lead * angle)
+        d_z = float(defect[3])
+        if not z_bottom + pitch <= d_z <= z_top - pitch:
+            raise InputError(f"defect height {d_z} mm is not on the thread (z from {z_bottom + pitch:.2f} to "
+                             f"{z_top - pitch:.2f} mm, a pitch in from its ends)")
+        defect_turn = int(round((d_z - pitch / 8 - lead * np.deg2rad(d_angle % 360)) / pitch))
     defect_info = None
     for k in range(k_lo, k_hi):
         for s0, s1, r0, r1, n_rows in _thread_segments(pitch, r_minor, r_major, r_pitch):

@@ -13,6 +13,10 @@ Read top to bottom like the method section::
     cloud      <- registration.statistical_inliers    (30 neighbours, 3 sigma) of the dense clouds (the
                                                        registered sparse ones without dense mapping)
     gauge      <- metrology.gauge_thread              (axis, D1, D, D2, P, flank angle, 6H verdict, defects)
+    systematic <- registration_systematic             (the cloud re-placed by draws of the registration
+                                                       from its covariance, re-measured: the spread is
+                                                       the sizes' systematic uncertainty; the verdict is
+                                                       judged again on the combined uncertainty)
     errors     <- registration.registration_errors    (when the dataset has true poses)
     files      <- cloud.ply, quadrants/q??.ply (+ q??_dense.ply, registered), report.json,
                   registration.png, unwrapped.png
@@ -33,7 +37,8 @@ from scope3d.geometry.pose import Pose
 from scope3d.io.dataset import Dataset
 from scope3d.io.ply import write_ply
 from scope3d.io.quadrants import read_quadrants
-from scope3d.metrology.thread_gauge import THREAD_SIZES, GaugeOptions, GaugeResult, gauge_thread
+from scope3d.metrology.thread_gauge import (THREAD_SIZES, GaugeOptions, GaugeResult, gauge_thread, remeasure,
+                                           with_systematic)
 from scope3d.registration.outliers import OutlierOptions, statistical_inliers
 from scope3d.registration.panorama import (PanoramaOptions, PanoramaResult, QuadrantCloud, register_quadrants,
                                            registered_frame_poses, registration_errors)
@@ -51,7 +56,10 @@ class ThreadScanOptions:
     """designation : the nominal thread (``M6x1``, ``M8x1.25``, ``M10x1.5``); the gauge's other options
     come from ``gauge`` (its designation is replaced by this one). mapping, panorama, outliers, gauge :
     the stages' options. dense : the dense clouds' options, or None to gauge the sparse points. threads : quadrants mapped at once (default 2, the machine's cores; OpenCV
-    releases the GIL). seed : RANSAC's seeds."""
+    releases the GIL). registration_draws : draws of the registration from its covariance whose
+    re-measured sizes give the systematic uncertainty (default 24: the spread's own relative error is
+    1/sqrt(2 (n - 1)), ~15 %; 0 leaves the statistical uncertainty alone). seed : RANSAC's and the
+    draws' seeds."""
 
     designation: str = "M8x1.25"
     mapping: QuadrantMapOptions = QuadrantMapOptions()
@@ -63,13 +71,14 @@ class ThreadScanOptions:
     # see docs/thread_metrology.md.
     dense: DenseQuadrantOptions | None = None
     threads: int = 2
+    registration_draws: int = 24
     seed: int = 0
 
     def __post_init__(self) -> None:
         if self.designation not in THREAD_SIZES:
             raise InputError(f"unknown thread {self.designation!r} (use one of {', '.join(THREAD_SIZES)})")
-        if self.threads < 1:
-            raise ValueError("threads must be >= 1")
+        if self.threads < 1 or self.registration_draws < 0:
+            raise ValueError("threads must be >= 1 and registration_draws >= 0")
 
 
 @dataclass
@@ -138,7 +147,8 @@ def map_quadrants(options: ThreadScanOptions, dataset: Dataset, progress: Progre
         poses = [dataset.poses[i].pose for i in q.frames]
         m = map_quadrant(images, dataset.camera, poses, options.mapping)
         advance(progress)
-        return QuadrantCloud(q.index, q.angle_deg, m.points, m.descriptors, m.colors)
+        return QuadrantCloud(q.index, q.angle_deg, m.points, m.descriptors, m.colors, m.observation_point,
+                             m.observation_frame, m.observation_descriptors)
 
     with ThreadPoolExecutor(max_workers=options.threads) as pool:
         clouds = list(pool.map(one, layout))
@@ -165,6 +175,28 @@ def dense_clouds(options: ThreadScanOptions, dataset: Dataset, panorama: Panoram
 
     with ThreadPoolExecutor(max_workers=options.threads) as pool:
         return list(pool.map(one, layout))
+
+
+def registration_systematic(gauge: GaugeResult, panorama: PanoramaResult, points: np.ndarray, quadrant_of: np.ndarray,
+                            n_draws: int, gauge_options: GaugeOptions, *, seed: int = 0) -> dict:
+    """The sizes' systematic standard uncertainty (mm) from the registration's: each draw of the quadrants'
+    ``world_from_stacked`` from the joint solve's covariance moves every quadrant's registered points
+    by ``G_draw G_est^-1``; the gauge re-fits its profile to the moved cloud (warm-started, same points);
+    the spread (standard deviation) of the re-measured sizes over the draws is the registration's share.
+    It acts on the whole hole at once (a quadrant placed off moves its crests and roots together), which
+    the fit's statistical uncertainty, from independent point residuals, cannot see. points : (N, 3) mm
+    the gauged cloud; quadrant_of : (N,) its points' quadrants. Empty without a covariance."""
+    draws = panorama.sample_world_from_stacked(n_draws, seed)
+    if len(draws) < 2:
+        return {}
+    sizes = []
+    for world_from_stacked in draws:
+        moved = points.copy()
+        for q, (g_draw, g_est) in enumerate(zip(world_from_stacked, panorama.world_from_stacked)):
+            sel = quadrant_of == q
+            moved[sel] = (g_draw @ g_est.inverse()).transform(points[sel])
+        sizes.append(remeasure(gauge, moved, gauge_options.noise_mm))
+    return {key: float(np.std([m[key] for m in sizes], ddof=1)) for key in sizes[0]}
 
 
 def true_world_from_stacked(dataset: Dataset) -> list[Pose] | None:
@@ -202,6 +234,7 @@ def run(options: ThreadScanOptions, dataset: Dataset, out_dir: str | Path, *,
 
     t0 = time.perf_counter()
     merged = np.concatenate(registered)
+    quadrant_of = np.repeat(np.arange(len(registered)), [len(r) for r in registered])
     keep = statistical_inliers(merged, options.outliers)
     points = merged[keep]
     timings["outliers"] = time.perf_counter() - t0
@@ -215,6 +248,13 @@ def run(options: ThreadScanOptions, dataset: Dataset, out_dir: str | Path, *,
     except ValueError as exc:  # no thread in the cloud: a result to report, not a crash
         gauge_message = str(exc)
     timings["gauge"] = time.perf_counter() - t0
+    if gauge is not None and options.registration_draws:
+        t0 = time.perf_counter()
+        systematic = registration_systematic(gauge, panorama, points, quadrant_of[keep], options.registration_draws,
+                                             gauge_options, seed=options.seed)
+        if systematic:
+            gauge = with_systematic(gauge, systematic, gauge_options)
+        timings["systematic"] = time.perf_counter() - t0
 
     errors = None
     truth = true_world_from_stacked(dataset)

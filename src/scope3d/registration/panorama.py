@@ -19,6 +19,7 @@ approximately known (default), by robust non-linear least squares from the chain
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -39,6 +40,9 @@ class QuadrantCloud:
         nominal rotation axis through the origin, which the "stage" model needs).
     descriptors : (N, 128) float32, a SIFT descriptor per point (its first observation's).
     colors : (N, 3) uint8 or None.
+    observation_point, observation_frame : (M,) int64 or None, every view of every point: its point and
+        its frame's place in the quadrant's order of advance; observation_descriptors : (M, 128) float32
+        or None, that view's SIFT descriptor (see :func:`match_quadrants`).
     """
 
     index: int
@@ -46,10 +50,17 @@ class QuadrantCloud:
     points: np.ndarray
     descriptors: np.ndarray
     colors: np.ndarray | None = None
+    observation_point: np.ndarray | None = None
+    observation_frame: np.ndarray | None = None
+    observation_descriptors: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.points = np.asarray(self.points, float).reshape(-1, 3)
         self.descriptors = np.asarray(self.descriptors, np.float32).reshape(len(self.points), -1)
+
+    @property
+    def has_observations(self) -> bool:
+        return self.observation_descriptors is not None and len(self.observation_descriptors) > 0
 
 
 @dataclass(frozen=True)
@@ -123,10 +134,23 @@ class PanoramaResult:
     step_deg: float
     closed: bool
     log: list[str] = field(default_factory=list)
+    parameters: np.ndarray | None = None
+    parameter_covariance: np.ndarray | None = None
+    pose_model: Callable[[np.ndarray], list[Pose]] | None = field(default=None, repr=False)
 
     def apply(self, clouds: list[QuadrantCloud]) -> list[np.ndarray]:
         """Each quadrant's points in the registered frame, (N_q, 3) mm each."""
         return [g.transform(c.points) for g, c in zip(self.world_from_stacked, clouds)]
+
+    def sample_world_from_stacked(self, n: int, seed: int = 0) -> list[list[Pose]]:
+        """``n`` draws of every quadrant's ``world_from_stacked`` from the joint solve's estimate and its
+        covariance (Gaussian, linearised at the solution): the registration's own uncertainty, for
+        propagating into what is measured on the registered cloud. Empty without a covariance."""
+        if self.parameter_covariance is None or self.pose_model is None or n < 1:
+            return []
+        rng = np.random.default_rng(seed)
+        draws = rng.multivariate_normal(self.parameters, self.parameter_covariance, size=n, method="eigh")
+        return [self.pose_model(x) for x in draws]
 
 
 def registered_frame_poses(world_from_stacked: Pose, poses: list[Pose], anchor: int) -> list[Pose]:
@@ -187,6 +211,35 @@ def match_descriptors(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float) -> t
     return np.asarray(a, np.int64), np.asarray(b, np.int64)
 
 
+def _frame_pairs(frames_i: np.ndarray, frames_j: np.ndarray, window: int) -> list[tuple[int, int]]:
+    """Pairs (f, g) of frames of two quadrants at most ``window`` steps of advance apart."""
+    fi, fj = np.unique(frames_i), np.unique(frames_j)
+    return [(int(f), int(g)) for f in fi for g in fj if abs(int(f) - int(g)) <= window]
+
+
+def match_quadrants(cloud_i: QuadrantCloud, cloud_j: QuadrantCloud, ratio: float,
+                    advance_window: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """3-D-3-D correspondences of two neighbour quadrants from their points' descriptors -> (idx_i, idx_j),
+    unique pairs of point indices.
+
+    Each point's first-view descriptor is matched across the pair; and, when the clouds keep every view
+    of their points, so are the views in the frames taken at the same advance (the same place in each
+    quadrant's order: the stage repeats its axial steps every quadrant). Two such frames differ by the
+    stage's turn about the axis only, so a surface point looks alike in both; its first views, in
+    general from different heights, see it from directions up to the view's whole vertical field apart
+    (a thread crest seen from above and from below), and match far less often."""
+    a, b = match_descriptors(cloud_i.descriptors, cloud_j.descriptors, ratio)
+    pairs = [np.stack([a, b], 1)]
+    if cloud_i.has_observations and cloud_j.has_observations:
+        for f, g in _frame_pairs(cloud_i.observation_frame, cloud_j.observation_frame, advance_window):
+            in_i = np.flatnonzero(cloud_i.observation_frame == f)
+            in_j = np.flatnonzero(cloud_j.observation_frame == g)
+            oa, ob = match_descriptors(cloud_i.observation_descriptors[in_i], cloud_j.observation_descriptors[in_j], ratio)
+            pairs.append(np.stack([cloud_i.observation_point[in_i[oa]], cloud_j.observation_point[in_j[ob]]], 1))
+    unique = np.unique(np.concatenate(pairs).astype(np.int64).reshape(-1, 2), axis=0)
+    return unique[:, 0], unique[:, 1]
+
+
 def register_pair(cloud_i: QuadrantCloud, cloud_j: QuadrantCloud, options: PanoramaOptions = PanoramaOptions(), *,
                   seed: int = 0) -> PairRegistration:
     """Feature-based registration of two neighbour quadrants (sec. 8.2.2): descriptor matches give
@@ -195,7 +248,7 @@ def register_pair(cloud_i: QuadrantCloud, cloud_j: QuadrantCloud, options: Panor
     import time
 
     t0 = time.perf_counter()
-    a, b = match_descriptors(cloud_i.descriptors, cloud_j.descriptors, options.ratio)
+    a, b = match_quadrants(cloud_i, cloud_j, options.ratio)
     fit = ransac_rigid(cloud_j.points[b], cloud_i.points[a], options.ransac, seed=seed) if len(a) >= 3 else None
     n_inl = 0 if fit is None else fit.n_inliers
     if n_inl < options.min_correspondences:
@@ -217,11 +270,12 @@ def _poses_from_params(x: np.ndarray, k: int, rotations: np.ndarray | None) -> l
 
 
 def solve_panorama(pairs: list[PairRegistration], n_quadrants: int, *, solve_rotations: bool = True,
-                   loss_scale_mm: float = 0.03) -> tuple[list[Pose], list[float]]:
+                   loss_scale_mm: float = 0.03, return_covariance: bool = False):
     """Joint solve (eqs. 8.5-8.7, generalised): each quadrant's ``world_from_stacked`` (quadrant 0 fixed)
     minimising ``|G_i p_i - G_j p_j|`` over every pair's correspondences, robustly (soft L1). Started from
     the pairs chained from quadrant 0 (the last-to-first pair, if any, then only enters the solve).
-    Returns (poses, per-pair residual RMS in mm)."""
+    Returns (poses, per-pair residual RMS in mm), and with ``return_covariance`` also the parameters,
+    their covariance (or None) and the function from parameters to poses."""
     k = n_quadrants
     chained = [Pose.identity()] + [None] * (k - 1)
     for p in pairs:
@@ -258,7 +312,27 @@ def solve_panorama(pairs: list[PairRegistration], n_quadrants: int, *, solve_rot
     poses = _poses_from_params(sol.x, k, fixed_rot)
     rms = [float(np.sqrt(np.mean(np.sum((poses[p.i].transform(p.points_i) - poses[p.j].transform(p.points_j)) ** 2, 1))))
            for p in pairs]
+    if return_covariance:
+        return poses, rms, sol.x, _covariance(sol, loss_scale_mm), lambda x: _poses_from_params(x, k, fixed_rot)
     return poses, rms
+
+
+def _covariance(sol, loss_scale_mm: float) -> np.ndarray | None:
+    """Covariance of a robust least-squares solution's parameters, linearised at the solution:
+    ``s^2 (J^T J)^-1`` over the core residuals (within 3 loss scales and 3 robust sigmas; the others are
+    the robust loss' outliers), ``s^2`` their mean square per degree of freedom. Assumes independent
+    residuals; None when the Jacobian is singular."""
+    res = sol.fun
+    core = np.abs(res) < 3 * loss_scale_mm + 3 * 1.4826 * np.median(np.abs(res))
+    jac = sol.jac[core]
+    jac = jac.toarray() if hasattr(jac, "toarray") else np.asarray(jac)
+    dof = int(core.sum()) - len(sol.x)
+    if dof < 1:
+        return None
+    try:
+        return np.linalg.inv(jac.T @ jac) * float(np.sum(res[core] ** 2) / dof)
+    except np.linalg.LinAlgError:
+        return None
 
 
 def _stage_poses(x: np.ndarray, angles_rad: np.ndarray) -> list[Pose]:
@@ -277,10 +351,11 @@ def _stage_poses(x: np.ndarray, angles_rad: np.ndarray) -> list[Pose]:
 
 
 def solve_stage_model(pairs: list[PairRegistration], angles_deg: list[float], *,
-                      loss_scale_mm: float = 0.05) -> tuple[list[Pose], list[float]]:
+                      loss_scale_mm: float = 0.05, return_covariance: bool = False):
     """Joint solve under the rotation-stage model (see :class:`PanoramaOptions`): 4 + 2 (k - 1) unknowns
     from every pair's correspondences, started at the stacked guess. Returns (world_from_stacked per
-    quadrant, per-pair residual RMS in mm)."""
+    quadrant, per-pair residual RMS in mm), and with ``return_covariance`` also the parameters, their
+    covariance (or None) and the function from parameters to poses."""
     angles = np.deg2rad(np.asarray(angles_deg, float))
     k = len(angles)
 
@@ -293,6 +368,8 @@ def solve_stage_model(pairs: list[PairRegistration], angles_deg: list[float], *,
     poses = _stage_poses(sol.x, angles)
     rms = [float(np.sqrt(np.mean(np.sum((poses[p.i].transform(p.points_i) - poses[p.j].transform(p.points_j)) ** 2, 1))))
            for p in pairs]
+    if return_covariance:
+        return poses, rms, sol.x, _covariance(sol, loss_scale_mm), lambda x: _stage_poses(x, angles)
     return poses, rms
 
 
@@ -329,11 +406,12 @@ def register_quadrants(clouds: list[QuadrantCloud], options: PanoramaOptions = P
         loop_deg, loop_mm = loop_closure(pairs, clouds)
         log.append(f"loop closure of the chained pairs: {loop_deg:.3f}°, {loop_mm:.4f} mm")
     if options.model == "stage":
-        poses, rms = solve_stage_model(pairs, [c.angle_deg for c in clouds], loss_scale_mm=options.loss_scale_mm)
+        poses, rms, x, cov, model = solve_stage_model(pairs, [c.angle_deg for c in clouds],
+                                                      loss_scale_mm=options.loss_scale_mm, return_covariance=True)
     else:
-        poses, rms = solve_panorama(pairs, k, solve_rotations=options.solve_rotations,
-                                    loss_scale_mm=options.loss_scale_mm)
-    return PanoramaResult(poses, pairs, loop_deg, loop_mm, rms, step, closed and k > 2, log)
+        poses, rms, x, cov, model = solve_panorama(pairs, k, solve_rotations=options.solve_rotations,
+                                                   loss_scale_mm=options.loss_scale_mm, return_covariance=True)
+    return PanoramaResult(poses, pairs, loop_deg, loop_mm, rms, step, closed and k > 2, log, x, cov, model)
 
 
 def registration_errors(estimated: list[Pose], truth: list[Pose], clouds: list[QuadrantCloud]) -> tuple[np.ndarray, np.ndarray]:

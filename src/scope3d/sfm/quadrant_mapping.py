@@ -48,13 +48,19 @@ class QuadrantMapOptions:
 class QuadrantMap:
     """points : (N, 3) float64 mm in the frame of the poses given; descriptors : (N, 128) float32, the
     first observation's SIFT descriptor; colors : (N, 3) uint8; n_features : features per frame;
-    n_matches : verified matches per frame pair."""
+    n_matches : verified matches per frame pair. observation_point, observation_frame : (M,) int64, each
+    observation's point and frame (index in the quadrant's frames); observation_descriptors : (M, 128)
+    float32, its SIFT descriptor (every view of a point, for matching frames taken at the same advance
+    in a neighbouring quadrant: :func:`scope3d.registration.panorama.match_quadrants`)."""
 
     points: np.ndarray
     descriptors: np.ndarray
     colors: np.ndarray
     n_features: list[int]
     n_matches: dict
+    observation_point: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    observation_frame: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    observation_descriptors: np.ndarray = field(default_factory=lambda: np.zeros((0, 128), np.float32))
 
 
 def map_quadrant(images: list[np.ndarray], camera: Camera, poses: list[Pose],
@@ -80,5 +86,6 @@ def map_quadrant(images: list[np.ndarray], camera: Camera, poses: list[Pose],
     if tracks.n_tracks == 0:
         return empty
     first = np.searchsorted(tracks.track, np.arange(tracks.n_tracks))  # tracks are sorted by id
-    desc = np.stack([features[f].descriptors[k] for f, k in zip(tracks.frame[first], tracks.feature[first])])
-    return QuadrantMap(tracks.points, desc.astype(np.float32), tracks.colors, [len(f) for f in features], counts)
+    obs_desc = np.stack([features[f].descriptors[k] for f, k in zip(tracks.frame, tracks.feature)]).astype(np.float32)
+    return QuadrantMap(tracks.points, obs_desc[first], tracks.colors, [len(f) for f in features], counts,
+                       tracks.track.astype(np.int64), tracks.frame.astype(np.int64), obs_desc)

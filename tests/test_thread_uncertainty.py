@@ -1,0 +1,70 @@
+"""The gauge's systematic term from the registration's uncertainty, and the pass / fail / indeterminate
+verdict on the combined uncertainty (issue 13), on clouds sampled from the phantom's true M8 mesh split
+into twelve 30° quadrants, with a registration covariance chosen so its effect is known in closed form."""
+from __future__ import annotations
+
+import numpy as np
+import trimesh
+
+from scope3d.geometry.pose import Pose
+from scope3d.metrology.thread_gauge import GaugeOptions, gauge_thread, with_systematic
+from scope3d.phantoms.scenes import build_thread
+from scope3d.pipelines.thread_scan import registration_systematic
+from scope3d.registration.panorama import PanoramaResult, _stage_poses
+
+NOISE_MM = 0.01  # a sparse reconstruction's point noise
+MOUNT_SHIFT_SIGMA_MM = 0.005  # the mount offset's 1-sigma, the size the joint solve states on the 90° scans
+DRAWS = 16
+
+
+def _panorama() -> PanoramaResult:
+    """A registered panorama of 12 quadrants at 30° steps, estimate = truth, whose only uncertainty is the
+    camera's offset along quadrant 0's +x (the stage model's mount shift): each draw moves quadrant q by
+    that shift turned by its stage angle, i.e. radially for the sector it faces, so every diameter moves
+    by twice the draw."""
+    angles = np.deg2rad(30.0 * np.arange(12))
+    n = 4 + 2 * 11
+    cov = np.diag(np.full(n, 1e-14))
+    cov[2, 2] = MOUNT_SHIFT_SIGMA_MM**2
+    return PanoramaResult([Pose.identity()] * 12, [], None, None, [], 30.0, True, [], np.zeros(n), cov,
+                          lambda x: _stage_poses(x, angles))
+
+
+def test_registration_uncertainty_gives_the_verdict_its_guard_band():
+    scene = build_thread("M8x1.25", minor_diameter_offset_mm=0.132, pitch_diameter_offset_mm=0.08,
+                         major_diameter_offset_mm=0.05)
+    made = scene.info["thread"]["as_made"]
+    surface, _ = trimesh.sample.sample_surface(scene.mesh.to_trimesh(), 24000, seed=1)
+    rng = np.random.default_rng(1)
+    surface = surface[(surface[:, 2] < -1.5) & (surface[:, 2] > -7.5)]  # what a 4.5 mm 90° scan shows
+    surface += rng.normal(0.0, NOISE_MM, surface.shape)
+    angle = np.mod(np.arctan2(surface[:, 1], surface[:, 0]), 2 * np.pi)
+    quadrant_of = np.round(angle / np.deg2rad(30.0)).astype(int) % 12  # the sector each quadrant faces
+    options = GaugeOptions(designation="M8x1.25", axis_hint=(0.0, 0.0, 1.0))
+    d2_max = 7.348  # ISO 965-2, M8x1.25-6H
+
+    verdicts = {}
+    # Pushing the surface out radially by s makes every diameter 2 s larger: a conforming mid-class hole,
+    # one with its pitch diameter 0.004 mm inside the no-go limit, and one 0.04 mm beyond it.
+    for name, d2 in (("mid", made["pitch_diameter_mm"]), ("near", d2_max - 0.004), ("out", d2_max + 0.04)):
+        s = (d2 - made["pitch_diameter_mm"]) / 2
+        points = surface * np.array([1 + s / np.hypot(*surface[:, :2].T)] * 2 + [np.ones(len(surface))]).T
+        alone = gauge_thread(points, options)
+        # statistical alone: the fit's uncertainty from 0.01 mm independent noise over thousands of points
+        assert alone.pitch_diameter_mm.uncertainty < 0.0015
+        assert abs(alone.pitch_diameter_mm.value - d2) < 0.005  # sampling + tessellation, as the gauge tests
+        systematic = registration_systematic(alone, _panorama(), points, quadrant_of, DRAWS, options, seed=3)
+        # each diameter moves by twice the mount shift; the spread of 16 draws is good to 1/sqrt(30) = 18 %
+        # (1 sigma): within 3 sigma
+        for key in ("minor_diameter", "pitch_diameter", "major_diameter"):
+            assert abs(systematic[key] / (2 * MOUNT_SHIFT_SIGMA_MM) - 1) < 0.55, (key, systematic)
+        assert systematic["pitch"] < 2e-4  # a radial shift does not change the pitch
+        combined = with_systematic(alone, systematic, options)
+        assert combined.pitch_diameter_mm.systematic == systematic["pitch_diameter"]
+        assert abs(combined.pitch_diameter_mm.uncertainty - np.hypot(alone.pitch_diameter_mm.uncertainty,
+                                                                      systematic["pitch_diameter"])) < 1e-12
+        verdicts[name] = (alone.verdict, combined.verdict)
+    assert verdicts["mid"] == ("pass", "pass")
+    # 0.004 mm inside the limit: proven by the fit's own ~0.001 mm, not by a 0.01 mm registration term
+    assert verdicts["near"] == ("pass", "indeterminate")
+    assert verdicts["out"] == ("fail", "fail")
