@@ -50,7 +50,7 @@ from scope3d.estimators.averaging import (RelativePose, _huber_weights, _robust_
 from scope3d.estimators.bundle import BundleResult, SolverOptions, solve
 from scope3d.estimators.triangulation import TrackOptions, ray_angles_deg, reprojection_errors, triangulate_tracks
 from scope3d.feature.detection import Features
-from scope3d.feature.depth_prior import DepthPrior
+from scope3d.feature.depth_prior import DepthPrior, pose_error_px
 from scope3d.feature.matching import MatchOptions, PairMatches, match_exhaustive
 from scope3d.feature.pairs import frame_overlap
 from scope3d.feature.retrieval import RetrievalOptions, image_similarity
@@ -444,7 +444,11 @@ def adjust_cavity(camera: Camera, tracks: Tracks, poses: list[Pose], options: Ca
     tracks : untriangulated observations; poses : the start (provisional scale: the fitted sphere's radius
     is the nominal one). Returns (tracks with points, poses, stages)."""
     stages: list[dict] = []
-    work = triangulate_tracks(camera, poses, tracks, options.tracks)
+    gate = options.tracks
+    if measured is not None:  # the plan's error moves every observation: both rays' ends may be off
+        wall = DepthPrior(options.min_radius_mm, options.max_radius_mm)
+        gate = gate.widened_by(max(2.0 * pose_error_px(camera, m.tolerance, wall) for m in measured))
+    work = triangulate_tracks(camera, poses, tracks, gate)
     if work.n_tracks >= 4:
         centre, radius = fit_sphere(work.points)
     else:  # the scope turns about the cavity's centre: the cameras' centroid, the nominal radius
@@ -455,6 +459,10 @@ def adjust_cavity(camera: Camera, tracks: Tracks, poses: list[Pose], options: Ca
         work = work.subset(_inside(work.points, shell)[work.track])
         work, poses = _adjust(camera, work, poses, measured, options, shell, "shell", stages)
     work, poses = _adjust(camera, work, poses, measured, options, None, "free", stages)
+    # every track again with the adjusted poses: the start's error kept some out (a planned start placed
+    # half the tracks of the unseen-shape spiral)
+    work = triangulate_tracks(camera, poses, tracks, options.tracks)
+    work, poses = _adjust(camera, work, poses, measured, options, None, "retriangulated", stages)
     err = reprojection_errors(camera, poses, work)
     keep = err <= options.tracks.max_reprojection_error_px
     keep &= np.bincount(work.track[keep], minlength=work.n_tracks)[work.track] >= 2
