@@ -26,9 +26,10 @@ distance, the ambiguous one bends it (:func:`cavity_relative_pose`). The steps, 
 
 What limits the image-only map (measured on the 36-frame spiral, 256 px): the frames overlap only their
 neighbours (35-65 %), so the pair graph is a chain with a few cross-turn links and tracks average 2.1
-views. A free adjustment of the true matches started from the true poses moves 2 deg and 0.7 mm (wall
-0.28 -> 1.0 mm) for a lower cost, and does the same with synthetic observations (the true points
-projected, 0.15 px Gaussian noise): this is the noise on a weakly tied chain, not a defect of the solver.
+views. A free adjustment of the true matches started from the true poses moves 1.1 deg (2.2 at most)
+and 0.7 mm (wall 0.28 -> 1.0 mm) for a lower cost, and does the same with synthetic observations (the
+true points projected, 0.15 px Gaussian noise): this is the noise on a weakly tied chain, not a defect of
+the solver.
 
 Units: mm (provisional until :mod:`scope3d.metrology.star_scale` rescales), radians; pixels with their
 origin at the top-left pixel's centre. Poses are ``cam_from_world``.
