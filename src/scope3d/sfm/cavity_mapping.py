@@ -76,6 +76,11 @@ class CavityOptions:
     planned_min_overlap : float, with planned poses, pairs whose fields overlap by at least this fraction
         (placed on the wall between the shell's radii) are matched too (default 0.25, as
         :class:`scope3d.feature.pairs.PairOptions`).
+    track_unposed_pairs : bool, pairs whose matches pass the fundamental-matrix RANSAC but whose relative
+        pose is refused (most cross-turn pairs) still join the tracks, not the start (default False).
+        Measured on the 36-frame spiral, wall mean / p95 mm, off -> on: 608 px planned 1.78 / 5.0 -> 1.26 /
+        4.0, but 608 px images only 2.06 / 4.8 -> 4.46 / 28.0, 256 px planned 1.93 / 8.2 -> 2.08 / 9.8,
+        256 px images only 1.76 / 4.4 -> 2.60 / 13.2: their wrong matches survive a start degrees off.
     partners_per_frame : int, each frame's most similar frames matched (default 4: on a spiral the two
         neighbours along the path and one or two across the turns).
     max_depth_spread : float, a pair whose best relative pose still spreads its points' distances by more
@@ -103,6 +108,7 @@ class CavityOptions:
 
     sequence_neighbours: int = 2
     planned_min_overlap: float = 0.25
+    track_unposed_pairs: bool = False
     partners_per_frame: int = 4
     max_depth_spread: float = 0.15
     nominal_radius_mm: float = 40.0
@@ -229,7 +235,7 @@ def cavity_relative_pose(camera: Camera, pixels_i: np.ndarray, pixels_j: np.ndar
 
 def pair_poses(camera: Camera, features: list[Features], options: CavityOptions = CavityOptions(),
                match_options: MatchOptions = MatchOptions(), measured: list[MeasuredPose] | None = None, *,
-               progress=None) -> tuple[list[PairMatches], list[RelativePose], int]:
+               progress=None) -> tuple[list[PairMatches], list[RelativePose], list[PairMatches], int]:
     """Each frame's ``sequence_neighbours`` successors and ``partners_per_frame`` most similar frames
     matched exhaustively and verified by :func:`cavity_relative_pose`. With planned poses (finite
     tolerances, :func:`knows_poses`) also every pair whose fields overlap by at least
@@ -238,7 +244,8 @@ def pair_poses(camera: Camera, features: list[Features], options: CavityOptions 
     inliers with the planned one among the starts (:func:`relative_pose`'s prior): the plan already
     says where the frames are, so the wall's shape need not (on an unseen cavity the depth-spread test
     refused the consecutive pairs that joined frames 7-16 to the rest).
-    Returns (matches (inliers only), relative poses, pairs tried). progress : tqdm-like or None,
+    Returns (matches (inliers only), relative poses, the refused pairs' matches when
+    ``track_unposed_pairs`` (else []), pairs tried). progress : tqdm-like or None,
     advanced once per pair."""
     n = len(features)
     similarity = image_similarity(features, options.retrieval)
@@ -271,13 +278,15 @@ def pair_poses(camera: Camera, features: list[Features], options: CavityOptions 
             rel = cavity_relative_pose(camera, pixels_i, pixels_j, i, j, threshold_px=match_options.ransac_threshold_px,
                                        noise_px=options.noise_px, max_depth_spread=options.max_depth_spread)
         if rel is None or rel.n_inliers < match_options.min_matches:
-            return None
+            return m, None
         return PairMatches(i, j, m.idx_i[rel.inliers], m.idx_j[rel.inliers], m.n_putative, m.n_candidates,
                            m.time_s, "exhaustive"), rel
 
     with ThreadPoolExecutor(max_workers=options.threads) as pool:
         found = [r for r in pool.map(verify, sorted(chosen)) if r is not None]
-    return [m for m, _ in found], [r for _, r in found], len(chosen)
+    posed = [(m, r) for m, r in found if r is not None]
+    linked = [m for m, r in found if r is None] if options.track_unposed_pairs else []
+    return [m for m, _ in posed], [r for _, r in posed], linked, len(chosen)
 
 
 # --- 2., 3. start poses ---------------------------------------------------------------------------
@@ -493,10 +502,10 @@ def map_cavity(camera: Camera, features: list[Features], measured: list[Measured
         raise InputError(f"{where}: need at least 2 frames, found {n}")
     times = {}
     t0 = time.perf_counter()
-    matches, relative, n_tried = pair_poses(camera, features, options, match_options, measured, progress=progress)
+    matches, relative, linked, n_tried = pair_poses(camera, features, options, match_options, measured, progress=progress)
     times["pairs_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    tracks = build_tracks(features, matches)
+    tracks = build_tracks(features, matches + linked)
     planned = knows_poses(measured)
     if planned:  # the plan places every frame: one that shares no matches is left unregistered, not refused
         if not matches:
