@@ -5,19 +5,21 @@ from __future__ import annotations
 import csv
 import json
 import shutil
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from scope3d.cli.main import main
 from scope3d.errors import InputError
-from scope3d.estimators.triangulation import triangulate_tracks
+from scope3d.estimators.triangulation import TrackOptions, triangulate_tracks
 from scope3d.feature.detection import detect
 from scope3d.feature.matching import match_exhaustive
 from scope3d.feature.tracks import build_tracks
 from scope3d.io.dataset import load_dataset
 from scope3d.metrology.star_scale import pentagram_area_mm2, star_scale
 from scope3d.phantoms import generate, write
+from scope3d.pipelines.panorama_3d import PanoramaOptions, evaluate, run
 from scope3d.sfm.cavity_mapping import map_cavity
 
 # frames 10-23 of the 36-frame spiral: one turn, with three stars seen whole (frames 13, 14, 17, 22)
@@ -109,3 +111,22 @@ def test_scale_requested_without_star_frames_is_refused(bladder, tmp_path, capsy
     assert main(["panorama", str(bare), "--out", str(tmp_path / "p"), "--quiet"]) == 2
     assert "--no-scale" in capsys.readouterr().err
     assert not (tmp_path / "p").exists()
+
+
+def test_planned_poses_place_every_frame_of_an_unseen_cavity(tmp_path):
+    # another shape than the default (issue 11: --shape-seed 5 --cavity-mm 40,35,30): the image-only pair
+    # test (the wall's depth spread) refused the consecutive pairs that joined frames 7-16 to the rest,
+    # and the panorama exited 2 although the plan places every frame
+    data = tmp_path / "unseen"
+    assert main(["phantom", "bladder", "--shape-seed", "5", "--cavity-mm", "40,35,30", "--size", "160x160",
+                 "--pose-noise", "1", "--seed", "7", "--out", str(data), "--quiet"]) == 0
+    ds = load_dataset(data)
+    report, cavity = run(PanoramaOptions(stars=None, figures=False), ds, tmp_path / "pano")
+    assert report["n_registered"] == report["n_frames"] == 36
+    assert report["scale_source"] == "plan"
+    # the plan's ±1 mm and ±0.5 deg on 2-4 mm baselines move a two-view point by a large part of its
+    # depth; the bounded adjustment must place the same tracks closer to the wall than the plan as given
+    planned = [m.pose for m in ds.poses]
+    as_planned = triangulate_tracks(ds.camera, planned, cavity.tracks, TrackOptions())
+    plan_error = evaluate(ds, replace(cavity, tracks=as_planned, poses=planned), 0.25)["surface_error_mm"]
+    assert report["surface_error_mm"]["after_similarity"]["mean"] < plan_error["after_similarity"]["mean"]

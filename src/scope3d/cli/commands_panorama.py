@@ -89,10 +89,10 @@ def register_panorama(subparsers) -> None:
         "panorama",
         help="image-only 3-D panorama of a cavity's wall (poses and points from the images, star scale)",
         description="Camera poses and points of a cavity seen from inside, from the images alone: pairs by "
-                    "retrieval, relative poses chosen by the wall's shape, rotation averaging, centres from the "
-                    "rays, points started on a sphere and adjusted inside an anatomical shell (20-70 mm radius), "
-                    "then released. Planned poses (finite tolerance in poses.csv) start and bound the poses "
-                    "instead. The physical scale comes from the 6 mm star targets in the fluorescence frames. "
+                    "capture order and retrieval, relative poses chosen by the wall's shape, rotation averaging, "
+                    "centres from baselines scaled by the wall's distance, bundle adjustment; points outside an "
+                    "anatomical shell (20-70 mm radius) dropped. Planned poses (finite tolerance in poses.csv) "
+                    "also choose the pairs they say overlap, and start and bound the poses. The physical scale comes from the 6 mm star targets in the fluorescence frames. "
                     "Writes DIR/report.json (n_frames, n_registered, n_points, time_s; with ground truth "
                     "scale_error_fraction and surface_error_mm.after_similarity), sparse/ (COLMAP text), "
                     "points.ply, mesh.ply (closed wall), panorama_3d.png.",
