@@ -147,3 +147,84 @@ def test_a_run_without_geometry_still_loads_cleanly(browser, tmp_path):
     assert _console_errors(browser) == []
     assert browser.execute_script("return document.body.getAttribute('data-layers-drawn')") == "0"
     assert "no cloud or mesh" in browser.find_element("id", "view-section").text
+
+
+@pytest.fixture(scope="module")
+def panorama_run(tmp_path_factory):
+    """A panorama run folder drawn from the truth of a small bladder phantom (what is under test is the
+    page's explorer, not the reconstruction): the true wall as mesh.ply, the true cameras as sparse/."""
+    from scope3d.io.colmap import SparseModel, write_colmap_text
+    from scope3d.io.dataset import load_dataset
+    from scope3d.io.ply import write_ply
+    from scope3d.phantoms import generate, write
+    from scope3d.report import write_report
+
+    root = tmp_path_factory.mktemp("explorer")
+    write(generate("bladder", size=(128, 128), n_frames=12), root / "bladder")
+    dataset = load_dataset(root / "bladder")
+    run = root / "run"
+    run.mkdir()
+    write_ply(run / "mesh.ply", dataset.ground_truth.surface())
+    write_colmap_text(SparseModel([dataset.camera], dataset.names, dataset.ground_truth.poses, points3d=np.zeros((0, 3))),
+                      run / "sparse")
+    (run / "report.json").write_text(json.dumps({"job": "panorama", "dataset": str(root / "bladder")}))
+    write_report(run)
+    return run, dataset
+
+
+def _truly_seeing(dataset, point: np.ndarray, margin_px: float) -> set[str]:
+    """Frames whose true camera sees ``point`` (mm, on the true wall): inside the image (and its circular
+    field) by ``margin_px`` (negative: outside by up to that much), and nothing of the wall in between
+    (a ray cast from the camera's centre first meets the wall at the point)."""
+    import trimesh
+
+    mesh = dataset.ground_truth.surface()
+    caster = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
+    seen = set()
+    for name, pose in zip(dataset.names, dataset.ground_truth.poses):
+        uv = dataset.camera.project_world(pose, point[None])
+        if not dataset.camera.in_image(uv, margin_px=margin_px)[0]:
+            continue
+        ray = point - pose.centre
+        distance = np.linalg.norm(ray)
+        hits, _, _ = caster.ray.intersects_location([pose.centre], [ray / distance])
+        first = np.linalg.norm(hits - pose.centre, axis=1).min() if len(hits) else np.inf
+        if first > distance - 0.01:  # 0.01 mm: the float32 the page holds positions in, at ~50 mm
+            seen.add(name)
+    return seen
+
+
+def test_clicking_the_panorama_lists_the_frames_that_really_see_the_spot(browser, panorama_run):
+    """Seen from inside the cavity, a click on the wall lists exactly the frames whose TRUE camera sees that
+    spot (ray cast against the true wall), each with its picture and the spot's pixel."""
+    from selenium.webdriver.common.action_chains import ActionChains
+
+    run, dataset = panorama_run
+    _open(browser, run / "report.html")
+    assert browser.find_element("id", "inside-view").is_selected()
+    assert _console_errors(browser) == []
+    canvas = browser.find_element("id", "view")
+    pixels = _canvas_pixels(browser)
+    height, width = pixels.shape[:2]
+    css_w, css_h = canvas.size["width"], canvas.size["height"]
+    checked = 0
+    for fx, fy in [(fx, fy) for fy in (0.1, 0.3, 0.5, 0.7, 0.9) for fx in (0.1, 0.3, 0.5, 0.7, 0.9)]:
+        if not np.any(np.abs(pixels[int(fy * height), int(fx * width)].astype(int) - BACKGROUND_RGB) > 12):
+            continue  # no wall drawn there
+        ActionChains(browser).move_to_element_with_offset(canvas, (fx - 0.5) * css_w, (fy - 0.5) * css_h) \
+            .click().perform()
+        picked = json.loads(browser.execute_script("return document.body.getAttribute('data-picked')"))
+        assert picked is not None, "a click on the drawn wall picked nothing"
+        point = np.array(picked["point_mm"])
+        listed = set(picked["frames"])
+        # within 1 px of the image's edge a float32 position may fall either side: those frames may go
+        # either way; every other frame must be listed if and only if its true camera sees the spot
+        assert _truly_seeing(dataset, point, 1.0) <= listed <= _truly_seeing(dataset, point, -1.0)
+        pictures = browser.find_elements("css selector", "#explorer-frames figure img")
+        assert len(pictures) == len(listed)
+        for name, uv in zip(picked["frames"], picked["pixels"]):
+            k = dataset.names.index(name)
+            truth = dataset.camera.project_world(dataset.ground_truth.poses[k], point[None])[0]
+            assert np.linalg.norm(np.array(uv) - truth) < 0.05  # float32 positions: ~1e-5 mm at 50 mm
+        checked += len(listed) >= 2
+    assert checked >= 2, "fewer than two clicks found a spot seen by two frames or more"

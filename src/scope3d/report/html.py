@@ -210,17 +210,25 @@ def _view_section(scene: ViewScene) -> str:
               f'<span{hide_targets}><span class="legend-key" style="background:#ff1ae6"></span>targets found</span> '
               f'<span{hide_targets}><span class="legend-key" style="background:#1ad94d"></span>true targets</span>')
     notes = "".join(f"<li>{_e(n)}</li>" for n in scene.notes)
+    # the panorama is a closed cavity: seen from outside, its wall hides what the scope saw
+    inside = ('<label><input type="checkbox" id="inside-view" checked> view from inside (drag: look around, '
+              'wheel: zoom)</label>') if scene.inside else ""
+    alternate = ('<label><input type="checkbox" id="alternate-modes"> alternate texture and fluorescence '
+                 '</label>') if {"texture", "multimodal"} <= available else ""
+    explorer = ('<aside id="explorer"><p id="explorer-hint">Click a spot of the surface: the frames that saw it '
+                'appear here, the spot circled.</p><div id="explorer-frames"></div></aside>') \
+        if scene.camera is not None and scene.frames else ""
     return (
         '<section id="view-section"><h2>3D view</h2>'
         f'<div class="controls"><span>colour by: {radios}</span><span>{layers}</span>'
         '<label><input type="checkbox" id="show-frusta" checked> cameras</label>'
-        f'<label{hide_targets}><input type="checkbox" id="show-targets" checked> targets</label>'
+        f'<label{hide_targets}><input type="checkbox" id="show-targets" checked> targets</label>{inside}{alternate}'
         '<button id="reset-view" type="button">reset view</button></div>'
-        '<div class="viewer"><canvas id="view"></canvas><canvas id="view-labels"></canvas>'
-        '<div id="view-message"></div></div>'
+        '<div class="view-row"><div class="viewer"><canvas id="view"></canvas><canvas id="view-labels"></canvas>'
+        f'<div id="view-message"></div></div>{explorer}</div>'
         f'<div class="controls">{scales}{legend}</div>'
-        '<p style="font-size:12px;color:#5b6474">drag: orbit · shift-drag or right-drag: pan · wheel: zoom; '
-        f'lengths in mm</p>{no_error}<ul class="notes">{notes}</ul></section>')
+        '<p style="font-size:12px;color:#5b6474">drag: orbit · shift-drag or right-drag: pan · wheel: zoom · '
+        f'click: the frames that saw a spot; lengths in mm</p>{no_error}<ul class="notes">{notes}</ul></section>')
 
 
 def _targets_section(scene: ViewScene, report: dict) -> str:

@@ -1,10 +1,12 @@
 """What the report's 3D view shows, gathered from a run folder: the job's clouds and meshes (decimated
 for the page), their colourings (height, error against the true surface, texture), the cameras'
-frusta along the trajectory and the fluorescent targets. Lengths in mm, world frame of the run."""
+frusta along the trajectory, the fluorescent targets, and for the explorer (click a spot, see the frames
+that saw it) every camera's pose and intrinsics with a small picture of its frame. Lengths in mm, world
+frame of the run."""
 from __future__ import annotations
 
 import base64
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +35,9 @@ class ReportOptions:
         run). frustum_depth_fraction : float, frustum depth as a fraction of the scene's diagonal.
     error_scale_percentile : float, top of the error colour scale (percentile of the errors, so one far
         outlier does not wash the rest out).
+    thumbnail_px : int, longest side of each frame's picture in the explorer (JPEG in the page).
+    max_thumbnails : int, frames with a picture at most (evenly spread over the run; the others are listed
+        by name only), which bounds the page's size for videos of thousands of frames.
     """
 
     max_points: int = 200_000
@@ -40,10 +45,14 @@ class ReportOptions:
     seed: int = 0
     frustum_depth_fraction: float = 0.08
     error_scale_percentile: float = 95.0
+    thumbnail_px: int = 160
+    max_thumbnails: int = 400
 
     def __post_init__(self) -> None:
         if self.max_points < 1 or self.max_faces < 1:
             raise ValueError("max_points and max_faces must be >= 1")
+        if self.thumbnail_px < 16 or self.max_thumbnails < 0:
+            raise ValueError("thumbnail_px must be >= 16 and max_thumbnails >= 0")
         if not 0 < self.frustum_depth_fraction <= 1:
             raise ValueError("frustum_depth_fraction must be in (0, 1]")
         if not 0 < self.error_scale_percentile <= 100:
@@ -65,11 +74,24 @@ class Layer:
     error_mm: np.ndarray | None = None
 
 
+@dataclass(frozen=True)
+class FrameView:
+    """One camera of the run as the explorer uses it. name : the frame's file name; pose : cam_from_world
+    (mm); thumbnail : JPEG bytes of the frame, longest side ``ReportOptions.thumbnail_px``, or None."""
+
+    name: str
+    pose: Pose
+    thumbnail: bytes | None
+
+
 @dataclass
 class ViewScene:
     """Everything the viewer draws; see :func:`gather_scene`. frusta : (S, 2, 3) mm line segments;
     trajectory : (M, 3) mm camera centres in frame order; targets / true_targets : dicts from report.json;
-    up : (3,) unit height direction; scales : colouring name -> (low, high, unit) of its colour bar."""
+    up : (3,) unit height direction; scales : colouring name -> (low, high, unit) of its colour bar.
+    camera : the run's intrinsics (None without cameras); frames : the explorer's cameras, in frame order.
+    inside : True for a closed cavity seen from within (the organ panorama): the page offers the view from
+    inside, like a virtual globe."""
 
     layers: list[Layer]
     frusta: np.ndarray
@@ -79,6 +101,9 @@ class ViewScene:
     up: np.ndarray
     scales: dict[str, tuple[float, float, str]] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
+    camera: Camera | None = None
+    frames: list[FrameView] = field(default_factory=list)
+    inside: bool = False
 
 
 def colour_map(values: np.ndarray, low: float, high: float) -> np.ndarray:
@@ -156,7 +181,7 @@ def gather_scene(run_dir: Path, report: dict, options: ReportOptions) -> ViewSce
     its texture. Missing pieces become notes on the page, never errors: a report is written for any run."""
     notes: list[str] = []
     dataset = _dataset(run_dir, report, notes)
-    camera, poses = _cameras(run_dir, dataset, notes)
+    camera, names, poses = _cameras(run_dir, dataset, notes)
     truth = None
     if dataset is not None and dataset.ground_truth is not None and dataset.ground_truth.surface_path is not None:
         from scope3d.metrology.evaluation import EvaluationOptions
@@ -217,7 +242,42 @@ def gather_scene(run_dir: Path, report: dict, options: ReportOptions) -> ViewSce
     targets = checked_targets(report, "targets", "centroid_mm", run_dir / "report.json")
     truth_targets = [t for t in checked_targets(report, "targets_vs_truth", "true_centre_mm", run_dir / "report.json")
                      if "true_centre_mm" in t]
-    return ViewScene(layers, frusta, centres, targets, truth_targets, up, scales, notes)
+    frames = frame_views(names, poses, dataset, options, notes)
+    return ViewScene(layers, frusta, centres, targets, truth_targets, up, scales, notes, camera, frames,
+                     inside=report.get("job") == "panorama")
+
+
+def frame_views(names: list[str], poses: list[Pose], dataset, options: ReportOptions,
+                notes: list[str]) -> list[FrameView]:
+    """The explorer's cameras: each pose with a small JPEG of its frame when the dataset is at hand (at most
+    ``max_thumbnails``, evenly spread; a frame that cannot be read is listed without one, with a note)."""
+    import cv2
+
+    paths = {p.name: p for p in dataset.frame_paths} if dataset is not None else {}
+    pictured = set()
+    if paths and options.max_thumbnails:
+        count = min(len(names), options.max_thumbnails)
+        pictured = set(np.unique(np.linspace(0, len(names) - 1, count).round().astype(int)).tolist())
+    frames, unreadable = [], []
+    for i, (name, pose) in enumerate(zip(names, poses)):
+        thumbnail = None
+        if i in pictured and name in paths:
+            image = cv2.imread(str(paths[name]), cv2.IMREAD_COLOR)
+            if image is None:
+                unreadable.append(name)
+            else:
+                factor = options.thumbnail_px / max(image.shape[:2])
+                small = cv2.resize(image, None, fx=factor, fy=factor, interpolation=cv2.INTER_AREA) \
+                    if factor < 1 else image
+                ok, jpeg = cv2.imencode(".jpg", small, [cv2.IMWRITE_JPEG_QUALITY, 80])
+                thumbnail = jpeg.tobytes() if ok else None
+        frames.append(FrameView(name, pose, thumbnail))
+    if unreadable:
+        notes.append(f"{len(unreadable)} frame(s) could not be read for the explorer, e.g. {unreadable[0]}")
+    if len(names) > len(pictured) and pictured:
+        notes.append(f"explorer: pictures of {len(pictured)} of {len(names)} frames (evenly spread); the others "
+                     "are listed by name")
+    return frames
 
 
 # The fields of a target entry the page computes with or formats as numbers, and those it shows as labels.
@@ -279,21 +339,25 @@ def _dataset(run_dir: Path, report: dict, notes: list[str]):
     return None
 
 
-def _cameras(run_dir: Path, dataset, notes: list[str]) -> tuple[Camera | None, list[Pose]]:
+def _cameras(run_dir: Path, dataset, notes: list[str]) -> tuple[Camera | None, list[str], list[Pose]]:
     """The adjusted cameras of the run's COLMAP model (sparse/) when there is one, else the dataset's
-    measured poses."""
+    measured poses: intrinsics, frame names and cam_from_world poses."""
     sparse = run_dir / "sparse"
     if (sparse / "images.txt").is_file():
         from scope3d.io.colmap import read_colmap_text
 
         try:
             model = read_colmap_text(sparse, points=False)  # the cameras only: the points are in points.ply
-            return model.cameras[0], list(model.poses)
+            camera = model.cameras[0]
+            # COLMAP's files have no circular field of view: the dataset's camera holds it
+            if dataset is not None and (dataset.camera.width, dataset.camera.height) == (camera.width, camera.height):
+                camera = replace(camera, mask_radius_px=dataset.camera.mask_radius_px)
+            return camera, list(model.image_names), list(model.poses)
         except InputError as exc:
             notes.append(f"sparse model not read: {exc}")
     if dataset is not None:
-        return dataset.camera, [m.pose for m in dataset.poses]
-    return None, []
+        return dataset.camera, dataset.names, [m.pose for m in dataset.poses]
+    return None, [], []
 
 
 def encode(array: np.ndarray, dtype) -> str:
@@ -325,4 +389,27 @@ def scene_payload(scene: ViewScene) -> dict:
                      "size_mm": float(t.get("size_mm", 1.0))} for t in scene.targets if "centroid_mm" in t],
         "true_targets": [{"name": t.get("name"), "centre": (np.asarray(t["true_centre_mm"], float) - centre).tolist(),
                           "size_mm": float(t.get("true_size_mm", 1.0))} for t in scene.true_targets],
+        "explorer": explorer_payload(scene, centre),
     }
+
+
+def explorer_payload(scene: ViewScene, centre: np.ndarray) -> dict | None:
+    """What the explorer projects a clicked spot with: the intrinsics (pinhole + k1, k2 and the circular
+    field) and, per frame, R and t of cam_from_world taken to the page's centred coordinates
+    (x_cam = R (p + centre) + t = R p + t'), with its picture as a data URI. None without cameras."""
+    camera = scene.camera
+    if camera is None or not scene.frames:
+        return None
+    frames = []
+    for frame in scene.frames:
+        rotation = frame.pose.rotation
+        frames.append({
+            "name": frame.name, "R": rotation.ravel().tolist(),
+            "t": (rotation @ centre + frame.pose.translation).tolist(),
+            "picture": None if frame.thumbnail is None else
+            "data:image/jpeg;base64," + base64.b64encode(frame.thumbnail).decode(),
+        })
+    return {"camera": {"width": camera.width, "height": camera.height, "fx": camera.fx, "fy": camera.fy,
+                       "cx": camera.cx, "cy": camera.cy, "k1": camera.k1, "k2": camera.k2,
+                       "mask_radius_px": camera.mask_radius_px},
+            "frames": frames, "inside": scene.inside, "centre_mm": centre.tolist()}

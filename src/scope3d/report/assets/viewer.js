@@ -1,7 +1,10 @@
 // scope3d report viewer: a small WebGL 1 viewer of our own (no library, no network).
 // Reads the JSON in <script id="scene-data">: layers (positions float32, faces uint32, colours RGB bytes
 // per colouring, all base64), camera frusta (line segments), trajectory, fluorescent targets, up axis.
-// Mouse: drag = orbit, shift-drag or right-drag = pan, wheel = zoom. State for tests: body[data-viewer].
+// Mouse: drag = orbit, shift-drag or right-drag = pan, wheel = zoom, click = the explorer: the frames that
+// saw the clicked spot (projected with each frame's pose and intrinsics, inside the image and facing the
+// camera), listed beside the view with the spot circled on their pictures. A closed cavity (the organ
+// panorama) is seen from inside, like a virtual globe. State for tests: body[data-viewer], body[data-picked].
 (function () {
   "use strict";
 
@@ -42,7 +45,7 @@
     var x = m[0] * p[0] + m[4] * p[1] + m[8] * p[2] + m[12];
     var y = m[1] * p[0] + m[5] * p[1] + m[9] * p[2] + m[13];
     var w = m[3] * p[0] + m[7] * p[1] + m[11] * p[2] + m[15];
-    return w > 0 ? [x / w, y / w] : null;
+    return w > 0 ? [x / w, y / w, w] : null;
   }
 
   var VERTEX = [
@@ -112,14 +115,16 @@
     var layers = data.layers.map(function (layer) {
       var pos = decode(layer.positions, Float32Array);
       var faces = decode(layer.faces, Uint32Array);
-      var out = {name: layer.name, count: layer.count, position: buffer(pos), colours: {}, visible: true};
+      var out = {name: layer.name, count: layer.count, position: buffer(pos), colours: {}, visible: true,
+                 positions: pos, normals: null, faces: faces};
       Object.keys(layer.colours).forEach(function (mode) {
         var bytes = decode(layer.colours[mode], Uint8Array), rgb = new Float32Array(bytes.length);
         for (var i = 0; i < bytes.length; i++) rgb[i] = bytes[i] / 255;
         out.colours[mode] = buffer(rgb);
       });
       if (faces && (uintIndices || layer.count < 65536)) {
-        out.normal = buffer(vertexNormals(pos, faces));
+        out.normals = vertexNormals(pos, faces);
+        out.normal = buffer(out.normals);
         out.index = buffer(uintIndices ? faces : new Uint16Array(faces), gl.ELEMENT_ARRAY_BUFFER);
         out.indexType = uintIndices ? gl.UNSIGNED_INT : gl.UNSIGNED_SHORT;
         out.nIndices = faces.length;
@@ -165,15 +170,18 @@
     });
     var truthCrosses = cross3.length ? lineSet(new Float32Array(cross3), [0.1, 0.85, 0.3]) : null;
 
+    var insideBox = document.getElementById("inside-view");
     var state = {yaw: 0.6, pitch: 0.7, distance: 2.6 * data.radius_mm, target: [0, 0, 0],
                  mode: (document.querySelector("input[name=colouring]:checked") || {value: "height"}).value,
-                 frusta: true, targets: true};
+                 frusta: true, targets: true, inside: !!(insideBox && insideBox.checked), fov: 60, picked: null};
     var mvp = null, eyeDir = [0, 0, 1], pending = false;
 
+    function direction() {
+      return add(add(scale(up, Math.sin(state.pitch)), scale(side, Math.cos(state.pitch) * Math.cos(state.yaw))),
+                 scale(side2, Math.cos(state.pitch) * Math.sin(state.yaw)));
+    }
     function eye() {
-      var dir = add(add(scale(up, Math.sin(state.pitch)), scale(side, Math.cos(state.pitch) * Math.cos(state.yaw))),
-                    scale(side2, Math.cos(state.pitch) * Math.sin(state.yaw)));
-      return add(state.target, scale(dir, state.distance));
+      return state.inside ? state.target : add(state.target, scale(direction(), state.distance));
     }
     function drawLines(set) {
       if (!set) return;
@@ -194,10 +202,16 @@
       gl.clear(gl.COLOR_BUFFER_BIT | gl.DEPTH_BUFFER_BIT);
       gl.enable(gl.DEPTH_TEST);
       var e = eye();
-      eyeDir = norm(sub(e, state.target));
-      var far = state.distance + 4 * data.radius_mm;
-      mvp = multiply(perspective(45 * Math.PI / 180, w / h, Math.max(far * 1e-4, state.distance * 0.01), far),
-                     lookAt(e, state.target, up));
+      if (state.inside) {  // at the cavity's centre, looking out along -direction (drag turns the view)
+        eyeDir = direction();
+        mvp = multiply(perspective(state.fov * Math.PI / 180, w / h, 0.01 * data.radius_mm, 4 * data.radius_mm),
+                       lookAt(e, sub(e, eyeDir), up));
+      } else {
+        eyeDir = norm(sub(e, state.target));
+        var far = state.distance + 4 * data.radius_mm;
+        mvp = multiply(perspective(45 * Math.PI / 180, w / h, Math.max(far * 1e-4, state.distance * 0.01), far),
+                       lookAt(e, state.target, up));
+      }
       gl.uniformMatrix4fv(loc.mvp, false, new Float32Array(mvp));
       gl.uniform3fv(loc.eyeDir, new Float32Array(eyeDir));
       gl.uniform1f(loc.pointSize, 3 * ratio);
@@ -236,6 +250,13 @@
     function drawLabels(w, h, ratio) {
       var ctx = overlay.getContext("2d");
       ctx.clearRect(0, 0, w, h);
+      if (state.picked) {
+        var q = project(mvp, state.picked);
+        if (q) {
+          ctx.strokeStyle = "#ff1ae6"; ctx.lineWidth = 2 * ratio;
+          ctx.beginPath(); ctx.arc((q[0] + 1) / 2 * w, (1 - q[1]) / 2 * h, 7 * ratio, 0, 2 * Math.PI); ctx.stroke();
+        }
+      }
       if (!state.targets) return;
       ctx.font = (12 * ratio) + "px sans-serif";
       ctx.fillStyle = "#ff5cf0";
@@ -246,12 +267,146 @@
     }
     function redraw() { if (!pending) { pending = true; window.requestAnimationFrame(draw); } }
 
+    // --- the explorer: which frames saw a clicked spot ---
+    var explorer = data.explorer;
+    var cameraCentroid = [0, 0, 0];
+    if (explorer) {
+      explorer.frames.forEach(function (f) {
+        var R = f.R, t = f.t;  // centre = -R^T t
+        var c = [-(R[0] * t[0] + R[3] * t[1] + R[6] * t[2]), -(R[1] * t[0] + R[4] * t[1] + R[7] * t[2]),
+                 -(R[2] * t[0] + R[5] * t[1] + R[8] * t[2])];
+        f.centre = c;
+        cameraCentroid = add(cameraCentroid, scale(c, 1 / explorer.frames.length));
+      });
+    }
+    // From inside, start looking where the scope looked most: along the cameras' mean optical axis
+    var lookYaw = 0.6, lookPitch = 0.7;
+    if (explorer && insideBox) {
+      var axis = [0, 0, 0];
+      explorer.frames.forEach(function (f) { axis = add(axis, [f.R[6], f.R[7], f.R[8]]); });
+      var back = scale(norm(axis), -1);  // direction() points against the line of sight
+      lookPitch = Math.asin(Math.max(-1, Math.min(1, dot(back, up))));
+      lookYaw = Math.atan2(dot(back, side2), dot(back, side));
+      state.yaw = lookYaw; state.pitch = lookPitch;
+    }
+    // The vertex drawn nearest the eye within a few pixels of the click, with its normal (meshes only).
+    function pick(px, py) {
+      var rect = canvas.getBoundingClientRect(), best = null, reach = 8;
+      layers.forEach(function (layer) {
+        if (!layer.visible) return;
+        var pos = layer.positions;
+        for (var i = 0; i < pos.length; i += 3) {
+          var q = project(mvp, [pos[i], pos[i + 1], pos[i + 2]]);
+          if (!q || Math.abs(q[0]) > 1 || Math.abs(q[1]) > 1) continue;
+          var dx = (q[0] + 1) / 2 * rect.width - px, dy = (1 - q[1]) / 2 * rect.height - py;
+          if (dx * dx + dy * dy > reach * reach || (best && q[2] >= best.depth)) continue;
+          best = {depth: q[2], point: [pos[i], pos[i + 1], pos[i + 2]],
+                  normal: layer.normals ? [layer.normals[i], layer.normals[i + 1], layer.normals[i + 2]] : null};
+        }
+      });
+      return best;
+    }
+    // Whether a drawn mesh crosses the segment from a camera's centre to the spot before the spot
+    // (Moller-Trumbore on every triangle; a hit within 1e-3 of the distance is the spot's own surface).
+    function occluded(from, p) {
+      var dir = sub(p, from), distance = Math.sqrt(dot(dir, dir)), limit = 1 - 1e-3;
+      dir = scale(dir, 1 / distance);
+      return layers.some(function (layer) {
+        if (!layer.visible || !layer.faces) return false;
+        var v = layer.positions, f = layer.faces;
+        for (var k = 0; k < f.length; k += 3) {
+          var a = f[k] * 3, b = f[k + 1] * 3, c = f[k + 2] * 3;
+          var e1 = [v[b] - v[a], v[b + 1] - v[a + 1], v[b + 2] - v[a + 2]];
+          var e2 = [v[c] - v[a], v[c + 1] - v[a + 1], v[c + 2] - v[a + 2]];
+          var h = cross(dir, e2), det = dot(e1, h);
+          if (Math.abs(det) < 1e-12) continue;
+          var s0 = [from[0] - v[a], from[1] - v[a + 1], from[2] - v[a + 2]];
+          var u = dot(s0, h) / det;
+          if (u < 0 || u > 1) continue;
+          var q = cross(s0, e1), w = dot(dir, q) / det;
+          if (w < 0 || u + w > 1) continue;
+          var t = dot(e2, q) / det;
+          if (t > 0 && t < limit * distance) return true;
+        }
+        return false;
+      });
+    }
+    // Frames whose image holds the spot (pinhole with k1, k2, circular field), whose centre lies on the
+    // side of the surface the normal points to (the normal turned towards the cameras' centroid) and
+    // whose view of it no drawn mesh blocks.
+    function framesSeeing(p, normal) {
+      var c = explorer.camera, seen = [];
+      if (normal && dot(normal, sub(cameraCentroid, p)) < 0) normal = scale(normal, -1);
+      explorer.frames.forEach(function (f, index) {
+        var R = f.R, t = f.t;
+        var x = R[0] * p[0] + R[1] * p[1] + R[2] * p[2] + t[0];
+        var y = R[3] * p[0] + R[4] * p[1] + R[5] * p[2] + t[1];
+        var z = R[6] * p[0] + R[7] * p[1] + R[8] * p[2] + t[2];
+        if (!(z > 0)) return;
+        var a = x / z, b = y / z, r2 = a * a + b * b, d = 1 + c.k1 * r2 + c.k2 * r2 * r2;
+        var u = c.fx * a * d + c.cx, v = c.fy * b * d + c.cy;
+        if (u < -0.5 || v < -0.5 || u > c.width - 0.5 || v > c.height - 0.5) return;
+        if (c.mask_radius_px !== null) {
+          var du = u - (c.width - 1) / 2, dv = v - (c.height - 1) / 2;
+          if (du * du + dv * dv > c.mask_radius_px * c.mask_radius_px) return;
+        }
+        if (normal && dot(normal, sub(f.centre, p)) <= 0) return;
+        if (occluded(f.centre, p)) return;
+        seen.push({index: index, name: f.name, u: u, v: v});
+      });
+      return seen;
+    }
+    function explore(px, py) {
+      var hit = pick(px, py);
+      var panel = document.getElementById("explorer-frames");
+      state.picked = hit ? hit.point : null;
+      if (!hit) {
+        panel.textContent = "No surface under the click.";
+        document.body.setAttribute("data-picked", JSON.stringify(null));
+        redraw();
+        return;
+      }
+      var seen = framesSeeing(hit.point, hit.normal);
+      var world = add(hit.point, explorer.centre_mm), c = explorer.camera;
+      panel.textContent = "";
+      var head = document.createElement("p");
+      head.textContent = "Spot (" + world.map(function (v) { return v.toFixed(2); }).join(", ") + ") mm, seen by " +
+        seen.length + " frame" + (seen.length === 1 ? "" : "s") + ":";
+      panel.appendChild(head);
+      seen.forEach(function (s) {
+        var figure = document.createElement("figure"), caption = document.createElement("figcaption");
+        var picture = explorer.frames[s.index].picture;
+        if (picture) {
+          var holder = document.createElement("div"), img = document.createElement("img"), spot = document.createElement("span");
+          holder.style.position = "relative"; holder.style.display = "inline-block";
+          img.src = picture; img.alt = s.name;
+          spot.className = "spot";
+          spot.style.left = (100 * (s.u + 0.5) / c.width) + "%"; spot.style.top = (100 * (s.v + 0.5) / c.height) + "%";
+          holder.appendChild(img); holder.appendChild(spot); figure.appendChild(holder);
+        }
+        caption.textContent = s.name + " (" + s.u.toFixed(0) + ", " + s.v.toFixed(0) + ") px";
+        figure.appendChild(caption);
+        panel.appendChild(figure);
+      });
+      document.body.setAttribute("data-picked", JSON.stringify({
+        point_mm: world, frames: seen.map(function (s) { return s.name; }),
+        pixels: seen.map(function (s) { return [s.u, s.v]; })}));
+      redraw();
+    }
+
     var drag = null;
     canvas.addEventListener("contextmenu", function (ev) { ev.preventDefault(); });
     canvas.addEventListener("mousedown", function (ev) {
-      drag = {x: ev.clientX, y: ev.clientY, pan: ev.shiftKey || ev.button === 2};
+      drag = {x: ev.clientX, y: ev.clientY, pan: ev.shiftKey || ev.button === 2, x0: ev.clientX, y0: ev.clientY};
     });
-    window.addEventListener("mouseup", function () { drag = null; });
+    window.addEventListener("mouseup", function (ev) {
+      // a click (not a drag) on the view explores the spot under it
+      if (drag && explorer && !drag.pan && Math.abs(ev.clientX - drag.x0) + Math.abs(ev.clientY - drag.y0) < 4) {
+        var rect = canvas.getBoundingClientRect();
+        explore(ev.clientX - rect.left, ev.clientY - rect.top);
+      }
+      drag = null;
+    });
     window.addEventListener("mousemove", function (ev) {
       if (!drag) return;
       var dx = ev.clientX - drag.x, dy = ev.clientY - drag.y;
@@ -261,14 +416,16 @@
         var k = state.distance / canvas.clientHeight;
         state.target = add(state.target, add(scale(right, -dx * k), scale(upScreen, dy * k)));
       } else {
-        state.yaw -= dx * 0.01;
-        state.pitch = Math.max(-1.55, Math.min(1.55, state.pitch + dy * 0.01));
+        var turn = state.inside ? -0.005 * state.fov / 60 : 0.01;  // from inside the view turns with the drag
+        state.yaw -= dx * turn;
+        state.pitch = Math.max(-1.55, Math.min(1.55, state.pitch + dy * turn));
       }
       redraw();
     });
     canvas.addEventListener("wheel", function (ev) {
       ev.preventDefault();
-      state.distance *= Math.exp(ev.deltaY * 0.001);
+      if (state.inside) state.fov = Math.max(10, Math.min(110, state.fov * Math.exp(ev.deltaY * 0.001)));
+      else state.distance *= Math.exp(ev.deltaY * 0.001);
       redraw();
     }, {passive: false});
     document.querySelectorAll("input[name=colouring]").forEach(function (input) {
@@ -282,7 +439,23 @@
     document.getElementById("show-frusta").addEventListener("change", function (ev) { state.frusta = ev.target.checked; redraw(); });
     document.getElementById("show-targets").addEventListener("change", function (ev) { state.targets = ev.target.checked; redraw(); });
     document.getElementById("reset-view").addEventListener("click", function () {
-      state.yaw = 0.6; state.pitch = 0.7; state.distance = 2.6 * data.radius_mm; state.target = [0, 0, 0]; redraw();
+      state.yaw = state.inside ? lookYaw : 0.6; state.pitch = state.inside ? lookPitch : 0.7;
+      state.distance = 2.6 * data.radius_mm; state.target = [0, 0, 0]; state.fov = 60; redraw();
+    });
+    if (insideBox) insideBox.addEventListener("change", function () { state.inside = insideBox.checked; redraw(); });
+    // slowly alternate the reflectance texture and the texture with fluorescence (reference sec. 4.5)
+    var alternateBox = document.getElementById("alternate-modes"), alternateTimer = null;
+    function setMode(mode) {
+      state.mode = mode;
+      var radio = document.querySelector("input[name=colouring][value=" + mode + "]");
+      if (radio) radio.checked = true;
+      showScale(); redraw();
+    }
+    if (alternateBox) alternateBox.addEventListener("change", function () {
+      if (alternateTimer) { window.clearInterval(alternateTimer); alternateTimer = null; }
+      if (alternateBox.checked) alternateTimer = window.setInterval(function () {
+        setMode(state.mode === "texture" ? "multimodal" : "texture");
+      }, 1500);
     });
     function showScale() {
       document.querySelectorAll(".colour-scale").forEach(function (el) {
