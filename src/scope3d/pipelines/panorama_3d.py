@@ -138,6 +138,7 @@ def run(options: PanoramaOptions, dataset: Dataset, out_dir: str | Path, *, prog
         evaluation.pop("scale_error_fraction", None)
     tr = cavity.tracks
     report = {
+        "job": "panorama", "dataset": str(dataset.root),  # the report page reads the frames and truth from it
         "n_frames": n,
         "n_registered": int(cavity.registered.sum()),
         "n_points": int(tr.n_tracks),

@@ -188,6 +188,8 @@ def _timings_section(report: dict) -> str:
 def _view_section(scene: ViewScene) -> str:
     available = {mode for layer in scene.layers for mode in layer.colours}
     first = next((mode for mode, _ in COLOURINGS if mode in available), "height")
+    if scene.inside and "texture" in available:  # a cavity seen from inside reads best as the scope saw it
+        first = "texture"
     radios = "".join(
         f'<label><input type="radio" name="colouring" value="{mode}"{" checked" if mode == first else ""}'
         f'{"" if mode in available else " disabled"}> {_e(label)}</label>'
