@@ -46,7 +46,8 @@ from scipy.sparse.linalg import spsolve
 from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
 
 from scope3d.errors import InputError
-from scope3d.estimators.averaging import (RelativePose, _huber_weights, _robust_sigma, average_rotations, refine_relative_pose,
+from scope3d.estimators.averaging import (RelativePose, _huber_weights, _robust_sigma, average_rotations,
+                                          poses_from, positions_from_points, refine_relative_pose,
                                           relative_pose)
 from scope3d.estimators.bundle import BundleResult, SolverOptions, solve
 from scope3d.estimators.triangulation import TrackOptions, ray_angles_deg, reprojection_errors, triangulate_tracks
@@ -76,11 +77,10 @@ class CavityOptions:
     planned_min_overlap : float, with planned poses, pairs whose fields overlap by at least this fraction
         (placed on the wall between the shell's radii) are matched too (default 0.25, as
         :class:`scope3d.feature.pairs.PairOptions`).
-    track_unposed_pairs : bool, pairs whose matches pass the fundamental-matrix RANSAC but whose relative
-        pose is refused (most cross-turn pairs) still join the tracks, not the start (default False).
-        Measured on the 36-frame spiral, wall mean / p95 mm, off -> on: 608 px planned 1.78 / 5.0 -> 1.26 /
-        4.0, but 608 px images only 2.06 / 4.8 -> 4.46 / 28.0, 256 px planned 1.93 / 8.2 -> 2.08 / 9.8,
-        256 px images only 1.76 / 4.4 -> 2.60 / 13.2: their wrong matches survive a start degrees off.
+    start_min_overlap : float, image-only: once the start places the frames, every pair whose fields overlap
+        by at least this fraction there (the wall at the start's median depth) is matched too, for the
+        tracks (default 0.05: on the 36-frame spiral at 608 px, 102 pairs holding 86 of the 88 pairs that
+        pass geometric verification when all 630 are matched; 0.1 holds 77, 0.25 only 39).
     partners_per_frame : int, each frame's most similar frames matched (default 4: on a spiral the two
         neighbours along the path and one or two across the turns).
     max_depth_spread : float, a pair whose best relative pose still spreads its points' distances by more
@@ -108,7 +108,7 @@ class CavityOptions:
 
     sequence_neighbours: int = 2
     planned_min_overlap: float = 0.25
-    track_unposed_pairs: bool = False
+    start_min_overlap: float = 0.05
     partners_per_frame: int = 4
     max_depth_spread: float = 0.15
     nominal_radius_mm: float = 40.0
@@ -127,8 +127,8 @@ class CavityOptions:
     def __post_init__(self) -> None:
         if not 0 < self.min_radius_mm <= self.nominal_radius_mm <= self.max_radius_mm:
             raise ValueError("need 0 < min_radius_mm <= nominal_radius_mm <= max_radius_mm")
-        if self.sequence_neighbours < 0 or not 0 < self.planned_min_overlap <= 1:
-            raise ValueError("need sequence_neighbours >= 0 and 0 < planned_min_overlap <= 1")
+        if self.sequence_neighbours < 0 or not 0 < self.planned_min_overlap <= 1 or not 0 < self.start_min_overlap <= 1:
+            raise ValueError("need sequence_neighbours >= 0, 0 < planned_min_overlap <= 1, 0 < start_min_overlap <= 1")
         if self.partners_per_frame < 1 or self.max_depth_spread <= 0 or self.loss_scale_px <= 0:
             raise ValueError("need partners_per_frame >= 1, max_depth_spread > 0, loss_scale_px > 0")
         if self.max_iterations < 1 or self.max_points < 10 or self.noise_px <= 0 or self.min_observations < 1:
@@ -235,7 +235,7 @@ def cavity_relative_pose(camera: Camera, pixels_i: np.ndarray, pixels_j: np.ndar
 
 def pair_poses(camera: Camera, features: list[Features], options: CavityOptions = CavityOptions(),
                match_options: MatchOptions = MatchOptions(), measured: list[MeasuredPose] | None = None, *,
-               progress=None) -> tuple[list[PairMatches], list[RelativePose], list[PairMatches], int]:
+               progress=None) -> tuple[list[PairMatches], list[RelativePose], list[PairMatches], set]:
     """Each frame's ``sequence_neighbours`` successors and ``partners_per_frame`` most similar frames
     matched exhaustively and verified by :func:`cavity_relative_pose`. With planned poses (finite
     tolerances, :func:`knows_poses`) also every pair whose fields overlap by at least
@@ -244,9 +244,9 @@ def pair_poses(camera: Camera, features: list[Features], options: CavityOptions 
     inliers with the planned one among the starts (:func:`relative_pose`'s prior): the plan already
     says where the frames are, so the wall's shape need not (on an unseen cavity the depth-spread test
     refused the consecutive pairs that joined frames 7-16 to the rest).
-    Returns (matches (inliers only), relative poses, the refused pairs' matches when
-    ``track_unposed_pairs`` (else []), pairs tried). progress : tqdm-like or None,
-    advanced once per pair."""
+    Returns (matches (inliers only), relative poses, the matches (fundamental-matrix inliers) of the pairs
+    whose relative pose was refused, for :func:`verified_matches`; the pairs tried, a set of (i, j) with
+    i < j). progress : tqdm-like or None, advanced once per pair."""
     n = len(features)
     similarity = image_similarity(features, options.retrieval)
     np.fill_diagonal(similarity, 0.0)
@@ -285,8 +285,66 @@ def pair_poses(camera: Camera, features: list[Features], options: CavityOptions 
     with ThreadPoolExecutor(max_workers=options.threads) as pool:
         found = [r for r in pool.map(verify, sorted(chosen)) if r is not None]
     posed = [(m, r) for m, r in found if r is not None]
-    linked = [m for m, r in found if r is None] if options.track_unposed_pairs else []
-    return [m for m, _ in posed], [r for _, r in posed], linked, len(chosen)
+    refused = [m for m, r in found if r is None]
+    return [m for m, _ in posed], [r for _, r in posed], refused, chosen
+
+
+def verified_matches(camera: Camera, features: list[Features], matches: list[PairMatches], poses: list[Pose],
+                     match_options: MatchOptions = MatchOptions(), noise_px: float = 0.5,
+                     threads: int = 2) -> tuple[list[PairMatches], list[RelativePose]]:
+    """Geometric verification for the tracks, apart from the shape test the start needs: each pair's
+    matches reduced to the inliers of its relative pose (:func:`scope3d.estimators.averaging.relative_pose`:
+    the essential matrix by five-point RANSAC on the calibrated rays and the relative pose of ``poses``
+    (a map already adjusted), each refined, the one with most inliers kept); pairs left with fewer than
+    ``match_options.min_matches`` are dropped. Returns (matches, their relative poses).
+
+    Why the essential matrix and not the fundamental one the matcher fits: on the 36-frame spiral (608 px,
+    all 630 pairs matched) 117 pairs passed the fundamental-matrix RANSAC at 1.5 px, with 10.5 % wrong
+    matches in the pairs more than two frames apart (three pairs of 15 matches were wholly wrong: seven
+    degrees of freedom fit 15 random matches); the essential matrix (five) kept 88 pairs, and the tracks
+    built from them had 1.0 % wrong observations (5.0 % from the fundamental matrix's)."""
+    def verify(m: PairMatches):
+        R_ji = poses[m.j].rotation @ poses[m.i].rotation.T
+        rel = relative_pose(camera, features[m.i].keypoints[m.idx_i], features[m.j].keypoints[m.idx_j],
+                            threshold_px=match_options.ransac_threshold_px, noise_px=noise_px,
+                            prior=(R_ji, poses[m.j].translation - R_ji @ poses[m.i].translation), i=m.i, j=m.j)
+        if rel is None or rel.n_inliers < max(match_options.min_matches, 8):
+            return None
+        return PairMatches(m.i, m.j, m.idx_i[rel.inliers], m.idx_j[rel.inliers], m.n_putative, m.n_candidates,
+                           m.time_s, m.method), rel
+
+    with ThreadPoolExecutor(max_workers=threads) as pool:
+        found = [v for v in pool.map(verify, matches) if v is not None]
+    return [m for m, _ in found], [r for _, r in found]
+
+
+def overlapping_pairs(camera: Camera, features: list[Features], poses: list[Pose], tracks: Tracks,
+                      tried: set, options: CavityOptions = CavityOptions(),
+                      match_options: MatchOptions = MatchOptions(), *, progress=None) -> list[PairMatches]:
+    """The pairs the start says overlap and that were not matched yet, matched exhaustively (fundamental
+    matrix inliers; :func:`verified_matches` verifies them). The fields are placed on the wall at the
+    median depth of the start's points (tracks triangulated with ``poses``, provisional units);
+    pairs overlapping by at least ``options.start_min_overlap`` are kept (:func:`frame_overlap`).
+
+    Retrieval and capture order find the neighbours along the spiral; this finds the two-apart and
+    cross-turn pairs that tie the chain (tracks of three or more views fix the ratios between baselines)."""
+    points = triangulate_tracks(camera, poses, tracks, options.tracks)
+    if points.n_tracks == 0:
+        return []
+    z = np.concatenate([(points.points[points.track[points.frame == k]] @ p.rotation.T + p.translation)[:, 2]
+                        for k, p in enumerate(poses)])
+    depth = float(np.median(z[z > 0])) if np.any(z > 0) else 1.0
+    overlap = frame_overlap(camera, poses, DepthPrior(depth, depth))
+    ii, jj = np.nonzero(np.triu(overlap >= options.start_min_overlap, 1))
+    todo = sorted(set(zip(ii.tolist(), jj.tolist())) - tried)
+
+    def match(pair):
+        m = match_exhaustive(camera, features[pair[0]], features[pair[1]], match_options, i=pair[0], j=pair[1])
+        advance(progress)
+        return m
+
+    with ThreadPoolExecutor(max_workers=options.threads) as pool:
+        return [m for m in pool.map(match, todo) if len(m) >= max(match_options.min_matches, 8)]
 
 
 # --- 2., 3. start poses ---------------------------------------------------------------------------
@@ -502,28 +560,58 @@ def map_cavity(camera: Camera, features: list[Features], measured: list[Measured
         raise InputError(f"{where}: need at least 2 frames, found {n}")
     times = {}
     t0 = time.perf_counter()
-    matches, relative, linked, n_tried = pair_poses(camera, features, options, match_options, measured, progress=progress)
+    matches, relative, refused, tried = pair_poses(camera, features, options, match_options, measured, progress=progress)
     times["pairs_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    tracks = build_tracks(features, matches + linked)
     planned = knows_poses(measured)
+    n_tried = len(tried)
     if planned:  # the plan places every frame: one that shares no matches is left unregistered, not refused
         if not matches:
             raise InputError(f"{where}: no two frames overlap (no pair of frames verified by their matches)")
-        poses = [m.pose for m in measured]
+        tracks, poses, stages = adjust_cavity(camera, build_tracks(features, matches), [m.pose for m in measured],
+                                              options, measured)
+        times["adjust_s"] = time.perf_counter() - t0
     else:
         rotations = start_rotations(n, relative, where=where)
         centres = start_centres(camera, rotations, relative, matches, features, where=where)
-        poses = [Pose.from_centre(R, c) for R, c in zip(rotations, centres)]
-        # provisional scale: the points' sphere gets the nominal radius
-        points = triangulate_tracks(camera, poses, tracks, options.tracks).points
-        if len(points) >= 4:
-            factor = options.nominal_radius_mm / fit_sphere(points)[1]
-            poses = [Pose.from_centre(p.rotation, factor * p.centre) for p in poses]
-    times["start_s"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    tracks, poses, stages = adjust_cavity(camera, tracks, poses, options, measured if planned else None)
-    times["adjust_s"] = time.perf_counter() - t0
+        chain = build_tracks(features, matches)
+        start = _provisional_scale(camera, poses_from(rotations, centres), chain, options)
+        # the tracks of every geometrically verified pair: those the start says overlap (two-apart,
+        # cross-turn) matched too (module docstring, step 4)
+        more = overlapping_pairs(camera, features, start, chain, tried, options, match_options, progress=progress)
+        n_tried += len(more)
+        more, _ = verified_matches(camera, features, refused + more, start, match_options, options.noise_px,
+                                   options.threads)
+        every = build_tracks(features, matches + more)
+        # the centres from the tracks' rays with the rotations held (the known-rotation problem): tracks of
+        # three or more views fix the ratios between baselines that the pairs' depths only guess
+        loose = [MeasuredPose(p, PoseTolerance.unknown()) for p in start]
+        centres, _ = positions_from_points(camera, loose, rotations, np.stack([p.centre for p in start]), every,
+                                           noise_px=options.noise_px)
+        times["start_s"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        tracks, poses, stages = adjust_cavity(camera, every, poses_from(rotations, centres), options)
+        # the chain of posed pairs alone, adjusted from the depth-scaled start, is the fallback: a start
+        # degrees off (2.6 deg at 256 px) can let the cross-turn tracks pull a block of frames into another
+        # minimum. The map that explains more of the verified matches within the reprojection gate wins
+        chain_tracks, chain_poses, chain_stages = adjust_cavity(camera, chain, start, options)
+        explained = [triangulate_tracks(camera, p, every, options.tracks).n_observations for p in (poses, chain_poses)]
+        if explained[1] > explained[0]:
+            tracks, poses, stages = chain_tracks, chain_poses, chain_stages
+        else:
+            matches = matches + more
+        stages = [{**st, "explained_observations": explained} for st in stages]
+        times["adjust_s"] = time.perf_counter() - t0
     centre, radius = fit_sphere(tracks.points)
     registered = np.bincount(tracks.frame, minlength=n) >= options.min_observations
     return CavityMap(tracks, poses, centre, radius, registered, matches, relative, n_tried, stages, planned, times)
+
+
+def _provisional_scale(camera: Camera, poses: list[Pose], tracks: Tracks, options: CavityOptions) -> list[Pose]:
+    """The poses rescaled so that the sphere fitted to the tracks' points has the nominal radius (the
+    provisional scale until the stars set it); unchanged with fewer than four points."""
+    points = triangulate_tracks(camera, poses, tracks, options.tracks).points
+    if len(points) < 4:
+        return poses
+    factor = options.nominal_radius_mm / fit_sphere(points)[1]
+    return [Pose.from_centre(p.rotation, factor * p.centre) for p in poses]
