@@ -18,18 +18,25 @@ distance, the ambiguous one bends it (:func:`cavity_relative_pose`). The steps, 
    about one distance from a scope inside it), all pairs solved together by robust least squares. The
    gauge: the first camera, rescaled so that the sphere fitted to the points has the nominal radius (the
    provisional scale until the stars set it).
-4. :func:`adjust_cavity` — points triangulated with the start; optionally an adjustment with every point
+4. Tracks from every geometrically verified pair: the pairs the start says overlap are matched too
+   (:func:`overlapping_pairs`) and every pair whose relative pose the shape test refused is kept if its
+   essential matrix has enough inliers (:func:`verified_matches`); geometric verification (which matches
+   are right) is apart from the relative pose (which the start needs). The centres are solved again from
+   the tracks' rays with the rotations held (:func:`scope3d.estimators.averaging.positions_from_points`).
+5. :func:`adjust_cavity` — points triangulated with the start; optionally an adjustment with every point
    bounded to the spherical shell between an anatomical minimum and maximum radius
    (:meth:`BundleProblem.bound_points_to_shell`); bundle adjustment, observations farther than the
-   reprojection gate dropped and the adjustment repeated; points outside the shell dropped. Planned poses
-   (finite tolerance) start the poses and bound them (BCBA) instead of steps 2-3.
+   reprojection gate dropped and the adjustment repeated; points outside the shell dropped. The chain of
+   posed pairs alone, adjusted from the depth-scaled start, is the fallback; the map that explains more
+   verified matches within the gate is kept. Planned poses (finite tolerance) start the poses and bound
+   them (BCBA) instead of steps 2-4, and the pairs the plan says overlap are matched.
 
-What limits the image-only map (measured on the 36-frame spiral, 256 px): the frames overlap only their
-neighbours (35-65 %), so the pair graph is a chain with a few cross-turn links and tracks average 2.1
-views. A free adjustment of the true matches started from the true poses moves 1.1 deg (2.2 at most)
-and 0.7 mm (wall 0.28 -> 1.0 mm) for a lower cost, and does the same with synthetic observations (the
-true points projected, 0.15 px Gaussian noise): this is the noise on a weakly tied chain, not a defect of
-the solver.
+What limited the image-only map (36-frame spiral): the frames overlap only their neighbours (35-65 %),
+so the pairs that passed the shape test formed a chain with a few cross-turn links and tracks of 2.1
+views, which fix no ratio between baselines (wall 2.06 mm mean at 608 px). With every geometrically
+verified pair in the tracks and the centres from their rays, 0.175 mm at 608 px. At 256 px the start is
+2.6 deg off and the all-pair map falls into another minimum (a block of frames 9 deg off): the chain's map
+(1.76 mm) explains more matches there and is kept.
 
 Units: mm (provisional until :mod:`scope3d.metrology.star_scale` rescales), radians; pixels with their
 origin at the top-left pixel's centre. Poses are ``cam_from_world``.
@@ -74,13 +81,13 @@ class CavityOptions:
         (default 2: key frames of a video overlap their successors; on the 36-frame spiral retrieval
         alone missed pair 16-17, 35 % overlap, the only consecutive link between the spiral's turns,
         and the map fell apart there). 0 for unordered images.
-    planned_min_overlap : float, with planned poses, pairs whose fields overlap by at least this fraction
-        (placed on the wall between the shell's radii) are matched too (default 0.25, as
-        :class:`scope3d.feature.pairs.PairOptions`).
-    start_min_overlap : float, image-only: once the start places the frames, every pair whose fields overlap
-        by at least this fraction there (the wall at the start's median depth) is matched too, for the
-        tracks (default 0.05: on the 36-frame spiral at 608 px, 102 pairs holding 86 of the 88 pairs that
-        pass geometric verification when all 630 are matched; 0.1 holds 77, 0.25 only 39).
+    min_overlap : float, pairs whose fields overlap by at least this fraction, placed by the planned poses
+        (with the wall between the shell's radii) or by the image-only start (the wall at its points'
+        median depth), are matched too (:func:`scope3d.feature.pairs.frame_overlap`; default 0.05). On the
+        36-frame spiral at 608 px, 0.05 finds with the start 102 pairs holding 86 of the 88 pairs that pass
+        geometric verification when all 630 are matched (0.1: 77, 0.25: 39); with the planned poses the
+        wall went from 1.78 (0.25) to 0.19 mm mean at 608 px, 1.93 to 0.91 mm at 256 px, and 3.26 to 3.16
+        mm on the unseen cavity at 224 px.
     partners_per_frame : int, each frame's most similar frames matched (default 4: on a spiral the two
         neighbours along the path and one or two across the turns).
     max_depth_spread : float, a pair whose best relative pose still spreads its points' distances by more
@@ -107,8 +114,7 @@ class CavityOptions:
     """
 
     sequence_neighbours: int = 2
-    planned_min_overlap: float = 0.25
-    start_min_overlap: float = 0.05
+    min_overlap: float = 0.05
     partners_per_frame: int = 4
     max_depth_spread: float = 0.15
     nominal_radius_mm: float = 40.0
@@ -127,8 +133,8 @@ class CavityOptions:
     def __post_init__(self) -> None:
         if not 0 < self.min_radius_mm <= self.nominal_radius_mm <= self.max_radius_mm:
             raise ValueError("need 0 < min_radius_mm <= nominal_radius_mm <= max_radius_mm")
-        if self.sequence_neighbours < 0 or not 0 < self.planned_min_overlap <= 1 or not 0 < self.start_min_overlap <= 1:
-            raise ValueError("need sequence_neighbours >= 0, 0 < planned_min_overlap <= 1, 0 < start_min_overlap <= 1")
+        if self.sequence_neighbours < 0 or not 0 < self.min_overlap <= 1:
+            raise ValueError("need sequence_neighbours >= 0 and 0 < min_overlap <= 1")
         if self.partners_per_frame < 1 or self.max_depth_spread <= 0 or self.loss_scale_px <= 0:
             raise ValueError("need partners_per_frame >= 1, max_depth_spread > 0, loss_scale_px > 0")
         if self.max_iterations < 1 or self.max_points < 10 or self.noise_px <= 0 or self.min_observations < 1:
@@ -239,7 +245,7 @@ def pair_poses(camera: Camera, features: list[Features], options: CavityOptions 
     """Each frame's ``sequence_neighbours`` successors and ``partners_per_frame`` most similar frames
     matched exhaustively and verified by :func:`cavity_relative_pose`. With planned poses (finite
     tolerances, :func:`knows_poses`) also every pair whose fields overlap by at least
-    ``planned_min_overlap`` with the wall between the shell's radii
+    ``min_overlap`` with the wall between the shell's radii
     (:func:`scope3d.feature.pairs.frame_overlap`), each verified by the relative pose that keeps most
     inliers with the planned one among the starts (:func:`relative_pose`'s prior): the plan already
     says where the frames are, so the wall's shape need not (on an unseen cavity the depth-spread test
@@ -259,7 +265,7 @@ def pair_poses(camera: Camera, features: list[Features], options: CavityOptions 
     if planned:
         poses = [m.pose for m in measured]
         overlap = frame_overlap(camera, poses, DepthPrior(options.min_radius_mm, options.max_radius_mm))
-        ii, jj = np.nonzero(np.triu(overlap >= options.planned_min_overlap, 1))
+        ii, jj = np.nonzero(np.triu(overlap >= options.min_overlap, 1))
         chosen.update(zip(ii.tolist(), jj.tolist()))
 
     def verify(pair):
@@ -324,7 +330,7 @@ def overlapping_pairs(camera: Camera, features: list[Features], poses: list[Pose
     """The pairs the start says overlap and that were not matched yet, matched exhaustively (fundamental
     matrix inliers; :func:`verified_matches` verifies them). The fields are placed on the wall at the
     median depth of the start's points (tracks triangulated with ``poses``, provisional units);
-    pairs overlapping by at least ``options.start_min_overlap`` are kept (:func:`frame_overlap`).
+    pairs overlapping by at least ``options.min_overlap`` are kept (:func:`frame_overlap`).
 
     Retrieval and capture order find the neighbours along the spiral; this finds the two-apart and
     cross-turn pairs that tie the chain (tracks of three or more views fix the ratios between baselines)."""
@@ -335,7 +341,7 @@ def overlapping_pairs(camera: Camera, features: list[Features], poses: list[Pose
                         for k, p in enumerate(poses)])
     depth = float(np.median(z[z > 0])) if np.any(z > 0) else 1.0
     overlap = frame_overlap(camera, poses, DepthPrior(depth, depth))
-    ii, jj = np.nonzero(np.triu(overlap >= options.start_min_overlap, 1))
+    ii, jj = np.nonzero(np.triu(overlap >= options.min_overlap, 1))
     todo = sorted(set(zip(ii.tolist(), jj.tolist())) - tried)
 
     def match(pair):
