@@ -2,9 +2,11 @@
 
     features  <- SIFT in every frame's circular field
     map       <- pairs by capture order and retrieval, relative poses chosen by the wall's shape, rotation
-                 averaging, centres from baselines scaled by the wall's distance, bundle adjustment, points
-                 outside the anatomical shell dropped (sfm.cavity_mapping; planned poses with finite
-                 tolerances add the pairs they say overlap, and start and bound the poses)
+                 averaging, centres from baselines scaled by the wall's distance; the pairs this start says
+                 overlap matched too, tracks from every geometrically verified pair, centres from their
+                 rays; bundle adjustment, points outside the anatomical shell dropped (sfm.cavity_mapping;
+                 planned poses with finite tolerances add the pairs they say overlap, and start and bound
+                 the poses)
     scale     <- the 6 mm star targets in the fluorescence frames (metrology.star_scale), unless not asked
     wall      <- a star-shaped cavity mesh: the convex hull of the points' directions from the cavity's centre
     truth     <- where the dataset has it: the wall error after a 7-DoF similarity fitted to the tracks'
