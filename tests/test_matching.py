@@ -7,7 +7,7 @@ import pytest
 from scope3d import phantoms
 from scope3d.feature.depth_prior import DepthPrior, predict_segments, window_radius_px
 from scope3d.feature.detection import detect
-from scope3d.feature.matching import MatchOptions, _ratio_select_grouped, match_exhaustive, match_guided, match_pairs
+from scope3d.feature.matching import MatchOptions, _ratio_select_grouped, _two_nearest, match_exhaustive, match_guided, match_pairs
 from scope3d.feature.pairs import PairOptions, frame_overlap, select_pairs
 from scope3d.geometry.pose import Pose
 from scope3d.metrology.evaluation import true_match_error_px
@@ -161,6 +161,28 @@ def test_ratio_test_among_grouped_candidates():
     ma, mb, _ = _ratio_select_grouped(a, b, d2, 0.8)
     # 0: 1 < 0.64 * 4 passes; 1: alone passes; 2: 1 vs 1.1 fails
     assert ma.tolist() == [0, 1] and mb.tolist() == [5, 7]
+
+
+def test_two_nearest_equals_opencv_brute_force(pair):
+    import cv2
+    # real SIFT descriptors (integers, norm ~512: the matrix-product distances are exact), and random
+    # non-integer ones in blocks of rows across the block size, with duplicated rows for exact ties
+    _, feats = pair
+    rng = np.random.default_rng(0)
+    noisy = rng.random((1500, 128), dtype=np.float32) * 40.0
+    noisy[1100:1110] = noisy[:10]
+    cases = [(feats[0].descriptors, feats[1].descriptors), (noisy[:1300], noisy[200:])]
+    for desc_a, desc_b in cases:
+        knn = cv2.BFMatcher(cv2.NORM_L2).knnMatch(desc_a, desc_b, k=2)
+        nearest, best, second = _two_nearest(desc_a, desc_b)
+        assert nearest.tolist() == [m[0].trainIdx for m in knn]
+        if desc_a is feats[0].descriptors:  # integer arithmetic below 2^24: exact
+            assert np.array_equal(best, [m[0].distance for m in knn])
+            assert np.array_equal(second, [m[1].distance for m in knn])
+        else:  # float32 rounding of |a|^2 + |b|^2 - 2 a.b: ~100 ulps of |a|^2 + |b|^2 (~1e5 here) in the square
+            scale = 1e-5 * (np.einsum("ij,ij->i", desc_a, desc_a) + np.max(np.einsum("ij,ij->i", desc_b, desc_b)))
+            assert np.all(np.abs(best**2 - np.array([m[0].distance for m in knn])**2) <= scale)
+            assert np.all(np.abs(second**2 - np.array([m[1].distance for m in knn])**2) <= scale)
 
 
 def test_bad_inputs(pair):

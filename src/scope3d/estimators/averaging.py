@@ -484,7 +484,7 @@ def _solve_group(P, weight, obs_frame, obs_track, frames, start, n_points) -> np
     a = np.repeat(order, lengths[t_sorted])
     offs = np.arange(len(a)) - np.repeat(np.cumsum(lengths[t_sorted]) - lengths[t_sorted], lengths[t_sorted])
     b = order[np.repeat(starts[t_sorted], lengths[t_sorted]) + offs]
-    blocks = np.einsum("kij,kjl,klm->kim", wP[a], Hinv[t[a]], wP[b])
+    blocks = np.matmul(np.matmul(wP[a], Hinv[t[a]]), wP[b])  # a 3-operand einsum of 3 x 3 blocks: 2x slower
     np.add.at(S, (f[a], slice(None), f[b]), -blocks)
     S = S.reshape(3 * m, 3 * m)
     S = 0.5 * (S + S.T)
