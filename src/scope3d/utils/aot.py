@@ -38,6 +38,7 @@ KERNEL_MODULES = (
     "scope3d.estimators.bundle.kernels",
     "scope3d.estimators.pose_kernels",
     "scope3d.feature.descriptor_kernels",
+    "scope3d.phantoms.raycast_kernels",
 )
 
 _PACKAGE_ROOT = Path(__file__).resolve().parents[1]  # src/scope3d
