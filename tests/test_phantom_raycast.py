@@ -185,6 +185,24 @@ class _NumpyKernels:
         triangle[ray_idx[hit[ray_idx]]] = tri_idx[hit[ray_idx]]
 
 
+class _NumpySensor:
+    """Stands in for the renderer's compiled sensor model: NumPy's whole-frame expressions it replaced."""
+
+    @staticmethod
+    def noisy_uint8(image, valid, normal, shot2, read2, out):
+        noisy = np.clip(image, 0.0, None)
+        noisy *= shot2
+        noisy += read2
+        np.sqrt(noisy, out=noisy)
+        noisy *= normal
+        noisy += image
+        noisy[~valid] = 0.0
+        noisy *= 255.0
+        np.round(noisy, out=noisy)
+        np.clip(noisy, 0, 255, out=noisy)
+        out[:] = noisy.astype(np.uint8)
+
+
 @pytest.mark.parametrize("vertex_normals", [True, False])
 def test_compiled_refinement_is_numpys(mesh, vertex_normals, monkeypatch):
     caster = RayCaster(mesh if vertex_normals else Mesh(mesh.vertices, mesh.faces))
@@ -205,9 +223,9 @@ def test_compiled_refinement_is_numpys(mesh, vertex_normals, monkeypatch):
 
 
 def test_rendered_frame_is_the_numpy_renderers_bit_for_bit(monkeypatch):
-    """The compiled refinement and the column-wise ray rotation change no bit of what the renderer writes
-    (8-bit images, float32 depth, target ids): the NumPy refinement and BLAS products they replaced,
-    monkeypatched back, render the same frame."""
+    """The compiled refinement and sensor model and the column-wise ray rotation change no bit of what the
+    renderer writes (8-bit images with their noise, float32 depth, target ids): the NumPy refinement, noise
+    expressions and BLAS products they replaced, monkeypatched back, render the same frame."""
     from scope3d.phantoms import render
     from scope3d.phantoms.lab import generate
 
@@ -216,6 +234,7 @@ def test_rendered_frame_is_the_numpy_renderers_bit_for_bit(monkeypatch):
     frames = [render.render_frame(scene, seq.camera, pose, frame_index=k) for k, pose in enumerate(seq.true_poses)]
     monkeypatch.setattr(raycast, "_kernels", _NumpyKernels)
     monkeypatch.setattr(render, "_rows_times", lambda a, b: a @ b)
+    monkeypatch.setattr(render, "_kernels", _NumpySensor)
     for k, pose in enumerate(seq.true_poses):
         before = render.render_frame(scene, seq.camera, pose, frame_index=k)
         for name in ("image", "fluorescence", "depth_mm", "target_id"):

@@ -27,6 +27,10 @@ import numpy as np
 from scope3d.geometry.pose import Pose
 from scope3d.phantoms.scenes import Scene
 from scope3d.sensor.camera import Camera
+from scope3d.utils.aot import load_kernels
+
+# compiled at install (scope3d.utils.aot) or, failing that, by numba on first use
+_kernels = load_kernels("scope3d.phantoms.render_kernels")
 
 
 @dataclass(frozen=True)
@@ -249,19 +253,12 @@ def _to_image(values: np.ndarray, valid: np.ndarray, gain: float, noise: tuple[f
     if blur > 0:
         img = cv2.GaussianBlur(img, (0, 0), blur).reshape(h, w, -1)
     read, shot = noise
-    # In place, in float32, in the order of sqrt(read^2 + shot^2 * max(img, 0)) and round(255 * (img + noise)):
-    # the same values as the plain expressions without their full-frame temporaries.
-    noisy = np.clip(img, 0.0, None)
-    noisy *= shot**2
-    noisy += read**2
-    np.sqrt(noisy, out=noisy)
-    noisy *= rng.standard_normal(img.shape, dtype=np.float32)
-    noisy += img
-    noisy[~valid] = 0.0
-    noisy *= 255.0
-    np.round(noisy, out=noisy)
-    np.clip(noisy, 0, 255, out=noisy)
-    return noisy.astype(np.uint8)
+    normal = rng.standard_normal(img.shape, dtype=np.float32)
+    out = np.empty(img.shape, np.uint8)
+    # float32 constants, as NumPy takes a Python float against a float32 array
+    _kernels.noisy_uint8(np.ascontiguousarray(img), np.ascontiguousarray(valid), normal, np.float32(shot**2),
+                         np.float32(read**2), out)
+    return out
 
 
 def render_frame(

@@ -39,6 +39,7 @@ KERNEL_MODULES = (
     "scope3d.estimators.pose_kernels",
     "scope3d.feature.descriptor_kernels",
     "scope3d.phantoms.raycast_kernels",
+    "scope3d.phantoms.render_kernels",
 )
 
 _PACKAGE_ROOT = Path(__file__).resolve().parents[1]  # src/scope3d
