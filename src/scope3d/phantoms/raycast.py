@@ -114,8 +114,10 @@ class RayCaster:
 
     def cast(self, origins: np.ndarray, directions: np.ndarray) -> Hits:
         """origins : (N, 3) mm; directions : (N, 3) unit, world frame -> :class:`Hits`."""
-        origins = np.ascontiguousarray(origins, dtype=float).reshape(-1, 3)
-        directions = np.ascontiguousarray(directions, dtype=float).reshape(-1, 3)
+        # C-contiguous and writable (a read-only array would make numba compile another specialisation of the
+        # kernel on the JIT path; the compiled module takes these exact types)
+        origins = np.require(origins, float, ("C", "W")).reshape(-1, 3)
+        directions = np.require(directions, float, ("C", "W")).reshape(-1, 3)
         n = len(origins)
         distance = np.full(n, np.nan)
         triangle = np.full(n, -1, dtype=np.int64)

@@ -232,7 +232,9 @@ def _radiance(scene: Scene, camera: Camera, pose: Pose, options: RenderOptions) 
     hit = hits.hit
     depth = np.full(len(pixels), np.nan)
     depth[hit] = _rows_times(hits.points[hit] - pose.centre, pose.optical_axis)
-    return _Radiance(valid, hit, reflect, fluor, depth, target)
+    # a writable copy of the cached mask: the compiled sensor model takes writable arrays (a read-only one
+    # would make numba compile another specialisation on the JIT path)
+    return _Radiance(valid.copy(), hit, reflect, fluor, depth, target)
 
 
 def auto_exposure(radiance: np.ndarray, options: RenderOptions) -> float:
