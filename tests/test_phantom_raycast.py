@@ -189,7 +189,12 @@ class _NumpySensor:
     """Stands in for the renderer's compiled sensor model: NumPy's whole-frame expressions it replaced."""
 
     @staticmethod
-    def noisy_uint8(image, valid, normal, shot2, read2, out):
+    def noisy_uint8(values, packed, valid, normal, gain, shot2, read2, out):
+        image = np.zeros(out.shape, np.float32)
+        if packed:
+            image[valid] = values * gain
+        else:
+            image[:] = (values * gain).reshape(out.shape)
         noisy = np.clip(image, 0.0, None)
         noisy *= shot2
         noisy += read2
@@ -231,12 +236,15 @@ def test_rendered_frame_is_the_numpy_renderers_bit_for_bit(monkeypatch):
 
     seq = generate("dome", "approach", target=2, n_frames=2, size=(200, 200))
     scene = build_scene("dome")
-    frames = [render.render_frame(scene, seq.camera, pose, frame_index=k) for k, pose in enumerate(seq.true_poses)]
+    # the second frame with optical blur: the sensor model's other path (the frame blurred before the noise)
+    options = [render.RenderOptions(), render.RenderOptions(blur_sigma_px=1.2)]
+    frames = [render.render_frame(scene, seq.camera, pose, frame_index=k, options=options[k])
+              for k, pose in enumerate(seq.true_poses)]
     monkeypatch.setattr(raycast, "_kernels", _NumpyKernels)
     monkeypatch.setattr(render, "_rows_times", lambda a, b: a @ b)
     monkeypatch.setattr(render, "_kernels", _NumpySensor)
     for k, pose in enumerate(seq.true_poses):
-        before = render.render_frame(scene, seq.camera, pose, frame_index=k)
+        before = render.render_frame(scene, seq.camera, pose, frame_index=k, options=options[k])
         for name in ("image", "fluorescence", "depth_mm", "target_id"):
             np.testing.assert_array_equal(getattr(frames[k], name), getattr(before, name), err_msg=name)
         assert (frames[k].target_id > 0).any()  # the approach looks at a target: its ids are compared too

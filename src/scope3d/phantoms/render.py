@@ -250,16 +250,17 @@ def _to_image(values: np.ndarray, valid: np.ndarray, gain: float, noise: tuple[f
               rng: np.random.Generator) -> np.ndarray:
     """(M, C) radiance at the valid pixels -> (H, W, C) uint8 with blur, noise and the mask applied."""
     h, w = valid.shape
-    img = np.zeros((h, w, values.shape[1]), np.float32)
-    img[valid] = values * gain
+    channels = values.shape[1]
+    gain32 = np.float32(gain)  # float32 constants, as NumPy takes a Python float against a float32 array
     if blur > 0:
-        img = cv2.GaussianBlur(img, (0, 0), blur).reshape(h, w, -1)
+        img = np.zeros((h, w, channels), np.float32)
+        img[valid] = values * gain
+        values, gain32 = cv2.GaussianBlur(img, (0, 0), blur).reshape(h * w, channels), np.float32(1.0)
     read, shot = noise
-    normal = rng.standard_normal(img.shape, dtype=np.float32)
-    out = np.empty(img.shape, np.uint8)
-    # float32 constants, as NumPy takes a Python float against a float32 array
-    _kernels.noisy_uint8(np.ascontiguousarray(img), np.ascontiguousarray(valid), normal, np.float32(shot**2),
-                         np.float32(read**2), out)
+    normal = rng.standard_normal((h, w, channels), dtype=np.float32)
+    out = np.empty((h, w, channels), np.uint8)
+    _kernels.noisy_uint8(np.ascontiguousarray(values, np.float32), blur <= 0, np.ascontiguousarray(valid), normal,
+                         gain32, np.float32(shot**2), np.float32(read**2), out)
     return out
 
 
