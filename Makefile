@@ -11,23 +11,26 @@ $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 
-# `pip install -e .` compiles the bundle kernels ahead of time (setup.py; needs a C compiler). The warm-up
-# loads them, or compiles them with numba's JIT where that step could not run, so no timed run pays it.
-WARM_UP := $(BIN)/python -c "import scope3d.estimators.bundle as b; b.warm_up()"
+# `pip install -e .` compiles every numba kernel ahead of time (setup.py, scope3d.utils.aot; needs a C
+# compiler). The warm-up loads them, or compiles them with numba's JIT where that step could not run, so
+# no run pays it.
+KERNELS := $(shell $(PYTHON) -c "import runpy; [print('src/' + m.replace('.', '/') + '.py') for m in \
+  runpy.run_path('src/scope3d/utils/aot.py')['KERNEL_MODULES']]")
+WARM_UP := $(BIN)/python -c "from scope3d.utils import aot; aot.warm_up()"
 
-$(STAMP_CORE): pyproject.toml setup.py src/scope3d/estimators/bundle/kernels.py | $(BIN)/python
+$(STAMP_CORE): pyproject.toml setup.py src/scope3d/utils/aot.py $(KERNELS) | $(BIN)/python
 	$(BIN)/python -m pip install --quiet -e .
 	$(WARM_UP)
 	touch $@
 
-# The bundle kernels' ahead-of-time build needs a C compiler and Python's headers (CI: a clean Debian machine).
+# The kernels' ahead-of-time build needs a C compiler and Python's headers (CI: a clean Debian machine).
 .PHONY: aot-toolchain
 aot-toolchain:
 	@command -v cc >/dev/null 2>&1 && $(PYTHON) -c "import os, sys, sysconfig; \
 	  sys.exit(not os.path.exists(os.path.join(sysconfig.get_paths()['include'], 'Python.h')))" || \
 	  { apt-get update && DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends gcc libc6-dev python3-dev; }
 
-$(STAMP_ALL): pyproject.toml setup.py src/scope3d/estimators/bundle/kernels.py | $(BIN)/python aot-toolchain
+$(STAMP_ALL): pyproject.toml setup.py src/scope3d/utils/aot.py $(KERNELS) | $(BIN)/python aot-toolchain
 	$(BIN)/python -m pip install --quiet -e ".[peers,test]"
 	$(WARM_UP)
 	touch $@ $(STAMP_CORE)

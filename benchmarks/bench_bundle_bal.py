@@ -3,7 +3,7 @@
 Same start (the "-pre" file), same camera model (per-camera f, k1, k2; principal point fixed at the image
 centre), same stopping tolerances (Ceres's defaults: function 1e-6, gradient 1e-10, parameter 1e-8, at
 most 100 iterations). Times are the best of ``--repeats`` runs (the machine is shared), kernels
-loaded beforehand. scope3d runs with the kernels compiled at install (estimators/bundle/aot.py) when this
+loaded beforehand. scope3d runs with the kernels compiled at install (scope3d.utils.aot) when this
 checkout has them, and again with numba's JIT of the same source ("scope3d_jit_kernels"). Costs are
 0.5 sum |r|^2 in pixels^2.
 

@@ -1,6 +1,6 @@
 """Time the phantom lab: seconds per rendered frame for each scene at the reference's image sizes.
 
-Run:  .venv/bin/python benchmarks/bench_phantom_render.py [--frames N] [--before OLD.json]
+Run:  .venv/bin/python benchmarks/bench_phantom_render.py [--frames N] [--before OLD.json] [--cases dome,sheet]
 Writes benchmarks/results/phantom_render.json. Scene construction (mesh, texture, target ground truth)
 is timed separately: it happens once per process (scenes are cached). Each case reports wall and CPU
 (process) seconds per frame and the 1-minute load average around it: the machine is shared, so CPU time
@@ -34,9 +34,13 @@ def main() -> None:
     parser.add_argument("--frames", type=int, help="frames per case (default: per case, 30 for the grids)")
     parser.add_argument("--before", help="JSON of an earlier run to embed for comparison")
     parser.add_argument("--out", default=str(Path(__file__).parent / "results" / "phantom_render.json"))
+    parser.add_argument("--cases", help="comma-separated scene or scene/trajectory names to run (default: all)")
     args = parser.parse_args()
+    wanted = None if not args.cases else set(args.cases.split(","))
     results = []
     for scene_name, traj, n in CASES:
+        if wanted is not None and scene_name not in wanted and f"{scene_name}/{traj}" not in wanted:
+            continue
         n = args.frames or n
         t0 = time.perf_counter()
         scene = build_scene(scene_name)

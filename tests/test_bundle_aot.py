@@ -1,4 +1,5 @@
-"""The kernels compiled ahead of time at install (estimators/bundle/aot.py) against numba's JIT of the same source.
+"""The kernels compiled ahead of time at install (scope3d.utils.aot) against numba's JIT of the same source:
+the bundle adjuster's, the pose refinement's and the descriptor distances.
 
 Both paths must give the same numbers: the same LLVM code from the same source, tuned for a generic CPU
 (AOT) or for this one (JIT). Instruction selection (fused multiply-adds) may change the last bits of a
@@ -7,6 +8,7 @@ terms), not bit for bit.
 """
 from __future__ import annotations
 
+import importlib
 import importlib.util
 import sys
 import sysconfig
@@ -16,26 +18,34 @@ import time
 import numpy as np
 import pytest
 
-from scope3d.estimators.bundle import BundleProblem, SolverOptions, aot, kernels
+from scope3d.estimators.bundle import BundleProblem, SolverOptions, kernels
 from scope3d.estimators.bundle import solver as solver_module
 from scope3d.estimators.bundle.synthetic import make_scene
+from scope3d.utils import aot
+
+BUNDLE = "scope3d.estimators.bundle.kernels"
 
 RTOL = 1e-12  # rounding only (see the module docstring)
 
 
-@pytest.fixture(scope="module")
-def aot_kernels(tmp_path_factory):
-    """The module the install built; built here into a temporary folder if this checkout has none
-    (e.g. sources updated without reinstalling), so that the comparison always runs."""
+def _compiled(kernel_module: str, folder):
+    """The module the install built; built here into ``folder`` if this checkout has none (e.g. sources
+    updated without reinstalling), so that the comparison always runs."""
     try:
-        return aot.load_kernels("aot")
+        return aot.load_kernels(kernel_module, "aot")
     except ImportError:
-        path = tmp_path_factory.mktemp("aot") / (aot.AOT_MODULE + sysconfig.get_config_var("EXT_SUFFIX"))
-        aot.compile_kernels(kernels, path)
-        spec = importlib.util.spec_from_file_location(aot.AOT_MODULE, path)
+        name = aot.aot_module_name(kernel_module).rpartition(".")[2]
+        path = folder / (name + sysconfig.get_config_var("EXT_SUFFIX"))
+        aot.compile_kernels(importlib.import_module(kernel_module), path)
+        spec = importlib.util.spec_from_file_location(name, path)
         module = importlib.util.module_from_spec(spec)
         spec.loader.exec_module(module)
         return module
+
+
+@pytest.fixture(scope="module")
+def aot_kernels(tmp_path_factory):
+    return _compiled(BUNDLE, tmp_path_factory.mktemp("aot"))
 
 
 def scene_problem(num_cameras=6, num_points=150, seed=0, **kw) -> BundleProblem:
@@ -52,19 +62,48 @@ def perturbed(problem: BundleProblem, seed: int) -> None:
     x.points += rng.uniform(-0.1, 0.1, x.points.shape)
 
 
-def test_aot_module_is_built_from_this_source(aot_kernels):
-    assert aot_kernels.source_digest() == aot.source_digest()
-    assert set(aot.SIGNATURES) <= set(dir(aot_kernels))
+@pytest.mark.parametrize("kernel_module", aot.KERNEL_MODULES)
+def test_every_kernel_module_is_built_from_its_source(kernel_module, tmp_path):
+    compiled = _compiled(kernel_module, tmp_path)
+    source = importlib.import_module(kernel_module)
+    assert compiled.source_digest() == aot.source_digest(aot.source_path(kernel_module))
+    assert set(source.AOT_SIGNATURES) <= set(dir(compiled))
+    assert aot.is_compiled(compiled) and not aot.is_compiled(source)
 
 
 def test_load_kernels_falls_back_to_jit_when_the_module_is_stale(monkeypatch, aot_kernels):
-    monkeypatch.setattr(aot, "source_digest", lambda path=aot.KERNELS_SOURCE: -1)
-    assert aot.load_kernels("auto") is kernels
+    monkeypatch.setattr(aot, "source_digest", lambda path: -1)
+    assert aot.load_kernels(BUNDLE, "auto") is kernels
     with pytest.raises(ImportError, match="another kernels.py"):
-        aot.load_kernels("aot")
-    assert aot.load_kernels("jit") is kernels
+        aot.load_kernels(BUNDLE, "aot")
+    assert aot.load_kernels(BUNDLE, "jit") is kernels
     with pytest.raises(ValueError):
-        aot.load_kernels("fast")
+        aot.load_kernels(BUNDLE, "fast")
+
+
+def test_pose_and_descriptor_kernels_agree_with_the_jit(tmp_path):
+    rng = np.random.default_rng(0)
+    points = np.ascontiguousarray(rng.normal(size=(80, 3)) + [0.0, 0.0, 20.0])
+    pixels = np.ascontiguousarray(rng.uniform(0.0, 300.0, size=(80, 2)))
+    rotation = np.ascontiguousarray(np.linalg.qr(rng.normal(size=(3, 3)))[0])
+    intrinsics = np.array([300.0, 310.0, 150.0, 160.0, -0.1, 0.02])
+    # a rotation vector inside the series' range and one outside it: both branches of the rotation maths
+    for x in (np.array([1e-9, 0.0, 0.0, 0.1, 0.2, 0.3]), np.array([0.1, -0.2, 0.05, 0.1, 0.2, 0.3])):
+        args = (points, pixels, x, rotation, intrinsics, 1.0, 1e-8)
+        jit = importlib.import_module("scope3d.estimators.pose_kernels").huber_normal_equations(*args)
+        compiled = _compiled("scope3d.estimators.pose_kernels", tmp_path).huber_normal_equations(*args)
+        for a, b in zip(compiled, jit):
+            np.testing.assert_allclose(a, b, rtol=RTOL, atol=0)
+    desc = rng.normal(size=(200, 128)).astype(np.float32)
+    a, b = rng.integers(0, 200, 500), rng.integers(0, 200, 500)
+    out = {}
+    for name, module in (("jit", importlib.import_module("scope3d.feature.descriptor_kernels")),
+                         ("aot", _compiled("scope3d.feature.descriptor_kernels", tmp_path))):
+        out[name] = np.empty(500, np.float32)
+        module.candidate_squared_distances(desc, desc, a, b, out[name])
+    # float32 sums of 128 squares in the same order: the same bits but for a fused multiply-add
+    np.testing.assert_allclose(out["aot"], out["jit"], rtol=1e-6, atol=0)
+    np.testing.assert_allclose(out["jit"], ((desc[a] - desc[b]) ** 2).sum(1), rtol=1e-5)
 
 
 @pytest.mark.parametrize("position_parameter, square", [("centre", False), ("translation", True)])

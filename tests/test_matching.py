@@ -7,7 +7,16 @@ import pytest
 from scope3d import phantoms
 from scope3d.feature.depth_prior import DepthPrior, predict_segments, window_radius_px
 from scope3d.feature.detection import detect
-from scope3d.feature.matching import MatchOptions, _ratio_select_grouped, _two_nearest, match_exhaustive, match_guided, match_pairs
+from scope3d.feature.matching import (
+    MatchOptions,
+    _ratio_select_grouped,
+    _two_nearest,
+    best_two_per_query,
+    match_exhaustive,
+    match_guided,
+    match_pairs,
+    pair_squared_distances,
+)
 from scope3d.feature.pairs import PairOptions, frame_overlap, select_pairs
 from scope3d.geometry.pose import Pose
 from scope3d.metrology.evaluation import true_match_error_px
@@ -229,3 +238,21 @@ def test_depth_prior_is_data_that_pickles_and_keeps_its_ray_ranges():
             np.testing.assert_array_equal(a, b)
     lo, hi = band.ray_ranges(pose, rays[:2])
     np.testing.assert_allclose(hi - lo, 1.0, rtol=0.05)  # +-0.5 mm along a normal within a few degrees of the ray
+
+
+def test_best_two_per_query_is_the_sorted_pairs_first_and_second():
+    rng = np.random.default_rng(3)
+    desc = rng.integers(0, 4, size=(60, 4)).astype(np.float32)  # few distinct values: many tied distances
+    query, cand = rng.integers(0, 40, 3000), rng.integers(0, 60, 3000)
+    d2 = pair_squared_distances(desc, desc, cand, query)
+    np.testing.assert_array_equal(d2, ((desc[cand] - desc[query]) ** 2).sum(1))
+    best, best_d2, second_d2 = best_two_per_query(query, cand, d2, 45)
+    # the reference: the pairs sorted by (query, d2, candidate), the first and second of each query
+    order = np.lexsort((cand, d2, query))
+    for q in range(45):
+        mine = order[query[order] == q]
+        if len(mine) == 0:
+            assert best[q] == -1 and best_d2[q] == np.inf and second_d2[q] == np.inf
+            continue
+        assert (best[q], best_d2[q]) == (cand[mine[0]], d2[mine[0]])
+        assert second_d2[q] == (d2[mine[1]] if len(mine) > 1 else np.inf)

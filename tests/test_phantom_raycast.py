@@ -27,7 +27,9 @@ import numpy as np
 import pytest
 
 from scope3d.phantoms import build_scene
+from scope3d.phantoms import raycast
 from scope3d.phantoms.raycast import RayCaster
+from scope3d.scene.mesh import Mesh
 
 R_MM = 17.5
 CENTRE = np.array([0.0, 0.0, R_MM - 10.0])
@@ -139,3 +141,120 @@ def test_grazing_hits_are_at_the_analytic_distance(casts, mesh):
         chord = np.sqrt(R_MM**2 - (R_MM - delta) ** 2)
         for hits in (a, b):
             assert np.all(np.abs(hits.distance_mm - chord) <= sagitta / (chord / R_MM) + 1e-9), delta
+
+
+def _numpy_refinement(caster, origins, directions, ray_idx, tri_idx):
+    """The refinement in NumPy (Möller–Trumbore, point, interpolated normal), as RayCaster did it before
+    its compiled kernel: the reference the kernel must match bit for bit (the rendered images depend on it)."""
+    tri = caster._v0_e1_e2[tri_idx]
+    v0, e1, e2 = tri[:, 0], tri[:, 1], tri[:, 2]
+    d, o = directions[ray_idx], origins[ray_idx]
+    p = np.cross(d, e2)
+    det = np.einsum("ij,ij->i", e1, p)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / det
+        s = o - v0
+        b1 = np.einsum("ij,ij->i", s, p) * inv
+        q = np.cross(s, e1)
+        b2 = np.einsum("ij,ij->i", d, q) * inv
+        t = np.einsum("ij,ij->i", e2, q) * inv
+    t[np.abs(det) < 1e-300] = np.nan
+    ok = np.isfinite(t) & (t > 0)
+    n = len(origins)
+    distance, bary, normals = np.full(n, np.nan), np.full((n, 3), np.nan), np.full((n, 3), np.nan)
+    ray_idx, tri_idx, b1, b2 = ray_idx[ok], tri_idx[ok], b1[ok], b2[ok]
+    distance[ray_idx] = t[ok]
+    bary[ray_idx] = np.column_stack([1.0 - b1 - b2, b1, b2])
+    nrm = (np.einsum("mk,mkj->mj", bary[ray_idx], caster._face_vertex_normals[tri_idx])
+           if caster._face_vertex_normals is not None else caster._face_normals[tri_idx])
+    normals[ray_idx] = nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
+    return distance, origins + distance[:, None] * directions, bary, normals
+
+
+class _NumpyKernels:
+    """Stands in for the compiled kernel module: the refinement in NumPy, written into the same outputs."""
+
+    @staticmethod
+    def refine_hits(origins, directions, ray_idx, tri_idx, v0_e1_e2, face_vertex_normals, face_normals,
+                    vertex_normals, distance, triangle, barycentric, points, normals):
+        caster = type("Caster", (), dict(_v0_e1_e2=v0_e1_e2, _face_normals=face_normals,
+                                         _face_vertex_normals=face_vertex_normals if vertex_normals else None))
+        d, p, b, n = _numpy_refinement(caster, origins, directions, ray_idx, tri_idx)
+        hit = ~np.isnan(d)
+        distance[:], points[:], barycentric[:], normals[:] = d, p, b, n
+        triangle[ray_idx[hit[ray_idx]]] = tri_idx[hit[ray_idx]]
+
+
+class _NumpySensor:
+    """Stands in for the renderer's compiled sensor model: NumPy's whole-frame expressions it replaced."""
+
+    @staticmethod
+    def noisy_uint8(values, packed, valid, normal, gain, shot2, read2, out):
+        image = np.zeros(out.shape, np.float32)
+        if packed:
+            image[valid] = values * gain
+        else:
+            image[:] = (values * gain).reshape(out.shape)
+        noisy = np.clip(image, 0.0, None)
+        noisy *= shot2
+        noisy += read2
+        np.sqrt(noisy, out=noisy)
+        noisy *= normal
+        noisy += image
+        noisy[~valid] = 0.0
+        noisy *= 255.0
+        np.round(noisy, out=noisy)
+        np.clip(noisy, 0, 255, out=noisy)
+        out[:] = noisy.astype(np.uint8)
+
+
+@pytest.mark.parametrize("vertex_normals", [True, False])
+def test_compiled_refinement_is_numpys(mesh, vertex_normals, monkeypatch):
+    caster = RayCaster(mesh if vertex_normals else Mesh(mesh.vertices, mesh.faces))
+    assert (caster._face_vertex_normals is not None) == vertex_normals  # both normal paths run
+    rng = np.random.default_rng(1)
+    origins = caster.mesh.vertices.mean(axis=0) + rng.normal(0.0, 3.0, (20_000, 3))
+    directions = _unit(rng.normal(size=(20_000, 3)))
+    hits = caster.cast(origins, directions)
+    assert 0.2 < hits.hit.mean() < 1.0
+    monkeypatch.setattr(raycast, "_kernels", _NumpyKernels)
+    reference = caster.cast(origins, directions)
+    np.testing.assert_array_equal(hits.triangle, reference.triangle)
+    # the same formulas; NumPy's vectorised dot products may add their three terms in another order, so
+    # the last bits differ (~1e-14 relative, measured; far below the 1e-9 of test_backends_agree...)
+    for name in ("distance_mm", "points", "barycentric", "normals"):
+        np.testing.assert_allclose(getattr(hits, name), getattr(reference, name), rtol=1e-12, atol=1e-12,
+                                   err_msg=name)
+
+
+def test_rendered_frame_is_the_numpy_renderers_bit_for_bit(monkeypatch):
+    """The compiled refinement and sensor model and the column-wise ray rotation change no bit of what the
+    renderer writes (8-bit images with their noise, float32 depth, target ids): the NumPy refinement, noise
+    expressions and BLAS products they replaced, monkeypatched back, render the same frame."""
+    from scope3d.phantoms import render
+    from scope3d.phantoms.lab import generate
+
+    seq = generate("dome", "approach", target=2, n_frames=2, size=(200, 200))
+    scene = build_scene("dome")
+    # the second frame with optical blur: the sensor model's other path (the frame blurred before the noise)
+    options = [render.RenderOptions(), render.RenderOptions(blur_sigma_px=1.2)]
+    frames = [render.render_frame(scene, seq.camera, pose, frame_index=k, options=options[k])
+              for k, pose in enumerate(seq.true_poses)]
+    monkeypatch.setattr(raycast, "_kernels", _NumpyKernels)
+    monkeypatch.setattr(render, "_rows_times", lambda a, b: a @ b)
+    monkeypatch.setattr(render, "_kernels", _NumpySensor)
+    for k, pose in enumerate(seq.true_poses):
+        before = render.render_frame(scene, seq.camera, pose, frame_index=k, options=options[k])
+        for name in ("image", "fluorescence", "depth_mm", "target_id"):
+            np.testing.assert_array_equal(getattr(frames[k], name), getattr(before, name), err_msg=name)
+        assert (frames[k].target_id > 0).any()  # the approach looks at a target: its ids are compared too
+
+
+def test_threaded_cast_gives_the_single_threaded_hits(mesh):
+    rng = np.random.default_rng(2)
+    origins = np.repeat([[0.0, 0.0, 15.0]], 60_000, axis=0)  # above the split threshold (50,000 rays)
+    directions = _cone(rng, 60_000, [0, 0, -1], 60.0)
+    one, three = RayCaster(mesh, threads=1).cast(origins, directions), RayCaster(mesh, threads=3).cast(origins, directions)
+    assert 0 < one.hit.sum() < len(origins)
+    np.testing.assert_array_equal(one.triangle, three.triangle)
+    np.testing.assert_array_equal(one.points, three.points)

@@ -26,13 +26,16 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from numba import njit
 from scipy.spatial import cKDTree
 
 from scope3d.feature.depth_prior import DepthPrior, _project_ray_ranges, _ray_depth_ranges, window_radius_px
 from scope3d.feature.detection import Features
 from scope3d.sensor.camera import Camera
 from scope3d.sensor.pose_tolerance import MeasuredPose
+from scope3d.utils.aot import load_kernels
+
+# compiled at install (scope3d.utils.aot) or, failing that, by numba on first use
+_kernels = load_kernels("scope3d.feature.descriptor_kernels")
 from scope3d.utils.progress import advance
 
 _GEOMETRIC_MODELS = ("fundamental", "homography", "none")
@@ -150,25 +153,29 @@ def _keep_mutual(a: np.ndarray, b: np.ndarray, d2: np.ndarray) -> np.ndarray:
     return keep
 
 
-def _pair_d2(desc_a: np.ndarray, desc_b: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Squared L2 descriptor distances ``|desc_a[a[k]] - desc_b[b[k]]|^2`` of candidate pairs, (C,) float32."""
+def pair_squared_distances(desc_a: np.ndarray, desc_b: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Squared L2 descriptor distances ``|desc_a[a[k]] - desc_b[b[k]]|^2`` of candidate pairs, (C,) float32.
+
+    desc_a (Na, D), desc_b (Nb, D) descriptors (any real dtype, computed in float32); a, b (C,) row indices.
+    One compiled pass reading the rows in place (:mod:`scope3d.feature.descriptor_kernels`).
+    """
     out = np.empty(len(a), dtype=np.float32)
-    _candidate_d2(np.ascontiguousarray(desc_a, np.float32), np.ascontiguousarray(desc_b, np.float32),
-                  np.ascontiguousarray(a, np.int64), np.ascontiguousarray(b, np.int64), out)
+    _kernels.candidate_squared_distances(
+        np.ascontiguousarray(desc_a, np.float32), np.ascontiguousarray(desc_b, np.float32),
+        np.ascontiguousarray(a, np.int64), np.ascontiguousarray(b, np.int64), out)
     return out
 
 
-@njit(cache=True)
-def _candidate_d2(desc_a, desc_b, a, b, out):
-    # Reads the two descriptor rows in place: gathering them first (desc[a], desc[b]) moved
-    # 2 x 512 bytes per candidate through memory and cost 10x the arithmetic.
-    for k in range(a.shape[0]):
-        ra, rb = a[k], b[k]
-        acc = np.float32(0.0)
-        for c in range(desc_a.shape[1]):
-            d = desc_a[ra, c] - desc_b[rb, c]
-            acc += d * d
-        out[k] = acc
+def best_two_per_query(query: np.ndarray, candidate: np.ndarray, d2: np.ndarray, n_queries: int
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The ratio test's inputs from candidate pairs in any order, in one compiled pass.
+
+    query, candidate (C,) int indices (query < n_queries), d2 (C,) their squared descriptor distances.
+    Returns per query (n_queries,): its best candidate (least ``(d2, candidate)``; -1 for a query without
+    pairs), that least d2 and the second least d2 of its pairs (inf with fewer than two), float32.
+    """
+    return _kernels.best_two_per_query(np.ascontiguousarray(query, np.int64), np.ascontiguousarray(candidate, np.int64),
+                                       np.ascontiguousarray(d2, np.float32), int(n_queries))
 
 
 # rows of descriptors compared at once by _two_nearest: a (rows x N) float32 block, 16 MB at N = 4,000
@@ -394,7 +401,7 @@ def match_guided_many(
         i_frames = np.array([pairs[k][0] for k in range(len(pairs))], np.int64)
         a_glob = offsets[i_frames[pair_c]] + a_loc[sg]
         desc_all = np.concatenate([f.descriptors for f in features])
-        d2 = _pair_d2(desc_all, desc_all, a_glob, b_glob)
+        d2 = pair_squared_distances(desc_all, desc_all, a_glob, b_glob)
         n_cand = np.bincount(pair_c, minlength=len(pairs))
         # ratio test among each segment's candidates (sg is sorted: candidates grouped by segment)
         g_seg, g_b, g_d2 = _ratio_select_grouped(sg, b_glob, d2, options.ratio)

@@ -7,11 +7,20 @@ is intersected again in double precision (Möller–Trumbore), which puts every 
 """
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 
 from scope3d.scene.mesh import Mesh
+from scope3d.utils.aot import load_kernels
+
+# compiled at install (scope3d.utils.aot) or, failing that, by numba on first use
+_kernels = load_kernels("scope3d.phantoms.raycast_kernels")
+
+# below this many rays a cast runs on one thread (starting threads costs more than it saves)
+_THREADED_CAST_RAYS = 50_000
 
 
 @dataclass(frozen=True)
@@ -42,13 +51,18 @@ class RayCaster:
 
     mesh : :class:`~scope3d.scene.mesh.Mesh` in mm; its ``vertex_normals`` (if any) are used for shading.
     backend : ``"auto"`` (Embree when available), ``"embree"`` or ``"numpy"``.
+    threads : Embree queries of a large cast (>= 50,000 rays) split over this many threads (Embree releases
+        the GIL; every ray is independent, so the hits are the same); None: the machine's cores, at most 4.
     """
 
-    def __init__(self, mesh: Mesh, *, backend: str = "auto") -> None:
+    def __init__(self, mesh: Mesh, *, backend: str = "auto", threads: int | None = None) -> None:
         import trimesh
 
         if backend not in ("auto", "embree", "numpy"):
             raise ValueError(f"unknown ray-casting backend {backend!r}")
+        if threads is not None and threads < 1:
+            raise ValueError(f"threads must be None or at least 1, got {threads}")
+        self.threads = threads if threads is not None else max(1, min(4, os.cpu_count() or 1))
         if backend == "embree" and not trimesh.ray.has_embree:
             raise ValueError("Embree is not available (install embreex)")
         self.mesh = mesh
@@ -63,7 +77,7 @@ class RayCaster:
             self.backend = "numpy"
         self._intersector = RayMeshIntersector(tm)
         tri = mesh.vertices[mesh.faces]
-        # v0, e1, e2 of every face side by side, so that refining M hits gathers one (M, 3, 3) block.
+        # v0, e1, e2 of every face side by side: the refinement reads one (3, 3) block per hit
         self._v0_e1_e2 = np.ascontiguousarray(np.stack([tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]], axis=1))
         face_normals = np.cross(self._v0_e1_e2[:, 1], self._v0_e1_e2[:, 2])
         self._face_normals = face_normals / np.maximum(np.linalg.norm(face_normals, axis=1, keepdims=True), 1e-300)
@@ -80,7 +94,19 @@ class RayCaster:
         if scene is not None and hasattr(scene, "run"):
             import trimesh
 
-            query = np.asarray(scene.run(origins, trimesh.util.unitize(directions)), dtype=np.int64)
+            directions = trimesh.util.unitize(directions)
+            parts = self.threads if len(origins) >= _THREADED_CAST_RAYS else 1
+            bounds = np.linspace(0, len(origins), parts + 1).astype(int)
+            query = np.empty(len(origins), np.int64)
+
+            def run(a: int, b: int) -> None:
+                query[a:b] = scene.run(origins[a:b], directions[a:b])
+
+            with ThreadPoolExecutor(max_workers=max(1, parts - 1)) as pool:
+                others = [pool.submit(run, a, b) for a, b in zip(bounds[1:-1], bounds[2:])]
+                run(bounds[0], bounds[1])
+                for other in others:
+                    other.result()  # raises what the thread raised
             ray_idx = np.flatnonzero(query >= 0)
             return ray_idx, query[ray_idx]
         tri_idx, ray_idx = self._intersector.intersects_id(origins, directions, multiple_hits=False)[:2]
@@ -88,46 +114,22 @@ class RayCaster:
 
     def cast(self, origins: np.ndarray, directions: np.ndarray) -> Hits:
         """origins : (N, 3) mm; directions : (N, 3) unit, world frame -> :class:`Hits`."""
-        origins = np.ascontiguousarray(origins, dtype=float).reshape(-1, 3)
-        directions = np.ascontiguousarray(directions, dtype=float).reshape(-1, 3)
+        # C-contiguous and writable (a read-only array would make numba compile another specialisation of the
+        # kernel on the JIT path; the compiled module takes these exact types)
+        origins = np.require(origins, float, ("C", "W")).reshape(-1, 3)
+        directions = np.require(directions, float, ("C", "W")).reshape(-1, 3)
         n = len(origins)
         distance = np.full(n, np.nan)
         triangle = np.full(n, -1, dtype=np.int64)
         bary = np.full((n, 3), np.nan)
-        if n:
-            ray_idx, tri_idx = self._first_triangles(origins, directions)
-            t, b1, b2 = self._refine(origins[ray_idx], directions[ray_idx], tri_idx)
-            ok = np.isfinite(t) & (t > 0)
-            ray_idx, tri_idx = ray_idx[ok], tri_idx[ok]
-            distance[ray_idx] = t[ok]
-            triangle[ray_idx] = tri_idx
-            b1, b2 = b1[ok], b2[ok]
-            bary[ray_idx, 0] = 1.0 - b1 - b2
-            bary[ray_idx, 1] = b1
-            bary[ray_idx, 2] = b2
-        else:
-            ray_idx = tri_idx = np.zeros(0, np.int64)
-        points = origins + distance[:, None] * directions
+        points = np.empty((n, 3))
         normals = np.full((n, 3), np.nan)
-        if self._face_vertex_normals is not None:
-            nrm = np.einsum("mk,mkj->mj", bary[ray_idx], self._face_vertex_normals[tri_idx])
-        else:
-            nrm = self._face_normals[tri_idx]
-        normals[ray_idx] = nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
+        ray_idx, tri_idx = self._first_triangles(origins, directions) if n else (np.zeros(0, np.int64),) * 2
+        # one compiled pass: Möller–Trumbore in float64, the point and the interpolated normal (NumPy's
+        # (M, 3) temporaries for the same maths were a third of a rendered frame)
+        _kernels.refine_hits(origins, directions, np.ascontiguousarray(ray_idx, np.int64),
+                             np.ascontiguousarray(tri_idx, np.int64), self._v0_e1_e2,
+                             self._face_vertex_normals if self._face_vertex_normals is not None else self._v0_e1_e2,
+                             self._face_normals, self._face_vertex_normals is not None,
+                             distance, triangle, bary, points, normals)
         return Hits(distance, triangle, bary, points, normals)
-
-    def _refine(self, origins, directions, tri_idx):
-        """Double-precision Möller–Trumbore on the given triangles; returns (t, b1, b2), each (M,)."""
-        tri = self._v0_e1_e2[tri_idx]
-        v0, e1, e2 = tri[:, 0], tri[:, 1], tri[:, 2]
-        p = np.cross(directions, e2)
-        det = np.einsum("ij,ij->i", e1, p)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            inv = 1.0 / det
-            s = origins - v0
-            b1 = np.einsum("ij,ij->i", s, p) * inv
-            q = np.cross(s, e1)
-            b2 = np.einsum("ij,ij->i", directions, q) * inv
-            t = np.einsum("ij,ij->i", e2, q) * inv
-        t[np.abs(det) < 1e-300] = np.nan
-        return t, b1, b2

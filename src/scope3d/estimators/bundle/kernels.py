@@ -1,4 +1,5 @@
-"""Compiled inner loops of the bundle adjuster (numba, cached on disk).
+"""Compiled inner loops of the bundle adjuster: a kernel module of :mod:`scope3d.utils.aot` (compiled at
+install; numba's JIT, cached on disk, where that could not run).
 
 Everything here works on flat arrays; :mod:`.problem` and :mod:`.solver` own the meaning. The maths of
 :func:`residuals_and_jacobians` is that of :func:`scope3d.sensor.camera.project_with_jacobians` (tests check
@@ -20,6 +21,32 @@ from __future__ import annotations
 
 import numpy as np
 from numba import njit
+
+_F2 = "f8[:, ::1]"
+_F3 = "f8[:, :, ::1]"
+_I1 = "i8[::1]"
+_I2 = "i8[:, ::1]"
+# Exported at install (scope3d.utils.aot) with the exact argument types the solver passes (all arrays
+# C-contiguous): an exported function does not dispatch on types, it converts its arguments to these or
+# raises TypeError.
+AOT_SIGNATURES = {
+    "residuals_and_jacobians": f"void(f8[:, ::1], {_I1}, {_I1}, {_I1}, {_F3}, {_F2}, {_F3}, b1, {_F2}, {_F3}, "
+                               f"{_F2}, b1, {_F2}, {_F3}, {_F3})",
+    "squared_residuals": f"void({_F2}, {_I1}, {_I1}, {_I1}, {_F3}, {_F2}, {_F2}, {_F2}, b1, f8[::1])",
+    "gradient_and_diagonal": f"Tuple((f8[::1], f8[::1], {_F2}, {_F2}))({_F2}, {_F3}, {_F3}, {_I2}, {_I1}, i8, i8)",
+    "zero_frozen_columns": f"void({_F3}, {_F3}, {_I2}, {_I1}, b1[::1], b1[:, ::1])",
+    "block_structure_keys": f"{_I1}({_I2}, {_I1}, i8)",
+    "pair_slots": f"Tuple((i4[::1], {_I1}))({_I2}, {_I1}, {_I1}, {_I1})",
+    "assemble_reduced_system": f"b1({_F2}, {_F3}, {_F3}, {_I2}, {_I1}, f8[::1], {_F2}, {_I1}, {_I1}, {_F3}, "
+                               f"f8[::1], {_F3}, {_F2}, {_I1}, i4[::1])",
+    "add_diagonal": f"void({_I1}, {_I1}, {_F3}, f8[::1])",
+    "assemble_point_range": f"b1(i8, i8, i8, {_F2}, {_F3}, {_F3}, {_I2}, {_I1}, {_F2}, {_F3}, f8[::1], {_F3}, "
+                            f"{_F2}, {_I1}, i4[::1])",
+    "back_substitute": f"{_F2}({_F3}, {_F3}, {_I2}, {_I1}, {_F3}, {_F2}, f8[::1])",
+    "jacobian_step_norm2": f"f8({_F3}, {_F3}, {_I2}, {_I1}, f8[::1], {_F2})",
+    "bsr_to_dense": f"{_F2}({_I1}, {_I1}, {_F3})",
+    "scale_rows": f"void({_F2}, {_F3}, {_F3}, f8[::1])",
+}
 
 # --- residuals and Jacobians -------------------------------------------------------------------
 

@@ -40,12 +40,12 @@ import scipy.sparse.linalg
 
 from scope3d.errors import InputError
 from scope3d.estimators.bundle._blas import blas_threads
-from scope3d.estimators.bundle.aot import AOT_MODULE, load_kernels
 from scope3d.estimators.bundle.losses import LOSS_NAMES, loss_rho, loss_weight
 from scope3d.estimators.bundle.problem import BundleParameters, BundleProblem
+from scope3d.utils.aot import is_compiled, load_kernels
 
-# compiled at install (aot.py) or, failing that, by numba on first use; the same functions either way
-kernels = load_kernels()
+# compiled at install (scope3d.utils.aot) or, failing that, by numba on first use; the same functions
+kernels = load_kernels("scope3d.estimators.bundle.kernels")
 
 LINEAR_SOLVERS = ("auto", "dense", "sparse", "pcg")
 TERMINATIONS = (
@@ -218,8 +218,8 @@ class BundleResult:
             "solve_time_s": self.solve_time_s,
             "linear_solver": self.linear_solver,
             "assembly_threads": self.threads,
-            # "ahead of time": compiled at install (aot.py); "numba JIT": compiled on first use, then cached
-            "kernels": "ahead of time" if kernels.__name__.endswith(AOT_MODULE) else "numba JIT",
+            # "ahead of time": compiled at install (utils/aot.py); "numba JIT": compiled on first use, then cached
+            "kernels": "ahead of time" if is_compiled(kernels) else "numba JIT",
             "loss": self.options.loss,
             "loss_scale_px": self.options.loss_scale_px,
             "num_cameras": self.problem.num_cameras,
@@ -278,7 +278,7 @@ def evaluate(problem: BundleProblem, parameters: BundleParameters):
 def _linearise(problem, pose, intrinsics, points, r, jc, jp):
     rot, trans, rot_jac = problem.camera_state(pose)
     world, point_jac = problem.points_world(points, with_jacobian=True)
-    # contiguous arrays: the ahead-of-time kernels take exactly the types of aot.SIGNATURES
+    # contiguous arrays: the ahead-of-time kernels take exactly the types of kernels.AOT_SIGNATURES
     kernels.residuals_and_jacobians(
         problem.observations_px, problem.camera_index, problem.point_index,
         problem.intrinsics_index[problem.camera_index], np.ascontiguousarray(rot), np.ascontiguousarray(trans),
