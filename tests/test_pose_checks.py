@@ -85,7 +85,10 @@ def test_a_glitched_report_is_flagged_and_released_and_clean_reports_are_not(tmp
     assert [f["frame"] for f in flagged] == [dataset.names[glitch]]
     # the images put it 2.5-3 mm from its report: the report's 3 mm error, less what the reports' own
     # +-0.5 mm errors move the map by
-    assert 2.0 < flagged[0]["disagreement_mm"] < 3.5 and flagged[0]["p_value"] < 1e-6
+    assert 2.0 < flagged[0]["disagreement_mm"] < 3.5
+    # well below its level (0.01 / 11 frames ~ 1e-3): measured d2 = 64, 8 sigma, which a variance factor
+    # known from ~35 degrees of freedom (F tails, not chi-square ones) puts at p ~ 3e-6, not 1e-12
+    assert flagged[0]["p_value"] < 1e-4
     assert "released" in result.summary() and dataset.names[glitch] in result.summary()
     # every camera of either map is within 0.5 mm (its box) of the truth, so each map's direct error is of
     # that order; the recovered map must be within that of the clean one, not 1.6 mm off
@@ -123,10 +126,10 @@ def test_the_variance_factor_is_recovered_where_the_boxes_outweigh_the_images():
         tests.append(FramePoseTest(k, "ok", None, error, covariance, dof=5000))
         old.append(error @ np.linalg.solve(covariance + np.diag(half**2 / 3), error) / chi2.median(6))
     estimate, dof = _scale_of_images(tests, [report] * n)
-    # a median of n chi-square(6) values: relative standard error sqrt(2 / (3.5 n)) = 3.8 %, 3 of them either
-    # side; the reports' uniform errors, lighter-tailed than Gaussian ones, raise q's median a little and
-    # so the estimate (on the safe side): +5 % on average over 8 draws, +1 % with Gaussian report errors
-    standard_error = np.sqrt(2 / (3.5 * n))
-    assert factor * (1 - 3 * standard_error) < estimate < factor * (1.05 + 3 * standard_error)
-    assert dof == pytest.approx(3.48 * n, rel=0.01)
+    # the images' share of each frame's disagreement: some of its 6 degrees of freedom, never all
+    assert n < dof < 6 * n
+    # a scale from dof degrees of freedom: relative standard error sqrt(2 / dof) (4 %), 3 of them either side
+    # (over 8 draws: mean 3.95 with uniform report errors, 3.98 with Gaussian ones)
+    standard_error = np.sqrt(2 / dof)
+    assert factor * (1 - 3 * standard_error) < estimate < factor * (1 + 3 * standard_error)
     assert np.median(old) < 0.8 * factor  # the old estimate, biased low by the boxes

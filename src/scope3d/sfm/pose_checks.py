@@ -25,7 +25,7 @@ tested against what the images and the *other* frames say about it, by an exact 
    the dome with the other frames held at their true poses);
 4. the estimate is compared with the report's box ``B``: ``d2 = min over b in B of (x - b)^T C^-1 (x - b)``.
    If the true pose lies in ``B`` (the report is right), ``d2 <= (x - truth)^T C^-1 (x - truth)``, about
-   ``6 F(6, nu_f)`` (``nu_f`` the degrees of freedom of ``f``'s estimate, 3.5 per other frame), so
+   ``6 F(6, nu_f)`` (``nu_f`` the degrees of freedom of ``f``'s estimate, up to 6 per other frame), so
    ``P(d2 > q) <= F_sf(q / 6; 6, nu_f)`` wherever in the box the truth lies. A weakly
    determined direction has a large variance and adds little; a report wrong along a well-determined one
    adds a lot. Each frame is held to ``rate / n_frames`` (Bonferroni, so that a map of right reports has
@@ -344,44 +344,47 @@ def _scale_of_images(tests: list[FramePoseTest], measured: list[MeasuredPose]) -
     (the other frames than the one it will scale), and the degrees of freedom of that estimate.
 
     Each frame's estimate differs from its report by two independent errors, the images' (covariance
-    ``f C_j``) and the report's (uniform in its box: ``B_j = half^2 / 3``), so ``q_j(f) = e_j^T (f C_j +
-    B_j)^-1 e_j`` is about chi-square with 6 degrees of freedom at the right ``f``: ``f`` solves ``median_j
-    q_j(f) = chi2.median(6)`` (a few wrong reports do not move a median). Not ``median_j e_j^T (C_j + B_j)^-1
-    e_j / chi2.median(6)``: where the box's part of the disagreement outweighs the images', that ratio
-    grows far less than ``f`` does, and on the dome it came out at 2.0-2.7 where the frames' errors against
-    their true poses say 3.6-4.8, which was what made clean frames' statistics 2x too large (12 dome maps,
-    docs/reliability.md section 5). Needed at all: with every other frame held at its true pose, dome
-    frames' image-only estimates were off by 1.5-3x their covariance in sigma (keypoint errors of nearby
-    views of one texture are not independent, and their tails are heavy: median 0.09 px, RMS 0.32 px).
+    ``f C_j``) and the report's (uniform in its box, variance ``B_j = half^2 / 3``): ``e_j ~ (0, f C_j +
+    B_j)``. ``f`` is their maximum-likelihood scale, taken as Gaussian (a variance component, as in
+    geodesy): in the box-whitened eigenbasis of ``C_j`` (eigenvalues ``l``, squared projections ``p``) it
+    solves ``sum l / (f l + 1) (p / (f l + 1) - 1) = 0``. Not ``median_j e_j^T (C_j + B_j)^-1 e_j /
+    chi2.median(6)``, the earlier estimate: where a report's box outweighs the images' error that ratio
+    hardly grows with ``f``, and on the dome it came out at 2.0-2.7 where the scale solved with the boxes
+    is 2.5-6.6 (10 clean 12-frame maps): clean frames' statistics were 2x too large, which was most of the
+    false alarms (docs/reliability.md section 5). Needed at all: with every other frame held at its true
+    pose, dome frames' image-only estimates were off by 1.5-3x their covariance in sigma (keypoint errors
+    of nearby views of one texture are not independent, and their tails are heavy: median 0.09 px, RMS
+    0.32 px).
 
-    The degrees of freedom: a median of ``n`` chi-square(6) values has the relative variance of a mean
-    square with ``8 n (m p(m))^2 = 3.5 n`` degrees of freedom (``m`` the median, ``p`` the density; the
-    large-sample variance of a median, ``1 / (4 n p(m)^2)``), so the tested frame's ``d2 / f`` is about
-    ``6 F(6, 3.5 n)``, not chi-square: with 10 other frames its critical value at 0.1 % is 30, not 23.
+    The degrees of freedom are ``2 f^2`` times the Fisher information, ``sum (f l / (f l + 1))^2``: a
+    direction the images fix far better than the box (``f l << 1``) says nothing about ``f`` and counts
+    for nothing, one they fix far worse counts 1. So ``d2 / f`` of the tested frame is about ``6 F(6,
+    dof)``: with 10 other dome frames about 35, and the critical value at 0.1 % about 31 instead of 23.
+    Not robust to a wrong report among the others (a mean of squares): the data snooping sets each found
+    one aside before the others are tested again, and the tested frame's own disagreement is never in it.
     """
     from scipy.optimize import brentq
-    from scipy.stats import chi2
 
-    target = float(chi2.median(6))
+    if len(tests) < 3:  # too few frames to tell: the residuals' own scale, with their (large) redundancy
+        return 1.0, float(min((t.dof for t in tests), default=1))
     projections, eigenvalues = [], []
     for t in tests:
         m = measured[t.frame]
         half = np.maximum(np.r_[m.tolerance.orientation_rad, m.tolerance.position_mm], 1e-6)
         inv_sqrt_box = np.where(np.isfinite(half), np.sqrt(3.0) / half, 0.0)  # B^-1/2 (an unknown box: 0)
-        # (f C + B)^-1 = D (f D C D + I)^-1 D with D = B^-1/2: one eigen-decomposition gives q_j(f) for every f
+        # (f C + B)^-1 = D (f D C D + I)^-1 D with D = B^-1/2: one eigen-decomposition serves every f
         values, vectors = np.linalg.eigh(inv_sqrt_box[:, None] * t.covariance * inv_sqrt_box[None, :])
         projections.append((vectors.T @ (inv_sqrt_box * t.offset)) ** 2)
         eigenvalues.append(np.maximum(values, 0.0))
-    if len(tests) < 3:  # too few frames to tell: the residuals' own scale, with their (large) redundancy
-        return 1.0, float(min((t.dof for t in tests), default=1))
     p, lam = np.array(projections), np.array(eigenvalues)
 
-    def excess(log_f: float) -> float:
-        return float(np.median(np.sum(p / (np.exp(log_f) * lam + 1.0), axis=1))) - target
+    def score(log_f: float) -> float:  # d log-likelihood / d f, up to a positive factor
+        f = np.exp(log_f)
+        return float(np.sum(lam / (f * lam + 1.0) * (p / (f * lam + 1.0) - 1.0)))
 
-    factor = 1.0 if excess(0.0) <= 0 else float(np.exp(brentq(excess, 0.0, np.log(1e12), xtol=1e-6)))
-    m = target
-    return factor, 8.0 * len(tests) * (m * float(chi2.pdf(m, 6))) ** 2
+    factor = 1.0 if score(0.0) <= 0 else float(np.exp(brentq(score, 0.0, np.log(1e12), xtol=1e-6)))
+    share = factor * lam / (factor * lam + 1.0)
+    return factor, max(float(np.sum(share**2)), 1.0)
 
 
 def test_reported_poses(camera: Camera, measured: list[MeasuredPose], tracks: Tracks, poses: list[Pose],
