@@ -361,7 +361,7 @@ def _scale_of_images(tests: list[FramePoseTest], measured: list[MeasuredPose]) -
     The degrees of freedom are ``2 f^2`` times the Fisher information, ``sum (f l / (f l + 1))^2``: a
     direction the images fix far better than the box (``f l << 1``) says nothing about ``f`` and counts
     for nothing, one they fix far worse counts 1. So ``d2 / f`` of the tested frame is about ``6 F(6,
-    dof)``: with 10 other dome frames about 35, and the critical value at 0.1 % about 31 instead of 23.
+    dof)``: 14-38 from 8-10 other dome frames, and the critical value at 0.1 % 30-46 instead of 23.
     Not robust to a wrong report among the others (a mean of squares): the data snooping sets each found
     one aside before the others are tested again, and the tested frame's own disagreement is never in it.
     """
