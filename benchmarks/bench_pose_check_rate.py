@@ -99,19 +99,22 @@ def main(argv=None) -> int:
     previous = json.loads(out.read_text()) if out.is_file() else {}
     runs, default = previous.get("runs", []), previous.get("map_dome_with_and_without", {})
     tmp = Path(tempfile.mkdtemp(prefix="pose_check_rate_"))
+    out.parent.mkdir(parents=True, exist_ok=True)
+
+    def save() -> None:  # after every case: a long sweep stopped half-way keeps what it measured
+        write_json(out, {"summary": summary(runs), "map_dome_with_and_without": default, "runs": runs})
+
     if args.map_dome:
         default = map_dome_with_and_without(tmp)
         print(json.dumps(default, indent=1), flush=True)
+        save()
     for case in [c for c in args.cases.split(",") if c]:
         survey, seed, size = case.split(":")
         shift, turn = (0.0, float(size[:-3])) if size.endswith("deg") else (float(size), 0.0)
         row = one_case(survey, int(seed), shift, tmp, turn)
         print(json.dumps({k: v for k, v in row.items() if k != "frames"}), flush=True)
         runs = [r for r in runs if _key(r) != _key(row)] + [row]
-        out.parent.mkdir(parents=True, exist_ok=True)
-        write_json(out, {"summary": summary(runs), "map_dome_with_and_without": default, "runs": runs})
-    out.parent.mkdir(parents=True, exist_ok=True)
-    write_json(out, {"summary": summary(runs), "map_dome_with_and_without": default, "runs": runs})
+        save()
     print(json.dumps(summary(runs), indent=1))
     return 0
 
