@@ -4,11 +4,17 @@ For each case (survey, seed, glitch) the map's stages run up to the bounded adju
 alone (cheaper than two whole maps, which benchmarks/bench_pose_outliers.py runs). Recorded per frame:
 the statistic d2, its critical value, the p-value, and d2 against the *true* pose (what the test assumes is
 about 6 F(6, nu)); per case: flagged frames, hits (glitched frames found), false alarms, the variance
-factor, CPU time. A glitch moves frame n // 2's reported centre along x by G mm.
+factor, CPU time. A glitch moves frame n // 2's reported centre along x by G mm (``dome12:21:3``) or turns
+its reported orientation about x by G degrees (``dome12:21:2deg``). Surveys: ``dome12`` (12 frames of the
+5x6 grid), ``dome30`` (the whole 5x6 grid), ``dome56`` (the 7x8 grid); 320 x 240, reports +-0.5 mm /
++-0.25 deg.
 
-    PYTHONPATH=src python benchmarks/bench_pose_check_rate.py --cases dome12:21:0,dome12:21:3
+    PYTHONPATH=src python benchmarks/bench_pose_check_rate.py --cases dome12:21:0,dome12:21:3,dome12:21:2deg
 
-Results: results/pose_check_rate.json (merged with the cases already there).
+Results: results/pose_check_rate.json (merged with the cases already there), with a summary per survey:
+clean maps with a false alarm and the 95 % upper confidence bound on that rate (Clopper-Pearson), and
+how many clean frames' statistic against the *true* pose exceeded their critical value (the model says a
+fraction ``false_alarm_rate / frames`` of them).
 """
 from __future__ import annotations
 
@@ -29,25 +35,26 @@ sys.path.insert(0, str(ROOT / "src"))
 from scope3d import phantoms  # noqa: E402
 from scope3d.feature.tracks import build_tracks  # noqa: E402
 from scope3d.geometry.pose import Pose  # noqa: E402
-from scope3d.geometry.rotation import matrix_to_rotvec  # noqa: E402
+from scope3d.geometry.rotation import matrix_to_rotvec, rotvec_to_matrix  # noqa: E402
 from scope3d.io.dataset import load_dataset  # noqa: E402
 from scope3d.pipelines import surgical_map as sm  # noqa: E402
 from scope3d.sensor.pose_tolerance import MeasuredPose  # noqa: E402
 from scope3d.sfm.pose_checks import PoseCheckOptions, test_reported_poses  # noqa: E402
 from scope3d.utils.jsonio import write_json  # noqa: E402
 
-SURVEYS = {"dome12": ("grid5x6", 12), "dome56": ("grid7x8", 56)}
+SURVEYS = {"dome12": ("grid5x6", 12), "dome30": ("grid5x6", 30), "dome56": ("grid7x8", 56)}
 
 
-def one_case(survey: str, seed: int, shift_mm: float, tmp: Path) -> dict:
+def one_case(survey: str, seed: int, shift_mm: float, tmp: Path, turn_deg: float = 0.0) -> dict:
     trajectory, n = SURVEYS[survey]
     seq = phantoms.generate("dome", trajectory, size=(320, 240), seed=seed, n_frames=n, pose_noise_mm=0.5)
     dataset = load_dataset(phantoms.write(seq, tmp / f"{survey}_{seed}"))
-    glitched = [n // 2] if shift_mm else []
+    glitched = [n // 2] if shift_mm or turn_deg else []
     poses = list(dataset.poses)
     for k in glitched:
         m = poses[k]
-        poses[k] = MeasuredPose(Pose.from_centre(m.pose.rotation, m.pose.centre + [shift_mm, 0.0, 0.0]), m.tolerance)
+        rotation = rotvec_to_matrix(np.deg2rad([turn_deg, 0.0, 0.0])) @ m.pose.rotation
+        poses[k] = MeasuredPose(Pose.from_centre(rotation, m.pose.centre + [shift_mm, 0.0, 0.0]), m.tolerance)
     dataset = replace(dataset, poses=poses)
     options = replace(sm.MapOptions(), figures=False, fluorescence=None, pose_check=PoseCheckOptions())
     frames = [dataset.frame(k) for k in range(len(dataset))]
@@ -68,11 +75,13 @@ def one_case(survey: str, seed: int, shift_mm: float, tmp: Path) -> dict:
                                 truth[t.frame].centre - report.centre]
             e = t.offset - true_offset
             row.update(d2=round(t.statistic, 3), critical=round(t.critical_value, 2), p_value=t.p_value,
+                       variance_factor=round(t.variance_factor, 3), factor_dof=round(t.factor_dof, 1),
                        d2_vs_truth=round(float(e @ np.linalg.solve(t.covariance, e)), 3), flagged=t.flagged,
                        error_vs_truth_mm=round(float(np.linalg.norm(e[3:])), 3))
         frames_out.append(row)
     flagged = check.flagged
-    return {"survey": survey, "seed": seed, "shift_mm": shift_mm, "glitched": glitched, "flagged": flagged,
+    return {"survey": survey, "seed": seed, "shift_mm": shift_mm, "turn_deg": turn_deg, "glitched": glitched,
+            "flagged": flagged,
             "hits": len(set(flagged) & set(glitched)), "false_alarms": sorted(set(flagged) - set(glitched)),
             "variance_factor": check.variance_factor, "frames_tested": sum(r["status"] == "ok" for r in frames_out),
             "check_cpu_s": round(cpu, 2), "load_average": list(os.getloadavg()), "frames": frames_out}
@@ -80,20 +89,93 @@ def one_case(survey: str, seed: int, shift_mm: float, tmp: Path) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--cases", required=True, help="comma-separated survey:seed:shift_mm")
+    ap.add_argument("--cases", default="", help="comma-separated survey:seed:shift_mm or survey:seed:Gdeg")
+    ap.add_argument("--map-dome", action="store_true",
+                    help="also map benchmarks/bench_map_dome.py's bounded tracker and robot cases (608 x 608, 30 "
+                         "frames) with the check and without: would turning it on by default change them?")
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "pose_check_rate.json"))
     args = ap.parse_args(argv)
     out = Path(args.out)
-    runs = json.loads(out.read_text())["runs"] if out.is_file() else []
+    previous = json.loads(out.read_text()) if out.is_file() else {}
+    runs, default = previous.get("runs", []), previous.get("map_dome_with_and_without", {})
     tmp = Path(tempfile.mkdtemp(prefix="pose_check_rate_"))
-    for case in args.cases.split(","):
-        survey, seed, shift = case.split(":")
-        row = one_case(survey, int(seed), float(shift), tmp)
+    out.parent.mkdir(parents=True, exist_ok=True)
+
+    def save() -> None:  # after every case: a long sweep stopped half-way keeps what it measured
+        write_json(out, {"summary": summary(runs), "map_dome_with_and_without": default, "runs": runs})
+
+    if args.map_dome:
+        default = map_dome_with_and_without(tmp)
+        print(json.dumps(default, indent=1), flush=True)
+        save()
+    for case in [c for c in args.cases.split(",") if c]:
+        survey, seed, size = case.split(":")
+        shift, turn = (0.0, float(size[:-3])) if size.endswith("deg") else (float(size), 0.0)
+        row = one_case(survey, int(seed), shift, tmp, turn)
         print(json.dumps({k: v for k, v in row.items() if k != "frames"}), flush=True)
-        runs = [r for r in runs if (r["survey"], r["seed"], r["shift_mm"]) != (survey, int(seed), float(shift))] + [row]
-        out.parent.mkdir(parents=True, exist_ok=True)
-        write_json(out, {"runs": runs})
+        runs = [r for r in runs if _key(r) != _key(row)] + [row]
+        save()
+    print(json.dumps(summary(runs), indent=1))
     return 0
+
+
+def map_dome_with_and_without(tmp: Path) -> dict:
+    """bench_map_dome.py's dome (5x6 grid, 608 x 608, seed 0) with its tracker and robot reports, mapped in
+    bounded mode with the pose check and without, in this process: surface error, frames flagged, CPU."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from bench_map_dome import POSE_SOURCES, measured_poses
+
+    seq = phantoms.generate("dome", "grid5x6", seed=0)
+    rows = {"load_average_before": list(os.getloadavg())}
+    for source in ("tracker", "robot"):
+        seq.measured_poses = measured_poses(source, seq.true_poses)
+        dataset = load_dataset(phantoms.write(seq, tmp / f"dome_{source}"))
+        rows[source] = {"description": POSE_SOURCES[source]}
+        for name, check in (("without", None), ("with", PoseCheckOptions())):
+            options = replace(sm.MapOptions(pose_mode="bounded"), figures=False, pose_check=check)
+            t0 = time.process_time()
+            report = sm.run(options, dataset, tmp / f"out_{source}_{name}").report
+            test = report["model_checks"].get("reported_pose_test")
+            rows[source][name] = {
+                "cpu_s": round(time.process_time() - t0, 2), "pose_check_wall_s": report["timings_s"].get("pose check"),
+                "direct_mean_mm": report["surface_error_mm"]["direct"]["mean"],
+                "after_icp_mean_mm": report["surface_error_mm"]["after_icp"]["mean"],
+                "flagged": [f["frame"] for f in test["flagged"]] if test else None,
+                "variance_factor": test["variance_factor"] if test else None}
+    rows["load_average_after"] = list(os.getloadavg())
+    return rows
+
+
+def _key(row: dict) -> tuple:
+    return row["survey"], row["seed"], row["shift_mm"], row.get("turn_deg", 0.0)
+
+
+def summary(runs: list[dict]) -> dict:
+    """Per survey: clean maps with any frame flagged (stated: the false-alarm rate) with the one-sided 95 %
+    Clopper-Pearson upper bound on that rate, and clean frames whose statistic against the true pose
+    exceeded their critical value; per glitch: found / runs."""
+    from scipy.stats import beta
+
+    out = {}
+    for survey in sorted({r["survey"] for r in runs}):
+        clean = [r for r in runs if r["survey"] == survey and not r["glitched"]]
+        alarms = sum(bool(r["false_alarms"]) for r in clean)
+        frames = [f for r in clean for f in r["frames"] if f["status"] == "ok"]
+        entry = {"clean_maps": len(clean), "clean_maps_with_a_false_alarm": alarms,
+                 "false_alarm_rate_upper_95": round(float(beta.ppf(0.95, alarms + 1, len(clean) - alarms)), 3)
+                 if clean else None,
+                 "clean_frames_tested": len(frames),
+                 "clean_frames_beyond_critical_against_truth": sum(f["d2_vs_truth"] > f["critical"] for f in frames),
+                 "glitches": {}}
+        for r in runs:
+            if r["survey"] == survey and r["glitched"]:
+                name = f"{r['turn_deg']:g} deg" if r.get("turn_deg") else f"{r['shift_mm']:g} mm"
+                g = entry["glitches"].setdefault(name, {"runs": 0, "found": 0, "clean_frames_flagged": 0})
+                g["runs"] += 1
+                g["found"] += r["hits"]
+                g["clean_frames_flagged"] += len(r["false_alarms"])
+        out[survey] = entry
+    return out
 
 
 if __name__ == "__main__":

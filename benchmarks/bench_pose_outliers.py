@@ -10,7 +10,8 @@ false-alarm rate and releases the ones found wrong. This benchmark sweeps
   glitched frames -- 1 or more frames (``--counts``), chosen from the middle of the frame order with a seed;
   seeds         -- phantom renderings and report noise (``--seeds``);
   survey        -- ``dome12``: dome, 12 frames of the 5x6 grid, 320 x 240, reports +-0.5 mm / +-0.25 deg
-                   (docs/reliability.md section 5's case); ``dome56``: the 56-frame 7x8 survey, same camera;
+                   (docs/reliability.md section 5's case); ``dome30``: the whole 5x6 grid; ``dome56``: the
+                   56-frame 7x8 survey, same camera;
 
 and maps every dataset with the check on and off, in the same process. Recorded per run: mean surface
 error direct and after ICP, the frames flagged, which glitched frames were found (hits) and which clean
@@ -45,7 +46,7 @@ from scope3d.sfm.pose_checks import PoseCheckOptions  # noqa: E402
 from scope3d.utils.jsonio import write_json  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
-SURVEYS = {"dome12": ("grid5x6", 12), "dome56": ("grid7x8", 56)}
+SURVEYS = {"dome12": ("grid5x6", 12), "dome30": ("grid5x6", 30), "dome56": ("grid7x8", 56)}
 
 
 def glitched(dataset, frames: list[int], shift_mm: float, turn_deg: float):
@@ -79,7 +80,7 @@ def main(argv=None) -> int:
     ap.add_argument("--glitches", default="0,1,2,5", help="centre shifts, mm (0: clean)")
     ap.add_argument("--turn-glitches", default="2", help="orientation glitches, deg (one frame)")
     ap.add_argument("--counts", default="1,2", help="glitched frames per dataset (shifts only)")
-    ap.add_argument("--dome56-seeds", default="21", help="seeds for the 56-frame survey (slow)")
+    ap.add_argument("--dome56-seeds", default="21", help="seeds for the 30- and 56-frame surveys (slow)")
     ap.add_argument("--quick", action="store_true", help="one seed, dome12, 0 and 2 mm")
     ap.add_argument("--out", default=str(RESULTS / "pose_outliers.json"))
     ap.add_argument("--merge", action="store_true",
@@ -91,7 +92,7 @@ def main(argv=None) -> int:
     tmp = Path(tempfile.mkdtemp(prefix="pose_outliers_"))
     for survey in args.surveys.split(","):
         trajectory, n_frames = SURVEYS[survey]
-        seeds = args.dome56_seeds if survey == "dome56" else args.seeds
+        seeds = args.seeds if survey == "dome12" else args.dome56_seeds
         for seed in [int(s) for s in seeds.split(",")]:
             seq = phantoms.generate("dome", trajectory, size=(320, 240), seed=seed, n_frames=n_frames, pose_noise_mm=0.5)
             dataset = load_dataset(phantoms.write(seq, tmp / f"{survey}_{seed}"))
@@ -134,7 +135,7 @@ def plot(runs: list[dict], path: Path) -> None:
     fig = new_figure(figsize=(10, 4))
     for a, key in enumerate(("direct_mm", "after_icp_mm")):
         ax = fig.add_subplot(1, 2, a + 1)
-        for survey, marker in (("dome12", "o"), ("dome56", "s")):
+        for survey, marker in (("dome12", "o"), ("dome30", "^"), ("dome56", "s")):
             for check, colour in (("check", "tab:blue"), ("no_check", "tab:red")):
                 rows = [r for r in runs if r["survey"] == survey and r["kind"] == "shift"]
                 if not rows:
