@@ -183,3 +183,16 @@ def test_pairs_disagreeing_with_the_averaged_rotations_are_inconsistent():
                               np.array([1.0, 0, 0]), np.ones(20, bool), sigma, sigma))
     keep = consistent_pairs(rotations, pairs)
     assert keep[:-1].all() and not keep[-1]
+
+
+def test_wall_spread_is_small_for_a_wall_at_one_distance_and_grows_when_scattered():
+    from scope3d.sfm.cavity_mapping import wall_spread
+    rng = np.random.default_rng(4)
+    d = rng.normal(size=(2000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    ellipsoid = d * np.array([45.0, 38.0, 32.0]) + 7.0  # the bladder phantom's semi-axes (~90 x 76 x 64 mm)
+    scattered = d * rng.uniform(20.0, 70.0, (2000, 1))  # points anywhere in the anatomical shell
+    # the ellipsoid's distances from its centre: semi-axes within +-17 % of their mean, median absolute
+    # deviation ~0.06; uniform radii between 20 and 70 mm: 12.5 / 45 ~ 0.28
+    assert wall_spread(ellipsoid) < 0.15 < 0.2 < wall_spread(scattered)
+    assert wall_spread(ellipsoid[:3]) == float("inf")
