@@ -164,3 +164,35 @@ def test_pairs_the_start_says_overlap_are_matched_and_verified_against_the_truth
     # 1.0 % against 5-10 %); a few dozen cross-turn matches here, so at most 5 % (2 of 40)
     assert wrong(verified).sum() <= wrong(more).sum()
     assert wrong(verified).mean() <= 0.05
+
+
+def test_pairs_disagreeing_with_the_averaged_rotations_are_inconsistent():
+    from scope3d.estimators.averaging import RelativePose
+    from scope3d.geometry.rotation import rotvec_to_matrix
+    from scope3d.sfm.cavity_mapping import consistent_pairs
+    rng = np.random.default_rng(3)
+    rotations = np.stack([rotvec_to_matrix(rng.normal(0.0, 0.5, 3)) for _ in range(6)])
+    sigma = np.deg2rad(0.5)  # a consecutive pair's rotation sigma on the 608 px spiral: 0.1-0.8 deg
+    pairs = []
+    for i, j in [(0, 1), (1, 2), (2, 3), (3, 4), (4, 5), (0, 2), (1, 3), (2, 4)]:
+        noise = rotvec_to_matrix(rng.normal(0.0, sigma / np.sqrt(3.0), 3))  # errors of the pair's own sigma
+        pairs.append(RelativePose(i, j, noise @ rotations[j] @ rotations[i].T, np.array([1.0, 0, 0]),
+                                  np.ones(20, bool), sigma, sigma))
+    # a pair fallen into another solution: 10 deg off (the unseen cavity's were 10-110 deg off at 0.2-1.5 deg sigma)
+    pairs.append(RelativePose(1, 4, rotvec_to_matrix(np.deg2rad([10.0, 0, 0])) @ rotations[4] @ rotations[1].T,
+                              np.array([1.0, 0, 0]), np.ones(20, bool), sigma, sigma))
+    keep = consistent_pairs(rotations, pairs)
+    assert keep[:-1].all() and not keep[-1]
+
+
+def test_wall_spread_is_small_for_a_wall_at_one_distance_and_grows_when_scattered():
+    from scope3d.sfm.cavity_mapping import wall_spread
+    rng = np.random.default_rng(4)
+    d = rng.normal(size=(2000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    ellipsoid = d * np.array([45.0, 38.0, 32.0]) + 7.0  # the bladder phantom's semi-axes (~90 x 76 x 64 mm)
+    scattered = d * rng.uniform(20.0, 70.0, (2000, 1))  # points anywhere in the anatomical shell
+    # the ellipsoid's distances from its centre: semi-axes within +-17 % of their mean, median absolute
+    # deviation ~0.06; uniform radii between 20 and 70 mm: 12.5 / 45 ~ 0.28
+    assert wall_spread(ellipsoid) < 0.15 < 0.2 < wall_spread(scattered)
+    assert wall_spread(ellipsoid[:3]) == float("inf")

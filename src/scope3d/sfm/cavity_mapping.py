@@ -15,7 +15,8 @@ distance, the ambiguous one bends it (:func:`cavity_relative_pose`). The steps, 
 2. :func:`start_rotations` — rotations chained along a minimum spanning tree of the verified pairs (the
    most certain rotations first), then averaged over every pair (:func:`scope3d.estimators.averaging.average_rotations`).
 3. :func:`start_centres` — every pair's baseline scaled by the median depth of its points (the wall is at
-   about one distance from a scope inside it), all pairs solved together by robust least squares. The
+   about one distance from a scope inside it), all pairs whose rotation agrees with the averaged ones
+   (:func:`consistent_pairs`) solved together by robust least squares. The
    gauge: the first camera, rescaled so that the sphere fitted to the points has the nominal radius (the
    provisional scale until the stars set it).
 4. Tracks from every geometrically verified pair: the pairs the start says overlap are matched too
@@ -27,8 +28,9 @@ distance, the ambiguous one bends it (:func:`cavity_relative_pose`). The steps, 
    bounded to the spherical shell between an anatomical minimum and maximum radius
    (:meth:`BundleProblem.bound_points_to_shell`); bundle adjustment, observations farther than the
    reprojection gate dropped and the adjustment repeated; points outside the shell dropped. The chain of
-   posed pairs alone, adjusted from the depth-scaled start, is the fallback; the map that explains more
-   verified matches within the gate is kept. Planned poses (finite tolerance) start the poses and bound
+   posed pairs alone, adjusted from the depth-scaled start, is the fallback; the all-pair map is kept when
+   it explains more verified matches within the gate and its wall is no less at one distance from the
+   centre (:func:`wall_spread`). Planned poses (finite tolerance) start the poses and bound
    them (BCBA) instead of steps 2-4, and the pairs the plan says overlap are matched.
 
 What limited the image-only map (36-frame spiral): the frames overlap only their neighbours (35-65 %),
@@ -36,7 +38,9 @@ so the pairs that passed the shape test formed a chain with a few cross-turn lin
 views, which fix no ratio between baselines (wall 2.06 mm mean at 608 px). With every geometrically
 verified pair in the tracks and the centres from their rays, 0.175 mm at 608 px. At 256 px the start is
 2.6 deg off and the all-pair map falls into another minimum (a block of frames 9 deg off): the chain's map
-(1.76 mm) explains more matches there and is kept.
+(2.44 mm) is kept. On an unseen cavity at 608 px six posed pairs 10-110 deg off pulled the start's centres
+5 mm off through their baselines and the all-pair map ended at 11.4 mm; without them (:func:`consistent_pairs`)
+0.194 mm.
 
 Units: mm (provisional until :mod:`scope3d.metrology.star_scale` rescales), radians; pixels with their
 origin at the top-left pixel's centre. Poses are ``cam_from_world``.
@@ -392,6 +396,39 @@ def start_rotations(n: int, relative: list[RelativePose], *, where: str = "datas
     return rotations @ rotations[0].T  # gauge: frame 0 the identity
 
 
+#: a pair whose relative rotation disagrees with the averaged rotations by more than this many of its
+#: sigmas (its own, times the common factor of all pairs' normalised disagreements) is inconsistent: 3 sigma,
+#: the usual outlier gate of a Gaussian error
+_CONSISTENT_SIGMAS = 3.0
+
+
+def consistent_pairs(rotations: np.ndarray, relative: list[RelativePose]) -> np.ndarray:
+    """(len(relative),) bool: the pairs whose relative rotation ``R_ji`` agrees with ``rotations`` (n, 3,
+    3, ``cam_from_world``) within ``_CONSISTENT_SIGMAS`` of its ``rotation_sigma_rad`` (times the robust
+    common factor, at least 1, of every pair's normalised disagreement; the weighting of
+    :func:`average_rotations`).
+
+    Why: a pair whose relative pose fell into another solution (the bas-relief ambiguity, or a few matches
+    fitting a wrong motion) has a wrong baseline direction too. The robust rotation averaging outvotes it,
+    but :func:`start_centres` takes its direction. On the unseen cavity (``--shape-seed 5 --cavity-mm
+    40,35,30``, 608 px) 9 of 51 posed pairs were 2-110 deg off; the averaged rotations stayed within 2.1
+    deg of the truth, the centres from every pair were up to 5 mm off and the all-pair map ended at 11.4
+    mm mean wall error; without the pairs this test drops, 1.3-1.5 mm and 0.19-0.21 mm."""
+    if not relative:
+        return np.zeros(0, bool)
+    R = np.asarray(rotations, float)
+    ii = np.array([r.i for r in relative])
+    jj = np.array([r.j for r in relative])
+    A = R[jj] @ np.swapaxes(R[ii], 1, 2)
+    e = np.stack([r.rotation for r in relative]) @ np.swapaxes(A, 1, 2)
+    resid = np.arccos(np.clip((np.trace(e, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0))
+    sigma = np.array([r.rotation_sigma_rad for r in relative], float)
+    sigma = np.where(np.isfinite(sigma) & (sigma > 0), sigma, np.inf)
+    normalised = resid / sigma
+    factor = _robust_sigma(normalised[np.isfinite(sigma)], 1.0) if len(relative) >= 3 else 1.0
+    return normalised <= _CONSISTENT_SIGMAS * factor
+
+
 def start_centres(camera: Camera, rotations: np.ndarray, relative: list[RelativePose], matches: list[PairMatches],
                   features: list[Features], *, iterations: int = 10, where: str = "dataset") -> np.ndarray:
     """(n, 3) centres, frame 0 at the origin, in units of the wall's distance: each pair's baseline scaled
@@ -453,6 +490,19 @@ def fit_sphere(points: np.ndarray) -> tuple[np.ndarray, float]:
     sol = np.linalg.lstsq(A, np.einsum("ij,ij->i", X, X), rcond=None)[0]
     centre = sol[:3]
     return centre, float(np.sqrt(max(sol[3] + centre @ centre, 0.0)))
+
+
+def wall_spread(points: np.ndarray) -> float:
+    """Spread of the points' (N, 3) distances from the centre of their fitted sphere (:func:`fit_sphere`):
+    median absolute deviation over the median; inf with fewer than four points. A wall seen from inside a
+    cavity is at nearly one distance from its centre (the maps kept on the bladder phantoms, 608 and 256
+    px: 0.04-0.06); an all-pair map fallen into another minimum scatters them (0.08-0.22 measured). No
+    threshold: :func:`map_cavity` only compares two maps of the same frames."""
+    if len(points) < 4:
+        return float("inf")
+    r = np.linalg.norm(np.asarray(points, float) - fit_sphere(points)[0], axis=1)
+    med = float(np.median(r))
+    return float(np.median(np.abs(r - med)) / med)
 
 
 # --- 4. adjustment --------------------------------------------------------------------------------
@@ -579,7 +629,13 @@ def map_cavity(camera: Camera, features: list[Features], measured: list[Measured
         times["adjust_s"] = time.perf_counter() - t0
     else:
         rotations = start_rotations(n, relative, where=where)
-        centres = start_centres(camera, rotations, relative, matches, features, where=where)
+        # the centres from the pairs whose rotation agrees with the averaged ones (their baselines too)
+        keep = consistent_pairs(rotations, relative)
+        try:
+            centres = start_centres(camera, rotations, [r for r, k in zip(relative, keep) if k],
+                                    [m for m, k in zip(matches, keep) if k], features, where=where)
+        except InputError:  # a frame tied by inconsistent pairs only: every pair, rather than no map
+            centres = start_centres(camera, rotations, relative, matches, features, where=where)
         chain = build_tracks(features, matches)
         start = _provisional_scale(camera, poses_from(rotations, centres), chain, options)
         # the tracks of every geometrically verified pair: those the start says overlap (two-apart,
@@ -599,14 +655,19 @@ def map_cavity(camera: Camera, features: list[Features], measured: list[Measured
         tracks, poses, stages = adjust_cavity(camera, every, poses_from(rotations, centres), options)
         # the chain of posed pairs alone, adjusted from the depth-scaled start, is the fallback: a start
         # degrees off (2.6 deg at 256 px) can let the cross-turn tracks pull a block of frames into another
-        # minimum. The map that explains more of the verified matches within the reprojection gate wins
+        # minimum. The all-pair map is kept only when it is the better one by the data (explains more of
+        # the verified matches within the reprojection gate) and by the cavity (its wall spreads its
+        # distances from the fitted centre no more): on the 256 px spiral a broken all-pair map (14.7 mm
+        # mean wall error) explained 6,897 observations against the chain's 6,716, with a spread of 0.22
+        # against 0.04
         chain_tracks, chain_poses, chain_stages = adjust_cavity(camera, chain, start, options)
         explained = [triangulate_tracks(camera, p, every, options.tracks).n_observations for p in (poses, chain_poses)]
-        if explained[1] > explained[0]:
+        spread = [wall_spread(t.points) for t in (tracks, chain_tracks)]
+        if explained[1] > explained[0] or spread[0] > spread[1]:
             tracks, poses, stages = chain_tracks, chain_poses, chain_stages
         else:
             matches = matches + more
-        stages = [{**st, "explained_observations": explained} for st in stages]
+        stages = [{**st, "explained_observations": explained, "wall_spread": spread} for st in stages]
         times["adjust_s"] = time.perf_counter() - t0
     centre, radius = fit_sphere(tracks.points)
     registered = np.bincount(tracks.frame, minlength=n) >= options.min_observations
