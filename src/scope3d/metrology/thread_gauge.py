@@ -526,6 +526,59 @@ def remeasure(result: GaugeResult, points: np.ndarray, noise_mm: float = 0.01) -
             "virtual_pitch_diameter": d2 - 1.732 * abs(x[4] - st["pitch_nominal"]) * st["turns"] - st["f_alpha"]}
 
 
+PROFILE_PARTS = ("crest", "flank towards +z", "flank towards -z", "root")
+
+
+def profile_parts(result: GaugeResult, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Which part of the fitted profile each fitted point lies on, and the profile's outward normal there.
+
+    points : (N, 3) mm, the cloud ``result`` was measured on. Returns (part (M,) int, index into
+    :data:`PROFILE_PARTS`; normal (M, 3) unit, pointing into the material) for the M fitted points
+    (``result.fit_state['index']``): crest and root flats normal along the radius, each flank normal to its
+    straight line in the point's axial half-plane."""
+    st = result.fit_state
+    x = st["x"]
+    pitch, phase, r1, r2, rp, half = x[4], x[5], x[6], x[7], x[8], x[9]
+    axis_point, axis_dir = _axis_from_params(st["p0"], st["base"], *x[:4])
+    frame = _frame(axis_dir)
+    local = (np.asarray(points, float)[st["index"]] - axis_point) @ frame.T
+    t = np.arctan2(local[:, 1], local[:, 0])
+    w = np.mod(local[:, 2] - pitch * t / (2 * np.pi) - phase + pitch / 2, pitch) - pitch / 2
+    hc, hr = 0.25 * pitch + (r1 - rp) * np.tan(half), 0.25 * pitch + (r2 - rp) * np.tan(half)
+    aw = np.abs(w)
+    part = np.where(aw <= hc, 0, np.where(aw >= hr, 3, np.where(w > 0, 1, 2)))
+    # flank line from (hc, r1) to (hr, r2) in (|w|, r): into the material is towards the tooth and outwards
+    length = np.hypot(hr - hc, r2 - r1)
+    n_w, n_r = -(r2 - r1) / length, (hr - hc) / length
+    axial = np.where(part == 1, n_w, np.where(part == 2, -n_w, 0.0))
+    radial_part = np.where((part == 1) | (part == 2), n_r, 1.0)
+    radial = np.cos(t)[:, None] * frame[0] + np.sin(t)[:, None] * frame[1]
+    return part, radial_part[:, None] * radial + axial[:, None] * frame[2]
+
+
+def profile_bias_systematic(result: GaugeResult, points: np.ndarray, bias_mm: float, noise_mm: float = 0.01) -> dict:
+    """The sizes' systematic standard uncertainty (mm; keys as :func:`remeasure`'s) from a bias of the
+    cloud's points along the surface normal that differs between the parts of the profile (crest, each
+    flank, root): a reconstruction places its points on a flank seen obliquely, or on a root seen past a
+    crest, a little off the surface, each part by its own amount, and the fit turns that into a size
+    error no point residual shows. Each part's points are moved by ``bias_mm`` (a standard uncertainty of
+    a part's offset) into the material and the profile re-fitted (:func:`remeasure`); the four size
+    changes, taken as independent, add in quadrature."""
+    base = remeasure(result, points, noise_mm)
+    part, normal = profile_parts(result, points)
+    index = result.fit_state["index"]
+    shifts = []
+    for k in range(len(PROFILE_PARTS)):
+        sel = part == k
+        if not sel.any():
+            continue
+        moved = np.array(points, float, copy=True)
+        moved[index[sel]] += bias_mm * normal[sel]
+        sizes = remeasure(result, moved, noise_mm)
+        shifts.append({key: sizes[key] - base[key] for key in base})
+    return {key: float(np.sqrt(sum(s[key] ** 2 for s in shifts))) for key in base} if shifts else {}
+
+
 def with_systematic(result: GaugeResult, systematic_mm: dict, options: GaugeOptions) -> GaugeResult:
     """``result`` with a systematic standard uncertainty (mm; keys as :func:`remeasure`'s, missing = 0)
     added in quadrature to each size's statistical one, and the verdict judged again on the combined
