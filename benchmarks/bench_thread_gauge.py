@@ -1,11 +1,12 @@
 """The thread gauge from images (issue 13): ``thread-scan`` on rendered holes seen by a 90° side view,
 against the holes' as-made sizes, and the verdict each gets.
 
-Each hole: 12 quadrants of 10 frames, 400x320 px, 60° FOV, the scope advancing 0.5 mm per frame (0.6 mm
-for the M10, whose 5-pitch gaugeable stretch is longer) from 1.5 mm below the opening; the camera 0.22 mm
-off and 0.5° tilted from the rotation axis, unknown to the stage. A 90° view sees ~3 mm of wall per frame,
-so the scope must advance ~4.5 mm to show the ~5 pitches the gauge needs (2 gauged + a pitch of run-out
-at each end + the zone's one-pitch window). Holes: mid-class 6H M8x1.25, M6x1, M10x1.5 (must pass); an M8
+Each hole: 12 quadrants, 400x320 px, 60° FOV, from 1.5 mm below the opening; the camera 0.22 mm off and
+0.5° tilted from the rotation axis, unknown to the stage. The scan follows
+:func:`scope3d.metrology.thread_scan_plan.plan_quadrant_scan` for every size: the step is the view's axial
+extent on the wall (2.5 / 3.3 / 4.2 mm for M6 / M8 / M10 at 90°) over 8 views per point, the frame gap
+keeps matched frames' views half overlapping, and the scope advances until 5.5 pitches of thread were in
+view (2 gauged + a pitch of run-out at each end + the zone's one-pitch window + margin). Holes: mid-class 6H M8x1.25, M6x1, M10x1.5 (must pass); an M8
 with its pitch diameter 0.09 mm above D2 max (must fail, no-go); an M8 mid-class hole with a chipped crest
 (200°, 20° wide, 0.15 mm deep, on the crest turn nearest z = -4 mm, inside the scanned stretch; must fail
 with the defect at 200° ± 10°).
@@ -36,24 +37,30 @@ import numpy as np
 from scope3d.errors import InputError
 from scope3d.io.dataset import load_dataset
 from scope3d.phantoms import generate, write
+from scope3d.phantoms.lab import BORESCOPE_FOV_DEG
+from scope3d.metrology.thread_scan_plan import QuadrantScanPlan, plan_quadrant_scan
 from scope3d.pipelines.thread_scan import ThreadScanOptions, run
+from scope3d.sensor.camera import Camera
 from scope3d.utils.figures import new_figure, save_figure
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "results"
 MOUNT = (0.2, -0.1, 0.5)
-# (thread, (minor, pitch, major) diameter offsets mm, defect, advance per frame mm, expected verdict)
+# (thread, (minor, pitch, major) diameter offsets mm, defect, expected verdict)
 HOLES = {
-    "m8_mid": ("M8x1.25", (0.132, 0.08, 0.05), None, 0.5, "pass"),
-    "m8_fail": ("M8x1.25", (0.132, 0.25, 0.05), None, 0.5, "fail"),
-    "m8_defect": ("M8x1.25", (0.132, 0.08, 0.05), (200.0, 20.0, 0.15, -4.0), 0.5, "fail"),
-    "m6_mid": ("M6x1", (0.118, 0.075, 0.05), None, 0.5, "pass"),
-    "m10_mid": ("M10x1.5", (0.15, 0.09, 0.05), None, 0.6, "pass"),
+    "m8_mid": ("M8x1.25", (0.132, 0.08, 0.05), None, "pass"),
+    "m8_fail": ("M8x1.25", (0.132, 0.25, 0.05), None, "fail"),
+    "m8_defect": ("M8x1.25", (0.132, 0.08, 0.05), (200.0, 20.0, 0.15, -4.0), "fail"),
+    "m6_mid": ("M6x1", (0.118, 0.075, 0.05), None, "pass"),
+    "m10_mid": ("M10x1.5", (0.15, 0.09, 0.05), None, "pass"),
 }
-FRAMES_PER_QUADRANT = 10
-# Frames up to 3 steps (1.5 mm) apart are matched: farther ones share little of a 90° view's ~3 mm of wall,
-# and matching all pairs of 10 frames (7 apart, the default) cost 1.7x the mapping time for no accuracy.
-FRAME_GAP = 3
+SIZE = (400, 320)
+SIDE_VIEW_DEG = 90.0
+CAMERA = Camera.from_fov(*SIZE, BORESCOPE_FOV_DEG)  # the phantom lab's borescope at this size
+
+
+def plan(name: str) -> QuadrantScanPlan:
+    return plan_quadrant_scan(CAMERA, HOLES[name][0], SIDE_VIEW_DEG)
 
 
 def load() -> str:
@@ -61,22 +68,25 @@ def load() -> str:
 
 
 def dataset(data: Path, name: str) -> Path:
-    thread, offsets, defect, step, _ = HOLES[name]
-    path = data / name
+    thread, offsets, defect, _ = HOLES[name]
+    scan = plan(name)
+    path = data / f"{name}_{scan.frames_per_quadrant}x{scan.step_mm:.2f}mm"  # a rerun with another plan renders anew
     if not (path / "quadrants.json").is_file():
-        seq = generate("thread", "quadrants", thread=thread, n_frames=12 * FRAMES_PER_QUADRANT, size=(400, 320),
-                       side_view_deg=90.0, quadrant_mount=MOUNT, quadrant_step_mm=step, thread_offsets_mm=offsets,
-                       thread_defect=defect)
+        seq = generate("thread", "quadrants", thread=thread, n_frames=12 * scan.frames_per_quadrant, size=SIZE,
+                       side_view_deg=SIDE_VIEW_DEG, quadrant_mount=MOUNT, quadrant_step_mm=scan.step_mm,
+                       thread_offsets_mm=offsets, thread_defect=defect)
         write(seq, path)
     return path
 
 
 def measure(data: Path, name: str, scratch: Path, seed: int = 0) -> dict:
-    thread, _, defect, step, expected = HOLES[name]
+    thread, _, defect, expected = HOLES[name]
     ds = load_dataset(dataset(data, name))
+    scan = plan(name)
     options = ThreadScanOptions(designation=thread, seed=seed)
-    options = replace(options, mapping=replace(options.mapping, max_frame_gap=FRAME_GAP))
-    row = {"thread": thread, "expected": expected, "step_mm": step, "seed": seed, "load_before": load()}
+    options = replace(options, mapping=replace(options.mapping, max_frame_gap=scan.frame_gap))
+    row = {"thread": thread, "expected": expected, "scan": scan.to_dict(), "step_mm": scan.step_mm, "seed": seed,
+           "load_before": load()}
     t0, c0 = time.perf_counter(), time.process_time()
     try:
         result = run(options, ds, scratch / name)
@@ -104,6 +114,7 @@ def measure(data: Path, name: str, scratch: Path, seed: int = 0) -> dict:
         sigma_parts_mm={k: {"statistical": m.statistical, "systematic": m.systematic} for k, m in (
             ("minor_diameter", g.minor_diameter_mm), ("pitch_diameter", g.pitch_diameter_mm),
             ("major_diameter", g.major_diameter_mm), ("pitch", g.pitch_mm))},
+        systematic_by_source_mm=result.systematic_mm,
         flank_angle_deg=g.flank_angle_deg.to_dict(), flank_angle_held=g.profile["flank_angle_held"],
         zone_mm=list(g.zone_mm), defects=[d.to_dict() for d in g.defects],
         registration={k: result.errors[k] for k in ("rotation_error_deg", "offset_error_mm")} if result.errors else None)
@@ -115,11 +126,22 @@ def measure(data: Path, name: str, scratch: Path, seed: int = 0) -> dict:
 
 def calibration(rows: dict) -> dict:
     """|error| / stated sigma over every measured hole, seed and size (D1, D2, D, P): fraction within 1 and
-    2 sigma, with the statistical sigma alone and with the combined one."""
+    2 sigma, with the statistical sigma alone, with the registration's systematic term added, and with
+    every term (the registration's and the sparse points' per-part bias)."""
+    def registration_only(r, k):
+        reg = r.get("systematic_by_source_mm", {}).get("registration", {}).get(k)
+        if reg is None:  # rows measured before the point-bias term: their systematic was the registration's
+            return r["sigma_mm"][k]
+        return float(np.hypot(r["sigma_parts_mm"][k]["statistical"], reg))
+
     out = {}
-    for label, get in (("statistical", lambda r, k: r["sigma_parts_mm"][k]["statistical"] or r["sigma_mm"][k]),
-                       ("combined", lambda r, k: r["sigma_mm"][k])):
-        z = np.array([abs(r["errors_mm"][k]) / get(r, k) for r in rows.values() if "sigma_parts_mm" in r
+    # rows measured with the point-bias term (the planned scans) apart: the older rows' stated sigma lacks it
+    current = {n: r for n, r in rows.items() if "systematic_by_source_mm" in r}
+    for label, get, subset in (("statistical", lambda r, k: r["sigma_parts_mm"][k]["statistical"], rows),
+                               ("fit_and_registration", registration_only, rows),
+                               ("combined", lambda r, k: r["sigma_mm"][k], rows),
+                               ("combined_point_bias_rows_only", lambda r, k: r["sigma_mm"][k], current)):
+        z = np.array([abs(r["errors_mm"][k]) / get(r, k) for r in subset.values() if "sigma_parts_mm" in r
                       for k in ("minor_diameter", "pitch_diameter", "major_diameter", "pitch")])
         if len(z):
             out[label] = {"n": int(len(z)), "within_1_sigma": float(np.mean(z <= 1)),
@@ -137,8 +159,8 @@ def figure(rows: dict, path: Path) -> None:
                yerr=[2 * rows[n]["sigma_mm"][key] for n in names], capsize=3, label=key.replace("_", " "))
     for y in (-0.02, 0.02):
         ax.axhline(y, color="red", ls="--")
-    ax.set_xticks(x, [f"{n}\n{rows[n]['verdict']}" for n in names], fontsize=8)
-    ax.set_ylabel("measured - as made (mm)\nbars: ±2σ stated (fit + registration)")
+    ax.set_xticks(x, [f"{n}\n{rows[n]['verdict']}\n{rows[n]['step_mm']} mm/frame" for n in names], fontsize=8)
+    ax.set_ylabel("measured - as made (mm)\nbars: ±2σ stated (fit, registration, point bias)")
     ax.legend(fontsize=7)
     ax = fig.add_subplot(1, 2, 2)
     ax.bar(x, [1000 * rows[n]["errors_mm"]["pitch"] for n in names], 0.5)
@@ -146,7 +168,8 @@ def figure(rows: dict, path: Path) -> None:
         ax.axhline(y, color="red", ls="--")
     ax.set_xticks(x, names, fontsize=8)
     ax.set_ylabel("pitch error (µm); target ±5")
-    fig.suptitle("thread-scan from images: 90° side view, 12 quadrants x 10 frames 400x320 (red: targets)")
+    fig.suptitle("thread-scan from images: 90° side view, 12 quadrants, 400x320 (red: targets; rows with a "
+                 "scan key in the JSON follow the scan plan)", fontsize=9)
     save_figure(fig, path)
 
 
@@ -161,8 +184,8 @@ def main() -> None:
     scratch = Path(tempfile.mkdtemp(prefix="bench_thread_gauge_"))
     data = args.data or scratch
     data.mkdir(parents=True, exist_ok=True)
-    results = {"setup": {"frames_per_quadrant": FRAMES_PER_QUADRANT, "frame_gap": FRAME_GAP, "size": [400, 320],
-                         "side_view_deg": 90.0, "mount": MOUNT}, "holes": {}}
+    results = {"setup": {"plan": "metrology.thread_scan_plan.plan_quadrant_scan, default ScanPlanOptions",
+                         "size": list(SIZE), "side_view_deg": SIDE_VIEW_DEG, "mount": MOUNT}, "holes": {}}
     if (OUT / "thread_gauge.json").is_file():  # a run of some holes keeps the other holes' rows
         results["holes"] = json.loads((OUT / "thread_gauge.json").read_text()).get("holes", {})
     for seed in (int(v) for v in args.seeds.split(",")):

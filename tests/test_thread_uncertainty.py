@@ -4,10 +4,12 @@ into twelve 30° quadrants, with a registration covariance chosen so its effect 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import trimesh
 
 from scope3d.geometry.pose import Pose
-from scope3d.metrology.thread_gauge import GaugeOptions, gauge_thread, with_systematic
+from scope3d.metrology.thread_gauge import (GaugeOptions, gauge_thread, profile_bias_systematic, profile_parts,
+                                           with_systematic)
 from scope3d.phantoms.scenes import build_thread
 from scope3d.pipelines.thread_scan import registration_systematic
 from scope3d.registration.panorama import PanoramaResult, _stage_poses
@@ -30,9 +32,13 @@ def _panorama() -> PanoramaResult:
                           lambda x: _stage_poses(x, angles))
 
 
-def test_registration_uncertainty_gives_the_verdict_its_guard_band():
-    scene = build_thread("M8x1.25", minor_diameter_offset_mm=0.132, pitch_diameter_offset_mm=0.08,
-                         major_diameter_offset_mm=0.05)
+@pytest.fixture(scope="module")
+def scene():
+    return build_thread("M8x1.25", minor_diameter_offset_mm=0.132, pitch_diameter_offset_mm=0.08,
+                        major_diameter_offset_mm=0.05)
+
+
+def test_registration_uncertainty_gives_the_verdict_its_guard_band(scene):
     made = scene.info["thread"]["as_made"]
     surface, _ = trimesh.sample.sample_surface(scene.mesh.to_trimesh(), 24000, seed=1)
     rng = np.random.default_rng(1)
@@ -68,3 +74,25 @@ def test_registration_uncertainty_gives_the_verdict_its_guard_band():
     # 0.004 mm inside the limit: proven by the fit's own ~0.001 mm, not by a 0.01 mm registration term
     assert verdicts["near"] == ("pass", "indeterminate")
     assert verdicts["out"] == ("fail", "fail")
+
+
+def test_profile_bias_term_matches_the_closed_form_of_each_part(scene):
+    """A part's points moved by b along the surface normal: the crest moves D1 by 2 b, the root D by 2 b, and
+    each flank the pitch radius by b (the symmetric tooth, half a pitch wide at D2, narrows by the flank's
+    axial shift b / cos 30° shared between its sides, tan 30° per unit of radius): D2 by 2 b per flank, 2 sqrt(2) b
+    for the two in quadrature."""
+    surface, _ = trimesh.sample.sample_surface(scene.mesh.to_trimesh(), 24000, seed=2)
+    surface = surface[(surface[:, 2] < -1.5) & (surface[:, 2] > -7.5)]
+    surface += np.random.default_rng(2).normal(0.0, NOISE_MM, surface.shape)
+    options = GaugeOptions(designation="M8x1.25", axis_hint=(0.0, 0.0, 1.0))
+    result = gauge_thread(surface, options)
+    part, normal = profile_parts(result, surface)
+    assert set(np.unique(part)) == {0, 1, 2, 3}
+    np.testing.assert_allclose(np.linalg.norm(normal, axis=1), 1.0)
+    bias = 0.004
+    sigma = profile_bias_systematic(result, surface, bias, options.noise_mm)
+    # closed forms; 15 % for the fit's coupling of the parts (a moved crest also pulls the flanks' ends)
+    assert abs(sigma["minor_diameter"] / (2 * bias) - 1) < 0.15, sigma
+    assert abs(sigma["major_diameter"] / (2 * bias) - 1) < 0.15, sigma
+    assert abs(sigma["pitch_diameter"] / (2 * np.sqrt(2) * bias) - 1) < 0.15, sigma
+    assert sigma["pitch"] < 1e-4  # a profile offset leaves the helix' pitch alone

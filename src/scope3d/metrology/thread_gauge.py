@@ -6,7 +6,8 @@ Method. (1) The hole axis: a cylinder fitted to every point (robust), from the p
 (2) The threaded zone: the axial stretch where, within one nominal pitch, the radius spans at least half
 the basic thread depth (the counterbore, the plain bore and the drill point do not), less one pitch at
 each end (the run-outs). (3) The pitch and the phase of the helix: the first harmonic of the radius in
-the helical phase ``2 pi z / P - theta`` is largest at the true pitch (a scan, then refined). (4) One
+the helical phase ``2 pi z / P - theta`` is largest at the true pitch (a scan, then refined; the fit
+below also starts from the nominal pitch and keeps the start of lower robust cost). (4) One
 joint robust least-squares fit of axis, pitch, phase and a symmetric ISO profile (crest at the minor
 radius, roots at the major radius, straight flanks at the standard 60° or a free angle, a free pitch
 radius where the tooth is half a pitch wide) to every point's distance from the profile in its axial
@@ -360,8 +361,13 @@ def _pitch_scan(theta, z, r, nominal, search):
         amp = np.array([np.abs(np.mean(dr * np.exp(1j * (2 * np.pi * z / p - theta)))) for p in pitches])
         best = float(pitches[int(np.argmax(amp))])
         step /= 10
-    phasor = np.mean(dr * np.exp(1j * (2 * np.pi * z / best - theta)))
-    return float(best), float(np.angle(phasor) / (2 * np.pi) * best)
+    return float(best), _root_phase(theta, z, r, best)
+
+
+def _root_phase(theta, z, r, pitch):
+    """The axial phase (mm) of the radius' first harmonic in the helical phase ``2 pi z / P - theta``."""
+    phasor = np.mean((r - r.mean()) * np.exp(1j * (2 * np.pi * z / pitch - theta)))
+    return float(np.angle(phasor) / (2 * np.pi) * pitch)
 
 
 def gauge_thread(points: np.ndarray, options: GaugeOptions = GaugeOptions()) -> GaugeResult:
@@ -412,14 +418,25 @@ def gauge_thread(points: np.ndarray, options: GaugeOptions = GaugeOptions()) -> 
     upper = np.array([0.1, 0.1, depth_nom, depth_nom, pitch_nom * (1 + options.pitch_search), np.inf,
                       r1_0 + depth_nom, r2_0 + depth_nom, r2_0, np.deg2rad(45.0)])
     x0 = np.clip(x0, lower + 1e-9, upper - 1e-9)
+    # Over a short zone (~3 pitches) the harmonic's peak is wider than the pitch search and a slightly
+    # uneven sampling along the axis can put its maximum a few percent off (an M6 scan: 1.017 mm for a
+    # 1.000 mm pitch), from where the joint fit can run into a wrong minimum; so the fit also starts from
+    # the nominal pitch, and the start whose robust cost ends lower wins.
+    starts = [x0]
+    if abs(pitch0 - pitch_nom) > 1e-6:
+        x1 = x0.copy()
+        x1[4], x1[5] = pitch_nom, _root_phase(th, zz, rr, pitch_nom) + pitch_nom / 2
+        starts.append(np.clip(x1, lower + 1e-9, upper - 1e-9))
     if options.fix_flank_angle:
-        held = _fit_profile(zone_points, p0, base, x0, lower, upper, False, options.noise_mm)
+        held = min((_fit_profile(zone_points, p0, base, x, lower, upper, False, options.noise_mm) for x in starts),
+                   key=lambda f: f.cost)
         free = _fit_profile(zone_points, p0, base, held.x, lower, upper, True, options.noise_mm)
         # The standard angle stands unless the free fit resolves a different one (a bound is no resolution).
         rejected = not free.flank_at_bound and abs(free.x[9] - standard_half) > 2 * free.std[9]
         fit = free if rejected else held
     else:
-        fit = free = _fit_profile(zone_points, p0, base, x0, lower, upper, True, options.noise_mm)
+        fit = free = min((_fit_profile(zone_points, p0, base, x, lower, upper, True, options.noise_mm) for x in starts),
+                         key=lambda f: f.cost)
     x, std, res, core = fit.x, fit.std, fit.residuals, fit.core
     pitch, r1, r2, rp, half = x[4], x[6], x[7], x[8], x[9]
     axis_point, axis_dir = _axis_from_params(p0, base, *x[:4])
@@ -526,6 +543,59 @@ def remeasure(result: GaugeResult, points: np.ndarray, noise_mm: float = 0.01) -
             "virtual_pitch_diameter": d2 - 1.732 * abs(x[4] - st["pitch_nominal"]) * st["turns"] - st["f_alpha"]}
 
 
+PROFILE_PARTS = ("crest", "flank towards +z", "flank towards -z", "root")
+
+
+def profile_parts(result: GaugeResult, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Which part of the fitted profile each fitted point lies on, and the profile's outward normal there.
+
+    points : (N, 3) mm, the cloud ``result`` was measured on. Returns (part (M,) int, index into
+    :data:`PROFILE_PARTS`; normal (M, 3) unit, pointing into the material) for the M fitted points
+    (``result.fit_state['index']``): crest and root flats normal along the radius, each flank normal to its
+    straight line in the point's axial half-plane."""
+    st = result.fit_state
+    x = st["x"]
+    pitch, phase, r1, r2, rp, half = x[4], x[5], x[6], x[7], x[8], x[9]
+    axis_point, axis_dir = _axis_from_params(st["p0"], st["base"], *x[:4])
+    frame = _frame(axis_dir)
+    local = (np.asarray(points, float)[st["index"]] - axis_point) @ frame.T
+    t = np.arctan2(local[:, 1], local[:, 0])
+    w = np.mod(local[:, 2] - pitch * t / (2 * np.pi) - phase + pitch / 2, pitch) - pitch / 2
+    hc, hr = 0.25 * pitch + (r1 - rp) * np.tan(half), 0.25 * pitch + (r2 - rp) * np.tan(half)
+    aw = np.abs(w)
+    part = np.where(aw <= hc, 0, np.where(aw >= hr, 3, np.where(w > 0, 1, 2)))
+    # flank line from (hc, r1) to (hr, r2) in (|w|, r): into the material is towards the tooth and outwards
+    length = np.hypot(hr - hc, r2 - r1)
+    n_w, n_r = -(r2 - r1) / length, (hr - hc) / length
+    axial = np.where(part == 1, n_w, np.where(part == 2, -n_w, 0.0))
+    radial_part = np.where((part == 1) | (part == 2), n_r, 1.0)
+    radial = np.cos(t)[:, None] * frame[0] + np.sin(t)[:, None] * frame[1]
+    return part, radial_part[:, None] * radial + axial[:, None] * frame[2]
+
+
+def profile_bias_systematic(result: GaugeResult, points: np.ndarray, bias_mm: float, noise_mm: float = 0.01) -> dict:
+    """The sizes' systematic standard uncertainty (mm; keys as :func:`remeasure`'s) from a bias of the
+    cloud's points along the surface normal that differs between the parts of the profile (crest, each
+    flank, root): a reconstruction places its points on a flank seen obliquely, or on a root seen past a
+    crest, a little off the surface, each part by its own amount, and the fit turns that into a size
+    error no point residual shows. Each part's points are moved by ``bias_mm`` (a standard uncertainty of
+    a part's offset) into the material and the profile re-fitted (:func:`remeasure`); the four size
+    changes, taken as independent, add in quadrature."""
+    base = remeasure(result, points, noise_mm)
+    part, normal = profile_parts(result, points)
+    index = result.fit_state["index"]
+    shifts = []
+    for k in range(len(PROFILE_PARTS)):
+        sel = part == k
+        if not sel.any():
+            continue
+        moved = np.array(points, float, copy=True)
+        moved[index[sel]] += bias_mm * normal[sel]
+        sizes = remeasure(result, moved, noise_mm)
+        shifts.append({key: sizes[key] - base[key] for key in base})
+    return {key: float(np.sqrt(sum(s[key] ** 2 for s in shifts))) for key in base} if shifts else {}
+
+
 def with_systematic(result: GaugeResult, systematic_mm: dict, options: GaugeOptions) -> GaugeResult:
     """``result`` with a systematic standard uncertainty (mm; keys as :func:`remeasure`'s, missing = 0)
     added in quadrature to each size's statistical one, and the verdict judged again on the combined
@@ -552,7 +622,8 @@ class _ProfileFit:
     """One robust fit of axis, pitch, phase and profile: x (10,) the parameters (see gauge_thread), std (10,)
     their 1-sigma uncertainties (0 for a held one), residuals (N,) mm, core (N,) the points within the
     noise that the uncertainties come from; profile_at_bound: a fitted radius or the half-angle stopped at
-    its bound; flank_at_bound: the half-angle did (only when it was free)."""
+    its bound; flank_at_bound: the half-angle did (only when it was free); cost: the robust loss at the
+    solution (compares starts on the same points)."""
 
     x: np.ndarray
     std: np.ndarray
@@ -560,6 +631,7 @@ class _ProfileFit:
     core: np.ndarray
     profile_at_bound: bool
     flank_at_bound: bool
+    cost: float = 0.0
 
 
 def _fit_profile(points, p0, base, x0, lower, upper, free_flank: bool, noise_mm: float) -> _ProfileFit:
@@ -594,7 +666,7 @@ def _fit_profile(points, p0, base, x0, lower, upper, free_flank: bool, noise_mm:
     std = np.zeros(len(x0))
     std[free] = np.sqrt(np.maximum(np.diag(cov), 0.0))
     stopped = (np.isclose(x, lower, atol=1e-6) | np.isclose(x, upper, atol=1e-6)) & free
-    return _ProfileFit(x, std, res, core, bool(stopped[6:10].any()), bool(stopped[9]))
+    return _ProfileFit(x, std, res, core, bool(stopped[6:10].any()), bool(stopped[9]), float(sol.cost))
 
 
 def _crest_defects(theta, z, turn, dist, options: GaugeOptions, pitch: float) -> list[ThreadDefect]:

@@ -15,8 +15,11 @@ Read top to bottom like the method section::
     gauge      <- metrology.gauge_thread              (axis, D1, D, D2, P, flank angle, 6H verdict, defects)
     systematic <- registration_systematic             (the cloud re-placed by draws of the registration
                                                        from its covariance, re-measured: the spread is
-                                                       the sizes' systematic uncertainty; the verdict is
-                                                       judged again on the combined uncertainty)
+                                                       the sizes' systematic uncertainty)
+                  metrology.profile_bias_systematic   (each profile part's points offset by the sparse
+                                                       reconstruction's measured bias, re-measured; both
+                                                       in quadrature, the verdict judged again on the
+                                                       combined uncertainty)
     errors     <- registration.registration_errors    (when the dataset has true poses)
     files      <- cloud.ply, quadrants/q??.ply (+ q??_dense.ply, registered), report.json,
                   registration.png, unwrapped.png
@@ -37,8 +40,8 @@ from scope3d.geometry.pose import Pose
 from scope3d.io.dataset import Dataset
 from scope3d.io.ply import write_ply
 from scope3d.io.quadrants import read_quadrants
-from scope3d.metrology.thread_gauge import (THREAD_SIZES, GaugeOptions, GaugeResult, gauge_thread, remeasure,
-                                           with_systematic)
+from scope3d.metrology.thread_gauge import (THREAD_SIZES, GaugeOptions, GaugeResult, gauge_thread,
+                                           profile_bias_systematic, remeasure, with_systematic)
 from scope3d.registration.outliers import OutlierOptions, statistical_inliers
 from scope3d.registration.panorama import (PanoramaOptions, PanoramaResult, QuadrantCloud, register_quadrants,
                                            registered_frame_poses, registration_errors)
@@ -51,6 +54,15 @@ from scope3d.utils.jsonio import write_json
 from scope3d.utils.progress import Progress, advance, stage
 
 
+# The sparse points' per-part offsets from the true surface, mapped with the TRUE poses (no registration)
+# on the 90° scans of docs/thread_metrology.md (400x320 px): medians per part (crest, flank towards +z,
+# flank towards -z, root) -0.0005 / +0.0010 / -0.0032 / -0.0014 mm on an M8 (0.5 mm steps) and -0.0005 /
+# +0.0007 / -0.0022 / -0.0030 mm on an M6 (0.25 mm steps); their RMS over the parts, 0.0018 and 0.0019 mm,
+# rounded up, is the standard uncertainty of one part's offset. Measured against the truth, not fitted to
+# the sizes' errors.
+SPARSE_POINT_BIAS_MM = 0.002
+
+
 @dataclass(frozen=True)
 class ThreadScanOptions:
     """designation : the nominal thread (``M6x1``, ``M8x1.25``, ``M10x1.5``); the gauge's other options
@@ -58,8 +70,10 @@ class ThreadScanOptions:
     the stages' options. dense : the dense clouds' options, or None to gauge the sparse points. threads : quadrants mapped at once (default 2, the machine's cores; OpenCV
     releases the GIL). registration_draws : draws of the registration from its covariance whose
     re-measured sizes give the systematic uncertainty (default 24: the spread's own relative error is
-    1/sqrt(2 (n - 1)), ~15 %; 0 leaves the statistical uncertainty alone). seed : RANSAC's and the
-    draws' seeds."""
+    1/sqrt(2 (n - 1)), ~15 %; 0 leaves the registration out). point_bias_mm : standard uncertainty of
+    the offset of one profile part's points (crest, each flank, root) from the true surface along its
+    normal, propagated by :func:`scope3d.metrology.thread_gauge.profile_bias_systematic` (default
+    :data:`SPARSE_POINT_BIAS_MM`; 0 leaves it out). seed : RANSAC's and the draws' seeds."""
 
     designation: str = "M8x1.25"
     mapping: QuadrantMapOptions = QuadrantMapOptions()
@@ -72,13 +86,14 @@ class ThreadScanOptions:
     dense: DenseQuadrantOptions | None = None
     threads: int = 2
     registration_draws: int = 24
+    point_bias_mm: float = SPARSE_POINT_BIAS_MM
     seed: int = 0
 
     def __post_init__(self) -> None:
         if self.designation not in THREAD_SIZES:
             raise InputError(f"unknown thread {self.designation!r} (use one of {', '.join(THREAD_SIZES)})")
-        if self.threads < 1 or self.registration_draws < 0:
-            raise ValueError("threads must be >= 1 and registration_draws >= 0")
+        if self.threads < 1 or self.registration_draws < 0 or self.point_bias_mm < 0:
+            raise ValueError("threads must be >= 1, registration_draws and point_bias_mm >= 0")
 
 
 @dataclass
@@ -87,7 +102,9 @@ class ThreadScanResult:
     dense cloud (registered frame, (M_q, 3) mm; empty without dense mapping); points : (N, 3) mm the
     registered cloud the gauge measured, after outlier removal (dense, or the sparse points without); gauge : the measurement, or None when the cloud shows no
     gaugeable thread (gauge_message says why; the verdict is then ``indeterminate``); errors :
-    registration errors against the truth or None; timings_s : per stage."""
+    registration errors against the truth or None; timings_s : per stage; systematic_mm : the sizes'
+    systematic standard uncertainties (mm) by source, ``registration`` and ``point_bias`` (each keyed as
+    :func:`scope3d.metrology.thread_gauge.remeasure`), empty when not computed."""
 
     clouds: list[QuadrantCloud]
     panorama: PanoramaResult
@@ -97,6 +114,7 @@ class ThreadScanResult:
     errors: dict | None
     timings_s: dict = field(default_factory=dict)
     gauge_message: str = ""
+    systematic_mm: dict = field(default_factory=dict)
 
     def report(self) -> dict:
         g = self.gauge
@@ -112,6 +130,8 @@ class ThreadScanResult:
             registration.update(self.errors)
         gauge = g.to_dict() if g is not None else {"verdict": "indeterminate", "message": self.gauge_message,
                                                    "defects": []}
+        if self.systematic_mm:
+            gauge["systematic_by_source_mm"] = self.systematic_mm
         return {
             "gauge": gauge,
             "registration": registration,
@@ -248,12 +268,21 @@ def run(options: ThreadScanOptions, dataset: Dataset, out_dir: str | Path, *,
     except ValueError as exc:  # no thread in the cloud: a result to report, not a crash
         gauge_message = str(exc)
     timings["gauge"] = time.perf_counter() - t0
-    if gauge is not None and options.registration_draws:
+    systematic = {}
+    if gauge is not None and (options.registration_draws or options.point_bias_mm):
         t0 = time.perf_counter()
-        systematic = registration_systematic(gauge, panorama, points, quadrant_of[keep], options.registration_draws,
-                                             gauge_options, seed=options.seed)
+        if options.registration_draws:
+            systematic["registration"] = registration_systematic(gauge, panorama, points, quadrant_of[keep],
+                                                                 options.registration_draws, gauge_options,
+                                                                 seed=options.seed)
+        if options.point_bias_mm:
+            systematic["point_bias"] = profile_bias_systematic(gauge, points, options.point_bias_mm,
+                                                               gauge_options.noise_mm)
+        systematic = {k: v for k, v in systematic.items() if v}
         if systematic:
-            gauge = with_systematic(gauge, systematic, gauge_options)
+            keys = set().union(*systematic.values())
+            gauge = with_systematic(gauge, {k: float(np.sqrt(sum(v.get(k, 0.0) ** 2 for v in systematic.values())))
+                                            for k in keys}, gauge_options)
         timings["systematic"] = time.perf_counter() - t0
 
     errors = None
@@ -271,7 +300,7 @@ def run(options: ThreadScanOptions, dataset: Dataset, out_dir: str | Path, *,
                 "major_diameter": gauge.major_diameter_mm.value - made["major_diameter_mm"],
                 "pitch_diameter": gauge.pitch_diameter_mm.value - made["pitch_diameter_mm"],
                 "pitch": gauge.pitch_mm.value - dataset.ground_truth.scene["thread"]["pitch_mm"]}
-    result = ThreadScanResult(clouds, panorama, dense, points, gauge, errors, timings, gauge_message)
+    result = ThreadScanResult(clouds, panorama, dense, points, gauge, errors, timings, gauge_message, systematic)
     write_outputs(result, out_dir)
     return result
 

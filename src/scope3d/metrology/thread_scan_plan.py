@@ -1,0 +1,105 @@
+"""How to scan a tapped hole with a side-viewing scope so that the thread gauge can measure it: the axial
+step per frame, the frames per quadrant and the frame gap the quadrant maps match over, derived from the
+view's axial extent on the wall (issue 13).
+
+A side view at ``alpha`` degrees from the probe axis (-z; 90 looks straight at the wall) with a vertical
+half field ``phi`` (image rows run along the hole axis, down into the hole) sees the wall of radius R from
+``R cot(alpha + phi)`` above to ``R cot(alpha - phi)`` below the camera: the axial extent E. A wall point
+stays in view for E / step frames. Two things need it seen often:
+
+* triangulation within a quadrant: a point becomes a 3-D point only when matched between two frames at
+  most ``frame_gap`` steps apart; the more frames see it, the more chances (and the more views, each
+  with its descriptor, for matching the neighbour quadrant);
+* registration between neighbour quadrants: their common points lie in the strip both views share after
+  the stage's 30° turn, a fixed fraction of each frame; the count of 3-D points there scales with the
+  points per frame, i.e. with the views per point.
+
+So the step is E / ``views_per_point`` for every size (the thread's scale enters through R), and the
+frame gap keeps matched frames' views overlapping by at least half (``gap * step <= E / 2``). The scope
+advances until the frames have shown ``thread_pitches`` pitches of thread: the gauge trims a pitch of
+run-out at each end, its zone detection needs a one-pitch window, and it must keep at least two pitches
+to fit (:func:`scope3d.metrology.thread_gauge.gauge_thread`), plus margin for the ragged ends.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from scope3d.metrology.thread_gauge import THREAD_SIZES
+from scope3d.sensor.camera import Camera
+
+
+@dataclass(frozen=True)
+class ScanPlanOptions:
+    """views_per_point : frames in which each wall point should appear (default 8: measured on the 90°
+        view of 400x320 px, 60° field, rendered holes — see docs/thread_metrology.md — at ~5 views an M6
+        hole's neighbour quadrants share too few points to register, at ~7-10 every size registers).
+    max_baseline_fraction : matched frames are at most this fraction of the view's extent apart
+        (default 0.5: their views overlap by at least half).
+    thread_pitches : pitches of thread the scan must show (default 5.5: 2 gauged, one of run-out trimmed
+        at each end, the zone detector's one-pitch window, half a pitch for the ragged ends).
+    start_below_thread_mm : how far below the thread's first turn the first frame's camera is (mm;
+        default 0.5, the phantom's scan: it starts 1.5 mm down a hole whose 1 mm counterbore ends where
+        the thread begins)."""
+
+    views_per_point: float = 8.0
+    max_baseline_fraction: float = 0.5
+    thread_pitches: float = 5.5
+    start_below_thread_mm: float = 0.5
+
+    def __post_init__(self) -> None:
+        if not (self.views_per_point >= 2 and 0 < self.max_baseline_fraction <= 1 and self.thread_pitches > 0):
+            raise ValueError("need views_per_point >= 2, max_baseline_fraction in (0, 1] and thread_pitches > 0")
+
+
+@dataclass(frozen=True)
+class QuadrantScanPlan:
+    """step_mm : the scope's advance per frame (mm); frames_per_quadrant : frames of each quadrant;
+    frame_gap : the quadrant maps match frames up to this many steps apart
+    (``QuadrantMapOptions.max_frame_gap``); view_extent_mm : axial extent of wall one frame shows (mm);
+    wall_radius_mm : the radius it was computed at (the pitch radius)."""
+
+    step_mm: float
+    frames_per_quadrant: int
+    frame_gap: int
+    view_extent_mm: float
+    wall_radius_mm: float
+
+    def to_dict(self) -> dict:
+        return {"step_mm": self.step_mm, "frames_per_quadrant": self.frames_per_quadrant, "frame_gap": self.frame_gap,
+                "view_extent_mm": self.view_extent_mm, "wall_radius_mm": self.wall_radius_mm}
+
+
+def view_extent_mm(camera: Camera, side_view_deg: float, wall_radius_mm: float) -> tuple[float, float]:
+    """(above, below): how far above and below the camera (mm, along the hole axis; image rows run down the
+    hole) the wall at ``wall_radius_mm`` from the axis is seen by a side view ``side_view_deg`` from the
+    probe axis; the camera is taken on the axis."""
+    if not 0 < side_view_deg <= 90:
+        raise ValueError(f"side view angle must be in (0, 90] degrees, got {side_view_deg}")
+    alpha = np.deg2rad(side_view_deg)
+    phi_up, phi_down = np.arctan(camera.cy / camera.fy), np.arctan((camera.height - camera.cy) / camera.fy)
+    if alpha - phi_down <= np.deg2rad(1.0):
+        raise ValueError(f"a {side_view_deg}° side view with a {np.rad2deg(phi_down):.0f}° lower half field looks "
+                         "down the hole, not at its wall")
+    below = wall_radius_mm / np.tan(alpha - phi_down)
+    above = -wall_radius_mm / np.tan(alpha + phi_up)  # > 0 when the upper rays point back up the hole
+    return float(above), float(below)
+
+
+def plan_quadrant_scan(camera: Camera, designation: str, side_view_deg: float = 90.0,
+                       options: ScanPlanOptions = ScanPlanOptions()) -> QuadrantScanPlan:
+    """The quadrant scan of a ``designation`` hole (``M6x1``, ``M8x1.25``, ``M10x1.5``) seen by ``camera``
+    at ``side_view_deg`` (see the module docstring)."""
+    if designation not in THREAD_SIZES:
+        raise ValueError(f"unknown thread {designation!r} (use one of {', '.join(THREAD_SIZES)})")
+    major, pitch = THREAD_SIZES[designation]
+    radius = (major - 0.649519 * pitch) / 2  # the pitch radius (ISO 724 D2): the wall's mean distance
+    above, below = view_extent_mm(camera, side_view_deg, radius)
+    extent = above + below
+    step = np.floor(extent / options.views_per_point * 100) / 100  # a stage steps in hundredths of a mm
+    gap = max(1, int(np.floor(options.max_baseline_fraction * extent / step + 1e-9)))
+    # thread shown = start offset + advance + the view below the last frame
+    advance = max(0.0, options.thread_pitches * pitch - options.start_below_thread_mm - below)
+    frames = int(np.ceil(advance / step - 1e-9)) + 1
+    return QuadrantScanPlan(float(step), max(frames, 2), gap, float(extent), float(radius))
