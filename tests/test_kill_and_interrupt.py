@@ -106,3 +106,24 @@ def test_without_timings_removes_the_timing_fields_at_any_depth_and_nothing_else
               "options": {"max_time_step": 3}}
     assert without_timings(report) == {"n_points": 5, "bundle": [{"iterations": 7, "iteration_log": [{"cost": 2.0}]}],
                                        "options": {"max_time_step": 3}}
+
+
+@pytest.mark.parametrize("writer", ["atomic_file", "atomic_path", "atomic_directory"])
+def test_ctrl_c_the_moment_a_temporary_appears_leaves_no_litter(tmp_path, monkeypatch, writer):
+    # The Ctrl-C test above signals when it sees a temporary appear: found on CI, a KeyboardInterrupt
+    # between the temporary's creation and the writer's try block left `.NAME.PID.*.tmp` behind.
+    import scope3d.utils.atomic as atomic
+
+    def interrupted(make):
+        def create(*args, **kwargs):
+            make(*args, **kwargs)
+            raise KeyboardInterrupt
+        return create
+
+    monkeypatch.setattr(atomic.tempfile, "mkstemp", interrupted(atomic.tempfile.mkstemp))
+    monkeypatch.setattr(atomic.tempfile, "mkdtemp", interrupted(atomic.tempfile.mkdtemp))
+    destination = tmp_path / "out" / "result.txt"
+    with pytest.raises(KeyboardInterrupt):
+        with getattr(atomic, writer)(destination):
+            pytest.fail("the writer's block must not run")
+    assert sorted(p.name for p in destination.parent.iterdir()) == []

@@ -65,20 +65,40 @@ def remove_stale_temporaries(path: str | os.PathLike) -> list[Path]:
     return removed
 
 
+def _remove_own_temporaries(path: Path) -> None:
+    """Remove this process's ``.tmp`` temporaries of ``path``.
+
+    The writers below create their temporary inside their ``try``, so that a Ctrl-C landing between the
+    creation and the first statement that would remember its name (the moment a watcher sees the file
+    appear) still cleans it up: the name is found again from the process id it carries.
+    """
+    try:
+        siblings = list(path.parent.iterdir())
+    except OSError:
+        return
+    for sibling in siblings:
+        match = _TEMPORARY.match(sibling.name)
+        if match and match["name"] == path.name and int(match["pid"]) == os.getpid() and match[3] == "tmp":
+            if sibling.is_dir() and not sibling.is_symlink():
+                shutil.rmtree(sibling, ignore_errors=True)
+            else:
+                sibling.unlink(missing_ok=True)
+
+
 @contextmanager
 def atomic_file(path: str | os.PathLike, mode: str = "w", **open_kwargs) -> Iterator:
     """Open a temporary file beside ``path``; rename it onto ``path`` only if the block succeeds."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     remove_stale_temporaries(path)
-    fd, tmp = tempfile.mkstemp(prefix=_prefix(path), suffix=".tmp", dir=path.parent)
-    os.close(fd)
     try:
+        fd, tmp = tempfile.mkstemp(prefix=_prefix(path), suffix=".tmp", dir=path.parent)
+        os.close(fd)
         with open(tmp, mode, **open_kwargs) as handle:
             yield handle
         os.replace(tmp, path)
     except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+        _remove_own_temporaries(path)
         raise
 
 
@@ -91,14 +111,13 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     remove_stale_temporaries(path)
-    fd, name = tempfile.mkstemp(prefix=_prefix(path), suffix=f".tmp{path.suffix}", dir=path.parent)
-    os.close(fd)
-    tmp = Path(name)
     try:
-        yield tmp
-        os.replace(tmp, path)
+        fd, name = tempfile.mkstemp(prefix=_prefix(path), suffix=f".tmp{path.suffix}", dir=path.parent)
+        os.close(fd)
+        yield Path(name)
+        os.replace(name, path)
     except BaseException:
-        tmp.unlink(missing_ok=True)
+        _remove_own_temporaries(path)
         raise
 
 
@@ -156,8 +175,8 @@ def atomic_directory(path: str | os.PathLike, *, overwrite: bool = True) -> Iter
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     remove_stale_temporaries(path)
-    tmp = Path(tempfile.mkdtemp(prefix=_prefix(path), suffix=".tmp", dir=path.parent))
     try:
+        tmp = Path(tempfile.mkdtemp(prefix=_prefix(path), suffix=".tmp", dir=path.parent))
         yield tmp
         if path.exists():
             if not overwrite:
@@ -172,5 +191,5 @@ def atomic_directory(path: str | os.PathLike, *, overwrite: bool = True) -> Iter
         else:
             os.replace(tmp, path)
     except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
+        _remove_own_temporaries(path)  # the .tmp folder only: a moved-aside .old one holds the previous result
         raise
