@@ -1,4 +1,6 @@
 """Axial-stereo geometry: eq. 7.3-7.4, the general (misaligned) case, polar resampling, input errors."""
+from dataclasses import replace
+
 import cv2
 import numpy as np
 import pytest
@@ -190,19 +192,22 @@ def test_polar_sgm_has_no_disparity_bias_on_a_radial_zoom(z_mm):
 
 @pytest.mark.parametrize("tilt_deg", [0.0, 2.0])
 def test_polar_maps_are_one_projection_of_the_whole_grid(tilt_deg):
-    """The maps are built in blocks of grid rows and cached per camera orientation (issue 17): they must be
-    exactly (bit for bit) the projection of every grid direction at once, for each frame of a pair, whether
-    the two frames share their orientation (pure step) or not (tilted front frame)."""
+    """The maps come from one compiled pass over the grid and are cached per camera orientation (issue 17):
+    they must be exactly (bit for bit) Camera.project and Camera.in_image of every grid direction, for each
+    frame of a pair, whether the two frames share their orientation (pure step) or not (tilted front frame),
+    with and without the scope's circular field."""
     rear = Pose.from_centre(DOWN, [0, 0, 0.0])
     tilt = rotvec_to_matrix(np.deg2rad([tilt_deg, 0.0, 0.0]))
     front = Pose.from_centre(tilt @ DOWN, [0, 0, -0.25])
-    pair = make_axial_pair(CAM, rear, front)
-    for pose in (rear, front):
-        directions = pair.grid.virtual_points() @ pair.virtual_from_camera(pose)
-        pixels = CAM.project(directions.reshape(-1, 3))
-        pixels[~CAM.in_image(pixels)] = -1.0
-        pixels = pixels.reshape(pair.grid.shape + (2,)).astype(np.float32)
-        map_u, map_v = pair.polar_maps(pose)
-        assert np.array_equal(map_u, pixels[..., 0]) and np.array_equal(map_v, pixels[..., 1])
+    for camera in (CAM, replace(CAM, mask_radius_px=None)):
+        pair = make_axial_pair(camera, rear, front)
+        for pose in (rear, front):
+            directions = pair.grid.virtual_points() @ pair.virtual_from_camera(pose)
+            pixels = camera.project(directions.reshape(-1, 3))
+            pixels[~camera.in_image(pixels)] = -1.0
+            pixels = pixels.reshape(pair.grid.shape + (2,)).astype(np.float32)
+            map_u, map_v = pair.polar_maps(pose)
+            assert np.array_equal(map_u, pixels[..., 0]) and np.array_equal(map_v, pixels[..., 1])
+            assert 0 < np.count_nonzero(map_u < 0) < map_u.size  # both outcomes of the image test occur
     shared = pair.polar_maps(rear)[0] is pair.polar_maps(front)[0]
     assert shared == (tilt_deg == 0.0)
