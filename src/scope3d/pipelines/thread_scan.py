@@ -3,6 +3,8 @@
 Read top to bottom like the method section::
 
     quadrants  <- io.quadrants.read_quadrants         (frames of each 30° quadrant, stage angles)
+    scan       <- metrology.measured_quadrant_scan    (each quadrant's step and side view read off its
+                                                       poses; the scan plan's rule gives the frame gap)
     maps       <- sfm.quadrant_mapping.map_quadrant   (SIFT, matches, tracks, triangulation with the
                                                        stage's known axial poses), one per quadrant
     panorama   <- registration.register_quadrants     (neighbours' 3-D-3-D feature correspondences,
@@ -40,6 +42,7 @@ from scope3d.geometry.pose import Pose
 from scope3d.io.dataset import Dataset
 from scope3d.io.ply import write_ply
 from scope3d.io.quadrants import read_quadrants
+from scope3d.metrology.thread_scan_plan import QuadrantScanPlan, measured_quadrant_scan
 from scope3d.metrology.thread_gauge import (THREAD_SIZES, GaugeOptions, GaugeResult, gauge_thread,
                                            profile_bias_systematic, remeasure, with_systematic)
 from scope3d.registration.outliers import OutlierOptions, statistical_inliers
@@ -73,7 +76,10 @@ class ThreadScanOptions:
     1/sqrt(2 (n - 1)), ~15 %; 0 leaves the registration out). point_bias_mm : standard uncertainty of
     the offset of one profile part's points (crest, each flank, root) from the true surface along its
     normal, propagated by :func:`scope3d.metrology.thread_gauge.profile_bias_systematic` (default
-    :data:`SPARSE_POINT_BIAS_MM`; 0 leaves it out). seed : RANSAC's and the draws' seeds."""
+    :data:`SPARSE_POINT_BIAS_MM`; 0 leaves it out). frame_gap : each quadrant map matches frames up to
+    this many steps apart (it replaces ``mapping.max_frame_gap``); None (default) takes each quadrant's
+    from its own scan with the scan plan's rule (matched frames' views overlap by half:
+    :func:`scope3d.metrology.thread_scan_plan.measured_quadrant_scan`). seed : RANSAC's and the draws' seeds."""
 
     designation: str = "M8x1.25"
     mapping: QuadrantMapOptions = QuadrantMapOptions()
@@ -87,6 +93,7 @@ class ThreadScanOptions:
     threads: int = 2
     registration_draws: int = 24
     point_bias_mm: float = SPARSE_POINT_BIAS_MM
+    frame_gap: int | None = None
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -94,6 +101,8 @@ class ThreadScanOptions:
             raise InputError(f"unknown thread {self.designation!r} (use one of {', '.join(THREAD_SIZES)})")
         if self.threads < 1 or self.registration_draws < 0 or self.point_bias_mm < 0:
             raise ValueError("threads must be >= 1, registration_draws and point_bias_mm >= 0")
+        if self.frame_gap is not None and self.frame_gap < 1:
+            raise InputError(f"the frame gap must be at least 1, got {self.frame_gap}")
 
 
 @dataclass
@@ -104,7 +113,8 @@ class ThreadScanResult:
     gaugeable thread (gauge_message says why; the verdict is then ``indeterminate``); errors :
     registration errors against the truth or None; timings_s : per stage; systematic_mm : the sizes'
     systematic standard uncertainties (mm) by source, ``registration`` and ``point_bias`` (each keyed as
-    :func:`scope3d.metrology.thread_gauge.remeasure`), empty when not computed."""
+    :func:`scope3d.metrology.thread_gauge.remeasure`), empty when not computed. scans : per quadrant the
+    scan read off its poses and the frame gap its map used."""
 
     clouds: list[QuadrantCloud]
     panorama: PanoramaResult
@@ -115,6 +125,7 @@ class ThreadScanResult:
     timings_s: dict = field(default_factory=dict)
     gauge_message: str = ""
     systematic_mm: dict = field(default_factory=dict)
+    scans: list[QuadrantScanPlan] = field(default_factory=list)
 
     def report(self) -> dict:
         g = self.gauge
@@ -137,6 +148,8 @@ class ThreadScanResult:
             "registration": registration,
             "points": {"per_quadrant": [len(c.points) for c in self.clouds],
                        "dense_per_quadrant": [len(d) for d in self.dense], "registered": len(self.points)},
+            "scan": {"step_mm": [s.step_mm for s in self.scans], "frame_gap": [s.frame_gap for s in self.scans],
+                     "view_extent_mm": [s.view_extent_mm for s in self.scans]},
             "timings_s": self.timings_s,
         }
 
@@ -157,21 +170,37 @@ class ThreadScanResult:
         return "\n".join(lines)
 
 
-def map_quadrants(options: ThreadScanOptions, dataset: Dataset, progress: Progress | None = None) -> list[QuadrantCloud]:
-    """Each quadrant's sparse map with the stage's reported poses (the stacked frame)."""
+def quadrant_scans(options: ThreadScanOptions, dataset: Dataset) -> list[QuadrantScanPlan]:
+    """Per quadrant, its scan read off the stage's poses and the frame gap its map matches over
+    (``options.frame_gap`` when given)."""
+    scans = []
+    for q in read_quadrants(dataset.root, dataset.names):
+        try:
+            scan = measured_quadrant_scan(dataset.camera, [dataset.poses[i].pose for i in q.frames], options.designation)
+        except ValueError as exc:
+            raise InputError(f"{dataset.root}: quadrant {q.index} ({q.angle_deg:.1f}°): {exc}") from None
+        scans.append(scan if options.frame_gap is None else replace(scan, frame_gap=options.frame_gap))
+    return scans
+
+
+def map_quadrants(options: ThreadScanOptions, dataset: Dataset, scans: list[QuadrantScanPlan] | None = None,
+                  progress: Progress | None = None) -> list[QuadrantCloud]:
+    """Each quadrant's sparse map with the stage's reported poses (the stacked frame), matching frames up
+    to its scan's frame gap apart (``scans``: :func:`quadrant_scans`, computed when None)."""
     layout = read_quadrants(dataset.root, dataset.names)
+    scans = quadrant_scans(options, dataset) if scans is None else scans
     stage(progress, "mapping quadrants", len(layout))
 
-    def one(q):
+    def one(q, scan):
         images = [dataset.frame(i) for i in q.frames]
         poses = [dataset.poses[i].pose for i in q.frames]
-        m = map_quadrant(images, dataset.camera, poses, options.mapping)
+        m = map_quadrant(images, dataset.camera, poses, replace(options.mapping, max_frame_gap=scan.frame_gap))
         advance(progress)
         return QuadrantCloud(q.index, q.angle_deg, m.points, m.descriptors, m.colors, m.observation_point,
                              m.observation_frame, m.observation_descriptors)
 
     with ThreadPoolExecutor(max_workers=options.threads) as pool:
-        clouds = list(pool.map(one, layout))
+        clouds = list(pool.map(one, layout, scans))
     for c in clouds:
         if len(c.points) < options.panorama.min_correspondences:
             raise InputError(f"{dataset.root}: quadrant {c.index} ({c.angle_deg:.1f}°): only {len(c.points)} 3-D points "
@@ -237,7 +266,8 @@ def run(options: ThreadScanOptions, dataset: Dataset, out_dir: str | Path, *,
     """Measure a tapped hole from a side-view quadrant scan and write the run folder ``out_dir``."""
     timings = {}
     t0 = time.perf_counter()
-    clouds = map_quadrants(options, dataset, progress)
+    scans = quadrant_scans(options, dataset)
+    clouds = map_quadrants(options, dataset, scans, progress)
     timings["mapping"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -300,7 +330,7 @@ def run(options: ThreadScanOptions, dataset: Dataset, out_dir: str | Path, *,
                 "major_diameter": gauge.major_diameter_mm.value - made["major_diameter_mm"],
                 "pitch_diameter": gauge.pitch_diameter_mm.value - made["pitch_diameter_mm"],
                 "pitch": gauge.pitch_mm.value - dataset.ground_truth.scene["thread"]["pitch_mm"]}
-    result = ThreadScanResult(clouds, panorama, dense, points, gauge, errors, timings, gauge_message, systematic)
+    result = ThreadScanResult(clouds, panorama, dense, points, gauge, errors, timings, gauge_message, systematic, scans)
     write_outputs(result, out_dir)
     return result
 
