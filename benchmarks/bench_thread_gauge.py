@@ -11,8 +11,8 @@ with its pitch diameter 0.09 mm above D2 max (must fail, no-go); an M8 mid-class
 (200°, 20° wide, 0.15 mm deep, on the crest turn nearest z = -4 mm, inside the scanned stretch; must fail
 with the defect at 200° ± 10°).
 
-Uncertainty check: each size's stated 1-sigma (statistical from the fit, systematic from the registration's
-covariance, combined) against its error; ``calibration`` gives the fraction of |error| / sigma within 1 and 2
+Uncertainty check: each size's stated 1-sigma (statistical from the fit; systematic from the registration's
+covariance, the sparse points' per-part bias and the gap between neighbours' matched points; combined) against its error; ``calibration`` gives the fraction of |error| / sigma within 1 and 2
 over every hole and seed (a standard normal: 68 % and 95 %). ``--seeds 0,1`` repeats each hole with other
 RANSAC / draw seeds.
 
@@ -96,6 +96,7 @@ def measure(data: Path, name: str, scratch: Path, seed: int = 0) -> dict:
     row.update(wall_s=time.perf_counter() - t0, cpu_s=time.process_time() - c0, stages_wall_s=result.timings_s,
                pair_inliers=[len(p.points_i) for p in result.panorama.pairs],
                frame_gaps=sorted({s.frame_gap for s in result.scans}),
+               mount=result.mount.to_dict() if result.mount is not None else None,
                load_after=load(), points=len(result.points))
     g = result.gauge
     if g is None:
