@@ -128,7 +128,8 @@ def measure(data: Path, name: str, scratch: Path, seed: int = 0) -> dict:
 def calibration(rows: dict) -> dict:
     """|error| / stated sigma over every measured hole, seed and size (D1, D2, D, P): fraction within 1 and
     2 sigma, with the statistical sigma alone, with the registration's systematic term added, and with
-    every term (the registration's and the sparse points' per-part bias)."""
+    every term (the registration's, the sparse points' per-part bias, and on the rows that have it the
+    gap between neighbours' matched points)."""
     def registration_only(r, k):
         reg = r.get("systematic_by_source_mm", {}).get("registration", {}).get(k)
         if reg is None:  # rows measured before the point-bias term: their systematic was the registration's
@@ -138,10 +139,13 @@ def calibration(rows: dict) -> dict:
     out = {}
     # rows measured with the point-bias term (the planned scans) apart: the older rows' stated sigma lacks it
     current = {n: r for n, r in rows.items() if "systematic_by_source_mm" in r}
+    # and the rows measured with the mount correction and the match-gap term (issue-13 follow-up 5)
+    gap_rows = {n: r for n, r in rows.items() if "match_gap" in r.get("systematic_by_source_mm", {})}
     for label, get, subset in (("statistical", lambda r, k: r["sigma_parts_mm"][k]["statistical"], rows),
                                ("fit_and_registration", registration_only, rows),
                                ("combined", lambda r, k: r["sigma_mm"][k], rows),
-                               ("combined_point_bias_rows_only", lambda r, k: r["sigma_mm"][k], current)):
+                               ("combined_point_bias_rows_only", lambda r, k: r["sigma_mm"][k], current),
+                               ("combined_match_gap_rows_only", lambda r, k: r["sigma_mm"][k], gap_rows)):
         z = np.array([abs(r["errors_mm"][k]) / get(r, k) for r in subset.values() if "sigma_parts_mm" in r
                       for k in ("minor_diameter", "pitch_diameter", "major_diameter", "pitch")])
         if len(z):
