@@ -165,7 +165,7 @@ def figure(rows: dict, path: Path) -> None:
     for y in (-0.02, 0.02):
         ax.axhline(y, color="red", ls="--")
     ax.set_xticks(x, [f"{n}\n{rows[n]['verdict']}\n{rows[n]['step_mm']} mm/frame" for n in names], fontsize=8)
-    ax.set_ylabel("measured - as made (mm)\nbars: ±2σ stated (fit, registration, point bias)")
+    ax.set_ylabel("measured - as made (mm)\nbars: ±2σ stated (fit, registration, point bias, match gap)")
     ax.legend(fontsize=7)
     ax = fig.add_subplot(1, 2, 2)
     ax.bar(x, [1000 * rows[n]["errors_mm"]["pitch"] for n in names], 0.5)
