@@ -80,9 +80,9 @@ def registration_bench(tmp: Path) -> dict:
                        quadrant_mount=MOUNT, thread_offsets_mm=MID_CLASS["M8x1.25"])
         write(seq, path)
         ds = load_dataset(path)
-        truth = true_world_from_stacked(ds)
         t0, c0 = time.perf_counter(), time.process_time()
-        clouds = map_quadrants(ThreadScanOptions(), ds)
+        clouds, mount = map_quadrants(ThreadScanOptions(), ds)
+        truth = true_world_from_stacked(ds, mount)
         mapping = (time.perf_counter() - t0, time.process_time() - c0)
         view_rows = {"mapping_wall_s": mapping[0], "mapping_cpu_s": mapping[1],
                      "points_per_quadrant": [len(c.points) for c in clouds]}

@@ -13,6 +13,9 @@ import time
 import pytest
 
 from scope3d.cli.main import main
+from scope3d.metrology.thread_scan_plan import matched_frame_gap, plan_quadrant_scan
+from scope3d.phantoms.lab import BORESCOPE_FOV_DEG
+from scope3d.sensor.camera import Camera
 from scope3d.phantoms import generate, write
 
 
@@ -38,6 +41,10 @@ def test_thread_scan_registers_the_quadrants(hole, tmp_path, capsys):
     assert reg["rotation_error_deg"] < reg["stacked_rotation_error_deg"]
     assert reg["loop_closure_residual_deg"] is not None and len(reg["pairs"]) == 12
     assert report["gauge"]["verdict"] in ("pass", "fail", "indeterminate")
+    # the frame gap comes from the scan itself (0.1 mm steps, 45° view, the scan plan's half-overlap
+    # rule), not from a size-specific argument
+    scan = plan_quadrant_scan(Camera.from_fov(320, 256, BORESCOPE_FOV_DEG), "M8x1.25", 45.0)
+    assert report["scan"]["frame_gap"] == [matched_frame_gap(0.1, scan.view_extent_mm)] * 12
     assert (out / "cloud.ply").is_file() and (out / "registration.png").is_file()
     assert len(list((out / "quadrants").glob("q*.ply"))) == 12
 

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from scope3d.metrology.thread_gauge import THREAD_SIZES
-from scope3d.metrology.thread_scan_plan import ScanPlanOptions, plan_quadrant_scan, view_extent_mm
+from scope3d.metrology.thread_scan_plan import (ScanPlanOptions, measured_quadrant_scan, plan_quadrant_scan,
+                                                view_extent_mm)
 from scope3d.phantoms.trajectories import quadrant_trajectory
 from scope3d.sensor.camera import Camera
 
@@ -47,3 +48,26 @@ def test_smaller_holes_get_smaller_steps_and_a_view_down_the_hole_is_refused():
     assert steps == sorted(steps)  # M6 < M8 < M10: the wall is nearer, the view shorter
     with pytest.raises(ValueError, match="looks"):
         view_extent_mm(CAMERA, 20.0, 3.0)
+
+
+@pytest.mark.parametrize("designation,side_view", [(d, 90.0) for d in THREAD_SIZES] + [("M8x1.25", 45.0)])
+def test_a_scan_read_off_its_poses_gets_the_plans_frame_gap(designation, side_view):
+    plan = plan_quadrant_scan(CAMERA, designation, side_view)
+    # the stage's reported poses of a scan taken by the plan (camera nominally on the axis, untilted)
+    trajectory = quadrant_trajectory(plan.frames_per_quadrant, step_mm=plan.step_mm, quadrants=4,
+                                     side_view_deg=side_view, axis_offset_mm=(0.0, 0.0))
+    for q in range(4):  # every quadrant, each turned by the stage about the hole axis
+        poses = trajectory.poses[q * plan.frames_per_quadrant:(q + 1) * plan.frames_per_quadrant]
+        scan = measured_quadrant_scan(CAMERA, poses, designation)
+        assert scan.frame_gap == plan.frame_gap and scan.frames_per_quadrant == plan.frames_per_quadrant
+        # read off float poses: the same step and extent to round-off
+        np.testing.assert_allclose([scan.step_mm, scan.view_extent_mm, scan.wall_radius_mm],
+                                   [plan.step_mm, plan.view_extent_mm, plan.wall_radius_mm], rtol=1e-9)
+
+
+def test_a_scan_that_does_not_advance_or_looks_upside_down_is_refused():
+    poses = quadrant_trajectory(4, quadrants=1, side_view_deg=90.0, axis_offset_mm=(0.0, 0.0)).poses
+    with pytest.raises(ValueError, match="do not advance"):
+        measured_quadrant_scan(CAMERA, [poses[0]] * 4, "M8x1.25")
+    with pytest.raises(ValueError, match="rows run up"):
+        measured_quadrant_scan(CAMERA, poses[::-1], "M8x1.25")  # withdrawing: rows point against the motion

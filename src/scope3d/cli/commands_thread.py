@@ -22,8 +22,9 @@ def register(subparsers) -> None:
                    choices=LazyChoices("scope3d.metrology.thread_gauge", "THREAD_SIZES"),
                    help="nominal thread: %(choices)s (default M8x1.25)")
     p.add_argument("--frame-gap", type=int, metavar="N",
-                   help="match frames up to N steps apart within a quadrant (default 7; 3 for a 90° "
-                        "view advancing 0.5 mm per frame, whose frames farther apart share little wall)")
+                   help="match frames up to N steps apart within a quadrant (default: from the scan itself, "
+                        "its step and side view read off the poses, so that matched frames' views of the "
+                        "nominal thread's wall overlap by half, as the scan plan does)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_job_arguments(p)
     p.set_defaults(func=_run_scan)
@@ -43,8 +44,9 @@ def register(subparsers) -> None:
                    choices=LazyChoices("scope3d.metrology.thread_gauge", "THREAD_SIZES"),
                    help="nominal thread: %(choices)s (default M8x1.25)")
     t.add_argument("--frame-gap", type=int, metavar="N",
-                   help="match frames up to N steps apart within a quadrant (default 7; 3 for a 90° "
-                        "view advancing 0.5 mm per frame, whose frames farther apart share little wall)")
+                   help="match frames up to N steps apart within a quadrant (default: from the scan itself, "
+                        "its step and side view read off the poses, so that matched frames' views of the "
+                        "nominal thread's wall overlap by half, as the scan plan does)")
     t.add_argument("--scheduler", metavar="ADDRESS",
                    help="Dask scheduler address (e.g. tcp://host:8786); default: a local cluster")
     t.add_argument("--workers", type=int, default=2, metavar="N",
@@ -100,14 +102,9 @@ def hole_page(folder, hole: str) -> None:
 
 
 def _options(args):
-    from dataclasses import replace
-
     from scope3d.errors import InputError
     from scope3d.pipelines.thread_scan import ThreadScanOptions
 
-    options = ThreadScanOptions(designation=args.thread)
-    if args.frame_gap is not None:
-        if args.frame_gap < 1:
-            raise InputError(f"--frame-gap must be at least 1, got {args.frame_gap}")
-        options = replace(options, mapping=replace(options.mapping, max_frame_gap=args.frame_gap))
-    return options
+    if args.frame_gap is not None and args.frame_gap < 1:
+        raise InputError(f"--frame-gap must be at least 1, got {args.frame_gap}")
+    return ThreadScanOptions(designation=args.thread, frame_gap=args.frame_gap)

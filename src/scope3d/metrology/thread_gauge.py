@@ -219,7 +219,7 @@ class GaugeResult:
         lines = [f"thread gauge {lim.designation}-{lim.tolerance_class}: {self.verdict.upper()}",
                  f"  {'':20s} {'value':>9s} {'± 1σ':>8s}  limits (mm)"]
         for name, m, text in rows:
-            parts = "" if m.systematic is None else f"  (fit {m.statistical:.4f}, registration {m.systematic:.4f})"
+            parts = "" if m.systematic is None else f"  (fit {m.statistical:.4f}, systematic {m.systematic:.4f})"
             lines.append(f"  {name:20s} {m.value:9.4f} {m.uncertainty:8.4f}  {text}{parts}")
         f = self.flank_angle_deg
         held = " (sizes fitted with 60°: the free fit above does not resolve another)" if self.profile.get(

@@ -19,6 +19,10 @@ frame gap keeps matched frames' views overlapping by at least half (``gap * step
 advances until the frames have shown ``thread_pitches`` pitches of thread: the gauge trims a pitch of
 run-out at each end, its zone detection needs a one-pitch window, and it must keep at least two pitches
 to fit (:func:`scope3d.metrology.thread_gauge.gauge_thread`), plus margin for the ragged ends.
+
+:func:`measured_quadrant_scan` applies the same rules to a scan already taken: its step and side view are
+read off the stage's poses, so that ``scope3d thread-scan``, the Python API and the benchmarks all map a
+quadrant with the frame gap its own scan calls for, whatever the hole size.
 """
 from __future__ import annotations
 
@@ -26,6 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from scope3d.geometry.pose import Pose
 from scope3d.metrology.thread_gauge import THREAD_SIZES
 from scope3d.sensor.camera import Camera
 
@@ -87,19 +92,61 @@ def view_extent_mm(camera: Camera, side_view_deg: float, wall_radius_mm: float) 
     return float(above), float(below)
 
 
+def pitch_radius_mm(designation: str) -> float:
+    """The pitch radius (ISO 724 D2 / 2, mm) of a ``designation`` hole: the wall's mean distance from the axis."""
+    if designation not in THREAD_SIZES:
+        raise ValueError(f"unknown thread {designation!r} (use one of {', '.join(THREAD_SIZES)})")
+    major, pitch = THREAD_SIZES[designation]
+    return (major - 0.649519 * pitch) / 2
+
+
+def matched_frame_gap(step_mm: float, extent_mm: float, options: ScanPlanOptions = ScanPlanOptions()) -> int:
+    """The largest frame gap whose matched frames' views still overlap by ``max_baseline_fraction``
+    (``gap * step <= fraction * extent``), at least 1."""
+    return max(1, int(np.floor(options.max_baseline_fraction * extent_mm / step_mm + 1e-9)))
+
+
 def plan_quadrant_scan(camera: Camera, designation: str, side_view_deg: float = 90.0,
                        options: ScanPlanOptions = ScanPlanOptions()) -> QuadrantScanPlan:
     """The quadrant scan of a ``designation`` hole (``M6x1``, ``M8x1.25``, ``M10x1.5``) seen by ``camera``
     at ``side_view_deg`` (see the module docstring)."""
-    if designation not in THREAD_SIZES:
-        raise ValueError(f"unknown thread {designation!r} (use one of {', '.join(THREAD_SIZES)})")
-    major, pitch = THREAD_SIZES[designation]
-    radius = (major - 0.649519 * pitch) / 2  # the pitch radius (ISO 724 D2): the wall's mean distance
+    radius = pitch_radius_mm(designation)
+    pitch = THREAD_SIZES[designation][1]
     above, below = view_extent_mm(camera, side_view_deg, radius)
     extent = above + below
     step = np.floor(extent / options.views_per_point * 100) / 100  # a stage steps in hundredths of a mm
-    gap = max(1, int(np.floor(options.max_baseline_fraction * extent / step + 1e-9)))
+    gap = matched_frame_gap(step, extent, options)
     # thread shown = start offset + advance + the view below the last frame
     advance = max(0.0, options.thread_pitches * pitch - options.start_below_thread_mm - below)
     frames = int(np.ceil(advance / step - 1e-9)) + 1
     return QuadrantScanPlan(float(step), max(frames, 2), gap, float(extent), float(radius))
+
+
+def measured_quadrant_scan(camera: Camera, poses: list[Pose], designation: str,
+                           options: ScanPlanOptions = ScanPlanOptions()) -> QuadrantScanPlan:
+    """The scan one quadrant's frames were taken with, read off their (stage-reported) ``cam_from_world``
+    poses in order of advance, and the frame gap the plan's rule gives it: the step is the median advance
+    between consecutive camera centres along the direction of advance (first to last centre), the side
+    view the angle between the optical axis and that direction, the view's extent that of the wall at
+    the nominal thread's pitch radius. Raises ValueError for fewer than two frames, a scope that does not
+    advance, or a camera whose image rows run up the hole (the extent's rule takes them running down)."""
+    if len(poses) < 2:
+        raise ValueError(f"a quadrant needs at least 2 frames, got {len(poses)}")
+    centres = np.array([p.centre for p in poses])
+    travel = centres[-1] - centres[0]
+    if not np.linalg.norm(travel) > 1e-6:
+        raise ValueError("the quadrant's frames do not advance (first and last camera centres coincide)")
+    advance = travel / np.linalg.norm(travel)
+    step = float(np.median(np.diff(centres @ advance)))
+    if not step > 0:
+        raise ValueError(f"the quadrant's frames do not advance steadily (median step {step:.4f} mm)")
+    # image rows (camera y) in the world, averaged over the frames: they must point down the hole
+    rows_down = np.mean([p.rotation[1] for p in poses], axis=0)
+    if rows_down @ advance <= 0:
+        raise ValueError("the camera's image rows run up the hole, not down it")
+    axis = np.mean([p.optical_axis for p in poses], axis=0)
+    side_view_deg = float(np.degrees(np.arccos(np.clip(axis @ advance / np.linalg.norm(axis), -1.0, 1.0))))
+    side_view_deg = round(side_view_deg, 9)  # a 90° view read off float poses comes out at 90 + 1e-14
+    radius = pitch_radius_mm(designation)
+    extent = float(sum(view_extent_mm(camera, side_view_deg, radius)))
+    return QuadrantScanPlan(step, len(poses), matched_frame_gap(step, extent, options), extent, float(radius))

@@ -3,8 +3,13 @@
 Read top to bottom like the method section::
 
     quadrants  <- io.quadrants.read_quadrants         (frames of each 30° quadrant, stage angles)
+    scan       <- metrology.measured_quadrant_scan    (each quadrant's step and side view read off its
+                                                       poses; the scan plan's rule gives the frame gap)
     maps       <- sfm.quadrant_mapping.map_quadrant   (SIFT, matches, tracks, triangulation with the
                                                        stage's known axial poses), one per quadrant
+    mount      <- sfm.estimate_mount_rotation         (the camera's rotation on its mount from every
+                                                       quadrant's epipoles; the maps re-triangulated
+                                                       with the corrected poses: sfm.retriangulate)
     panorama   <- registration.register_quadrants     (neighbours' 3-D-3-D feature correspondences,
                                                        RANSAC + SVD, joint solve with the loop closure)
     dense      <- mvs.plane_sweep.dense_quadrant     (plane sweep of each quadrant with its frames'
@@ -16,6 +21,9 @@ Read top to bottom like the method section::
     systematic <- registration_systematic             (the cloud re-placed by draws of the registration
                                                        from its covariance, re-measured: the spread is
                                                        the sizes' systematic uncertainty)
+                  match_gap_systematic                (neighbours' matched points drawn apart along the
+                                                       circle by their measured gap, the joint solve run
+                                                       again, re-measured)
                   metrology.profile_bias_systematic   (each profile part's points offset by the sparse
                                                        reconstruction's measured bias, re-measured; both
                                                        in quadrature, the verdict judged again on the
@@ -40,14 +48,17 @@ from scope3d.geometry.pose import Pose
 from scope3d.io.dataset import Dataset
 from scope3d.io.ply import write_ply
 from scope3d.io.quadrants import read_quadrants
+from scope3d.metrology.thread_scan_plan import QuadrantScanPlan, measured_quadrant_scan
 from scope3d.metrology.thread_gauge import (THREAD_SIZES, GaugeOptions, GaugeResult, gauge_thread,
                                            profile_bias_systematic, remeasure, with_systematic)
 from scope3d.registration.outliers import OutlierOptions, statistical_inliers
-from scope3d.registration.panorama import (PanoramaOptions, PanoramaResult, QuadrantCloud, register_quadrants,
-                                           registered_frame_poses, registration_errors)
+from scope3d.registration.panorama import (PanoramaOptions, PanoramaResult, QuadrantCloud, joint_solve,
+                                           pairs_drawn_apart, register_quadrants, registered_frame_poses,
+                                           registration_errors)
 from scope3d.scene.mesh import PointCloud
 from scope3d.mvs.plane_sweep import DenseQuadrantOptions, dense_quadrant
-from scope3d.sfm.quadrant_mapping import QuadrantMapOptions, map_quadrant
+from scope3d.sfm.quadrant_mapping import (MountEstimate, MountOptions, QuadrantMapOptions, estimate_mount_rotation,
+                                         map_quadrant, retriangulate)
 from scope3d.utils.atomic import atomic_directory
 from scope3d.utils.figures import new_figure, save_figure
 from scope3d.utils.jsonio import write_json
@@ -62,6 +73,15 @@ from scope3d.utils.progress import Progress, advance, stage
 # the sizes' errors.
 SPARSE_POINT_BIAS_MM = 0.002
 
+# Matched keypoints of neighbour quadrants are not quite the same point of the wall. Each quadrant's map and
+# its neighbour's triangulated with the TRUE poses (docs/thread_metrology.md, "The negative diameter
+# bias"), the first quadrant's point of an inlier correspondence lies, on average, short of its match
+# along the circle by 0.0034 / 0.0030 / 0.0025 mm (standard error 0.0013-0.0015 mm; 1,457 / 1,196 / 1,141
+# correspondences; M8 / M10 / M6 mid-class holes, 90° view, 400x320 px): each keypoint a little nearer
+# its own frame's centre along the crest. Rounded, it is the standard uncertainty of that gap; measured
+# against the truth, not fitted to the sizes' errors.
+MATCH_GAP_MM = 0.003
+
 
 @dataclass(frozen=True)
 class ThreadScanOptions:
@@ -73,7 +93,15 @@ class ThreadScanOptions:
     1/sqrt(2 (n - 1)), ~15 %; 0 leaves the registration out). point_bias_mm : standard uncertainty of
     the offset of one profile part's points (crest, each flank, root) from the true surface along its
     normal, propagated by :func:`scope3d.metrology.thread_gauge.profile_bias_systematic` (default
-    :data:`SPARSE_POINT_BIAS_MM`; 0 leaves it out). seed : RANSAC's and the draws' seeds."""
+    :data:`SPARSE_POINT_BIAS_MM`; 0 leaves it out). match_gap_mm : standard uncertainty of the gap along
+    the circle between neighbour quadrants' matched points, propagated by :func:`match_gap_systematic`
+    (default :data:`MATCH_GAP_MM`; 0 leaves it out). frame_gap : each quadrant map matches frames up to
+    this many steps apart (it replaces ``mapping.max_frame_gap``); None (default) takes each quadrant's
+    from its own scan with the scan plan's rule (matched frames' views overlap by half:
+    :func:`scope3d.metrology.thread_scan_plan.measured_quadrant_scan`). mount : options of the camera's
+    mount rotation, measured from the quadrants' epipolar geometry and corrected before the quadrants are
+    registered (:func:`scope3d.sfm.quadrant_mapping.estimate_mount_rotation`), or None to triangulate with
+    the reported poses as they are. seed : RANSAC's and the draws' seeds."""
 
     designation: str = "M8x1.25"
     mapping: QuadrantMapOptions = QuadrantMapOptions()
@@ -87,13 +115,18 @@ class ThreadScanOptions:
     threads: int = 2
     registration_draws: int = 24
     point_bias_mm: float = SPARSE_POINT_BIAS_MM
+    match_gap_mm: float = MATCH_GAP_MM
+    frame_gap: int | None = None
+    mount: MountOptions | None = MountOptions()
     seed: int = 0
 
     def __post_init__(self) -> None:
         if self.designation not in THREAD_SIZES:
             raise InputError(f"unknown thread {self.designation!r} (use one of {', '.join(THREAD_SIZES)})")
-        if self.threads < 1 or self.registration_draws < 0 or self.point_bias_mm < 0:
-            raise ValueError("threads must be >= 1, registration_draws and point_bias_mm >= 0")
+        if self.threads < 1 or self.registration_draws < 0 or self.point_bias_mm < 0 or self.match_gap_mm < 0:
+            raise ValueError("threads must be >= 1, registration_draws, point_bias_mm and match_gap_mm >= 0")
+        if self.frame_gap is not None and self.frame_gap < 1:
+            raise InputError(f"the frame gap must be at least 1, got {self.frame_gap}")
 
 
 @dataclass
@@ -103,8 +136,10 @@ class ThreadScanResult:
     registered cloud the gauge measured, after outlier removal (dense, or the sparse points without); gauge : the measurement, or None when the cloud shows no
     gaugeable thread (gauge_message says why; the verdict is then ``indeterminate``); errors :
     registration errors against the truth or None; timings_s : per stage; systematic_mm : the sizes'
-    systematic standard uncertainties (mm) by source, ``registration`` and ``point_bias`` (each keyed as
-    :func:`scope3d.metrology.thread_gauge.remeasure`), empty when not computed."""
+    systematic standard uncertainties (mm) by source, ``registration``, ``point_bias`` and ``match_gap`` (each keyed as
+    :func:`scope3d.metrology.thread_gauge.remeasure`), empty when not computed. scans : per quadrant the
+    scan read off its poses and the frame gap its map used. mount : the camera's measured mount rotation
+    (None when not estimated); the stacked frame is that of the reported poses so corrected."""
 
     clouds: list[QuadrantCloud]
     panorama: PanoramaResult
@@ -115,6 +150,8 @@ class ThreadScanResult:
     timings_s: dict = field(default_factory=dict)
     gauge_message: str = ""
     systematic_mm: dict = field(default_factory=dict)
+    scans: list[QuadrantScanPlan] = field(default_factory=list)
+    mount: MountEstimate | None = None
 
     def report(self) -> dict:
         g = self.gauge
@@ -126,6 +163,8 @@ class ThreadScanResult:
                       for p in self.panorama.pairs],
             "time_s": self.timings_s.get("registration"),
         }
+        if self.mount is not None:
+            registration["mount_rotation"] = self.mount.to_dict()
         if self.errors:
             registration.update(self.errors)
         gauge = g.to_dict() if g is not None else {"verdict": "indeterminate", "message": self.gauge_message,
@@ -137,6 +176,8 @@ class ThreadScanResult:
             "registration": registration,
             "points": {"per_quadrant": [len(c.points) for c in self.clouds],
                        "dense_per_quadrant": [len(d) for d in self.dense], "registered": len(self.points)},
+            "scan": {"step_mm": [s.step_mm for s in self.scans], "frame_gap": [s.frame_gap for s in self.scans],
+                     "view_extent_mm": [s.view_extent_mm for s in self.scans]},
             "timings_s": self.timings_s,
         }
 
@@ -157,37 +198,69 @@ class ThreadScanResult:
         return "\n".join(lines)
 
 
-def map_quadrants(options: ThreadScanOptions, dataset: Dataset, progress: Progress | None = None) -> list[QuadrantCloud]:
-    """Each quadrant's sparse map with the stage's reported poses (the stacked frame)."""
-    layout = read_quadrants(dataset.root, dataset.names)
-    stage(progress, "mapping quadrants", len(layout))
+def quadrant_scans(options: ThreadScanOptions, dataset: Dataset) -> list[QuadrantScanPlan]:
+    """Per quadrant, its scan read off the stage's poses and the frame gap its map matches over
+    (``options.frame_gap`` when given)."""
+    scans = []
+    for q in read_quadrants(dataset.root, dataset.names):
+        try:
+            scan = measured_quadrant_scan(dataset.camera, [dataset.poses[i].pose for i in q.frames], options.designation)
+        except ValueError as exc:
+            raise InputError(f"{dataset.root}: quadrant {q.index} ({q.angle_deg:.1f}°): {exc}") from None
+        scans.append(scan if options.frame_gap is None else replace(scan, frame_gap=options.frame_gap))
+    return scans
 
-    def one(q):
-        images = [dataset.frame(i) for i in q.frames]
-        poses = [dataset.poses[i].pose for i in q.frames]
-        m = map_quadrant(images, dataset.camera, poses, options.mapping)
+
+def map_quadrants(options: ThreadScanOptions, dataset: Dataset, scans: list[QuadrantScanPlan] | None = None,
+                  progress: Progress | None = None) -> tuple[list[QuadrantCloud], MountEstimate | None]:
+    """Each quadrant's sparse map in the stacked frame, matching frames up to its scan's frame gap apart
+    (``scans``: :func:`quadrant_scans`, computed when None): triangulated with the stage's reported poses,
+    then, with ``options.mount``, the camera's mount rotation measured and every map triangulated again
+    with the corrected poses. Returns (clouds, mount estimate or None)."""
+    layout = read_quadrants(dataset.root, dataset.names)
+    scans = quadrant_scans(options, dataset) if scans is None else scans
+    stage(progress, "mapping quadrants", len(layout))
+    reported = [[dataset.poses[i].pose for i in q.frames] for q in layout]
+
+    def one(q, scan, poses):
+        m = map_quadrant([dataset.frame(i) for i in q.frames], dataset.camera, poses,
+                         replace(options.mapping, max_frame_gap=scan.frame_gap))
         advance(progress)
-        return QuadrantCloud(q.index, q.angle_deg, m.points, m.descriptors, m.colors, m.observation_point,
-                             m.observation_frame, m.observation_descriptors)
+        return m
 
     with ThreadPoolExecutor(max_workers=options.threads) as pool:
-        clouds = list(pool.map(one, layout))
+        maps = list(pool.map(one, layout, scans, reported))
+    mount = None
+    if options.mount is not None:
+        try:
+            mount = estimate_mount_rotation(dataset.camera, maps, reported, options.mount)
+        except ValueError as exc:
+            raise InputError(f"{dataset.root}: {exc}") from None
+        maps = [retriangulate(dataset.camera, m, [mount.corrected(p) for p in poses]) for m, poses in zip(maps, reported)]
+    clouds = [QuadrantCloud(q.index, q.angle_deg, m.points, m.descriptors, m.colors, m.observation_point,
+                            m.observation_frame, m.observation_descriptors) for q, m in zip(layout, maps)]
     for c in clouds:
         if len(c.points) < options.panorama.min_correspondences:
             raise InputError(f"{dataset.root}: quadrant {c.index} ({c.angle_deg:.1f}°): only {len(c.points)} 3-D points "
                              "reconstructed (too few features or matches)")
-    return clouds
+    return clouds, mount
+
+
+def stacked_poses(dataset: Dataset, frames: tuple[int, ...], mount: MountEstimate | None) -> list[Pose]:
+    """The ``cam_from_world`` of ``frames`` in the stacked frame: as reported, corrected for the mount."""
+    poses = [dataset.poses[i].pose for i in frames]
+    return poses if mount is None else [mount.corrected(p) for p in poses]
 
 
 def dense_clouds(options: ThreadScanOptions, dataset: Dataset, panorama: PanoramaResult, clouds: list[QuadrantCloud],
-                 progress: Progress | None = None) -> list[np.ndarray]:
+                 mount: MountEstimate | None = None, progress: Progress | None = None) -> list[np.ndarray]:
     """Each quadrant's dense cloud in the registered world, swept with its frames' registered poses."""
     layout = read_quadrants(dataset.root, dataset.names)
     stage(progress, "dense quadrants", len(layout))
 
     def one(q):
         g = panorama.world_from_stacked[q.index]
-        poses = registered_frame_poses(g, [dataset.poses[i].pose for i in q.frames], len(q.frames) // 2)
+        poses = registered_frame_poses(g, stacked_poses(dataset, q.frames, mount), len(q.frames) // 2)
         points, _ = dense_quadrant([dataset.frame(i) for i in q.frames], dataset.camera, poses,
                                    g.transform(clouds[q.index].points), options.dense)
         advance(progress)
@@ -219,16 +292,37 @@ def registration_systematic(gauge: GaugeResult, panorama: PanoramaResult, points
     return {key: float(np.std([m[key] for m in sizes], ddof=1)) for key in sizes[0]}
 
 
-def true_world_from_stacked(dataset: Dataset) -> list[Pose] | None:
-    """Per quadrant, the transform taking its stacked (stage-nominal) frame to the true world: at the
-    quadrant's middle frame, ``true world_from_cam @ reported cam_from_world``. None without true poses."""
+def match_gap_systematic(gauge: GaugeResult, panorama: PanoramaResult, angles_deg: list[float], points: np.ndarray,
+                         quadrant_of: np.ndarray, gap_mm: float, panorama_options: PanoramaOptions,
+                         noise_mm: float = 0.01) -> dict:
+    """The sizes' systematic standard uncertainty (mm; keys as :func:`scope3d.metrology.thread_gauge.remeasure`'s)
+    from a gap ``gap_mm`` along the circle between neighbour quadrants' matched points
+    (:func:`scope3d.registration.panorama.pairs_drawn_apart`): the joint solve is run again on the pairs
+    so drawn apart, every quadrant's registered points moved by ``G_new G_est^-1``, the profile re-fitted;
+    the size changes are the term. Such a gap moves every quadrant radially at once (by ~gap / (2 sin 15°)
+    for 30° quadrants: every diameter by ~3.9 gap), which neither the fit's residuals nor the joint
+    solve's covariance show. points : (N, 3) mm the gauged cloud; quadrant_of : (N,) its quadrants."""
+    moved_poses = joint_solve(pairs_drawn_apart(panorama.pairs, gap_mm), angles_deg, panorama_options)[0]
+    moved = points.copy()
+    for q, (g_new, g_est) in enumerate(zip(moved_poses, panorama.world_from_stacked)):
+        sel = quadrant_of == q
+        moved[sel] = (g_new @ g_est.inverse()).transform(points[sel])
+    base, sizes = remeasure(gauge, points, noise_mm), remeasure(gauge, moved, noise_mm)
+    return {key: float(abs(sizes[key] - base[key])) for key in base}
+
+
+def true_world_from_stacked(dataset: Dataset, mount: MountEstimate | None = None) -> list[Pose] | None:
+    """Per quadrant, the transform taking its stacked frame (the reported poses, corrected for the
+    ``mount`` when given) to the true world: at the quadrant's middle frame, ``true world_from_cam @
+    stacked cam_from_world``. None without true poses. (With the reported poses of a camera tilted on its
+    mount this differs from frame to frame of a quadrant; with a mount corrected exactly it does not.)"""
     gt = dataset.ground_truth
     if gt is None or gt.poses is None:
         return None
     out = []
     for q in read_quadrants(dataset.root, dataset.names):
         i = q.frames[len(q.frames) // 2]
-        out.append(gt.poses[i].inverse() @ dataset.poses[i].pose)
+        out.append(gt.poses[i].inverse() @ stacked_poses(dataset, (i,), mount)[0])
     return out
 
 
@@ -237,7 +331,8 @@ def run(options: ThreadScanOptions, dataset: Dataset, out_dir: str | Path, *,
     """Measure a tapped hole from a side-view quadrant scan and write the run folder ``out_dir``."""
     timings = {}
     t0 = time.perf_counter()
-    clouds = map_quadrants(options, dataset, progress)
+    scans = quadrant_scans(options, dataset)
+    clouds, mount = map_quadrants(options, dataset, scans, progress)
     timings["mapping"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -248,7 +343,7 @@ def run(options: ThreadScanOptions, dataset: Dataset, out_dir: str | Path, *,
     dense = [np.zeros((0, 3)) for _ in clouds]
     if options.dense is not None:
         t0 = time.perf_counter()
-        dense = dense_clouds(options, dataset, panorama, clouds, progress)
+        dense = dense_clouds(options, dataset, panorama, clouds, mount, progress)
         registered = dense
         timings["dense"] = time.perf_counter() - t0
 
@@ -269,7 +364,7 @@ def run(options: ThreadScanOptions, dataset: Dataset, out_dir: str | Path, *,
         gauge_message = str(exc)
     timings["gauge"] = time.perf_counter() - t0
     systematic = {}
-    if gauge is not None and (options.registration_draws or options.point_bias_mm):
+    if gauge is not None and (options.registration_draws or options.point_bias_mm or options.match_gap_mm):
         t0 = time.perf_counter()
         if options.registration_draws:
             systematic["registration"] = registration_systematic(gauge, panorama, points, quadrant_of[keep],
@@ -278,6 +373,10 @@ def run(options: ThreadScanOptions, dataset: Dataset, out_dir: str | Path, *,
         if options.point_bias_mm:
             systematic["point_bias"] = profile_bias_systematic(gauge, points, options.point_bias_mm,
                                                                gauge_options.noise_mm)
+        if options.match_gap_mm:
+            systematic["match_gap"] = match_gap_systematic(gauge, panorama, [c.angle_deg for c in clouds], points,
+                                                           quadrant_of[keep], options.match_gap_mm, options.panorama,
+                                                           gauge_options.noise_mm)
         systematic = {k: v for k, v in systematic.items() if v}
         if systematic:
             keys = set().union(*systematic.values())
@@ -286,7 +385,7 @@ def run(options: ThreadScanOptions, dataset: Dataset, out_dir: str | Path, *,
         timings["systematic"] = time.perf_counter() - t0
 
     errors = None
-    truth = true_world_from_stacked(dataset)
+    truth = true_world_from_stacked(dataset, mount)
     if truth is not None:
         rot, off = registration_errors(panorama.world_from_stacked, truth, clouds)
         rot0, off0 = registration_errors([Pose.identity()] * len(clouds), truth, clouds)
@@ -300,7 +399,7 @@ def run(options: ThreadScanOptions, dataset: Dataset, out_dir: str | Path, *,
                 "major_diameter": gauge.major_diameter_mm.value - made["major_diameter_mm"],
                 "pitch_diameter": gauge.pitch_diameter_mm.value - made["pitch_diameter_mm"],
                 "pitch": gauge.pitch_mm.value - dataset.ground_truth.scene["thread"]["pitch_mm"]}
-    result = ThreadScanResult(clouds, panorama, dense, points, gauge, errors, timings, gauge_message, systematic)
+    result = ThreadScanResult(clouds, panorama, dense, points, gauge, errors, timings, gauge_message, systematic, scans, mount)
     write_outputs(result, out_dir)
     return result
 

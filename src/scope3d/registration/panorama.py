@@ -384,6 +384,31 @@ def loop_closure(pairs: list[PairRegistration], clouds: list[QuadrantCloud]) -> 
             float(np.linalg.norm(loop.transform(centroid[None])[0] - centroid)))
 
 
+def joint_solve(pairs: list[PairRegistration], angles_deg: list[float], options: PanoramaOptions = PanoramaOptions()):
+    """The joint solve of ``options.model`` over the pairs -> (world_from_stacked per quadrant, per-pair
+    residual RMS mm, parameters, their covariance or None, the function from parameters to poses)."""
+    if options.model == "stage":
+        return solve_stage_model(pairs, angles_deg, loss_scale_mm=options.loss_scale_mm, return_covariance=True)
+    return solve_panorama(pairs, len(angles_deg), solve_rotations=options.solve_rotations,
+                          loss_scale_mm=options.loss_scale_mm, return_covariance=True)
+
+
+def pairs_drawn_apart(pairs: list[PairRegistration], gap_mm: float) -> list[PairRegistration]:
+    """The pairs with every correspondence's two points drawn apart along the circle about the stacked z
+    axis (the stage's): the first quadrant's point moved by ``gap_mm / 2`` against the direction of
+    increasing angle, the second's by as much along it — as if each keypoint lay ``gap_mm / 2`` nearer its
+    own frame's centre along a crest than its match does. Neighbours overlap at the edges of their views,
+    so the joint solve can close such a gap only by moving every quadrant radially (by ~gap / (2 sin(s / 2))
+    for a stage step s): a bias of the diameters that the correspondences' scatter does not show."""
+    def along_circle(points):
+        radial = points[:, :2] / np.maximum(np.linalg.norm(points[:, :2], axis=1, keepdims=True), 1e-12)
+        return np.c_[-radial[:, 1], radial[:, 0], np.zeros(len(points))]
+
+    return [PairRegistration(p.i, p.j, p.i_from_j, p.points_i - gap_mm / 2 * along_circle(p.points_i),
+                             p.points_j + gap_mm / 2 * along_circle(p.points_j), p.n_matches, p.rms_mm, p.time_s)
+            for p in pairs]
+
+
 def register_quadrants(clouds: list[QuadrantCloud], options: PanoramaOptions = PanoramaOptions(), *,
                        seed: int = 0, progress=None) -> PanoramaResult:
     """Pairwise feature-based registration of angular neighbours, then the joint solve with the loop
@@ -405,12 +430,7 @@ def register_quadrants(clouds: list[QuadrantCloud], options: PanoramaOptions = P
     if closed and k > 2:
         loop_deg, loop_mm = loop_closure(pairs, clouds)
         log.append(f"loop closure of the chained pairs: {loop_deg:.3f}°, {loop_mm:.4f} mm")
-    if options.model == "stage":
-        poses, rms, x, cov, model = solve_stage_model(pairs, [c.angle_deg for c in clouds],
-                                                      loss_scale_mm=options.loss_scale_mm, return_covariance=True)
-    else:
-        poses, rms, x, cov, model = solve_panorama(pairs, k, solve_rotations=options.solve_rotations,
-                                                   loss_scale_mm=options.loss_scale_mm, return_covariance=True)
+    poses, rms, x, cov, model = joint_solve(pairs, [c.angle_deg for c in clouds], options)
     return PanoramaResult(poses, pairs, loop_deg, loop_mm, rms, step, closed and k > 2, log, x, cov, model)
 
 
