@@ -56,7 +56,7 @@ SURVEYS = {"dome12": ("grid5x6", 12), "dome30": ("grid5x6", 30), "dome56": ("gri
 
 
 SWEEP_MM, SWEEP_DEG = (0.5, 1.0, 2.0, 3.0, 5.0), (1.0, 2.0, 5.0)
-CURVE_MM, CURVE_DEG = np.linspace(0.0, 6.0, 25), np.linspace(0.0, 8.0, 17)
+CURVE_MM, CURVE_DEG = np.linspace(0.0, 6.0, 13), np.linspace(0.0, 8.0, 9)
 POWER_DRAWS = 200  # Monte Carlo draws per frame and glitch size: a power's standard error <= 3.5 %
 
 
@@ -117,7 +117,7 @@ def one_case(survey: str, seed: int, shift_mm: float, tmp: Path, turn_deg: float
                 curve["frames"] += 1
                 for kind, sizes in (("mm", CURVE_MM), ("deg", CURVE_DEG)):
                     curve[kind] += [predicted_power(true_offset - glitch_vector(kind, g), t.covariance, half,
-                                                    t.critical_value, rng, POWER_DRAWS // 4) for g in sizes]
+                                                    t.critical_value, rng, POWER_DRAWS // 8) for g in sizes]
         frames_out.append(row)
     flagged = check.flagged
     return {"survey": survey, "seed": seed, "shift_mm": shift_mm, "turn_deg": turn_deg, "glitched": glitched,
