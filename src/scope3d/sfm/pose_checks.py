@@ -443,8 +443,8 @@ def _scale_of_images(tests: list[FramePoseTest], measured: list[MeasuredPose],
     # each frame judged at the scale of all the others, as the test judges the tested frame: judged at a scale
     # it raised itself, a wrong report can hide (seed 22, 3 mm: its q at 9 is within the cut, at the others'
     # 6.5 beyond it). Once, not iterated: trimming again at the scale the trimming lowered cascades where right
-    # frames' errors have heavier tails than a Gaussian's (dome12, seed 21, a 3 mm glitch set aside: a
-    # neighbour's factor fell to its floor of 1 and the neighbour was flagged)
+    # frames' errors have heavier tails than a Gaussian's (dome12, seed 21, a 3 mm glitch set aside: iterated,
+    # a neighbour's factor fell to its floor of 1; once, it stays at 7)
     everyone = np.ones(len(tests), bool)
     scales = root(everyone @ terms[1.0] - terms[1.0])  # every frame's score, less each frame's own
     q = np.sum(p / (scales[:, None] * lam + 1.0), axis=1)
