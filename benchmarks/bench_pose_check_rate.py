@@ -5,11 +5,21 @@ alone (cheaper than two whole maps, which benchmarks/bench_pose_outliers.py runs
 the statistic d2, its critical value, the p-value, and d2 against the *true* pose (what the test assumes is
 about 6 F(6, nu)); per case: flagged frames, hits (glitched frames found), false alarms, the variance
 factor, CPU time. A glitch moves frame n // 2's reported centre along x by G mm (``dome12:21:3``) or turns
-its reported orientation about x by G degrees (``dome12:21:2deg``). Surveys: ``dome12`` (12 frames of the
+its reported orientation about x by G degrees (``dome12:21:2deg``); ``dome12:22:3@5`` glitches frame 5
+instead. Surveys: ``dome12`` (12 frames of the
 5x6 grid), ``dome30`` (the whole 5x6 grid), ``dome56`` (the 7x8 grid); 320 x 240, reports +-0.5 mm /
 +-0.25 deg.
 
     PYTHONPATH=src python benchmarks/bench_pose_check_rate.py --cases dome12:21:0,dome12:21:3,dome12:21:2deg
+    PYTHONPATH=src python benchmarks/bench_pose_check_rate.py --sweep 21,22,23,24,25   # the detection curve
+
+The detection power the noise model predicts: under it a frame's estimate is ``N(truth, f C)`` (its scaled
+covariance), so for a glitch ``g`` the statistic is the box distance of ``offset_clean - g`` with
+``offset_clean ~ N(truth - report, f C)``; its chance of exceeding the frame's critical value is drawn
+(``POWER_DRAWS``) for every glitched frame (``predicted_power``) and, over a range of glitch sizes, for
+every tested frame of the clean maps (``predicted_curve``: what that geometry can detect at all).
+``--sweep`` runs the glitch sizes 0.5, 1, 2, 3, 5 mm and 1, 2, 5 deg on each seed's frame n // 2 and
+draws results/pose_check_detection.png: found / runs against the predicted power.
 
 Results: results/pose_check_rate.json (merged with the cases already there), with a summary per survey:
 clean maps with a false alarm and the 95 % upper confidence bound on that rate (Clopper-Pearson), and
@@ -39,17 +49,35 @@ from scope3d.geometry.rotation import matrix_to_rotvec, rotvec_to_matrix  # noqa
 from scope3d.io.dataset import load_dataset  # noqa: E402
 from scope3d.pipelines import surgical_map as sm  # noqa: E402
 from scope3d.sensor.pose_tolerance import MeasuredPose  # noqa: E402
-from scope3d.sfm.pose_checks import PoseCheckOptions, test_reported_poses  # noqa: E402
+from scope3d.sfm.pose_checks import PoseCheckOptions, box_mahalanobis, test_reported_poses  # noqa: E402
 from scope3d.utils.jsonio import write_json  # noqa: E402
 
 SURVEYS = {"dome12": ("grid5x6", 12), "dome30": ("grid5x6", 30), "dome56": ("grid7x8", 56)}
 
 
-def one_case(survey: str, seed: int, shift_mm: float, tmp: Path, turn_deg: float = 0.0) -> dict:
+SWEEP_MM, SWEEP_DEG = (0.5, 1.0, 2.0, 3.0, 5.0), (1.0, 2.0, 5.0)
+CURVE_MM, CURVE_DEG = np.linspace(0.0, 6.0, 13), np.linspace(0.0, 8.0, 9)
+POWER_DRAWS = 200  # Monte Carlo draws per frame and glitch size: a power's standard error <= 3.5 %
+
+
+def predicted_power(offset: np.ndarray, covariance: np.ndarray, half: np.ndarray, critical: float,
+                    rng: np.random.Generator, draws: int = POWER_DRAWS) -> float:
+    """P(box distance of N(offset, covariance) > critical): the test's power under the noise model when the
+    truth lies ``offset`` (w rad, centre mm) from the report."""
+    samples = rng.multivariate_normal(offset, covariance, size=draws, method="eigh")
+    return float(np.mean([box_mahalanobis(x, covariance, half)[0] > critical for x in samples]))
+
+
+def glitch_vector(kind: str, size: float) -> np.ndarray:
+    """The offset a glitch adds to the report: a centre moved along x (mm) or a turn about x (deg)."""
+    return np.r_[0.0, 0.0, 0.0, size, 0.0, 0.0] if kind == "mm" else np.r_[np.deg2rad(size), 0.0, 0.0, 0.0, 0.0, 0.0]
+
+
+def one_case(survey: str, seed: int, shift_mm: float, tmp: Path, turn_deg: float = 0.0, frame: int | None = None) -> dict:
     trajectory, n = SURVEYS[survey]
     seq = phantoms.generate("dome", trajectory, size=(320, 240), seed=seed, n_frames=n, pose_noise_mm=0.5)
     dataset = load_dataset(phantoms.write(seq, tmp / f"{survey}_{seed}"))
-    glitched = [n // 2] if shift_mm or turn_deg else []
+    glitched = [n // 2 if frame is None else frame] if shift_mm or turn_deg else []
     poses = list(dataset.poses)
     for k in glitched:
         m = poses[k]
@@ -66,10 +94,14 @@ def one_case(survey: str, seed: int, shift_mm: float, tmp: Path, turn_deg: float
     check = test_reported_poses(sparse.camera, dataset.poses, tracks, sparse.poses, options.tracks, options.pose_check)
     cpu = time.process_time() - t0
     truth = dataset.ground_truth.poses
+    rng = np.random.default_rng(seed)
     frames_out = []
+    curve = {"mm": np.zeros(len(CURVE_MM)), "deg": np.zeros(len(CURVE_DEG)), "frames": 0}
     for t in check.tests:
         row = {"frame": t.frame, "status": t.status}
-        if t.status == "ok":
+        if t.status != "ok":
+            row.update(observations=t.observations, fitted=t.inliers, why=t.why)
+        else:
             report = dataset.poses[t.frame].pose
             true_offset = np.r_[matrix_to_rotvec(truth[t.frame].rotation @ report.rotation.T),
                                 truth[t.frame].centre - report.centre]
@@ -78,18 +110,33 @@ def one_case(survey: str, seed: int, shift_mm: float, tmp: Path, turn_deg: float
                        variance_factor=round(t.variance_factor, 3), factor_dof=round(t.factor_dof, 1),
                        d2_vs_truth=round(float(e @ np.linalg.solve(t.covariance, e)), 3), flagged=t.flagged,
                        error_vs_truth_mm=round(float(np.linalg.norm(e[3:])), 3))
+            half = np.r_[dataset.poses[t.frame].tolerance.orientation_rad, dataset.poses[t.frame].tolerance.position_mm]
+            if t.frame in glitched:
+                row["predicted_power"] = predicted_power(true_offset, t.covariance, half, t.critical_value, rng)
+            elif not glitched and not t.flagged:  # what this frame's geometry could detect, were it glitched
+                curve["frames"] += 1
+                for kind, sizes in (("mm", CURVE_MM), ("deg", CURVE_DEG)):
+                    curve[kind] += [predicted_power(true_offset - glitch_vector(kind, g), t.covariance, half,
+                                                    t.critical_value, rng, POWER_DRAWS // 8) for g in sizes]
         frames_out.append(row)
     flagged = check.flagged
     return {"survey": survey, "seed": seed, "shift_mm": shift_mm, "turn_deg": turn_deg, "glitched": glitched,
             "flagged": flagged,
             "hits": len(set(flagged) & set(glitched)), "false_alarms": sorted(set(flagged) - set(glitched)),
             "variance_factor": check.variance_factor, "frames_tested": sum(r["status"] == "ok" for r in frames_out),
-            "check_cpu_s": round(cpu, 2), "load_average": list(os.getloadavg()), "frames": frames_out}
+            "check_cpu_s": round(cpu, 2), "load_average": list(os.getloadavg()), "frames": frames_out,
+            **({"predicted_curve": {"frames": curve["frames"], "mm": CURVE_MM.tolist(), "deg": CURVE_DEG.tolist(),
+                                    "power_mm": (curve["mm"] / max(curve["frames"], 1)).round(3).tolist(),
+                                    "power_deg": (curve["deg"] / max(curve["frames"], 1)).round(3).tolist()}}
+               if curve["frames"] else {})}
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--cases", default="", help="comma-separated survey:seed:shift_mm or survey:seed:Gdeg")
+    ap.add_argument("--cases", default="", help="comma-separated survey:seed:shift_mm or survey:seed:Gdeg, "
+                                                 "optionally @frame (default n // 2)")
+    ap.add_argument("--sweep", default="", help="comma-separated dome12 seeds: each clean and glitched by "
+                                                 "0.5, 1, 2, 3, 5 mm and 1, 2, 5 deg; then the detection curve")
     ap.add_argument("--map-dome", action="store_true",
                     help="also map benchmarks/bench_map_dome.py's bounded tracker and robot cases (608 x 608, 30 "
                          "frames) with the check and without: would turning it on by default change them?")
@@ -108,14 +155,19 @@ def main(argv=None) -> int:
         default = map_dome_with_and_without(tmp)
         print(json.dumps(default, indent=1), flush=True)
         save()
-    for case in [c for c in args.cases.split(",") if c]:
+    cases = [c for c in args.cases.split(",") if c]
+    cases += [f"dome12:{seed}:{g:g}" for seed in args.sweep.split(",") if seed for g in (0, *SWEEP_MM)]
+    cases += [f"dome12:{seed}:{g:g}deg" for seed in args.sweep.split(",") if seed for g in SWEEP_DEG]
+    for case in cases:
         survey, seed, size = case.split(":")
+        size, frame = size.split("@") if "@" in size else (size, None)
         shift, turn = (0.0, float(size[:-3])) if size.endswith("deg") else (float(size), 0.0)
-        row = one_case(survey, int(seed), shift, tmp, turn)
+        row = one_case(survey, int(seed), shift, tmp, turn, None if frame is None else int(frame))
         print(json.dumps({k: v for k, v in row.items() if k != "frames"}), flush=True)
         runs = [r for r in runs if _key(r) != _key(row)] + [row]
         save()
     print(json.dumps(summary(runs), indent=1))
+    plot_detection(runs, out.with_name("pose_check_detection.png"))
     return 0
 
 
@@ -147,7 +199,44 @@ def map_dome_with_and_without(tmp: Path) -> dict:
 
 
 def _key(row: dict) -> tuple:
-    return row["survey"], row["seed"], row["shift_mm"], row.get("turn_deg", 0.0)
+    return row["survey"], row["seed"], row["shift_mm"], row.get("turn_deg", 0.0), tuple(row["glitched"])
+
+
+def plot_detection(runs: list[dict], path: Path) -> None:
+    """dome12, frame n // 2 glitched: the fraction found per glitch size (with its runs), each glitched frame's
+    predicted power, and the power the clean maps' frames predict on average (what that geometry detects)."""
+    from scope3d.utils.figures import new_figure, save_figure
+
+    rows = [r for r in runs if r["survey"] == "dome12"]
+    clean = [r["predicted_curve"] for r in rows if not r["glitched"] and "predicted_curve" in r]
+    if not clean:
+        return
+    fig = new_figure(figsize=(10, 4))
+    for a, (kind, field, unit) in enumerate((("mm", "shift_mm", "centre moved along x (mm)"),
+                                            ("deg", "turn_deg", "orientation turned about x (deg)"))):
+        ax = fig.add_subplot(1, 2, a + 1)
+        weights = np.array([c["frames"] for c in clean], float)
+        mean = np.average([c[f"power_{kind}"] for c in clean], axis=0, weights=weights)
+        ax.plot(clean[0][kind], mean, color="tab:blue", label=f"predicted, mean over {int(weights.sum())} clean frames")
+        glitched = [r for r in rows if r["glitched"] and r.get(field) and r["glitched"] == [SURVEYS["dome12"][1] // 2]]
+        sizes = sorted({r[field] for r in glitched})
+        found = [np.mean([r["hits"] for r in glitched if r[field] == g]) for g in sizes]
+        runs_at = [sum(r[field] == g for r in glitched) for g in sizes]
+        ax.plot(sizes, found, "o", color="tab:red", label="found (fraction of seeds)")
+        for g, f, m in zip(sizes, found, runs_at):
+            ax.annotate(f"{round(f * m)}/{m}", (g, f), textcoords="offset points", xytext=(4, -10), fontsize=7)
+        for r in glitched:
+            frame = next((f for f in r["frames"] if f["frame"] == r["glitched"][0]), {})
+            if "predicted_power" in frame:
+                ax.plot(r[field], frame["predicted_power"], "x", color="tab:gray", alpha=0.7)
+        ax.plot([], [], "x", color="tab:gray", label="predicted for each glitched frame")
+        ax.set_ylim(-0.03, 1.03)
+        ax.set_xlabel(f"glitch: {unit}")
+        ax.set_ylabel("detection power")
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=7, loc="lower right")
+    fig.suptitle("dome12, 320 x 240, reports within +-0.5 mm / +-0.25 deg, false-alarm rate 0.01 per map")
+    save_figure(fig, path)
 
 
 def summary(runs: list[dict]) -> dict:

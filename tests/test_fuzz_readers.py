@@ -394,3 +394,17 @@ def test_a_scan_plan_with_an_infinite_section_or_an_enormous_fov_is_refused(targ
         _expect_refusal(lambda: read_scan_plan(target.path), target.path, fragment)
     finally:
         target.restore()
+
+
+def test_a_tracker_frame_number_beyond_int64_is_refused_naming_the_row(targets):
+    """Found by bench_fuzz.py's random engine: a frame of -3e+27 (a whole number as a float) passed the
+    whole-number check and overflowed int64 when the recording was built (OverflowError)."""
+    target = targets["tracker csv"]
+    lines = target.seed.decode().splitlines()
+    fields = lines[1].split(",")
+    fields[2] = "-3e+27"
+    target.path.write_bytes("\n".join([lines[0], ",".join(fields), *lines[2:]]).encode())
+    try:
+        _expect_refusal(target.call, target.path, "row 2: frame number -3e+27")
+    finally:
+        target.restore()

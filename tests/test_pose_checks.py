@@ -105,11 +105,24 @@ def test_the_map_command_refuses_a_false_alarm_rate_outside_0_1(tmp_path, capsys
     assert len(err) == 1 and "--pose-false-alarm-rate" in err[0]
 
 
+def _frames_off_by_a_factor(rng, n, factor, half):
+    """``n`` synthetic frames whose image-only estimates err by ``factor`` times their stated covariance,
+    each compared with a report uniformly off within ``half`` (box sigmas 0.29 mm / 0.14 deg against image
+    sigmas ~0.15 mm and ~0.6 deg: the box outweighs the images in some directions, as on the dome)."""
+    tests = []
+    for k in range(n):
+        a = rng.normal(size=(6, 6)) * np.r_[np.full(3, 0.01), np.full(3, 0.15)][:, None]
+        covariance = a @ a.T / 6.0
+        error = rng.multivariate_normal(np.zeros(6), factor * covariance) + rng.uniform(-half, half)
+        tests.append(FramePoseTest(k, "ok", None, error, covariance, dof=5000))
+    return tests
+
+
 def test_the_variance_factor_is_recovered_where_the_boxes_outweigh_the_images():
-    """Frames whose image-only estimates err by f = 4 times their stated covariance, each compared with a
-    report uniformly off within a box larger than the images' errors in some directions (as on the dome).
-    The factor must come out near 4, not near the old ratio median(e^T (C + B)^-1 e) / chi2.median(6),
-    which the box's share pulls towards 1."""
+    """The factor must come out near the true 4, not near the old ratio median(e^T (C + B)^-1 e) /
+    chi2.median(6), which the box's share pulls towards 1; and its truncation at the test's level (frames
+    the test would reject leave the scale) must not bias it: the consistency factor corrects for the right
+    frames' tail it cuts off."""
     from scipy.stats import chi2
 
     from scope3d.sfm.pose_checks import _scale_of_images
@@ -118,18 +131,61 @@ def test_the_variance_factor_is_recovered_where_the_boxes_outweigh_the_images():
     n, factor = 400, 4.0
     half = np.r_[np.full(3, np.deg2rad(0.25)), np.full(3, 0.5)]
     report = MeasuredPose(Pose.from_centre(np.eye(3), np.zeros(3)), PoseTolerance(half[3:], half[:3]))
-    tests, old = [], []
-    for k in range(n):
-        a = rng.normal(size=(6, 6)) * np.r_[np.full(3, 0.01), np.full(3, 0.15)][:, None]
-        covariance = a @ a.T / 6.0  # image sigmas ~0.15 mm and ~0.6 deg, against box sigmas 0.29 mm / 0.14 deg
-        error = rng.multivariate_normal(np.zeros(6), factor * covariance) + rng.uniform(-half, half)
-        tests.append(FramePoseTest(k, "ok", None, error, covariance, dof=5000))
-        old.append(error @ np.linalg.solve(covariance + np.diag(half**2 / 3), error) / chi2.median(6))
-    estimate, dof = _scale_of_images(tests, [report] * n)
-    # the images' share of each frame's disagreement: some of its 6 degrees of freedom, never all
-    assert n < dof < 6 * n
-    # a scale from dof degrees of freedom: relative standard error sqrt(2 / dof) (4 %), 3 of them either side
-    # (over 8 draws: mean 3.95 with uniform report errors, 3.98 with Gaussian ones)
-    standard_error = np.sqrt(2 / dof)
-    assert factor * (1 - 3 * standard_error) < estimate < factor * (1 + 3 * standard_error)
+    tests = _frames_off_by_a_factor(rng, n, factor, half)
+    old = [t.offset @ np.linalg.solve(t.covariance + np.diag(half**2 / 3), t.offset) / chi2.median(6) for t in tests]
+    # a level of 5 % cuts off 5 % of right frames: enough for an uncorrected truncation to show (-8 %)
+    for level in (1e-3, 0.05):
+        estimate, dof, left_out = _scale_of_images(tests, [report] * n, level)
+        # the images' share of each frame's disagreement: some of its 6 degrees of freedom, never all
+        assert n < dof < 6 * n
+        # a scale from dof degrees of freedom: relative standard error sqrt(2 / dof) (4 %), 3 of them either
+        # side (over 8 draws: mean 3.95 with uniform report errors, 3.98 with Gaussian ones)
+        standard_error = np.sqrt(2 / dof)
+        assert factor * (1 - 3 * standard_error) < estimate < factor * (1 + 3 * standard_error)
+        # right frames left out: about level * n (binomial; 3 sigma, +1 for the small count at 1e-3)
+        assert len(left_out) <= level * n + 3 * np.sqrt(level * n) + 1
     assert np.median(old) < 0.8 * factor  # the old estimate, biased low by the boxes
+
+
+def test_a_few_wrong_reports_among_the_others_do_not_inflate_the_variance_factor():
+    """Twenty of 200 frames reported 3 mm off in x (beyond their 0.5 mm box): the mean square takes them
+    in and the factor rises by ~80 % (many standard errors); leaving out the frames the test would reject keeps it within its
+    standard error of the clean 4, and leaves those twenty out."""
+    from scope3d.sfm.pose_checks import _scale_of_images
+
+    rng = np.random.default_rng(7)
+    n, factor = 200, 4.0
+    half = np.r_[np.full(3, np.deg2rad(0.25)), np.full(3, 0.5)]
+    report = MeasuredPose(Pose.from_centre(np.eye(3), np.zeros(3)), PoseTolerance(half[3:], half[:3]))
+    tests = _frames_off_by_a_factor(rng, n, factor, half)
+    wrong = list(range(0, n, 10))
+    for k in wrong:
+        tests[k].offset = tests[k].offset + np.r_[0, 0, 0, 3.0, 0, 0]
+    level = 0.01 / n
+    estimate, dof, left_out = _scale_of_images(tests, [report] * n, level)
+    unguarded, _, nothing = _scale_of_images(tests, [report] * n, 1e-300)  # a cut no frame reaches: the mean square
+    standard_error = np.sqrt(2 / dof)
+    assert nothing == [] and unguarded > factor * (1 + 6 * standard_error)
+    assert set(wrong) <= set(left_out) and len(left_out) <= len(wrong) + 2
+    assert factor * (1 - 3 * standard_error) < estimate < factor * (1 + 3 * standard_error)
+
+
+def test_untested_reports_are_listed_with_why_and_said_to_be_taken_on_trust():
+    """A frame the images cannot place is not tested: report.json names it with its reason and counts, and
+    the summary says its report was taken on trust (not silently absorbed); an exact report is not
+    mentioned (trusted by definition)."""
+    from scope3d.sfm.pose_checks import pose_check_lines
+
+    m = MeasuredPose(Pose.from_centre(np.eye(3), np.zeros(3)), PoseTolerance.from_degrees(0.5, 0.25))
+    tests = [FramePoseTest(0, "ok", None, np.zeros(6), np.eye(6), 1.0, 0.9, 30.0, observations=80, inliers=75),
+             FramePoseTest(1, "unplaced", inliers=0, observations=30, why="0 of its 30 matched observations fit"),
+             FramePoseTest(2, "unseen", observations=4, why="4 matched observations, fewer than the 15"),
+             FramePoseTest(3, "exact", why="an exact report")]
+    checks = PoseCheck(tests, 0.01).as_dict(["a", "b", "c", "d"], [m] * 4)
+    assert checks["frames_tested"] == 1 and checks["untested_frames"] == ["b", "c", "d"]
+    assert checks["untested"][0] == {"frame": "b", "status": "unplaced", "observations": 30, "fitted": 0,
+                                     "why": "0 of its 30 matched observations fit"}
+    lines = pose_check_lines(checks)
+    assert len(lines) == 1 and "taken on trust" in lines[0]
+    assert "b (too few of their observations fit a pose)" in lines[0] and "c (too few observations)" in lines[0]
+    assert "d" not in lines[0].split(":", 1)[1].replace("(", " ").split()

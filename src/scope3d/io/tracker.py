@@ -130,6 +130,8 @@ def read_tracker(path: str | Path) -> TrackerRecording:
         n_markers = _float(row[13], path, number, "number of markers")
         if frame != int(frame) or n_markers != int(n_markers) or n_markers < 0:
             raise InputError(f"{path}: row {number}: frame and number of markers must be whole numbers")
+        if abs(frame) >= 2**63:  # frame numbers are held as int64
+            raise InputError(f"{path}: row {number}: frame number {row[2]} is beyond any frame counter")
         n_markers = int(n_markers)
         if len(row) < TOOL_COLUMNS + MARKER_COLUMNS * n_markers:
             raise InputError(f"{path}: row {number}: {n_markers} markers announced but only "
