@@ -380,9 +380,9 @@ def best_views(
     centre_px = np.array([(camera.width - 1) / 2.0, (camera.height - 1) / 2.0])
     r_img = camera.mask_radius_px or 0.5 * np.hypot(camera.width, camera.height)
     order, starts, cell_centres, cell_radii = _point_cells(points)
-    tan_cone = _viewing_cone_tangent(camera)
+    half_angle = np.arctan(_viewing_cone_tangent(camera))
     for k, pose in enumerate(poses):  # per-frame loop
-        sel = order[_cone_cells(pose, cell_centres, cell_radii, np.arctan(tan_cone), starts)]
+        sel = order[_cone_cells(pose, cell_centres, cell_radii, half_angle, starts)]
         if len(sel) == 0:
             continue
         p = points[sel]
