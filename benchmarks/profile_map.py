@@ -7,7 +7,9 @@ with a process-CPU timer; each stage's cumulative CPU is read off its pipeline f
 benchmarks/results/profile_map.json (and prints a Markdown table for docs/performance.md), or ``--result PATH``;
 the peak resident memory is the kernel's high-water mark of this process image (``VmHWM`` of
 /proc/self/status: exact, not sampled; unlike ``getrusage``'s ``ru_maxrss`` it does not inherit the peak of
-a parent that forked this process). Run:
+a parent that forked this process). Each stage also gets its own peak (the mark restarted at the stage's start
+by writing ``5`` to /proc/self/clear_refs; the process's peak is the largest of them and of what ran between
+stages) and the resident size it starts from. Run:
     PYTHONPATH=src .venv/bin/python benchmarks/profile_map.py DATASET [--out DIR] [--result PATH]
 
 DATASET: e.g. ``scope3d phantom dome --out /tmp/dome`` (the 30-frame dome, as bench_map_dome.py renders it).
