@@ -122,6 +122,24 @@ def test_depth_prior_estimate_brackets_the_true_depths(pair):
     assert prior.near_mm <= lo and prior.far_mm >= hi
 
 
+def test_guided_batches_match_as_one(pair, monkeypatch):
+    """match_pairs matches guided pairs in batches, each with only its own frames (to bound memory): a
+    pair's matches must not depend on the batch it falls in (one pair per batch against all in one)."""
+    import scope3d.feature.matching as matching
+
+    seq, feats = pair
+    pairs = [(0, 2, 1.0), (0, 1, 1.0), (1, 2, 1.0)]
+    together = match_pairs(seq.camera, feats, seq.measured_poses, pairs, DepthPrior(12.0, 28.0))
+    monkeypatch.setattr(matching, "_GUIDED_PAIRS_PER_BATCH", 1)
+    alone = match_pairs(seq.camera, feats, seq.measured_poses, pairs, DepthPrior(12.0, 28.0))
+    assert [(m.i, m.j) for m in alone] == [(0, 2), (0, 1), (1, 2)]
+    assert sum(len(m) for m in alone) > 0
+    for a, b in zip(alone, together):
+        assert (a.i, a.j, a.n_putative, a.n_candidates) == (b.i, b.j, b.n_putative, b.n_candidates)
+        np.testing.assert_array_equal(a.idx_i, b.idx_i)
+        np.testing.assert_array_equal(a.idx_j, b.idx_j)
+
+
 def test_match_pairs_runs_both_methods(pair):
     """Both methods, through :func:`match_pairs`, return the listed pairs with matches that the true geometry
     confirms.

@@ -154,6 +154,35 @@ def test_texture_and_depth_map():
     assert np.nanmin(d) == 0.0 and span(13.0) - 0.2 <= np.nanmax(d) <= span(14.5) + 0.2
 
 
+@pytest.mark.parametrize("k1, k2", [(0.0, 0.0), (-0.45, 0.02)])
+def test_best_views_scores_only_frames_that_can_see_a_point_with_the_same_result(k1, k2):
+    """best_views skips the cells outside each frame's viewing cone: the views and pixels must be those of
+    scoring every point in every frame (written out here), also for a barrel lens strong enough to fold
+    points from outside its field back into the image (k1 = -0.45: r (1 + k1 r^2) turns at r = 0.86)."""
+    from scope3d.scene.surface import best_views
+
+    s = fit_surface(_cap_points(), towards=np.array([0, 0, 1.0]))
+    points, normals = s.vertices()[s.valid], s.normals()[s.valid]
+    cam = Camera.from_fov(120, 100, 60.0, k1=k1, k2=k2, mask_radius_px=55.0)
+    rng = np.random.default_rng(3)
+    centres = np.column_stack([rng.uniform(-14, 14, (12, 2)), rng.uniform(3, 12, 12)])
+    poses = [Pose.from_centre(look_at(c, c * [1, 1, 0] + rng.normal(0, 3, 3) * [1, 1, 0]), c) for c in centres]
+    view, pix = best_views(cam, poses, points, normals)
+    best = np.full(len(points), -np.inf)
+    view_all, pix_all = np.full(len(points), -1), np.full((len(points), 2), np.nan)
+    for k, pose in enumerate(poses):
+        uv = cam.project_world(pose, points)
+        to_cam = pose.centre - points
+        cosang = np.einsum("vi,vi->v", normals, to_cam) / np.linalg.norm(to_cam, axis=1)
+        rad = np.linalg.norm(uv - [59.5, 49.5], axis=1) / 55.0
+        score = np.where(cam.in_image(uv, margin_px=2.0) & (cosang > 0.1), cosang - 0.5 * rad * rad, -np.inf)
+        better = score > best
+        best[better], view_all[better], pix_all[better] = score[better], k, uv[better]
+    assert (view_all >= 0).mean() > 0.3  # the frames see the field
+    np.testing.assert_array_equal(view, view_all)
+    np.testing.assert_array_equal(pix, pix_all)
+
+
 def test_refined_grid_interpolates_the_heights():
     s = fit_surface(_cap_points(noise=0.0), towards=np.array([0, 0, 1.0]))
     r = s.refined(slice(20, 40), slice(20, 40), 4)

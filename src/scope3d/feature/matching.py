@@ -178,6 +178,11 @@ def best_two_per_query(query: np.ndarray, candidate: np.ndarray, d2: np.ndarray,
                                        np.ascontiguousarray(d2, np.float32), int(n_queries))
 
 
+# pairs matched at once by match_pairs' guided matcher: enough to amortise match_guided_many's per-call
+# array set-up (a pair holds ~10^4 candidates), few enough that the batch's candidates, segment samples and
+# descriptor copy take tens of MB, not GB (the 1,000-frame survey's 3,800 pairs in one batch peaked at GB)
+_GUIDED_PAIRS_PER_BATCH = 128
+
 # rows of descriptors compared at once by _two_nearest: a (rows x N) float32 block, 16 MB at N = 4,000
 _NEAREST_BLOCK_ROWS = 1024
 
@@ -457,7 +462,18 @@ def match_pairs(
     if method == "guided":
         if depth_prior is None:
             raise ValueError("the guided matcher needs a depth prior")
-        return match_guided_many(camera, features, poses, pairs, depth_prior, options, progress=progress)
+        # in batches of pairs, each with only the frames it involves: every pair's matches are the same
+        # whatever else is in its batch, while the candidates held at once (and a copy of the batch's
+        # descriptors) stay bounded however many frames the map has
+        out = []
+        for lo in range(0, len(pairs), _GUIDED_PAIRS_PER_BATCH):
+            batch = pairs[lo:lo + _GUIDED_PAIRS_PER_BATCH]
+            frames = sorted({f for i, j, _ in batch for f in (i, j)})
+            local = {f: n for n, f in enumerate(frames)}
+            out += match_guided_many(camera, [features[f] for f in frames], [poses[f] for f in frames],
+                                     [(local[i], local[j], w) for i, j, w in batch], depth_prior, options,
+                                     frame_ids=frames, progress=progress)
+        return out
     out = []
     for i, j, _ in pairs:
         out.append(match_exhaustive(camera, features[i], features[j], options, i=i, j=j))

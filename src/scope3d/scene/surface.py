@@ -11,8 +11,9 @@ thin-plate spline is the smoothest interpolant of such data: it minimises the be
 ``∫∫ h_ss² + 2 h_st² + h_tt²`` (no tuning of a length scale, unlike Gaussian RBFs), reproduces planes
 exactly (a flat sheet stays flat whatever the smoothing) and, with ``smoothing > 0``, becomes the
 smoothing spline that averages out triangulation noise instead of threading through it. It is what the
-reference used, and ``scipy.interpolate.RBFInterpolator(kernel="thin_plate_spline")`` solves it
-exactly. Poisson or ball-pivoting reconstruction would handle closed or overhanging shapes, which a
+reference used; :class:`scope3d.scene.thin_plate.ThinPlateSpline` solves it exactly (the system of
+``scipy.interpolate.RBFInterpolator(kernel="thin_plate_spline")``) and evaluates it on the grid by tiles.
+Poisson or ball-pivoting reconstruction would handle closed or overhanging shapes, which a
 single-sided endoscopic survey never sees, at the price of normals and far more points.
 
 The spline is fitted to cell medians of a coarse bin grid (``control_cell_mm``), not to every point:
@@ -27,13 +28,13 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.interpolate import RBFInterpolator
 from scipy.spatial import cKDTree
 
 from scope3d.geometry.grid import grid_faces
 from scope3d.geometry.plane import fit_plane
 from scope3d.geometry.pose import Pose
 from scope3d.scene.mesh import Mesh
+from scope3d.scene.thin_plate import ThinPlateSpline
 from scope3d.sensor.camera import Camera
 
 #: Passes of :func:`off_surface_points`: gross errors (2 mm) first, then ~3 sigma of a two-view point's depth.
@@ -320,7 +321,7 @@ def fit_surface(points: np.ndarray, options: SurfaceOptions = SurfaceOptions(), 
     # worst of it is gone (a wrong cell left a 1.4 mm sag in a hole of the flat sheet otherwise)
     for _ in range(options.local_passes):
         ctrl = _reject_local_outliers(ctrl, options.local_neighbours, options.outlier_mad, options.outlier_floor_mm)
-    tps = RBFInterpolator(ctrl[:, :2], ctrl[:, 2], kernel="thin_plate_spline", smoothing=options.smoothing)
+    tps = ThinPlateSpline.fit(ctrl[:, :2], ctrl[:, 2], options.smoothing)
     # A cell holding a single wrong track is its own median; catch those against the spline fitted
     # through their neighbours: drop control points far from the fit (robust MAD, floor 0.3 mm) and refit.
     for _ in range(options.robust_passes):
@@ -330,7 +331,7 @@ def fit_surface(points: np.ndarray, options: SurfaceOptions = SurfaceOptions(), 
         if keep.all() or keep.sum() < 10:
             break
         ctrl = ctrl[keep]
-        tps = RBFInterpolator(ctrl[:, :2], ctrl[:, 2], kernel="thin_plate_spline", smoothing=options.smoothing)
+        tps = ThinPlateSpline.fit(ctrl[:, :2], ctrl[:, 2], options.smoothing)
     step = options.grid_step_mm
     lo = stn[:, :2].min(axis=0)
     hi = stn[:, :2].max(axis=0)
@@ -351,7 +352,8 @@ def fit_surface(points: np.ndarray, options: SurfaceOptions = SurfaceOptions(), 
     cv2.floodFill(outside, None, (0, 0), 2)
     near |= outside[1:-1, 1:-1] != 2
     height = np.full(ss.shape, np.nan)
-    height[near] = tps(grid[near.ravel()])
+    # near centres exactly, the far ones' smooth sum on a 0.8 mm lattice (ThinPlateSpline.tiled: ~0.2 um)
+    height[near] = tps.tiled(grid[near.ravel()])
     return Surface(origin, axes, s, t, height)
 
 
@@ -365,6 +367,11 @@ def best_views(
     image centre are sharpest and least distorted. Occlusion is not modelled: a single-sided surgical
     field seen from above does not hide itself.
     Returns view (V,) int64 (-1 when no frame sees the point) and pixels (V, 2) in that view.
+
+    Each frame scores only the points of the cells (:func:`_point_cells`) that can meet its viewing cone
+    (:func:`_viewing_cone_tangent`): the others project outside its image whatever their exact position,
+    so the result is the same as scoring every point in every frame, at a cost that grows with the points
+    times the frames that see them, not with points times frames.
     """
     V = len(points)
     best = np.full(V, -np.inf)
@@ -372,18 +379,91 @@ def best_views(
     pix = np.full((V, 2), np.nan)
     centre_px = np.array([(camera.width - 1) / 2.0, (camera.height - 1) / 2.0])
     r_img = camera.mask_radius_px or 0.5 * np.hypot(camera.width, camera.height)
+    order, starts, cell_centres, cell_radii = _point_cells(points)
+    half_angle = np.arctan(_viewing_cone_tangent(camera))
     for k, pose in enumerate(poses):  # per-frame loop
-        uv = camera.project_world(pose, points)
+        sel = order[_cone_cells(pose, cell_centres, cell_radii, half_angle, starts)]
+        if len(sel) == 0:
+            continue
+        p = points[sel]
+        uv = camera.project_world(pose, p)
         ok = camera.in_image(uv, margin_px=2.0)
-        to_cam = pose.centre - points
-        cosang = np.einsum("vi,vi->v", normals, to_cam) / np.linalg.norm(to_cam, axis=1)
+        to_cam = pose.centre - p
+        cosang = np.einsum("vi,vi->v", normals[sel], to_cam) / np.linalg.norm(to_cam, axis=1)
         rad = np.linalg.norm(uv - centre_px, axis=1) / r_img
         score = np.where(ok & (cosang > 0.1), cosang - edge_weight * rad * rad, -np.inf)
-        better = score > best
-        best[better] = score[better]
-        view[better] = k
-        pix[better] = uv[better]
+        better = score > best[sel]
+        upd = sel[better]
+        best[upd] = score[better]
+        view[upd] = k
+        pix[upd] = uv[better]
     return view, pix
+
+
+#: Points per cell of :func:`_point_cells` (about): fewer cells make the per-frame cone test cheaper,
+#: smaller ones hug a frame's footprint more tightly; any size gives the same views.
+_CELL_POINTS = 1024
+
+
+def _point_cells(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Points (V, 3) grouped into cubic cells of ~``_CELL_POINTS`` points each (side from the area the
+    cloud's two longest extents span: a surface's points). Returns the point order (V,) int64 sorting
+    them by cell, each cell's first position in that order (C + 1,) (the last = V), and each cell's
+    bounding sphere: centres (C, 3) mm and radii (C,) mm."""
+    V = len(points)
+    if V == 0:
+        return np.zeros(0, np.int64), np.zeros(1, np.int64), np.zeros((0, 3)), np.zeros(0)
+    lo = points.min(axis=0)
+    extent = np.sort(np.ptp(points, axis=0))[::-1]
+    side = max(float(np.sqrt(extent[0] * extent[1] * _CELL_POINTS / V)), 1e-6)
+    cell = np.floor((points - lo) / side).astype(np.int64)
+    _, key = np.unique(cell, axis=0, return_inverse=True)
+    order = np.argsort(key.ravel(), kind="stable")
+    counts = np.bincount(key.ravel())
+    starts = np.r_[0, np.cumsum(counts)]
+    centres = np.stack([np.bincount(key.ravel(), points[:, c]) for c in range(3)], axis=1) / counts[:, None]
+    dist = np.linalg.norm(points - centres[key.ravel()], axis=1)
+    radii = np.zeros(len(counts))
+    np.maximum.at(radii, key.ravel(), dist)
+    return order, starts, centres, radii
+
+
+def _viewing_cone_tangent(camera: Camera) -> float:
+    """Tangent of the half-angle, about the optical axis, of a cone holding every point in front of the
+    camera that :meth:`Camera.project` can put inside the image.
+
+    A point at undistorted normalised radius r lands at distorted radius |r (1 + k1 r² + k2 r⁴)|; the
+    image's farthest corner bounds the distorted radius of anything inside it, and beyond the largest r at
+    which the odd polynomial reaches that bound it stays above it (its leading term dominates). A barrel
+    lens folds points from far outside its field back into the image: the cone then is that much wider."""
+    corners = np.array([[-0.5, -0.5], [camera.width - 0.5, camera.height - 0.5],
+                        [-0.5, camera.height - 0.5], [camera.width - 0.5, -0.5]])
+    limit = float(np.max(np.hypot((corners[:, 0] - camera.cx) / camera.fx, (corners[:, 1] - camera.cy) / camera.fy)))
+    radius = limit
+    for sign in (1.0, -1.0):  # r (1 + k1 r² + k2 r⁴) = ±limit
+        roots = np.roots([camera.k2, 0.0, camera.k1, 0.0, 1.0, -sign * limit])
+        real = roots[np.abs(roots.imag) <= 1e-9 * np.maximum(1.0, np.abs(roots))].real
+        if len(real):
+            radius = max(radius, float(real.max()))
+    return radius * (1.0 + 1e-9)  # the root's own rounding
+
+
+def _cone_cells(pose: Pose, centres: np.ndarray, radii: np.ndarray, half_angle: float, starts: np.ndarray) -> np.ndarray:
+    """Positions (into the cell-sorted order) of the points of every cell whose bounding sphere can meet
+    the camera's viewing cone of ``half_angle`` (rad) about its optical axis (conservative: a sphere
+    holding the camera centre always can)."""
+    to_cell = centres - pose.centre
+    dist = np.linalg.norm(to_cell, axis=1)
+    cos_axis = (to_cell @ pose.optical_axis) / np.maximum(dist, 1e-300)
+    angle = np.arccos(np.clip(cos_axis, -1.0, 1.0))
+    with np.errstate(invalid="ignore"):
+        spread = np.arcsin(np.minimum(radii / np.maximum(dist, 1e-300), 1.0))
+    hit = (dist <= radii) | (angle - spread <= half_angle + 1e-9)
+    cells = np.flatnonzero(hit)
+    if len(cells) == 0:
+        return np.zeros(0, np.int64)
+    counts = starts[cells + 1] - starts[cells]
+    return np.repeat(starts[cells] - np.cumsum(np.r_[0, counts[:-1]]), counts) + np.arange(int(counts.sum()))
 
 
 def sample_images(images, view: np.ndarray, pixels: np.ndarray) -> np.ndarray:
