@@ -366,7 +366,8 @@ def _view_terms(texels: _Texels, rows: np.ndarray, camera: Camera, pose: Pose, o
     d = np.linalg.norm(to_camera, axis=1)
     cos = np.einsum("ij,ij->i", n, to_camera) / np.maximum(d, 1e-300)
     uv = camera.project_world(pose, p)
-    margin = _field_margin(camera, uv)
+    # a bilinear read reaches one pixel out: within 1.5 px of the field's edge it would mix in the black mask
+    margin = _field_margin(camera, uv) - 1.5
     keep = (cos >= options.min_cos) & (margin > 0) & (((p - pose.centre) @ pose.optical_axis) > 0)
     feather = np.clip(margin / options.feather_px, 0.0, 1.0) if options.feather_px > 0 else np.ones(len(rows))
     score = cos * math.sqrt(camera.fx * camera.fy) / d * feather

@@ -49,17 +49,22 @@
   }
 
   var VERTEX = [
-    "attribute vec3 position; attribute vec3 colour; attribute vec3 normal;",
+    "attribute vec3 position; attribute vec3 colour; attribute vec3 normal; attribute vec2 uv;",
     "uniform mat4 mvp; uniform float pointSize; uniform vec3 eyeDir; uniform float lit;",
-    "varying vec3 vColour;",
+    "varying vec3 vColour; varying float vShade; varying vec2 vUv;",
     "void main() {",
     "  gl_Position = mvp * vec4(position, 1.0); gl_PointSize = pointSize;",
-    "  float shade = mix(1.0, 0.35 + 0.65 * abs(dot(normalize(normal + vec3(1e-9)), eyeDir)), lit);",
-    "  vColour = colour * shade;",
+    "  vShade = mix(1.0, 0.35 + 0.65 * abs(dot(normalize(normal + vec3(1e-9)), eyeDir)), lit);",
+    "  vColour = colour; vUv = uv;",
     "}"].join("\n");
+  // highp where the GPU has it: a 2048-texel atlas needs more than mediump's 10-bit texture coordinates
   var FRAGMENT = [
-    "precision mediump float; varying vec3 vColour;",
-    "void main() { gl_FragColor = vec4(vColour, 1.0); }"].join("\n");
+    "#ifdef GL_FRAGMENT_PRECISION_HIGH", "precision highp float;", "#else", "precision mediump float;", "#endif",
+    "varying vec3 vColour; varying float vShade; varying vec2 vUv; uniform sampler2D atlas; uniform float textured;",
+    "void main() {",
+    "  vec3 base = textured > 0.5 ? texture2D(atlas, vUv).rgb : vColour;",
+    "  gl_FragColor = vec4(base * vShade, 1.0);",
+    "}"].join("\n");
 
   function compile(gl, type, source) {
     var shader = gl.createShader(type);
@@ -103,8 +108,11 @@
       position: gl.getAttribLocation(program, "position"), colour: gl.getAttribLocation(program, "colour"),
       normal: gl.getAttribLocation(program, "normal"), mvp: gl.getUniformLocation(program, "mvp"),
       pointSize: gl.getUniformLocation(program, "pointSize"), eyeDir: gl.getUniformLocation(program, "eyeDir"),
-      lit: gl.getUniformLocation(program, "lit")
+      lit: gl.getUniformLocation(program, "lit"), uv: gl.getAttribLocation(program, "uv"),
+      textured: gl.getUniformLocation(program, "textured"), atlas: gl.getUniformLocation(program, "atlas")
     };
+    gl.uniform1i(loc.atlas, 0);
+    var texturesLoaded = 0;
     function buffer(array, target) {
       var b = gl.createBuffer();
       gl.bindBuffer(target || gl.ARRAY_BUFFER, b);
@@ -122,6 +130,26 @@
         for (var i = 0; i < bytes.length; i++) rgb[i] = bytes[i] / 255;
         out.colours[mode] = buffer(rgb);
       });
+      if (layer.texture && faces) {  // a textured mesh: its atlas (a JPEG data URI), uploaded once decoded
+        out.uv = buffer(decode(layer.uv, Float32Array));
+        var image = new Image();
+        image.onload = function () {
+          out.texture = gl.createTexture();
+          gl.bindTexture(gl.TEXTURE_2D, out.texture);
+          gl.pixelStorei(gl.UNPACK_FLIP_Y_WEBGL, true);  // OBJ's v runs up from the atlas's bottom row
+          gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGB, gl.RGB, gl.UNSIGNED_BYTE, image);
+          gl.pixelStorei(gl.UNPACK_FLIP_Y_WEBGL, false);
+          // any size (WebGL 1 allows non-power-of-two textures without mipmaps and with clamped edges)
+          gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.LINEAR);
+          gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.LINEAR);
+          gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_S, gl.CLAMP_TO_EDGE);
+          gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_T, gl.CLAMP_TO_EDGE);
+          texturesLoaded += 1;
+          document.body.setAttribute("data-textures-loaded", String(texturesLoaded));
+          redraw();
+        };
+        image.src = layer.texture;
+      }
       if (faces && (uintIndices || layer.count < 65536)) {
         out.normals = vertexNormals(pos, faces);
         out.normal = buffer(out.normals);
@@ -220,7 +248,16 @@
       var drawn = 0;
       layers.forEach(function (layer) {
         var colour = layer.colours[state.mode] || layer.colours.height || layer.colours[Object.keys(layer.colours)[0]];
+        var textured = state.mode === "texture" && layer.texture && layer.index;
         if (!layer.visible || !colour) return;
+        if (textured) {
+          gl.enableVertexAttribArray(loc.uv);
+          gl.bindBuffer(gl.ARRAY_BUFFER, layer.uv);
+          gl.vertexAttribPointer(loc.uv, 2, gl.FLOAT, false, 0, 0);
+          gl.activeTexture(gl.TEXTURE0);
+          gl.bindTexture(gl.TEXTURE_2D, layer.texture);
+        }
+        gl.uniform1f(loc.textured, textured ? 1 : 0);
         gl.bindBuffer(gl.ARRAY_BUFFER, layer.position);
         gl.vertexAttribPointer(loc.position, 3, gl.FLOAT, false, 0, 0);
         gl.bindBuffer(gl.ARRAY_BUFFER, colour);
@@ -238,9 +275,12 @@
           gl.uniform1f(loc.lit, 0);
           gl.drawArrays(gl.POINTS, 0, layer.count);
         }
+        if (textured) gl.disableVertexAttribArray(loc.uv);
+        gl.uniform1f(loc.textured, 0);
         drawn += 1;
       });
       gl.vertexAttrib3f(loc.normal, 0, 0, 1);
+      gl.vertexAttrib2f(loc.uv, 0, 0);
       if (state.frusta) { drawLines(frusta); drawLines(trajectory); }
       if (state.targets) { drawLines(rings); drawLines(truthCrosses); }
       drawLabels(w, h, ratio);
