@@ -210,12 +210,15 @@ def rasterise(triangles_px: np.ndarray, faces: np.ndarray, width: int, height: i
     lo = np.maximum(lo, 0)
     hi = np.minimum(hi, [width - 1, height - 1])
     size = np.maximum(hi - lo + 1, 0)
-    order = np.argsort(size[:, 0] * size[:, 1], kind="stable")
+    side = size.max(axis=1)
+    order = np.argsort(side, kind="stable")
     start = 0
     while start < len(order):
-        # a chunk of faces of similar box size, all boxes padded to the chunk's largest
-        box = size[order[start]]
-        count = max(1, budget // max(1, int(box[0] * box[1])))
+        # a chunk of faces of similar box size, all boxes padded to the chunk's largest: at most ``budget``
+        # texels tried in all (the chunk ends before a face whose box would take it over)
+        count = max(1, budget // max(1, int(side[order[start]]) ** 2))
+        while count > 1 and count * int(side[order[min(start + count, len(order)) - 1]]) ** 2 > budget:
+            count //= 2
         chunk = order[start:start + count]
         bw, bh = int(size[chunk, 0].max()), int(size[chunk, 1].max())
         start += len(chunk)
@@ -374,6 +377,20 @@ def _view_terms(texels: _Texels, rows: np.ndarray, camera: Camera, pose: Pose, o
     return rows[keep], uv[keep], score[keep], (cos / d**2)[keep]
 
 
+def _face_scores(mesh: Mesh, faces: np.ndarray, camera: Camera, pose: Pose, options: TextureOptions) -> np.ndarray:
+    """The view score (see :func:`_view_terms`) of ``pose`` at the centroids of ``faces``, 0 where not usable."""
+    tri = mesh.vertices[mesh.faces[faces]]
+    p = tri.mean(axis=1)
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+    to_camera = pose.centre - p
+    d = np.linalg.norm(to_camera, axis=1)
+    cos = np.einsum("ij,ij->i", n, to_camera) / np.maximum(d, 1e-300)
+    margin = _field_margin(camera, camera.project_world(pose, p)) - 1.5
+    feather = np.clip(margin / options.feather_px, 0.0, 1.0) if options.feather_px > 0 else (margin > 0) * 1.0
+    return np.where((cos >= options.min_cos) & (margin > 0), cos * math.sqrt(camera.fx * camera.fy) / d * feather, 0.0)
+
+
 def texture_mesh(mesh: Mesh, centre: np.ndarray, camera: Camera, poses: Sequence[Pose | None],
                  frame: Callable[[int], np.ndarray], options: TextureOptions = TextureOptions()) -> TexturedMesh:
     """Texture a star-shaped cavity's wall ``mesh`` (mm; faces are turned towards ``centre`` in the result) from the frames:
@@ -414,14 +431,14 @@ def texture_mesh(mesh: Mesh, centre: np.ndarray, camera: Camera, poses: Sequence
 
     n_frames = len(poses)
     used = [k for k in range(n_frames) if poses[k] is not None and visible[:, k].any()]
-    best = np.zeros(len(texels.index), np.float32)
+    best = np.zeros(len(texels.index))
     gains = np.ones(n_frames)
     samples: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (texel rows, frame, log luminance)
     subsample = max(1, len(texels.index) // 200_000)
     for k in used:
         rows = np.flatnonzero(visible[texels.face, k])
         rows, uv, score, light = _view_terms(texels, rows, camera, poses[k], options)
-        np.maximum.at(best, rows, score.astype(np.float32))
+        best[rows] = np.maximum(best[rows], score)  # rows are unique within a frame: no ufunc.at needed
         if options.level_gains:
             pick = rows % subsample == 0
             value = _sample(frame(k), uv[pick]).mean(axis=1)
@@ -432,8 +449,8 @@ def texture_mesh(mesh: Mesh, centre: np.ndarray, camera: Camera, poses: Sequence
     if options.level_gains and samples:
         gains = _level_gains(samples, n_frames)
 
-    total = np.zeros((len(texels.index), 3), np.float64)
-    weight = np.zeros(len(texels.index), np.float64)
+    total = np.zeros((len(texels.index), 3), np.float32)
+    weight = np.zeros(len(texels.index), np.float32)
     face_score = np.zeros((len(mesh.faces), n_frames), np.float32)
     for k in used:
         rows = np.flatnonzero(visible[texels.face, k])
@@ -444,11 +461,12 @@ def texture_mesh(mesh: Mesh, centre: np.ndarray, camera: Camera, poses: Sequence
         colour = _sample(frame(k), uv) / gains[k]
         if options.compensate_light:
             colour /= light[:, None]
-        np.add.at(total, rows, w[:, None] * colour)
-        np.add.at(weight, rows, w)
-        np.maximum.at(face_score[:, k], texels.face[rows], score.astype(np.float32))
+        total[rows] += w[:, None] * colour
+        weight[rows] += w
+        faces_k = np.flatnonzero(visible[:, k] & seen)  # the face's best frame: the best score at its centroid
+        face_score[faces_k, k] = _face_scores(mesh, faces_k, camera, poses[k], options)
     filled = weight > 0
-    albedo = np.zeros_like(total)
+    albedo = np.zeros(total.shape)
     albedo[filled] = total[filled] / weight[filled, None]
     top = float(np.percentile(albedo[filled].max(axis=1), 99.5)) if filled.any() else 1.0
     image = np.full((atlas.height * atlas.width, 3), GREY, np.uint8)
