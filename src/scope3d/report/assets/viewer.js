@@ -347,34 +347,101 @@
       });
       return best;
     }
-    // Whether a drawn mesh crosses the segment from a camera's centre to the spot before the spot
-    // (Moller-Trumbore on every triangle, in scalars: no arrays allocated per triangle; a hit within 1e-3
-    // of the distance is the spot's own surface).
-    function occluded(from, p) {
-      var dx = p[0] - from[0], dy = p[1] - from[1], dz = p[2] - from[2];
-      var distance = Math.sqrt(dx * dx + dy * dy + dz * dz), limit = (1 - 1e-3) * distance;
-      dx /= distance; dy /= distance; dz /= distance;
-      return layers.some(function (layer) {
-        if (!layer.visible || !layer.faces) return false;
-        var v = layer.positions, f = layer.faces, n = f.length;
-        for (var k = 0; k < n; k += 3) {
-          var a = f[k] * 3, b = f[k + 1] * 3, c = f[k + 2] * 3;
-          var ax = v[a], ay = v[a + 1], az = v[a + 2];
-          var e1x = v[b] - ax, e1y = v[b + 1] - ay, e1z = v[b + 2] - az;
-          var e2x = v[c] - ax, e2y = v[c + 1] - ay, e2z = v[c + 2] - az;
-          var hx = dy * e2z - dz * e2y, hy = dz * e2x - dx * e2z, hz = dx * e2y - dy * e2x;
-          var det = e1x * hx + e1y * hy + e1z * hz;
-          if (det < 1e-12 && det > -1e-12) continue;
-          var inv = 1 / det, sx = from[0] - ax, sy = from[1] - ay, sz = from[2] - az;
-          var u = (sx * hx + sy * hy + sz * hz) * inv;
-          if (u < 0 || u > 1) continue;
-          var qx = sy * e1z - sz * e1y, qy = sz * e1x - sx * e1z, qz = sx * e1y - sy * e1x;
-          var w = (dx * qx + dy * qy + dz * qz) * inv;
-          if (w < 0 || u + w > 1) continue;
-          var t = (e2x * qx + e2y * qy + e2z * qz) * inv;
+    // Whether a drawn mesh crosses the segment from a camera's centre to the spot before the spot: a
+    // uniform grid over each mesh's triangles (built on the first click), walked cell by cell along the
+    // segment (Amanatides-Woo), Moller-Trumbore on the triangles of the cells it crosses, each once; a hit
+    // within 1e-3 of the distance is the spot's own surface. Every triangle, one by one, cost ~70 ms per
+    // frame on a 400,000-face wall (docs/report.md).
+    function buildGrid(layer) {
+      var v = layer.positions, f = layer.faces, nf = f.length / 3, lo = [Infinity, Infinity, Infinity],
+          hi = [-Infinity, -Infinity, -Infinity], i, a, k;
+      for (i = 0; i < v.length; i += 3) for (a = 0; a < 3; a++) {
+        lo[a] = Math.min(lo[a], v[i + a]); hi[a] = Math.max(hi[a], v[i + a]);
+      }
+      var n = Math.max(1, Math.min(128, Math.round(Math.cbrt(nf) / 1.5))), size = [];
+      for (a = 0; a < 3; a++) {
+        var pad = 1e-6 * (hi[a] - lo[a] + 1);
+        lo[a] -= pad; hi[a] += pad; size[a] = (hi[a] - lo[a]) / n;
+      }
+      function cellOf(x, axis) { return Math.max(0, Math.min(n - 1, Math.floor((x - lo[axis]) / size[axis]))); }
+      function range(k) {  // the cells of triangle k's box: [x0, x1, y0, y1, z0, z1]
+        var r = [];
+        for (var axis = 0; axis < 3; axis++) {
+          var p0 = v[f[k] * 3 + axis], p1 = v[f[k + 1] * 3 + axis], p2 = v[f[k + 2] * 3 + axis];
+          r.push(cellOf(Math.min(p0, p1, p2), axis), cellOf(Math.max(p0, p1, p2), axis));
+        }
+        return r;
+      }
+      var start = new Int32Array(n * n * n + 1), pass, x, y, z;
+      for (pass = 0; pass < 2; pass++) {
+        var items = pass ? new Int32Array(start[n * n * n]) : null, fill = pass ? start.slice(0, n * n * n) : null;
+        for (k = 0; k < f.length; k += 3) {
+          var r = range(k);
+          for (z = r[4]; z <= r[5]; z++) for (y = r[2]; y <= r[3]; y++) for (x = r[0]; x <= r[1]; x++) {
+            var cell = (z * n + y) * n + x;
+            if (pass) items[fill[cell]++] = k; else start[cell + 1] += 1;
+          }
+        }
+        if (!pass) for (i = 0; i < n * n * n; i++) start[i + 1] += start[i];
+      }
+      return {lo: lo, size: size, n: n, start: start, items: items, stamp: new Int32Array(nf), query: 0};
+    }
+    function hitDistance(v, f, k, from, dx, dy, dz) {  // Moller-Trumbore in scalars; -1 for no hit
+      var a = f[k] * 3, b = f[k + 1] * 3, c = f[k + 2] * 3;
+      var ax = v[a], ay = v[a + 1], az = v[a + 2];
+      var e1x = v[b] - ax, e1y = v[b + 1] - ay, e1z = v[b + 2] - az;
+      var e2x = v[c] - ax, e2y = v[c + 1] - ay, e2z = v[c + 2] - az;
+      var hx = dy * e2z - dz * e2y, hy = dz * e2x - dx * e2z, hz = dx * e2y - dy * e2x;
+      var det = e1x * hx + e1y * hy + e1z * hz;
+      if (det < 1e-12 && det > -1e-12) return -1;
+      var inv = 1 / det, sx = from[0] - ax, sy = from[1] - ay, sz = from[2] - az;
+      var u = (sx * hx + sy * hy + sz * hz) * inv;
+      if (u < 0 || u > 1) return -1;
+      var qx = sy * e1z - sz * e1y, qy = sz * e1x - sx * e1z, qz = sx * e1y - sy * e1x;
+      var w = (dx * qx + dy * qy + dz * qz) * inv;
+      if (w < 0 || u + w > 1) return -1;
+      return (e2x * qx + e2y * qy + e2z * qz) * inv;
+    }
+    function blocks(layer, from, d, limit) {
+      var g = layer.grid || (layer.grid = buildGrid(layer)), n = g.n, t0 = 0, t1 = limit, a;
+      for (a = 0; a < 3; a++) {  // clip the segment to the grid's box
+        if (Math.abs(d[a]) < 1e-12) {
+          if (from[a] < g.lo[a] || from[a] > g.lo[a] + n * g.size[a]) return false;
+        } else {
+          var ta = (g.lo[a] - from[a]) / d[a], tb = (g.lo[a] + n * g.size[a] - from[a]) / d[a];
+          t0 = Math.max(t0, Math.min(ta, tb)); t1 = Math.min(t1, Math.max(ta, tb));
+        }
+      }
+      if (t0 > t1) return false;
+      var cell = [], step = [], tMax = [], tDelta = [], query = ++g.query;
+      for (a = 0; a < 3; a++) {
+        cell[a] = Math.max(0, Math.min(n - 1, Math.floor((from[a] + d[a] * t0 - g.lo[a]) / g.size[a])));
+        step[a] = d[a] > 0 ? 1 : -1;
+        tMax[a] = Math.abs(d[a]) < 1e-12 ? Infinity : (g.lo[a] + (cell[a] + (d[a] > 0 ? 1 : 0)) * g.size[a] - from[a]) / d[a];
+        tDelta[a] = Math.abs(d[a]) < 1e-12 ? Infinity : g.size[a] / Math.abs(d[a]);
+      }
+      var v = layer.positions, f = layer.faces;
+      for (;;) {
+        var c = (cell[2] * n + cell[1]) * n + cell[0];
+        for (var j = g.start[c]; j < g.start[c + 1]; j++) {
+          var k = g.items[j];
+          if (g.stamp[k / 3] === query) continue;
+          g.stamp[k / 3] = query;
+          var t = hitDistance(v, f, k, from, d[0], d[1], d[2]);
           if (t > 0 && t < limit) return true;
         }
-        return false;
+        a = tMax[0] < tMax[1] ? (tMax[0] < tMax[2] ? 0 : 2) : (tMax[1] < tMax[2] ? 1 : 2);
+        if (tMax[a] > t1) return false;
+        cell[a] += step[a];
+        if (cell[a] < 0 || cell[a] >= n) return false;
+        tMax[a] += tDelta[a];
+      }
+    }
+    function occluded(from, p) {
+      var d = sub(p, from), distance = Math.sqrt(dot(d, d));
+      d = scale(d, 1 / distance);
+      return layers.some(function (layer) {
+        return layer.visible && layer.faces && blocks(layer, from, d, (1 - 1e-3) * distance);
       });
     }
     // Frames whose image holds the spot (pinhole with k1, k2, circular field), whose centre lies on the
