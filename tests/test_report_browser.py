@@ -152,10 +152,13 @@ def test_a_run_without_geometry_still_loads_cleanly(browser, tmp_path):
 @pytest.fixture(scope="module")
 def panorama_run(tmp_path_factory):
     """A panorama run folder drawn from the truth of a small bladder phantom (what is under test is the
-    page's explorer, not the reconstruction): the true wall as mesh.ply, the true cameras as sparse/."""
+    page's explorer and texture, not the reconstruction): the true wall as mesh.ply and, textured from the
+    frames, as wall.obj, the true cameras as sparse/."""
     from scope3d.io.colmap import SparseModel, write_colmap_text
     from scope3d.io.dataset import load_dataset
+    from scope3d.io.obj import write_textured_obj
     from scope3d.io.ply import write_ply
+    from scope3d.mvs.texturing import texture_mesh
     from scope3d.phantoms import generate, write
     from scope3d.report import write_report
 
@@ -165,6 +168,10 @@ def panorama_run(tmp_path_factory):
     run = root / "run"
     run.mkdir()
     write_ply(run / "mesh.ply", dataset.ground_truth.surface())
+    textured = texture_mesh(dataset.ground_truth.surface(), np.zeros(3), dataset.camera, dataset.ground_truth.poses,
+                            dataset.frame)
+    write_textured_obj(run / "wall.obj", textured.mesh.vertices, textured.mesh.faces, textured.uv, textured.face_uv,
+                       textured.image)
     write_colmap_text(SparseModel([dataset.camera], dataset.names, dataset.ground_truth.poses, points3d=np.zeros((0, 3))),
                       run / "sparse")
     (run / "report.json").write_text(json.dumps({"job": "panorama", "dataset": str(root / "bladder")}))
@@ -228,3 +235,41 @@ def test_clicking_the_panorama_lists_the_frames_that_really_see_the_spot(browser
             assert np.linalg.norm(np.array(uv) - truth) < 0.05  # float32 positions: ~1e-5 mm at 50 mm
         checked += len(listed) >= 2
     assert checked >= 2, "fewer than two clicks found a spot seen by two frames or more"
+
+
+def test_the_panorama_wall_is_drawn_with_its_texture(browser, panorama_run):
+    """The textured wall (wall.obj, drawn instead of mesh.ply) is what "texture" shows: its atlas decoded
+    and drawn (the tissue's colours, the atlas's), unlike the height colouring."""
+    run, _ = panorama_run
+    _open(browser, run / "report.html")
+    deadline = time.monotonic() + 30
+    while browser.execute_script("return document.body.getAttribute('data-textures-loaded')") != "1":
+        assert time.monotonic() < deadline, "the atlas was never uploaded"
+        time.sleep(0.1)
+    time.sleep(0.5)
+    assert browser.find_element("css selector", "input[name=colouring][value=texture]").is_selected()
+    assert "wall.obj" in browser.find_element("id", "view-section").text
+    assert "mesh.ply" not in browser.find_element("id", "view-section").text  # the same wall, once
+    browser.find_element("id", "show-frusta").click()  # the wall alone: no frusta's lines
+    time.sleep(0.5)
+    textured = _canvas_pixels(browser).astype(float)
+    browser.find_element("css selector", "input[name=colouring][value=height]").click()
+    time.sleep(0.5)
+    height = _canvas_pixels(browser).astype(float)
+    drawn = np.any(np.abs(textured - BACKGROUND_RGB) > 12, axis=2)
+    assert drawn.mean() > 0.5  # seen from inside, the wall fills the view
+    # the phantom's mucosa (albedo 0.90, 0.66, 0.58) and its vessels are mostly red-dominant (some are blue);
+    # turbo's scale is not. The wall no frame saw is grey (R = G = B), left out.
+    grey = (np.abs(textured[..., 0] - textured[..., 1]) < 8) & (np.abs(textured[..., 1] - textured[..., 2]) < 8)
+    red = (textured[..., 0] > textured[..., 1]) & (textured[..., 0] > textured[..., 2])
+    assert (drawn & ~grey).mean() > 0.3
+    assert red[drawn & ~grey].mean() > 0.8
+    # the colours drawn are the atlas's: their chromaticity (r, g over r + g + b: the viewer's shading scales
+    # all three alike) has the atlas's median within 0.02; the height colouring's is elsewhere
+    atlas = cv2.imread(str(run / "wall.png"))[..., ::-1].astype(float).reshape(-1, 3)
+    atlas = atlas[np.abs(atlas - 128).max(axis=1) > 8]  # the texels frames filled (unseen ones are grey 128)
+
+    def chroma(rgb):
+        return np.median(rgb[:, :2] / np.maximum(rgb.sum(axis=1, keepdims=True), 1), axis=0)
+    assert np.abs(chroma(textured[drawn & ~grey]) - chroma(atlas)).max() < 0.02
+    assert np.abs(chroma(height[drawn]) - chroma(atlas)).max() > 0.05

@@ -8,10 +8,13 @@
                  planned poses with finite tolerances add the pairs they say overlap, and start and bound
                  the poses)
     scale     <- the 6 mm star targets in the fluorescence frames (metrology.star_scale), unless not asked
-    wall      <- a star-shaped cavity mesh: the convex hull of the points' directions from the cavity's centre
+    wall      <- a star-shaped cavity mesh: the convex hull of the points' directions from the cavity's centre,
+                 textured from the registered frames (mvs.texturing: a cube-map atlas, each texel from the
+                 frames that see it best, seams blended, the tip light divided out)
     truth     <- where the dataset has it: the wall error after a 7-DoF similarity fitted to the tracks'
                  true positions, and the scale error of the stars
-    files     <- report.json, sparse/ (COLMAP text), points.ply, mesh.ply, panorama_3d.png (atomic folder)
+    files     <- report.json, sparse/ (COLMAP text), points.ply, mesh.ply, wall.obj/.mtl/.png (the textured
+                 wall), panorama_3d.png (atomic folder)
 """
 from __future__ import annotations
 
@@ -27,9 +30,11 @@ from scope3d.feature.detection import FeatureOptions
 from scope3d.feature.matching import MatchOptions
 from scope3d.io.colmap import SparseModel, write_colmap_text
 from scope3d.io.dataset import Dataset
+from scope3d.io.obj import write_textured_obj
 from scope3d.io.ply import write_ply
 from scope3d.metrology.evaluation import errors_after_similarity, true_track_points
 from scope3d.metrology.star_scale import StarScaleOptions, star_scale
+from scope3d.mvs.texturing import TextureOptions, texture_mesh
 from scope3d.pipelines.surgical_map import MapOptions, detect_features
 from scope3d.scene.mesh import Mesh, PointCloud, SampledSurface
 from scope3d.sfm.cavity_mapping import CavityMap, CavityOptions, map_cavity
@@ -45,7 +50,8 @@ class PanoramaOptions:
     model (``scale_source: none``; or the plan's scale when the poses are planned). use_planned_poses :
     planned poses with finite tolerances start and bound the adjustment (default True); False ignores them
     (image-only). evaluation_step_mm : sample spacing of the true surface for the wall error (default 0.25).
-    figures : write panorama_3d.png (default True)."""
+    figures : write panorama_3d.png (default True). texture : the textured wall's options, or None for no
+    wall.obj."""
 
     features: FeatureOptions = field(default_factory=FeatureOptions)
     matching: MatchOptions = field(default_factory=MatchOptions)
@@ -54,6 +60,7 @@ class PanoramaOptions:
     use_planned_poses: bool = True
     evaluation_step_mm: float = 0.25
     figures: bool = True
+    texture: TextureOptions | None = field(default_factory=TextureOptions)
 
     def __post_init__(self) -> None:
         if self.evaluation_step_mm <= 0:
@@ -161,7 +168,16 @@ def run(options: PanoramaOptions, dataset: Dataset, out_dir: str | Path, *, prog
     with atomic_directory(out_dir) as tmp:
         write_ply(tmp / "points.ply", PointCloud(tr.points, tr.colors))
         if tr.n_tracks >= 4:
-            write_ply(tmp / "mesh.ply", cavity_mesh(tr.points, cavity.centre_mm, tr.colors))
+            wall = cavity_mesh(tr.points, cavity.centre_mm, tr.colors)
+            write_ply(tmp / "mesh.ply", wall)
+            if options.texture is not None:
+                t1 = time.perf_counter()
+                poses = [p if ok else None for p, ok in zip(cavity.poses, cavity.registered)]
+                textured = texture_mesh(wall, cavity.centre_mm, dataset.camera, poses, dataset.frame, options.texture)
+                write_textured_obj(tmp / "wall.obj", textured.mesh.vertices, textured.mesh.faces, textured.uv,
+                                   textured.face_uv, textured.image)
+                report.update({"texture_texel_mm": textured.texel_mm, "textured_fraction": textured.textured_fraction})
+                timings["texture_s"] = time.perf_counter() - t1
         model = SparseModel.from_observations(dataset.camera, dataset.names, cavity.poses, tr.points, tr.frame,
                                               tr.track, tr.pixels, colors=tr.colors)
         write_colmap_text(model, tmp / "sparse")

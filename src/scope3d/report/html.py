@@ -186,7 +186,8 @@ def _timings_section(report: dict) -> str:
 
 
 def _view_section(scene: ViewScene) -> str:
-    available = {mode for layer in scene.layers for mode in layer.colours}
+    available = {mode for layer in scene.layers for mode in layer.colours} | \
+        ({"texture"} if any(layer.textured for layer in scene.layers) else set())
     first = next((mode for mode, _ in COLOURINGS if mode in available), "height")
     if scene.inside and "texture" in available:  # a cavity seen from inside reads best as the scope saw it
         first = "texture"
@@ -256,9 +257,20 @@ def _targets_section(scene: ViewScene, report: dict) -> str:
             + (f" of {len(scene.true_targets)} true" if scene.true_targets else "") + f")</h2>{table}{missed_text}</section>")
 
 
+def texture_files(run: Path) -> set[str]:
+    """The images the run's .mtl files name as textures (``map_Kd``): data, not pictures to show."""
+    names = set()
+    for mtl in run.glob("*.mtl"):
+        for line in mtl.read_text(encoding="utf-8", errors="replace").splitlines():
+            if line.startswith("map_Kd") and len(line.split(None, 1)) == 2:
+                names.add(line.split(None, 1)[1].strip())
+    return names
+
+
 def _pictures_section(run: Path) -> str:
     figures = []
-    for png in sorted(run.glob("*.png")):
+    textures = texture_files(run)
+    for png in sorted(p for p in run.glob("*.png") if p.name not in textures):
         data = base64.b64encode(png.read_bytes()).decode()
         figures.append(f'<figure><img alt="{_e(png.name)}" src="data:image/png;base64,{data}">'
                        f"<figcaption>{_e(png.name)}</figcaption></figure>")
@@ -268,7 +280,8 @@ def _pictures_section(run: Path) -> str:
 
 
 def _files_section(run: Path, scene: ViewScene) -> str:
-    files = sorted(p for p in run.iterdir() if p.is_file() and p.suffix in (".ply", ".json", ".csv") and
-                   not p.name.startswith("."))
+    textures = texture_files(run)
+    files = sorted(p for p in run.iterdir() if p.is_file() and not p.name.startswith(".") and
+                   (p.suffix in (".ply", ".json", ".csv", ".obj", ".mtl") or p.name in textures))
     items = "".join(f'<li><a href="{_e(p.name)}">{_e(p.name)}</a> ({p.stat().st_size / 1e6:.2f} MB)</li>' for p in files)
     return f'<section id="files"><h2>Full data</h2><ul>{items}</ul></section>'

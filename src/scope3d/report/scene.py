@@ -21,8 +21,11 @@ from scope3d.sensor.camera import Camera
 # The geometry files a job may leave, in the order the view lists them; ``texture_from`` names a file
 # holding the same vertices coloured by reflectance only (the map's mesh.ply carries the fluorescence
 # overlay, mesh_reflectance.ply the plain texture).
-GEOMETRY_FILES = ("mesh.ply", "cloud.ply", "points.ply")
+GEOMETRY_FILES = ("wall.obj", "mesh.ply", "cloud.ply", "points.ply")
 TEXTURE_FROM = {"mesh.ply": "mesh_reflectance.ply"}
+# A textured mesh (OBJ + MTL + atlas) stands for the same geometry's PLY: the panorama's wall.obj is its
+# mesh.ply with the frames' texture.
+SUPERSEDES = {"wall.obj": "mesh.ply"}
 
 
 @dataclass(frozen=True)
@@ -36,6 +39,8 @@ class ReportOptions:
     error_scale_percentile : float, top of the error colour scale (percentile of the errors, so one far
         outlier does not wash the rest out).
     thumbnail_px : int, longest side of each frame's picture in the explorer (JPEG in the page).
+    max_texture_px : int, longest side of a textured mesh's atlas in the page (JPEG, quality 85; the full
+        atlas stays linked), which bounds what a texture adds to the page (~1-2 MB at 2048 px).
     max_thumbnails : int, frames with a picture at most (evenly spread over the run; the others are listed
         by name only), which bounds the page's size for videos of thousands of frames.
     """
@@ -47,12 +52,13 @@ class ReportOptions:
     error_scale_percentile: float = 95.0
     thumbnail_px: int = 160
     max_thumbnails: int = 400
+    max_texture_px: int = 2048
 
     def __post_init__(self) -> None:
         if self.max_points < 1 or self.max_faces < 1:
             raise ValueError("max_points and max_faces must be >= 1")
-        if self.thumbnail_px < 16 or self.max_thumbnails < 0:
-            raise ValueError("thumbnail_px must be >= 16 and max_thumbnails >= 0")
+        if self.thumbnail_px < 16 or self.max_thumbnails < 0 or self.max_texture_px < 16:
+            raise ValueError("thumbnail_px and max_texture_px must be >= 16 and max_thumbnails >= 0")
         if not 0 < self.frustum_depth_fraction <= 1:
             raise ValueError("frustum_depth_fraction must be in (0, 1]")
         if not 0 < self.error_scale_percentile <= 100:
@@ -63,7 +69,8 @@ class ReportOptions:
 class Layer:
     """One geometry file as drawn. positions : (N, 3) float64 mm world; faces : (F, 3) int or None
     (points); colours : colouring name -> (N, 3) uint8 RGB; n_file : vertices in the file (N < n_file
-    when thinned); error_mm : (N,) distances to the true surface or None."""
+    when thinned); error_mm : (N,) distances to the true surface or None; uv : (N, 2) texture coordinates
+    (OBJ's: v up) and texture_jpeg : the atlas (JPEG bytes), for a textured mesh, else None."""
 
     name: str
     positions: np.ndarray
@@ -72,6 +79,13 @@ class Layer:
     n_file: int
     n_faces_file: int
     error_mm: np.ndarray | None = None
+    uv: np.ndarray | None = None
+    texture_jpeg: bytes | None = None
+
+    @property
+    def textured(self) -> bool:
+        """Whether the layer carries a texture atlas (drawn for the "texture" colouring)."""
+        return self.texture_jpeg is not None
 
 
 @dataclass(frozen=True)
@@ -148,6 +162,29 @@ def _read_geometry(path: Path, options: ReportOptions) -> tuple[np.ndarray, np.n
     return vertices, faces, colours, n_vertices, n_faces, keep
 
 
+def _read_textured(path: Path, options: ReportOptions):
+    """A textured OBJ as drawn: (positions, faces, uv, atlas JPEG, vertices and faces in the file), its
+    corners unwelded where they have different texture coordinates (WebGL has one index per vertex); None
+    when it is over the face budget or has no texture (the mesh's PLY is drawn instead)."""
+    import cv2
+
+    from scope3d.io.obj import read_textured_obj
+
+    vertices, faces, uv, face_uv, image = read_textured_obj(path)
+    if image is None or len(faces) == 0 or len(faces) > options.max_faces:
+        return None
+    pairs, corner = np.unique(np.stack([faces.ravel(), face_uv.ravel()], axis=1), axis=0, return_inverse=True)
+    if len(pairs) > options.max_points:
+        return None
+    factor = options.max_texture_px / max(image.shape[:2])
+    if factor < 1:
+        image = cv2.resize(image, None, fx=factor, fy=factor, interpolation=cv2.INTER_AREA)
+    ok, jpeg = cv2.imencode(".jpg", cv2.cvtColor(image, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 85])
+    if not ok:
+        return None
+    return vertices[pairs[:, 0]], corner.reshape(-1, 3), uv[pairs[:, 1]], jpeg.tobytes(), len(vertices), len(faces)
+
+
 def _height_axis(points: np.ndarray, centres: np.ndarray) -> np.ndarray:
     """Unit normal of the points' least-squares plane, facing the cameras (world +z when unknown)."""
     if len(points) < 3:
@@ -190,9 +227,24 @@ def gather_scene(run_dir: Path, report: dict, options: ReportOptions) -> ViewSce
         truth = SampledSurface(dataset.ground_truth.surface(), EvaluationOptions().sample_step_mm)
 
     layers: list[Layer] = []
+    drawn: set[str] = set()
     for name in GEOMETRY_FILES:
         path = run_dir / name
-        if not path.is_file():
+        if not path.is_file() or any(drawn_name in drawn and SUPERSEDES[drawn_name] == name for drawn_name in SUPERSEDES):
+            continue
+        if path.suffix == ".obj":
+            textured = _read_textured(path, options)
+            if textured is None:
+                notes.append(f"{name}: over the page's budget or without its texture; its mesh is drawn untextured")
+                continue
+            positions, faces, uv, jpeg, n_file, n_faces = textured
+            layer = Layer(name, positions, faces, {}, n_file, n_faces, uv=uv, texture_jpeg=jpeg)
+            layers.append(layer)
+            drawn.add(name)
+            if truth is not None and len(positions):
+                from scope3d.metrology.evaluation import surface_distances
+
+                layer.error_mm = surface_distances(positions, truth)
             continue
         positions, faces, colours, n_file, n_faces, keep = _read_geometry(path, options)
         texture = colours
@@ -380,6 +432,9 @@ def scene_payload(scene: ViewScene) -> dict:
             "faces": None if layer.faces is None else encode(layer.faces, np.uint32),
             "n_faces": 0 if layer.faces is None else int(len(layer.faces)),
             "colours": {k: encode(v, np.uint8) for k, v in layer.colours.items()},
+            "uv": None if layer.uv is None else encode(layer.uv, np.float32),
+            "texture": None if layer.texture_jpeg is None else
+            "data:image/jpeg;base64," + base64.b64encode(layer.texture_jpeg).decode(),
         })
     return {
         "centre_mm": centre.tolist(), "radius_mm": radius, "up": scene.up.tolist(), "layers": layers,

@@ -4,7 +4,8 @@
 // Mouse: drag = orbit, shift-drag or right-drag = pan, wheel = zoom, click = the explorer: the frames that
 // saw the clicked spot (projected with each frame's pose and intrinsics, inside the image and facing the
 // camera), listed beside the view with the spot circled on their pictures. A closed cavity (the organ
-// panorama) is seen from inside, like a virtual globe. State for tests: body[data-viewer], body[data-picked].
+// panorama) is seen from inside, like a virtual globe. State for tests: body[data-viewer], body[data-picked], body[data-explore-ms]
+// (the click's time), body[data-textures-loaded].
 (function () {
   "use strict";
 
@@ -49,17 +50,22 @@
   }
 
   var VERTEX = [
-    "attribute vec3 position; attribute vec3 colour; attribute vec3 normal;",
+    "attribute vec3 position; attribute vec3 colour; attribute vec3 normal; attribute vec2 uv;",
     "uniform mat4 mvp; uniform float pointSize; uniform vec3 eyeDir; uniform float lit;",
-    "varying vec3 vColour;",
+    "varying vec3 vColour; varying float vShade; varying vec2 vUv;",
     "void main() {",
     "  gl_Position = mvp * vec4(position, 1.0); gl_PointSize = pointSize;",
-    "  float shade = mix(1.0, 0.35 + 0.65 * abs(dot(normalize(normal + vec3(1e-9)), eyeDir)), lit);",
-    "  vColour = colour * shade;",
+    "  vShade = mix(1.0, 0.35 + 0.65 * abs(dot(normalize(normal + vec3(1e-9)), eyeDir)), lit);",
+    "  vColour = colour; vUv = uv;",
     "}"].join("\n");
+  // highp where the GPU has it: a 2048-texel atlas needs more than mediump's 10-bit texture coordinates
   var FRAGMENT = [
-    "precision mediump float; varying vec3 vColour;",
-    "void main() { gl_FragColor = vec4(vColour, 1.0); }"].join("\n");
+    "#ifdef GL_FRAGMENT_PRECISION_HIGH", "precision highp float;", "#else", "precision mediump float;", "#endif",
+    "varying vec3 vColour; varying float vShade; varying vec2 vUv; uniform sampler2D atlas; uniform float textured;",
+    "void main() {",
+    "  vec3 base = textured > 0.5 ? texture2D(atlas, vUv).rgb : vColour;",
+    "  gl_FragColor = vec4(base * vShade, 1.0);",
+    "}"].join("\n");
 
   function compile(gl, type, source) {
     var shader = gl.createShader(type);
@@ -103,8 +109,11 @@
       position: gl.getAttribLocation(program, "position"), colour: gl.getAttribLocation(program, "colour"),
       normal: gl.getAttribLocation(program, "normal"), mvp: gl.getUniformLocation(program, "mvp"),
       pointSize: gl.getUniformLocation(program, "pointSize"), eyeDir: gl.getUniformLocation(program, "eyeDir"),
-      lit: gl.getUniformLocation(program, "lit")
+      lit: gl.getUniformLocation(program, "lit"), uv: gl.getAttribLocation(program, "uv"),
+      textured: gl.getUniformLocation(program, "textured"), atlas: gl.getUniformLocation(program, "atlas")
     };
+    gl.uniform1i(loc.atlas, 0);
+    var texturesLoaded = 0;
     function buffer(array, target) {
       var b = gl.createBuffer();
       gl.bindBuffer(target || gl.ARRAY_BUFFER, b);
@@ -122,6 +131,26 @@
         for (var i = 0; i < bytes.length; i++) rgb[i] = bytes[i] / 255;
         out.colours[mode] = buffer(rgb);
       });
+      if (layer.texture && faces) {  // a textured mesh: its atlas (a JPEG data URI), uploaded once decoded
+        out.uv = buffer(decode(layer.uv, Float32Array));
+        var image = new Image();
+        image.onload = function () {
+          out.texture = gl.createTexture();
+          gl.bindTexture(gl.TEXTURE_2D, out.texture);
+          gl.pixelStorei(gl.UNPACK_FLIP_Y_WEBGL, true);  // OBJ's v runs up from the atlas's bottom row
+          gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGB, gl.RGB, gl.UNSIGNED_BYTE, image);
+          gl.pixelStorei(gl.UNPACK_FLIP_Y_WEBGL, false);
+          // any size (WebGL 1 allows non-power-of-two textures without mipmaps and with clamped edges)
+          gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.LINEAR);
+          gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.LINEAR);
+          gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_S, gl.CLAMP_TO_EDGE);
+          gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_T, gl.CLAMP_TO_EDGE);
+          texturesLoaded += 1;
+          document.body.setAttribute("data-textures-loaded", String(texturesLoaded));
+          redraw();
+        };
+        image.src = layer.texture;
+      }
       if (faces && (uintIndices || layer.count < 65536)) {
         out.normals = vertexNormals(pos, faces);
         out.normal = buffer(out.normals);
@@ -220,7 +249,16 @@
       var drawn = 0;
       layers.forEach(function (layer) {
         var colour = layer.colours[state.mode] || layer.colours.height || layer.colours[Object.keys(layer.colours)[0]];
+        var textured = state.mode === "texture" && layer.texture && layer.index;
         if (!layer.visible || !colour) return;
+        if (textured) {
+          gl.enableVertexAttribArray(loc.uv);
+          gl.bindBuffer(gl.ARRAY_BUFFER, layer.uv);
+          gl.vertexAttribPointer(loc.uv, 2, gl.FLOAT, false, 0, 0);
+          gl.activeTexture(gl.TEXTURE0);
+          gl.bindTexture(gl.TEXTURE_2D, layer.texture);
+        }
+        gl.uniform1f(loc.textured, textured ? 1 : 0);
         gl.bindBuffer(gl.ARRAY_BUFFER, layer.position);
         gl.vertexAttribPointer(loc.position, 3, gl.FLOAT, false, 0, 0);
         gl.bindBuffer(gl.ARRAY_BUFFER, colour);
@@ -238,9 +276,12 @@
           gl.uniform1f(loc.lit, 0);
           gl.drawArrays(gl.POINTS, 0, layer.count);
         }
+        if (textured) gl.disableVertexAttribArray(loc.uv);
+        gl.uniform1f(loc.textured, 0);
         drawn += 1;
       });
       gl.vertexAttrib3f(loc.normal, 0, 0, 1);
+      gl.vertexAttrib2f(loc.uv, 0, 0);
       if (state.frusta) { drawLines(frusta); drawLines(trajectory); }
       if (state.targets) { drawLines(rings); drawLines(truthCrosses); }
       drawLabels(w, h, ratio);
@@ -306,29 +347,101 @@
       });
       return best;
     }
-    // Whether a drawn mesh crosses the segment from a camera's centre to the spot before the spot
-    // (Moller-Trumbore on every triangle; a hit within 1e-3 of the distance is the spot's own surface).
-    function occluded(from, p) {
-      var dir = sub(p, from), distance = Math.sqrt(dot(dir, dir)), limit = 1 - 1e-3;
-      dir = scale(dir, 1 / distance);
-      return layers.some(function (layer) {
-        if (!layer.visible || !layer.faces) return false;
-        var v = layer.positions, f = layer.faces;
-        for (var k = 0; k < f.length; k += 3) {
-          var a = f[k] * 3, b = f[k + 1] * 3, c = f[k + 2] * 3;
-          var e1 = [v[b] - v[a], v[b + 1] - v[a + 1], v[b + 2] - v[a + 2]];
-          var e2 = [v[c] - v[a], v[c + 1] - v[a + 1], v[c + 2] - v[a + 2]];
-          var h = cross(dir, e2), det = dot(e1, h);
-          if (Math.abs(det) < 1e-12) continue;
-          var s0 = [from[0] - v[a], from[1] - v[a + 1], from[2] - v[a + 2]];
-          var u = dot(s0, h) / det;
-          if (u < 0 || u > 1) continue;
-          var q = cross(s0, e1), w = dot(dir, q) / det;
-          if (w < 0 || u + w > 1) continue;
-          var t = dot(e2, q) / det;
-          if (t > 0 && t < limit * distance) return true;
+    // Whether a drawn mesh crosses the segment from a camera's centre to the spot before the spot: a
+    // uniform grid over each mesh's triangles (built on the first click), walked cell by cell along the
+    // segment (Amanatides-Woo), Moller-Trumbore on the triangles of the cells it crosses, each once; a hit
+    // within 1e-3 of the distance is the spot's own surface. Every triangle, one by one, cost ~70 ms per
+    // frame on a 400,000-face wall (docs/report.md).
+    function buildGrid(layer) {
+      var v = layer.positions, f = layer.faces, nf = f.length / 3, lo = [Infinity, Infinity, Infinity],
+          hi = [-Infinity, -Infinity, -Infinity], i, a, k;
+      for (i = 0; i < v.length; i += 3) for (a = 0; a < 3; a++) {
+        lo[a] = Math.min(lo[a], v[i + a]); hi[a] = Math.max(hi[a], v[i + a]);
+      }
+      var n = Math.max(1, Math.min(128, Math.round(Math.cbrt(nf) / 1.5))), size = [];
+      for (a = 0; a < 3; a++) {
+        var pad = 1e-6 * (hi[a] - lo[a] + 1);
+        lo[a] -= pad; hi[a] += pad; size[a] = (hi[a] - lo[a]) / n;
+      }
+      function cellOf(x, axis) { return Math.max(0, Math.min(n - 1, Math.floor((x - lo[axis]) / size[axis]))); }
+      function range(k) {  // the cells of triangle k's box: [x0, x1, y0, y1, z0, z1]
+        var r = [];
+        for (var axis = 0; axis < 3; axis++) {
+          var p0 = v[f[k] * 3 + axis], p1 = v[f[k + 1] * 3 + axis], p2 = v[f[k + 2] * 3 + axis];
+          r.push(cellOf(Math.min(p0, p1, p2), axis), cellOf(Math.max(p0, p1, p2), axis));
         }
-        return false;
+        return r;
+      }
+      var start = new Int32Array(n * n * n + 1), pass, x, y, z;
+      for (pass = 0; pass < 2; pass++) {
+        var items = pass ? new Int32Array(start[n * n * n]) : null, fill = pass ? start.slice(0, n * n * n) : null;
+        for (k = 0; k < f.length; k += 3) {
+          var r = range(k);
+          for (z = r[4]; z <= r[5]; z++) for (y = r[2]; y <= r[3]; y++) for (x = r[0]; x <= r[1]; x++) {
+            var cell = (z * n + y) * n + x;
+            if (pass) items[fill[cell]++] = k; else start[cell + 1] += 1;
+          }
+        }
+        if (!pass) for (i = 0; i < n * n * n; i++) start[i + 1] += start[i];
+      }
+      return {lo: lo, size: size, n: n, start: start, items: items, stamp: new Int32Array(nf), query: 0};
+    }
+    function hitDistance(v, f, k, from, dx, dy, dz) {  // Moller-Trumbore in scalars; -1 for no hit
+      var a = f[k] * 3, b = f[k + 1] * 3, c = f[k + 2] * 3;
+      var ax = v[a], ay = v[a + 1], az = v[a + 2];
+      var e1x = v[b] - ax, e1y = v[b + 1] - ay, e1z = v[b + 2] - az;
+      var e2x = v[c] - ax, e2y = v[c + 1] - ay, e2z = v[c + 2] - az;
+      var hx = dy * e2z - dz * e2y, hy = dz * e2x - dx * e2z, hz = dx * e2y - dy * e2x;
+      var det = e1x * hx + e1y * hy + e1z * hz;
+      if (det < 1e-12 && det > -1e-12) return -1;
+      var inv = 1 / det, sx = from[0] - ax, sy = from[1] - ay, sz = from[2] - az;
+      var u = (sx * hx + sy * hy + sz * hz) * inv;
+      if (u < 0 || u > 1) return -1;
+      var qx = sy * e1z - sz * e1y, qy = sz * e1x - sx * e1z, qz = sx * e1y - sy * e1x;
+      var w = (dx * qx + dy * qy + dz * qz) * inv;
+      if (w < 0 || u + w > 1) return -1;
+      return (e2x * qx + e2y * qy + e2z * qz) * inv;
+    }
+    function blocks(layer, from, d, limit) {
+      var g = layer.grid || (layer.grid = buildGrid(layer)), n = g.n, t0 = 0, t1 = limit, a;
+      for (a = 0; a < 3; a++) {  // clip the segment to the grid's box
+        if (Math.abs(d[a]) < 1e-12) {
+          if (from[a] < g.lo[a] || from[a] > g.lo[a] + n * g.size[a]) return false;
+        } else {
+          var ta = (g.lo[a] - from[a]) / d[a], tb = (g.lo[a] + n * g.size[a] - from[a]) / d[a];
+          t0 = Math.max(t0, Math.min(ta, tb)); t1 = Math.min(t1, Math.max(ta, tb));
+        }
+      }
+      if (t0 > t1) return false;
+      var cell = [], step = [], tMax = [], tDelta = [], query = ++g.query;
+      for (a = 0; a < 3; a++) {
+        cell[a] = Math.max(0, Math.min(n - 1, Math.floor((from[a] + d[a] * t0 - g.lo[a]) / g.size[a])));
+        step[a] = d[a] > 0 ? 1 : -1;
+        tMax[a] = Math.abs(d[a]) < 1e-12 ? Infinity : (g.lo[a] + (cell[a] + (d[a] > 0 ? 1 : 0)) * g.size[a] - from[a]) / d[a];
+        tDelta[a] = Math.abs(d[a]) < 1e-12 ? Infinity : g.size[a] / Math.abs(d[a]);
+      }
+      var v = layer.positions, f = layer.faces;
+      for (;;) {
+        var c = (cell[2] * n + cell[1]) * n + cell[0];
+        for (var j = g.start[c]; j < g.start[c + 1]; j++) {
+          var k = g.items[j];
+          if (g.stamp[k / 3] === query) continue;
+          g.stamp[k / 3] = query;
+          var t = hitDistance(v, f, k, from, d[0], d[1], d[2]);
+          if (t > 0 && t < limit) return true;
+        }
+        a = tMax[0] < tMax[1] ? (tMax[0] < tMax[2] ? 0 : 2) : (tMax[1] < tMax[2] ? 1 : 2);
+        if (tMax[a] > t1) return false;
+        cell[a] += step[a];
+        if (cell[a] < 0 || cell[a] >= n) return false;
+        tMax[a] += tDelta[a];
+      }
+    }
+    function occluded(from, p) {
+      var d = sub(p, from), distance = Math.sqrt(dot(d, d));
+      d = scale(d, 1 / distance);
+      return layers.some(function (layer) {
+        return layer.visible && layer.faces && blocks(layer, from, d, (1 - 1e-3) * distance);
       });
     }
     // Frames whose image holds the spot (pinhole with k1, k2, circular field), whose centre lies on the
@@ -357,6 +470,7 @@
       return seen;
     }
     function explore(px, py) {
+      var started = window.performance.now();
       var hit = pick(px, py);
       var panel = document.getElementById("explorer-frames");
       state.picked = hit ? hit.point : null;
@@ -391,6 +505,7 @@
       document.body.setAttribute("data-picked", JSON.stringify({
         point_mm: world, frames: seen.map(function (s) { return s.name; }),
         pixels: seen.map(function (s) { return [s.u, s.v]; })}));
+      document.body.setAttribute("data-explore-ms", String(window.performance.now() - started));
       redraw();
     }
 
