@@ -39,15 +39,24 @@ from scope3d.utils.jsonio import write_json
 from scope3d.utils.progress import stage
 
 
+#: features per frame below which the detector equalises the frame and lowers its contrast threshold
+#: (FeatureOptions.min_features): consecutive key frames share 35-65 % of their field, so 1000 features
+#: leave ~350 in common, several times the 15 matches a pair needs even if only a fifth of them match. A
+#: pale wet wall gave 9-580 features per 608 px frame at the fixed threshold (vessels at 0.25-0.5 of the
+#: default density), and most consecutive frames no match at all; a vessel-rich one 450-2000.
+PANORAMA_MIN_FEATURES = 1000
+
+
 @dataclass(frozen=True)
 class PanoramaOptions:
-    """features, matching, cavity : the stages' options. stars : the scale targets, or None for an unscaled
+    """features, matching, cavity : the stages' options (features: frames with fewer than
+    ``PANORAMA_MIN_FEATURES`` equalised and a lower contrast threshold). stars : the scale targets, or None for an unscaled
     model (``scale_source: none``; or the plan's scale when the poses are planned). use_planned_poses :
     planned poses with finite tolerances start and bound the adjustment (default True); False ignores them
     (image-only). evaluation_step_mm : sample spacing of the true surface for the wall error (default 0.25).
     figures : write panorama_3d.png (default True)."""
 
-    features: FeatureOptions = field(default_factory=FeatureOptions)
+    features: FeatureOptions = field(default_factory=lambda: FeatureOptions(min_features=PANORAMA_MIN_FEATURES))
     matching: MatchOptions = field(default_factory=MatchOptions)
     cavity: CavityOptions = field(default_factory=CavityOptions)
     stars: StarScaleOptions | None = field(default_factory=StarScaleOptions)
