@@ -43,23 +43,6 @@ def test_clahe_preset_finds_more_features_on_a_dim_frame():
     assert len(boosted) > 2 * max(len(plain), 1)
 
 
-def test_min_features_lowers_the_threshold_on_a_low_contrast_frame_down_to_the_floor():
-    pale = _textured(gain=0.08)  # a pale wall: few features at the fixed threshold
-    plain = detect(pale, None, FeatureOptions())
-    floor = detect(pale, None, FeatureOptions(contrast_threshold=0.01, clahe_clip_limit=2.0))
-    assert len(floor) > 2 * max(len(plain), 1)
-    # asking for more than the floor gives: equalised, halved 0.04 -> 0.02 -> 0.01, then stops at the floor
-    searched = detect(pale, None, FeatureOptions(min_features=10 * len(floor) + 1))
-    np.testing.assert_array_equal(searched.keypoints, floor.keypoints)
-    # a frame that already has enough keeps the one pass at the fixed threshold
-    np.testing.assert_array_equal(detect(pale, None, FeatureOptions(min_features=len(plain))).keypoints,
-                                  plain.keypoints)
-    with pytest.raises(ValueError):
-        FeatureOptions(min_contrast_threshold=0)
-    with pytest.raises(ValueError):
-        FeatureOptions(low_contrast_clahe_clip_limit=0)
-
-
 def test_max_features_keeps_the_strongest():
     f = detect(_textured(), None, FeatureOptions(max_features=50))
     assert len(f) == 50

@@ -46,19 +46,6 @@ class FeatureOptions:
     precise_upscale : bool, OpenCV's exact 2x upsampling of the first octave (default False: meant to
         remove a sub-pixel shift of the finest-scale keypoints, it did not lower the reprojection error on
         the Middlebury temple, 0.351 vs 0.335 px).
-    min_features : int, when a frame gives fewer features than this, it is detected again with CLAHE
-        (``low_contrast_clahe_clip_limit``, unless CLAHE is on already) and the contrast threshold halved,
-        and halved again until the frame gives enough or ``min_contrast_threshold`` is reached (default 0:
-        one pass). For walls of unknown texture: a pale, wet bladder wall (vessels at a quarter of the
-        phantom's default density) gave 9-280 features per 608 px frame at 0.04 and no match between most
-        consecutive frames; at 0.01 alone 126-805 features and 0-163 matches per pair (up to 26 % wrong);
-        with CLAHE at 0.01, 1370-1780 features and 15-182 matches (3-9 % wrong for all but one pair):
-        CLAHE flattens the tip light's falloff and the wet glint, so the faint texture everywhere passes.
-    min_contrast_threshold : float, the lowest threshold that search goes to (default 0.01: half of
-        COLMAP's SIFT peak threshold, 0.02 in these units; at 0.005 the extra features were more often
-        wrongly matched on the pale wall).
-    low_contrast_clahe_clip_limit : float, CLAHE clip limit of that search (default 2, the
-        ``dim_endoscope`` preset's).
     """
 
     max_features: int = 4000
@@ -70,9 +57,6 @@ class FeatureOptions:
     clahe_tile_grid: int = 8
     mask_margin_px: float = 8.0
     precise_upscale: bool = False
-    min_features: int = 0
-    min_contrast_threshold: float = 0.01
-    low_contrast_clahe_clip_limit: float = 2.0
 
     def __post_init__(self) -> None:
         if self.max_features < 0:
@@ -85,8 +69,6 @@ class FeatureOptions:
             raise ValueError("clahe_clip_limit must be >= 0 and clahe_tile_grid >= 1")
         if self.mask_margin_px < 0:
             raise ValueError(f"mask_margin_px must be >= 0, got {self.mask_margin_px}")
-        if self.min_features < 0 or not 0 < self.min_contrast_threshold or self.low_contrast_clahe_clip_limit <= 0:
-            raise ValueError("min_features must be >= 0, min_contrast_threshold and low_contrast_clahe_clip_limit > 0")
 
 
 #: Named presets. ``dim_endoscope``: CLAHE on and a lower contrast threshold for frames taken far from
@@ -163,30 +145,19 @@ def detect(image: np.ndarray, camera: Camera | None = None, options: FeatureOpti
     grey = to_grey(img)
     if camera is not None and grey.shape != (camera.height, camera.width):
         raise ValueError(f"image is {grey.shape[1]}x{grey.shape[0]} but camera is {camera.width}x{camera.height}")
-    def equalised(clip: float) -> np.ndarray:
-        return cv2.createCLAHE(clipLimit=clip, tileGridSize=(options.clahe_tile_grid,) * 2).apply(grey)
-
-    plain = grey
     if options.clahe_clip_limit > 0:
-        grey = equalised(options.clahe_clip_limit)
+        clahe = cv2.createCLAHE(clipLimit=options.clahe_clip_limit, tileGridSize=(options.clahe_tile_grid,) * 2)
+        grey = clahe.apply(grey)
     mask = detection_mask(camera, options.mask_margin_px) if camera is not None else None
-    threshold = options.contrast_threshold
-    while True:
-        sift = cv2.SIFT_create(
-            nfeatures=options.max_features,
-            nOctaveLayers=options.n_octave_layers,
-            contrastThreshold=threshold,
-            edgeThreshold=options.edge_threshold,
-            sigma=options.sigma,
-            enable_precise_upscale=options.precise_upscale,
-        )
-        kps, desc = sift.detectAndCompute(grey, mask)
-        # a low-contrast frame (a pale wall): equalised, and a lower threshold, down to the floor
-        if len(kps) >= options.min_features or threshold <= options.min_contrast_threshold:
-            break
-        if grey is plain:
-            grey = equalised(options.low_contrast_clahe_clip_limit)
-        threshold = max(0.5 * threshold, options.min_contrast_threshold)
+    sift = cv2.SIFT_create(
+        nfeatures=options.max_features,
+        nOctaveLayers=options.n_octave_layers,
+        contrastThreshold=options.contrast_threshold,
+        edgeThreshold=options.edge_threshold,
+        sigma=options.sigma,
+        enable_precise_upscale=options.precise_upscale,
+    )
+    kps, desc = sift.detectAndCompute(grey, mask)
     if not kps:
         return Features.empty()
     keypoints = np.array([k.pt for k in kps], dtype=np.float64)
