@@ -18,11 +18,13 @@ import os
 import subprocess
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from scope3d.errors import InputError
 from scope3d.io.dataset import load_dataset
 from scope3d.metrology.evaluation import errors_after_similarity, true_track_points
 from scope3d.pipelines.panorama_3d import PanoramaOptions, run
@@ -36,16 +38,30 @@ def load() -> str:
     return subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
 
 
-def ours(ds, work: Path, use_planned: bool) -> dict:
+def ours(ds, work: Path, use_planned: bool, stars: bool = False) -> dict:
+    """Our map; with ``stars`` its scale from the star targets (``scale_error_fraction`` against the truth),
+    or, when no star is seen whole, the unscaled map and the reason (``stars_error``)."""
     c0, t0 = time.process_time(), time.perf_counter()
-    report, _ = run(PanoramaOptions(stars=None, use_planned_poses=use_planned, figures=False), ds, work / "ours")
+    options = PanoramaOptions(use_planned_poses=use_planned, figures=False)
+    stars_error = None
+    try:
+        report, _ = run(options if stars else replace(options, stars=None), ds, work / "ours")
+    except InputError as exc:  # no star seen whole: the map without a scale, and why
+        if not stars:
+            raise
+        stars_error = str(exc)
+        report, _ = run(replace(options, stars=None), ds, work / "ours")
     return {"method": "scope3d panorama" + (" (planned poses)" if use_planned else " (images only)"),
             "n_registered": report["n_registered"], "n_points": report["n_points"],
             "surface_error_mm": report.get("surface_error_mm", {}).get("after_similarity"),
+            "scale_source": report["scale_source"], "scale_error_fraction": report.get("scale_error_fraction"),
+            "n_star_views": (report["stars"] or {}).get("n_views", 0), "stars_error": stars_error,
             "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0, "timings_s": report["timings_s"]}
 
 
-def colmap(ds, work: Path, mapper: str, truth: SampledSurface) -> dict:
+def colmap(ds, work: Path, mapper: str, truth: SampledSurface, sequential_overlap: int = 0) -> dict:
+    """pycolmap's mapper on the dataset's frames; every pair matched (exhaustive), or with
+    ``sequential_overlap`` > 0 each frame with that many successors (for plans of hundreds of views)."""
     import pycolmap
 
     cam = ds.camera
@@ -61,7 +77,12 @@ def colmap(ds, work: Path, mapper: str, truth: SampledSurface) -> dict:
     c0, t0 = time.process_time(), time.perf_counter()
     pycolmap.extract_features(db, ds.root / "frames", image_names=ds.names, camera_mode=pycolmap.CameraMode.SINGLE,
                               reader_options=reader)
-    pycolmap.match_exhaustive(db)
+    if sequential_overlap > 0:
+        pairing = pycolmap.SequentialPairingOptions()
+        pairing.overlap = sequential_overlap
+        pycolmap.match_sequential(db, pairing_options=pairing)
+    else:
+        pycolmap.match_exhaustive(db)
     t_match = time.perf_counter() - t0
     out = work / f"sparse_{mapper}"
     out.mkdir(exist_ok=True)
@@ -74,7 +95,8 @@ def colmap(ds, work: Path, mapper: str, truth: SampledSurface) -> dict:
     else:
         models = pycolmap.global_mapping(db, ds.root / "frames", out)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-    row = {"method": f"pycolmap.{mapper}_mapping", "wall_s": wall, "cpu_s": cpu, "features_and_matching_s": t_match,
+    row = {"method": f"pycolmap.{mapper}_mapping", "matching": f"sequential {sequential_overlap}" if sequential_overlap
+           else "exhaustive", "wall_s": wall, "cpu_s": cpu, "features_and_matching_s": t_match,
            "n_models": len(models)}
     if not models:
         return {**row, "n_registered": 0, "surface_error_mm": None}
