@@ -44,8 +44,6 @@ from scope3d.utils.jsonio import write_json
 from scope3d.utils.progress import stage
 
 
-
-
 @dataclass(frozen=True)
 class PanoramaOptions:
     """features, matching, cavity : the stages' options. pale_features, min_median_features : when
