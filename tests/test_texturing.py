@@ -84,3 +84,12 @@ def test_options_are_validated():
         TextureOptions(texel_mm=0)
     with pytest.raises(ValueError):
         TextureOptions(min_cos=1.0)
+
+
+def test_a_frame_with_no_texel_to_give_is_sampled_as_nothing():
+    """Found on an unseen wet cavity (shape seed 11, images only): a frame that sees a face but none of its
+    texels reached cv2.remap with an empty map, which OpenCV refuses with an assertion."""
+    from scope3d.mvs.texturing import _sample
+
+    image = np.zeros((8, 8, 3), np.uint8)
+    assert _sample(image, np.zeros((0, 2), np.float32)).shape == (0, 3)

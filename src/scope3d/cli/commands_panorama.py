@@ -95,7 +95,7 @@ def register_panorama(subparsers) -> None:
                     "also choose the pairs they say overlap, and start and bound the poses. The physical scale comes from the 6 mm star targets in the fluorescence frames. "
                     "Writes DIR/report.json (n_frames, n_registered, n_points, time_s; with ground truth "
                     "scale_error_fraction and surface_error_mm.after_similarity), sparse/ (COLMAP text), "
-                    "points.ply, mesh.ply (closed wall), panorama_3d.png.",
+                    "points.ply, mesh.ply (closed wall), wall.obj/.mtl/.png (the wall textured from the frames), panorama_3d.png.",
     )
     p.add_argument("dataset", type=Path, metavar="DATASET", help="dataset folder")
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder (replaced atomically)")
@@ -132,5 +132,5 @@ def _run_panorama(args) -> int:
         lines.append(f"wall error after similarity: mean {err['mean']:.3f}, median {err['median']:.3f}, "
                      f"p95 {err['p95']:.3f} mm" + (f"; scale error {report['scale_error_fraction']:+.2%}"
                                                   if "scale_error_fraction" in report else ""))
-    lines.append(f"wrote {args.out}/ (report.json, sparse/, points.ply, mesh.ply, panorama_3d.png)")
+    lines.append(f"wrote {args.out}/ (report.json, sparse/, points.ply, mesh.ply, wall.obj, panorama_3d.png)")
     return finish_job(args, args.out, report, lines)

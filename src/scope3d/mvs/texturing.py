@@ -313,6 +313,8 @@ def faces_towards(mesh: Mesh, centre: np.ndarray) -> Mesh:
 def _sample(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """Bilinear samples (N, 3) float32 of an RGB image at pixel coordinates uv (N, 2)."""
     n = len(uv)
+    if n == 0:  # a frame that sees a face but none of its texels (cv2.remap refuses an empty map)
+        return np.zeros((0, image.shape[2]), np.float32)
     width = 1024
     rows = -(-n // width)
     maps = np.full((rows * width, 2), -10.0, np.float32)
