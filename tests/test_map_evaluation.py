@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from scope3d.estimators.icp import icp_point_to_plane
+from scope3d.estimators.icp import IcpOptions, icp_point_to_plane
 from scope3d.geometry.rotation import rotvec_to_matrix
 from scope3d.metrology.evaluation import (
     EvaluationOptions,
@@ -74,6 +74,36 @@ def test_icp_from_identity_on_aligned_points_stays_put(bowl):
     assert np.abs(r.rotation - np.eye(3)).max() < 1e-3 and np.abs(r.translation).max() < 1e-2
 
 
+def test_icp_on_a_symmetric_dome_stops_within_the_poses_uncertainty():
+    """A paraboloid of revolution over a disc is symmetric about its axis: the distances do not constrain
+    a spin about it, and ICP's steps along it are the sampling's noise. ICP corrects the tilt and offset
+    in a few steps and stops there, at the distance 100 steps reach, instead of wandering about the axis
+    until the iteration cap (what the 1 um step test alone did on the dome phantom)."""
+    g = np.linspace(-10.0, 10.0, 81)
+    xx, yy = np.meshgrid(g, g)
+    v = np.c_[xx.ravel(), yy.ravel(), (xx.ravel() ** 2 + yy.ravel() ** 2) / 10.0]
+    k = (np.arange(80 * 80).reshape(80, 80) + np.arange(80)[:, None]).ravel()  # each grid cell's corner
+    faces = np.r_[np.c_[k, k + 1, k + 82], np.c_[k, k + 82, k + 81]]
+    inside = np.hypot(v[:, 0], v[:, 1]) < 9.0
+    mesh = Mesh(v, faces[np.all(inside[faces], axis=1)])
+    sampled = SampledSurface(mesh, 0.25)
+    pts = _points_on(mesh, 1000, seed=3)
+    pts += np.random.default_rng(0).normal(0.0, 0.05, pts.shape)  # a map's noise, as on the dome phantom
+    R0 = rotvec_to_matrix(np.deg2rad([2.0, -1.0, 4.0]))
+    moved = pts @ R0.T + [0.3, -0.2, 0.4]
+    r = icp_point_to_plane(moved, sampled)
+    assert r.iterations < 20  # the cap is 100
+    R = r.rotation @ R0  # truth to aligned
+    assert np.degrees(np.arccos(np.clip(R[2, 2], -1, 1))) < 0.3  # the axis back on z (tilted by 2.2 deg)
+    # the same distance as 100 steps: within sigma^2 / N of the weighted squares (~1e-6 of the mean here;
+    # 1 um allows for the Huber weights' and the approximate search's differences between the two ends)
+    capped = icp_point_to_plane(moved, sampled, IcpOptions(min_decrease_sigma2=0.0))
+    assert capped.iterations == 100
+    mean = np.mean(sampled.distances(r.apply(moved)))
+    assert abs(mean - np.mean(sampled.distances(capped.apply(moved)))) < 1e-3
+    assert mean < 0.045  # the noise floor: the mean |N(0, 0.05 mm)| along the normal is 0.040 mm
+
+
 def test_summary_and_figures(tmp_path):
     d = np.array([0.1, 0.2, 0.3, 2.0])
     s = distance_summary(d)
@@ -115,3 +145,5 @@ def test_bad_inputs(bowl):
         SampledSurface(Mesh(np.zeros((3, 3)), np.zeros((0, 3), int)))
     with pytest.raises(ValueError):
         EvaluationOptions(icp_trim_fraction=0.7)
+    with pytest.raises(ValueError):
+        EvaluationOptions(icp_min_decrease_sigma2=-1.0)

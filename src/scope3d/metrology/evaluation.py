@@ -57,6 +57,9 @@ class EvaluationOptions:
         (default 0: trimming lets ICP slide along a symmetry by dropping the points that resist).
     icp_huber_sigmas : float, correspondences are Huber-weighted beyond this many robust sigmas of
         the residuals (default 2: wrong tracks pull with a bounded force, not quadratically).
+    icp_min_decrease_sigma2 : float, ICP also stops when a step would lower its weighted sum of squares by
+        less than this many squared robust sigmas (default 1: the step is within the pose's standard error;
+        see :class:`scope3d.estimators.icp.IcpOptions`).
     initial_rotation_deg, initial_translation_mm : size of the eight ICP starting perturbations
         (default 5 deg, 2 mm).
     threads : int, ICP starts run at once (default 2; the results do not depend on it).
@@ -69,6 +72,7 @@ class EvaluationOptions:
     icp_max_distance_mm: float = 5.0
     icp_trim_fraction: float = 0.0
     icp_huber_sigmas: float = 2.0
+    icp_min_decrease_sigma2: float = 1.0
     initial_rotation_deg: float = 5.0
     initial_translation_mm: float = 2.0
     threads: int = 2
@@ -80,12 +84,13 @@ class EvaluationOptions:
             raise ValueError("need sample_step_mm > 0, icp_iterations >= 1, icp_trim_fraction in [0, 0.5)")
         if self.icp_max_points < 10 or not self.icp_huber_sigmas > 0 or not self.icp_max_distance_mm > 0:
             raise ValueError("need icp_max_points >= 10, icp_huber_sigmas > 0 and icp_max_distance_mm > 0")
+        self.icp_options()  # the ICP's own checks
 
     def icp_options(self) -> IcpOptions:
         """The options of the ICP runs this evaluation makes."""
         return IcpOptions(iterations=self.icp_iterations, tolerance_mm=self.icp_tolerance_mm,
                           max_distance_mm=self.icp_max_distance_mm, trim_fraction=self.icp_trim_fraction,
-                          huber_sigmas=self.icp_huber_sigmas)
+                          huber_sigmas=self.icp_huber_sigmas, min_decrease_sigma2=self.icp_min_decrease_sigma2)
 
 
 def surface_distances(points: np.ndarray, truth: Mesh | SampledSurface, options: EvaluationOptions = EvaluationOptions()) -> np.ndarray:
