@@ -85,10 +85,13 @@ class SampledSurface:
         flip = r1 + r2 > 1
         r1[flip], r2[flip] = 1 - r1[flip], 1 - r2[flip]
         self.points = a[face] + r1[:, None] * (b - a)[face] + r2[:, None] * (c - a)[face]
-        vn = np.zeros_like(v)
-        np.add.at(vn, f.ravel(), np.repeat(cross, 3, axis=0))
+        # each vertex's sum of its faces' cross products, added in the faces' order (np.add.at's sums, bit
+        # for bit, without its per-element overhead)
+        corner = f.ravel()
+        vn = np.stack([np.bincount(corner, np.repeat(cross[:, k], 3), minlength=len(v)) for k in range(3)], axis=1)
         vn /= np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-300)
-        used = np.unique(f)  # vertices no face refers to are not part of the surface
+        # vertices no face refers to are not part of the surface
+        used = np.flatnonzero(np.bincount(corner, minlength=len(v)))
         self.points = np.concatenate([self.points, v[used]])
         self.normals = np.concatenate([normals[face], vn[used]])
         self.tree = cKDTree(self.points)
