@@ -313,10 +313,14 @@ def refine_poses_for_matching(camera: Camera, measured: list[MeasuredPose], feat
     covariances = pairwise_pose_covariances(problem, result.parameters, pairs, loss_scale_px=options.loss_scale_px,
                                             prior_sigmas=prior)
     sigma_px = np.full(len(poses), np.nan)
+    jacobians: dict[int, np.ndarray] = {}  # a frame's image motion per pose scalar, shared by its pairs
     for (i, j), cov in zip(pairs, covariances):
         if not np.all(np.isfinite(cov)):
             continue
-        pair_sigma = max(projection_sigma_px(camera, poses[k], cov, depth_prior) for k in (i, j))
+        for k in (i, j):
+            if k not in jacobians:
+                jacobians[k] = projection_jacobian(camera, poses[k], depth_prior)
+        pair_sigma = max(projection_sigma_px(jacobians[k], cov) for k in (i, j))
         sigma_px[[i, j]] = np.fmax(sigma_px[[i, j]], 0.5 * pair_sigma)
     f = max(camera.fx, camera.fy)
     guide = []
@@ -331,12 +335,11 @@ def refine_poses_for_matching(camera: Camera, measured: list[MeasuredPose], feat
     return guide, depth_prior
 
 
-def projection_sigma_px(camera: Camera, pose: Pose, covariance: np.ndarray, depth_prior: DepthPrior, *,
-                        samples_per_side: int = 5) -> float:
-    """The largest standard deviation (px) with which a pose of covariance (6, 6) over ``(w, centre)``
-    (w: a left rotation ``exp(w) R``, rad; centre, mm) moves the image of a point, over a grid of pixels at
-    the depth prior's near and far ends. Correlated rotation and translation errors partly cancel in the
-    image, which is what matters to a matcher; their separate sigmas would not say so."""
+def projection_jacobian(camera: Camera, pose: Pose, depth_prior: DepthPrior, *,
+                        samples_per_side: int = 5) -> np.ndarray:
+    """How the image of a grid of pixels at the depth prior's near and far ends moves with the pose's
+    scalars ``(w, centre)`` (w: a left rotation ``exp(w) R``, rad; centre, mm): (P, 2, 6) px per unit, by
+    central differences; rows NaN where the point does not project."""
     pix = fov_samples(camera, samples_per_side)
     world = np.concatenate([(camera.unproject(pix, np.full(len(pix), z)) - pose.translation) @ pose.rotation
                             for z in (depth_prior.near_mm, depth_prior.far_mm)])
@@ -351,6 +354,16 @@ def projection_sigma_px(camera: Camera, pose: Pose, covariance: np.ndarray, dept
             moved = Pose.from_centre(rotvec_to_matrix(d[:3]) @ pose.rotation, pose.centre + d[3:])
             ends.append(camera.project_world(moved, world))
         jac[:, :, a] = (ends[0] - ends[1]) / (2 * step)
+    jac[~np.all(np.isfinite(base), axis=1)] = np.nan
+    return jac
+
+
+def projection_sigma_px(jacobian: np.ndarray, covariance: np.ndarray) -> float:
+    """The largest standard deviation (px) with which a pose of covariance (6, 6) over ``(w, centre)`` moves
+    the image of a point, over the points of its :func:`projection_jacobian` (P, 2, 6). Correlated rotation
+    and translation errors partly cancel in the image, which is what matters to a matcher; their separate
+    sigmas would not say so."""
+    ok = np.all(np.isfinite(jacobian), axis=(1, 2))
+    jac = jacobian[ok]
     cov_px = jac @ covariance @ np.swapaxes(jac, 1, 2)
-    ok = np.all(np.isfinite(base), axis=1)
-    return float(np.sqrt(np.linalg.eigvalsh(cov_px[ok])[:, -1].max())) if ok.any() else np.inf
+    return float(np.sqrt(np.linalg.eigvalsh(cov_px)[:, -1].max())) if ok.any() else np.inf
