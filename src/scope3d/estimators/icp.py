@@ -27,9 +27,9 @@ class IcpOptions:
         length in the pose's own standard errors (its Mahalanobis length under the normal matrix) is below
         one is the correspondences' noise, not misalignment. Along a near-symmetry (a dome's axis) such
         steps never end: the 1 µm test alone ran every start of the dome phantom's evaluation to the
-        iteration cap, turning the map tens of degrees about the dome's axis. Stopping there leaves at most
-        that much of the weighted sum, one point's share, i.e. the mean squared distance is within
-        sigma² / N of where more steps would take it. 0: the step test alone.
+        iteration cap, turning the map tens of degrees about the dome's axis. Stopped there, the next
+        step would move the weighted mean of squares by about sigma² / N (one point's share of the sum).
+        0: the step test alone.
     """
 
     iterations: int = 100
