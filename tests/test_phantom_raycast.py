@@ -184,6 +184,15 @@ class _NumpyKernels:
         distance[:], points[:], barycentric[:], normals[:] = d, p, b, n
         triangle[ray_idx[hit[ray_idx]]] = tri_idx[hit[ray_idx]]
 
+    @staticmethod
+    def embree_rays(origins, directions, shift, scale, origins32, directions32):
+        """What trimesh's Embree wrapper did before the query: unitize the directions, shift and scale the
+        origins, cast both to float32."""
+        import trimesh
+
+        origins32[:] = ((np.array(origins, dtype=np.float64) - shift) * scale).astype(np.float32)
+        directions32[:] = trimesh.util.unitize(directions).astype(np.float32)
+
 
 class _NumpySensor:
     """Stands in for the renderer's compiled sensor model: NumPy's whole-frame expressions it replaced."""
