@@ -195,7 +195,33 @@ class _NumpyKernels:
 
 
 class _NumpySensor:
-    """Stands in for the renderer's compiled sensor model: NumPy's whole-frame expressions it replaced."""
+    """Stands in for the renderer's compiled shading and sensor model: NumPy's whole-array expressions they
+    replaced."""
+
+    @staticmethod
+    def depth_along(points, hit, centre, axis, depth):
+        depth[:] = np.nan
+        depth[hit] = (points[hit] - centre) @ axis
+
+    @staticmethod
+    def incidence(normals, directions, distance, footprint_scale, root_focal, cos_i, falloff, footprint):
+        cos_i[:] = np.abs(np.einsum("ij,ij->i", normals, directions))
+        falloff[:] = (cos_i / distance**2).astype(np.float32)
+        footprint[:] = footprint_scale * distance / root_focal / np.sqrt(np.maximum(cos_i, 0.1))
+
+    @staticmethod
+    def shade(albedo, target, falloff, cos_i, distance, target_factor, specular, shininess, efficiency, background,
+              rows, reflect, fluor, target_out):
+        albedo = albedo.copy()
+        on_target = target > 0
+        albedo[on_target] *= 1.0 - 0.03  # RenderOptions' default target_reflectance_contrast, as a Python float
+        assert target_factor == np.float32(1.0 - 0.03)
+        value = albedo * falloff[:, None]
+        if specular > 0:
+            value += (specular * cos_i**shininess / distance**2).astype(np.float32)[:, None]
+        reflect[rows] = value
+        fluor[rows] = falloff * np.where(on_target, efficiency, background)
+        target_out[rows] = target
 
     @staticmethod
     def noisy_uint8(values, packed, valid, normal, gain, shot2, read2, out):
