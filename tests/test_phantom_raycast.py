@@ -263,9 +263,10 @@ def test_compiled_refinement_is_numpys(mesh, vertex_normals, monkeypatch):
 
 
 def test_rendered_frame_is_the_numpy_renderers_bit_for_bit(monkeypatch):
-    """The compiled refinement and sensor model and the column-wise ray rotation change no bit of what the
-    renderer writes (8-bit images with their noise, float32 depth, target ids): the NumPy refinement, noise
-    expressions and BLAS products they replaced, monkeypatched back, render the same frame."""
+    """The compiled passes change no bit of what the renderer writes (8-bit images with their noise,
+    float32 depth, target ids): the NumPy refinement, trimesh's preparation of Embree's rays (unitize
+    included), the shading, depth and noise expressions and the BLAS products they replaced, monkeypatched
+    back, render the same frame."""
     from scope3d.phantoms import render
     from scope3d.phantoms.lab import generate
 

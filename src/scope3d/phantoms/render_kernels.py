@@ -1,13 +1,14 @@
-"""Compiled per-pixel sensor model of the renderer (:func:`scope3d.phantoms.render.render_frame`): a kernel
-module of :mod:`scope3d.utils.aot` (compiled at install; numba's JIT where that could not run). It imports
-only numpy and numba (setup.py compiles it without importing scope3d).
+"""Compiled per-ray and per-pixel passes of the renderer (:func:`scope3d.phantoms.render.render_frame`): the
+rays' rotation, the shading, the depth and the sensor model. A kernel module of :mod:`scope3d.utils.aot`
+(compiled at install; numba's JIT where that could not run). It imports only numpy and numba (setup.py
+compiles it without importing scope3d).
 """
 from __future__ import annotations
 
 import numpy as np
 from numba import njit
 
-# Exported at install with the exact argument types render._shade and render._to_image pass (C-contiguous)
+# Exported at install with the exact argument types render.py passes (C-contiguous)
 AOT_SIGNATURES = {
     "rotate_rows": "void(f8[:, ::1], f8[:, ::1], f8[:, ::1])",
     "depth_along": "void(f8[:, ::1], b1[::1], f8[::1], f8[::1], f8[::1])",
