@@ -184,9 +184,44 @@ class _NumpyKernels:
         distance[:], points[:], barycentric[:], normals[:] = d, p, b, n
         triangle[ray_idx[hit[ray_idx]]] = tri_idx[hit[ray_idx]]
 
+    @staticmethod
+    def embree_rays(origins, directions, shift, scale, origins32, directions32):
+        """What trimesh's Embree wrapper did before the query: unitize the directions, shift and scale the
+        origins, cast both to float32."""
+        import trimesh
+
+        origins32[:] = ((np.array(origins, dtype=np.float64) - shift) * scale).astype(np.float32)
+        directions32[:] = trimesh.util.unitize(directions).astype(np.float32)
+
 
 class _NumpySensor:
-    """Stands in for the renderer's compiled sensor model: NumPy's whole-frame expressions it replaced."""
+    """Stands in for the renderer's compiled shading and sensor model: NumPy's whole-array expressions they
+    replaced."""
+
+    @staticmethod
+    def depth_along(points, hit, centre, axis, depth):
+        depth[:] = np.nan
+        depth[hit] = (points[hit] - centre) @ axis
+
+    @staticmethod
+    def incidence(normals, directions, distance, footprint_scale, root_focal, cos_i, falloff, footprint):
+        cos_i[:] = np.abs(np.einsum("ij,ij->i", normals, directions))
+        falloff[:] = (cos_i / distance**2).astype(np.float32)
+        footprint[:] = footprint_scale * distance / root_focal / np.sqrt(np.maximum(cos_i, 0.1))
+
+    @staticmethod
+    def shade(albedo, target, falloff, cos_i, distance, target_factor, specular, shininess, efficiency, background,
+              rows, reflect, fluor, target_out):
+        albedo = albedo.copy()
+        on_target = target > 0
+        albedo[on_target] *= 1.0 - 0.03  # RenderOptions' default target_reflectance_contrast, as a Python float
+        assert target_factor == np.float32(1.0 - 0.03)
+        value = albedo * falloff[:, None]
+        if specular > 0:
+            value += (specular * cos_i**shininess / distance**2).astype(np.float32)[:, None]
+        reflect[rows] = value
+        fluor[rows] = falloff * np.where(on_target, efficiency, background)
+        target_out[rows] = target
 
     @staticmethod
     def noisy_uint8(values, packed, valid, normal, gain, shot2, read2, out):
@@ -228,9 +263,10 @@ def test_compiled_refinement_is_numpys(mesh, vertex_normals, monkeypatch):
 
 
 def test_rendered_frame_is_the_numpy_renderers_bit_for_bit(monkeypatch):
-    """The compiled refinement and sensor model and the column-wise ray rotation change no bit of what the
-    renderer writes (8-bit images with their noise, float32 depth, target ids): the NumPy refinement, noise
-    expressions and BLAS products they replaced, monkeypatched back, render the same frame."""
+    """The compiled passes change no bit of what the renderer writes (8-bit images with their noise,
+    float32 depth, target ids): the NumPy refinement, trimesh's preparation of Embree's rays (unitize
+    included), the shading, depth and noise expressions and the BLAS products they replaced, monkeypatched
+    back, render the same frame."""
     from scope3d.phantoms import render
     from scope3d.phantoms.lab import generate
 

@@ -9,6 +9,7 @@ from numba import njit
 
 # Exported at install with the exact argument types RayCaster.cast passes (C-contiguous float64 / int64)
 AOT_SIGNATURES = {
+    "embree_rays": "void(f8[:, ::1], f8[:, ::1], f8[::1], f8, f4[:, ::1], f4[:, ::1])",
     "refine_hits": "void(f8[:, ::1], f8[:, ::1], i8[::1], i8[::1], f8[:, :, ::1], f8[:, :, ::1], f8[:, ::1], b1, "
                    "f8[::1], i8[::1], f8[:, ::1], f8[:, ::1], f8[:, ::1])",
 }
@@ -59,3 +60,14 @@ def refine_hits(origins, directions, ray_idx, tri_idx, v0_e1_e2, face_vertex_nor
     for r in range(origins.shape[0]):
         for c in range(3):
             points[r, c] = origins[r, c] + distance[r] * directions[r, c]
+
+
+@njit(cache=True, nogil=True)
+def embree_rays(origins, directions, shift, scale, origins32, directions32):
+    """The rays (N, 3) float64 as Embree's scene takes them, in one pass: ``origins32 = float32((origins -
+    shift) * scale)`` (trimesh's scaled copy of the mesh: the same operations as its wrapper, so the same
+    bits) and ``directions32 = float32(directions)``."""
+    for r in range(origins.shape[0]):
+        for c in range(3):
+            origins32[r, c] = np.float32((origins[r, c] - shift[c]) * scale)
+            directions32[r, c] = np.float32(directions[r, c])
