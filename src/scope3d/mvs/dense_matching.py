@@ -205,12 +205,11 @@ def refine_subpixel(
     """
     left_f = np.ascontiguousarray(left, dtype=np.float32)
     right_f = np.ascontiguousarray(right, dtype=np.float32)
-    start = np.asarray(disparity, dtype=np.float32)
+    start = np.ascontiguousarray(disparity, dtype=np.float32)
     known = np.isfinite(start)
     d = np.where(known, start, 0.0).astype(np.float32)
     grad = cv2.Sobel(right_f, cv2.CV_32F, 1, 0, ksize=1, scale=0.5)  # central difference, grey levels / column
     window_rows = window_rows or window_px
-    n = float(window_px * window_rows)
     mu_l = cv2.boxFilter(left_f, cv2.CV_32F, (window_px, window_rows), normalize=True, borderType=cv2.BORDER_REFLECT)
     var_l = cv2.boxFilter(left_f * left_f, cv2.CV_32F, (window_px, window_rows), normalize=True,
                           borderType=cv2.BORDER_REFLECT)
@@ -220,30 +219,28 @@ def refine_subpixel(
     # rows shared by the cores; the same bits as cv2.remap + cv2.boxFilter + NumPy, at ~1/4 of the CPU).
     weights = _lanczos_weights()
     warped, warped_grad = np.empty_like(left_f), np.empty_like(left_f)
+    lowest, highest = (-np.inf, np.inf) if search_range is None else (search_range[0] - 0.5, search_range[1] - 0.5)
     blocks = _row_blocks(left_f.shape[0])
     with ThreadPoolExecutor(max_workers=_n_threads(len(blocks))) as pool:
 
-        def by_blocks(kernel, *args):
-            list(pool.map(lambda rows: kernel(*args[:-2], rows[0], rows[1], *args[-2:]), blocks))
+        def by_blocks(kernel, inputs, outputs):
+            list(pool.map(lambda rows: kernel(*inputs, *rows, *outputs), blocks))
 
-        def window_pass(d, with_step):
-            a, b = np.empty_like(left_f), np.empty_like(left_f)
-            by_blocks(_kernels.warp_rows, right_f, grad, d, weights, warped, warped_grad)
-            by_blocks(_kernels.window_pass, left_f, warped, warped_grad, mu_l, var_l, d, window_px, window_rows,
-                      with_step, a, b)
-            return a, b
+        def warp(d):
+            by_blocks(_kernels.warp_rows, (right_f, grad, d, weights), (warped, warped_grad))
 
+        window = (left_f, warped, warped_grad, mu_l, var_l)
         for _ in range(max(iterations, 1)):
-            d, _ = window_pass(d, True)  # the new disparity (every block's windows read the old one)
-        jj, ee = window_pass(d, False)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        sigma = np.sqrt(ee / (n * jj))
-    cost = np.sqrt(ee)
-    bad = ~known | (np.abs(d - start) > max_shift_px)
-    if search_range is not None:
-        bad |= (d < search_range[0] - 0.5) | (d > search_range[1] - 0.5)
-    return Disparity(np.where(bad, np.nan, d).astype(np.float32), np.where(bad, np.nan, cost).astype(np.float32),
-                     np.where(bad, np.nan, sigma).astype(np.float32))
+            warp(d)
+            stepped = np.empty_like(d)
+            by_blocks(_kernels.step_pass, (*window, d, window_px, window_rows), (stepped,))
+            d = stepped
+        warp(d)
+        out = Disparity(np.empty_like(d), np.empty_like(d), np.empty_like(d))
+        by_blocks(_kernels.fit_pass, (*window, d, start, window_px, window_rows, np.float32(max_shift_px),
+                                      np.float32(lowest), np.float32(highest), np.float32(window_px * window_rows)),
+                  (out.disparity, out.cost, out.sigma))
+    return out
 
 
 _BLOCK_ROWS = 128  # rows per block of the compiled passes: a fixed cut, so the bits never depend on the cores

@@ -23,12 +23,17 @@ from numba import njit
 # Exported at install with the exact argument types dense_matching.refine_subpixel passes (C-contiguous)
 AOT_SIGNATURES = {
     "warp_rows": "void(f4[:, ::1], f4[:, ::1], f4[:, ::1], f4[:, ::1], i8, i8, f4[:, ::1], f4[:, ::1])",
-    "window_pass": "void(f4[:, ::1], f4[:, ::1], f4[:, ::1], f4[:, ::1], f4[:, ::1], f4[:, ::1], i8, i8, b1, "
-                   "i8, i8, f4[:, ::1], f4[:, ::1])",
+    "step_pass": "void(f4[:, ::1], f4[:, ::1], f4[:, ::1], f4[:, ::1], f4[:, ::1], f4[:, ::1], i8, i8, i8, i8, "
+                 "f4[:, ::1])",
+    "fit_pass": "void(f4[:, ::1], f4[:, ::1], f4[:, ::1], f4[:, ::1], f4[:, ::1], f4[:, ::1], f4[:, ::1], i8, i8, "
+                "f4, f4, f4, f4, i8, i8, f4[:, ::1], f4[:, ::1], f4[:, ::1])",
 }
 
 LANCZOS_TAPS = 8  # cv2.INTER_LANCZOS4: 4 source pixels either side
 LANCZOS_STEPS = 32  # OpenCV's INTER_TAB_SIZE: remap positions are rounded to 1/32 pixel
+# the window sums, in this order: warped w, its gradient g, w w, g g, l w (l the left image), g l, g w
+_N_SUMS_STEP = 7
+_N_SUMS_FIT = 5
 
 
 @njit(cache=True, nogil=True)
@@ -64,112 +69,168 @@ def warp_rows(image, gradient, disparity, weights, row_lo, row_hi, warped, warpe
             start = (fixed >> 5) - 3  # floor(fixed / 32) - 3
             value = np.float32(0.0)
             grad = np.float32(0.0)
-            for k in range(LANCZOS_TAPS):
-                col = min(max(start + k, 0), width - 1)
-                value += image[y, col] * weights[phase, k]
-                grad += gradient[y, col] * weights[phase, k]
+            if 0 <= start and start + LANCZOS_TAPS <= width:
+                for k in range(LANCZOS_TAPS):
+                    value += image[y, start + k] * weights[phase, k]
+                    grad += gradient[y, start + k] * weights[phase, k]
+            else:
+                for k in range(LANCZOS_TAPS):
+                    col = min(max(start + k, 0), width - 1)
+                    value += image[y, col] * weights[phase, k]
+                    grad += gradient[y, col] * weights[phase, k]
             warped[y, x] = value
             warped_gradient[y, x] = grad
 
 
 @njit(cache=True, nogil=True)
-def window_pass(left, warped, gradient, mean_left, var_left, disparity, window_cols, window_rows, with_step,
-                row_lo, row_hi, out_a, out_b):
-    """Window statistics of the zero-mean, gain-normalised residual between ``left`` and the warped right image.
-
-    left, warped, gradient : (H, W) float32, the left image, the right image warped by the current
-    disparity and its warped row gradient; mean_left, var_left : (H, W) float32 window mean and
-    variance (floored) of ``left``; disparity : (H, W) float32 current disparity (0 where unknown).
-    window_cols, window_rows : odd window size. Every window mean is ``float32(sum * (1 / n))`` of the
-    float32 products summed in float64 with BORDER_REFLECT, as ``cv2.boxFilter(..., normalize=True)``.
-
-    With ``with_step`` the Gauss-Newton step is taken: ``out_a`` gets the new disparity
-    ``d + clip(-mean(J e) / mean(J^2), -1/2, 1/2)`` (no step where ``mean(J^2) <= 1e-9``). Without,
-    ``out_a`` gets ``mean(J^2)`` and ``out_b`` ``mean(e^2)`` (J and e as in ``refine_subpixel``). Only rows
-    [row_lo, row_hi) of the outputs are written; the column sums restart at ``row_lo``, so a frame cut into
-    the same blocks gives the same bits whichever thread runs which block.
-    """
-    height, width = left.shape
-    half_r, half_c = window_rows // 2, window_cols // 2
-    n_sums = 7 if with_step else 5
-    # column sums over the window's rows, padded by the window's half width on both sides (reflected)
-    columns = np.zeros((n_sums, width + 2 * half_c))
-    inverse = 1.0 / (window_cols * window_rows)
-    tiny = np.float32(1e-6)
-    zero = np.float32(0.0)
-    two = np.float32(2.0)
-    half = np.float32(0.5)
-    min_jj = np.float32(1e-9)
-    for y in range(row_lo, row_hi):
-        if y == row_lo:
-            for q in range(n_sums):
-                for x in range(width):
-                    columns[q, half_c + x] = 0.0
-            for r in range(y - half_r, y + half_r + 1):
-                _add_row(columns, left, warped, gradient, _reflect(r, height), half_c, 1.0, n_sums)
-        else:
-            _add_row(columns, left, warped, gradient, _reflect(y + half_r, height), half_c, 1.0, n_sums)
-            _add_row(columns, left, warped, gradient, _reflect(y - half_r - 1, height), half_c, -1.0, n_sums)
-        for q in range(n_sums):
-            for k in range(half_c):
-                columns[q, half_c - 1 - k] = columns[q, half_c + _reflect(-1 - k, width)]
-                columns[q, half_c + width + k] = columns[q, half_c + _reflect(width + k, width)]
+def _add_row(columns, n_sums, left, warped, gradient, row, sign):
+    """Add (sign 1) or subtract (sign -1) one image row's float32 products to the float64 column sums
+    (one loop per sum: plain loops over a row are what LLVM vectorises)."""
+    width = left.shape[1]
+    l, w, g = left[row], warped[row], gradient[row]
+    for x in range(width):
+        columns[0, x] += sign * w[x]
+    for x in range(width):
+        columns[1, x] += sign * g[x]
+    for x in range(width):
+        columns[2, x] += sign * (w[x] * w[x])
+    for x in range(width):
+        columns[3, x] += sign * (g[x] * g[x])
+    for x in range(width):
+        columns[4, x] += sign * (l[x] * w[x])
+    if n_sums == _N_SUMS_STEP:
         for x in range(width):
-            s_w = 0.0
-            s_g = 0.0
-            s_ww = 0.0
-            s_gg = 0.0
-            s_lw = 0.0
-            s_gl = 0.0
-            s_gw = 0.0
-            for k in range(window_cols):
-                s_w += columns[0, x + k]
-                s_g += columns[1, x + k]
-                s_ww += columns[2, x + k]
-                s_gg += columns[3, x + k]
-                s_lw += columns[4, x + k]
-                if with_step:
-                    s_gl += columns[5, x + k]
-                    s_gw += columns[6, x + k]
-            mu_l = mean_left[y, x]
-            var_l = var_left[y, x]
-            mu_w = np.float32(s_w * inverse)
-            mu_g = np.float32(s_g * inverse)
-            var_w = max(np.float32(s_ww * inverse) - mu_w * mu_w, tiny)
-            var_g = max(np.float32(s_gg * inverse) - mu_g * mu_g, zero)
-            cov_lw = np.float32(s_lw * inverse) - mu_l * mu_w
-            a = np.sqrt(var_l / var_w)
-            jj = a * a * var_g  # mean of J^2
-            if with_step:
-                cov_gl = np.float32(s_gl * inverse) - mu_g * mu_l
-                cov_gw = np.float32(s_gw * inverse) - mu_g * mu_w
-                je = a * (cov_gl - a * cov_gw)  # mean of J e
-                step = zero
-                if jj > min_jj:
-                    step = -je / jj
-                    # Damped: a step beyond half a column leaves the linear range of the interpolated gradient
-                    if step > half:  # NaN passes, as through np.clip
-                        step = half
-                    elif step < -half:
-                        step = -half
-                out_a[y, x] = disparity[y, x] + step
-            else:
-                out_a[y, x] = jj
-                out_b[y, x] = max(var_l - two * a * cov_lw + a * a * var_w, zero)  # mean of e^2
+            columns[5, x] += sign * (g[x] * l[x])
+        for x in range(width):
+            columns[6, x] += sign * (g[x] * w[x])
 
 
 @njit(cache=True, nogil=True)
-def _add_row(columns, left, warped, gradient, row, offset, sign, n_sums):
-    """Add (sign 1) or remove (sign -1) one image row's float32 products to the float64 column sums."""
-    for x in range(left.shape[1]):
-        l = left[row, x]
-        w = warped[row, x]
-        g = gradient[row, x]
-        columns[0, offset + x] += sign * w
-        columns[1, offset + x] += sign * g
-        columns[2, offset + x] += sign * (w * w)
-        columns[3, offset + x] += sign * (g * g)
-        columns[4, offset + x] += sign * (l * w)
-        if n_sums == 7:
-            columns[5, offset + x] += sign * (g * l)
-            columns[6, offset + x] += sign * (g * w)
+def _window_means(left, warped, gradient, window_cols, window_rows, n_sums, y, row_lo, columns, padded, sums, means):
+    """The first ``n_sums`` window means of row ``y`` into ``means`` (n_sums, W) float32.
+
+    columns : (7, W) float64, the sums over the window's rows of every column, brought from row ``y - 1``
+    to row ``y`` (or started afresh at ``row_lo``); padded : (W + window_cols - 1,) and sums : (W,) float64
+    scratch. Each mean is ``float32(sum * (1 / n))`` of the float32 products summed in float64 with
+    BORDER_REFLECT, as ``cv2.boxFilter(..., normalize=True)`` computes it (the sums of float32 products
+    are exact in float64 but for products of very different magnitudes, so the order does not matter).
+    """
+    height, width = left.shape
+    half_r, half_c = window_rows // 2, window_cols // 2
+    if y == row_lo:
+        columns[:, :] = 0.0
+        for r in range(y - half_r, y + half_r + 1):
+            _add_row(columns, n_sums, left, warped, gradient, _reflect(r, height), 1.0)
+    else:
+        _add_row(columns, n_sums, left, warped, gradient, _reflect(y + half_r, height), 1.0)
+        _add_row(columns, n_sums, left, warped, gradient, _reflect(y - half_r - 1, height), -1.0)
+    inverse = 1.0 / (window_cols * window_rows)
+    for q in range(n_sums):
+        column = columns[q]
+        for x in range(width):
+            padded[half_c + x] = column[x]
+        for k in range(half_c):
+            padded[half_c - 1 - k] = column[_reflect(-1 - k, width)]
+            padded[half_c + width + k] = column[_reflect(width + k, width)]
+        for x in range(width):
+            sums[x] = padded[x]
+        for k in range(1, window_cols):
+            for x in range(width):
+                sums[x] += padded[x + k]
+        mean = means[q]
+        for x in range(width):
+            mean[x] = np.float32(sums[x] * inverse)
+
+
+@njit(cache=True, nogil=True)
+def step_pass(left, warped, gradient, mean_left, var_left, disparity, window_cols, window_rows, row_lo, row_hi,
+              new_disparity):
+    """One Gauss-Newton step of every pixel's disparity, from window statistics of the zero-mean,
+    gain-normalised residual between ``left`` and the warped right image.
+
+    left, warped, gradient : (H, W) float32, the left image, the right image warped by the current
+    disparity and its warped row gradient; mean_left, var_left : (H, W) float32 window mean and variance
+    (floored at 1e-6) of ``left``; disparity : (H, W) float32 current disparity (0 where unknown);
+    window_cols, window_rows : odd window size. Fills rows [row_lo, row_hi) of ``new_disparity`` (H, W)
+    float32 with ``d + clip(-mean(J e) / mean(J^2), -1/2, 1/2)`` (no step where ``mean(J^2) <= 1e-9``),
+    J and e as in ``refine_subpixel``. The column sums restart at ``row_lo``, so a frame cut into the same
+    blocks gives the same bits whichever thread runs which block.
+    """
+    width = left.shape[1]
+    columns = np.empty((_N_SUMS_STEP, width))
+    padded = np.empty(width + window_cols - 1)
+    sums = np.empty(width)
+    means = np.empty((_N_SUMS_STEP, width), np.float32)
+    for y in range(row_lo, row_hi):
+        _window_means(left, warped, gradient, window_cols, window_rows, _N_SUMS_STEP, y, row_lo, columns, padded, sums,
+                      means)
+        _step_row(means, mean_left[y], var_left[y], disparity[y], new_disparity[y])
+
+
+# error_model="numpy": a division by 0 gives inf or NaN as in NumPy instead of a check that raises, which
+# keeps the row loops free of branches (vectorised); every division here is guarded or has a floored divisor
+@njit(cache=True, nogil=True, error_model="numpy")
+def _step_row(means, mean_left, var_left, disparity, new_disparity):
+    """:func:`step_pass` on one row, from its window means (7, W) float32."""
+    tiny, zero, half, min_jj = np.float32(1e-6), np.float32(0.0), np.float32(0.5), np.float32(1e-9)
+    for x in range(means.shape[1]):
+        mu_l, var_l = mean_left[x], var_left[x]
+        mu_w, mu_g = means[0, x], means[1, x]
+        var_w = max(means[2, x] - mu_w * mu_w, tiny)
+        var_g = max(means[3, x] - mu_g * mu_g, zero)
+        cov_lw = means[4, x] - mu_l * mu_w
+        a = np.sqrt(var_l / var_w)
+        jj = a * a * var_g  # mean of J^2
+        cov_gl = means[5, x] - mu_g * mu_l
+        cov_gw = means[6, x] - mu_g * mu_w
+        je = a * (cov_gl - a * cov_gw)  # mean of J e
+        step = -je / jj
+        # Damped: a step beyond half a column leaves the linear range of the interpolated gradient
+        step = half if step > half else step  # NaN passes, as through np.clip
+        step = -half if step < -half else step
+        new_disparity[x] = disparity[x] + (step if jj > min_jj else zero)
+
+
+@njit(cache=True, nogil=True)
+def fit_pass(left, warped, gradient, mean_left, var_left, disparity, start, window_cols, window_rows,
+             max_shift, lowest, highest, samples, row_lo, row_hi, out_disparity, out_cost, out_sigma):
+    """The refinement's result from the window statistics at the final disparity.
+
+    left, warped, gradient, mean_left, var_left, window_cols, window_rows : as :func:`step_pass`;
+    disparity : (H, W) float32 final disparity; start : (H, W) float32 the matcher's, NaN = none;
+    max_shift, lowest, highest : float32, a disparity farther than ``max_shift`` from its start or outside
+    [lowest, highest] is rejected; samples : float32, pixels per window. Fills rows [row_lo, row_hi) of
+    ``out_disparity``, ``out_cost = sqrt(mean(e^2))`` and ``out_sigma = sqrt(mean(e^2) / (samples
+    mean(J^2)))`` (H, W) float32, NaN where rejected.
+    """
+    width = left.shape[1]
+    columns = np.empty((_N_SUMS_FIT, width))
+    padded = np.empty(width + window_cols - 1)
+    sums = np.empty(width)
+    means = np.empty((_N_SUMS_FIT, width), np.float32)
+    for y in range(row_lo, row_hi):
+        _window_means(left, warped, gradient, window_cols, window_rows, _N_SUMS_FIT, y, row_lo, columns, padded, sums,
+                      means)
+        _fit_row(means, mean_left[y], var_left[y], disparity[y], start[y], max_shift, lowest, highest, samples,
+                 out_disparity[y], out_cost[y], out_sigma[y])
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _fit_row(means, mean_left, var_left, disparity, start, max_shift, lowest, highest, samples, out_disparity,
+             out_cost, out_sigma):
+    """:func:`fit_pass` on one row, from its window means (5, W) float32."""
+    tiny, zero, two, nan = np.float32(1e-6), np.float32(0.0), np.float32(2.0), np.float32(np.nan)
+    for x in range(means.shape[1]):
+        d, d0 = disparity[x], start[x]
+        keep = np.isfinite(d0) & (not abs(d - d0) > max_shift) & (not d < lowest) & (not d > highest)
+        mu_l, var_l = mean_left[x], var_left[x]
+        mu_w, mu_g = means[0, x], means[1, x]
+        var_w = max(means[2, x] - mu_w * mu_w, tiny)
+        var_g = max(means[3, x] - mu_g * mu_g, zero)
+        cov_lw = means[4, x] - mu_l * mu_w
+        a = np.sqrt(var_l / var_w)
+        jj = a * a * var_g  # mean of J^2
+        ee = max(var_l - two * a * cov_lw + a * a * var_w, zero)  # mean of e^2
+        out_disparity[x] = d if keep else nan
+        out_cost[x] = np.sqrt(ee) if keep else nan
+        out_sigma[x] = np.sqrt(ee / (samples * jj)) if keep else nan  # inf or NaN where mean(J^2) is 0, as NumPy
