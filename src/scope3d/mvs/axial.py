@@ -254,23 +254,42 @@ class AxialPair:
             z = self.baseline_mm / np.expm1(d * self.grid.log_rho_step)
         return np.where(d > 0, z, np.nan)
 
-    def range_from_disparity(self, disparity: np.ndarray) -> np.ndarray:
-        """(n_angles, n_radii) mm: distance from the front camera centre to the point along its grid ray."""
+    def range_from_disparity(self, disparity: np.ndarray, where: np.ndarray | None = None) -> np.ndarray:
+        """(n_angles, n_radii) mm: distance from the front camera centre to the point along its grid ray.
+
+        where : (n_angles, n_radii) bool or None; when given, only those cells are computed (NaN elsewhere).
+        """
         rho = self.grid.radii()[None, :]
-        return self.depth_along_baseline(disparity) * np.sqrt(1.0 + rho * rho)
+        if where is None:
+            return self.depth_along_baseline(disparity) * np.sqrt(1.0 + rho * rho)
+        d = np.asarray(disparity, dtype=float)
+        out = np.full(d.shape, np.nan)
+        rho = np.broadcast_to(rho, d.shape)[where]
+        out[where] = self.depth_along_baseline(d[where]) * np.sqrt(1.0 + rho * rho)
+        return out
 
     def range_sigma(self, disparity: np.ndarray, disparity_sigma: np.ndarray | float) -> np.ndarray:
         """First-order standard deviation (mm) of the range given that of the disparity (columns).
 
         ``dZ/dd = -b step exp(d step) / (exp(d step) - 1)^2``; near the epipole ``d -> 0`` and this blows up
-        as ``Z^2 step / b``: the conditioning that the confidence mask uses.
+        as ``Z^2 step / b``: the conditioning that the confidence mask uses. NaN where ``d <= 0`` or NaN.
         """
         d = np.asarray(disparity, dtype=float)
         s = self.grid.log_rho_step
-        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            dz = self.baseline_mm * s * np.exp(d * s) / np.expm1(d * s) ** 2
         rho = self.grid.radii()[None, :]
-        return np.where(d > 0, dz * np.sqrt(1.0 + rho * rho) * np.asarray(disparity_sigma), np.nan)
+        # In place, in the order of ``b s exp(d s) / expm1(d s)^2 sqrt(1 + rho^2) sigma``: the same
+        # bits without a frame-sized float64 temporary per operation (~1/3 of the time at 608 px).
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            x = d * s
+            out = np.exp(x)
+            out *= self.baseline_mm * s
+            denominator = np.expm1(x, out=x)
+            np.square(denominator, out=denominator)
+            out /= denominator
+            out *= np.sqrt(1.0 + rho * rho)
+            out *= np.asarray(disparity_sigma)
+        out[~(d > 0)] = np.nan
+        return out
 
     def points_world(self, depth_along_baseline_mm: np.ndarray) -> np.ndarray:
         """(n_angles, n_radii, 3) world points (mm) from :meth:`depth_along_baseline` (NaN propagates)."""

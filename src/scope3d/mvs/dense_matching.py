@@ -256,9 +256,9 @@ def _n_threads(n_blocks: int) -> int:
 
 def _lanczos_weights() -> np.ndarray:
     """(32, 8) float32: the weights cv2.remap's INTER_LANCZOS4 gives the 8 pixels around a position at
-    each 1/32-pixel phase, read from OpenCV itself by resampling an impulse (so that the compiled warp
-    is OpenCV's to the bit, whatever its version computes)."""
-    steps, taps = _kernels.LANCZOS_STEPS, _kernels.LANCZOS_TAPS
+    each 1/32-pixel phase (OpenCV's INTER_TAB_SIZE, which refine_kernels.warp_rows assumes), read from
+    OpenCV itself by resampling an impulse, so that the compiled warp is OpenCV's to the bit."""
+    steps, taps = 32, 8
     impulse = np.zeros((1, 4 * taps), np.float32)
     centre = 2 * taps
     impulse[0, centre] = 1.0

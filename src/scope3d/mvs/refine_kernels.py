@@ -30,7 +30,7 @@ AOT_SIGNATURES = {
 }
 
 LANCZOS_TAPS = 8  # cv2.INTER_LANCZOS4: 4 source pixels either side
-LANCZOS_STEPS = 32  # OpenCV's INTER_TAB_SIZE: remap positions are rounded to 1/32 pixel
+LANCZOS_STEPS = 32  # OpenCV's INTER_TAB_SIZE: remap positions are rounded to 1/32 pixel (as dense_matching's table)
 # the window sums, in this order: warped w, its gradient g, w w, g g, l w (l the left image), g l, g w
 _N_SUMS_STEP = 7
 _N_SUMS_FIT = 5
