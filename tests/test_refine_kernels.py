@@ -5,6 +5,7 @@ import pytest
 
 from scope3d.mvs import dense_matching
 from scope3d.mvs.dense_matching import refine_subpixel
+from scope3d.utils import row_blocks
 
 
 def _reference_refine(left, right, disparity, window_px, window_rows, iterations, max_shift_px, search_range):
@@ -78,7 +79,7 @@ def _textured_pair(shape, shift_px, seed):
     ((9, 40), (5, 21), 1, 4),  # windows taller than the image: reflected more than once
 ])
 def test_compiled_refinement_is_the_opencv_numpy_computation(monkeypatch, shape, window, iterations, block_rows):
-    monkeypatch.setattr(dense_matching, "_BLOCK_ROWS", block_rows)
+    monkeypatch.setattr(row_blocks, "BLOCK_ROWS", block_rows)
     left, right, start = _textured_pair(shape, 6.3, seed=shape[0])
     kw = dict(window_px=window[0], window_rows=window[1], iterations=iterations, max_shift_px=1.0, search_range=(0, 32))
     got = refine_subpixel(left, right, start, **kw)

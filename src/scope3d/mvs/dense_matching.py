@@ -16,14 +16,13 @@ with NaN where there is no match.
 """
 from __future__ import annotations
 
-import os
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
 from scope3d.utils.aot import load_kernels
+from scope3d.utils.row_blocks import run_by_row_blocks
 
 _kernels = load_kernels("scope3d.mvs.refine_kernels")
 
@@ -220,38 +219,20 @@ def refine_subpixel(
     weights = _lanczos_weights()
     warped, warped_grad = np.empty_like(left_f), np.empty_like(left_f)
     lowest, highest = (-np.inf, np.inf) if search_range is None else (search_range[0] - 0.5, search_range[1] - 0.5)
-    blocks = _row_blocks(left_f.shape[0])
-    with ThreadPoolExecutor(max_workers=_n_threads(len(blocks))) as pool:
-
-        def by_blocks(kernel, inputs, outputs):
-            list(pool.map(lambda rows: kernel(*inputs, *rows, *outputs), blocks))
-
-        def warp(d):
-            by_blocks(_kernels.warp_rows, (right_f, grad, d, weights), (warped, warped_grad))
-
-        window = (left_f, warped, warped_grad, mu_l, var_l)
-        for _ in range(max(iterations, 1)):
-            warp(d)
-            stepped = np.empty_like(d)
-            by_blocks(_kernels.step_pass, (*window, d, window_px, window_rows), (stepped,))
-            d = stepped
-        warp(d)
-        out = Disparity(np.empty_like(d), np.empty_like(d), np.empty_like(d))
-        by_blocks(_kernels.fit_pass, (*window, d, start, window_px, window_rows, np.float32(max_shift_px),
-                                      np.float32(lowest), np.float32(highest), np.float32(window_px * window_rows)),
-                  (out.disparity, out.cost, out.sigma))
+    height = left_f.shape[0]
+    window = (left_f, warped, warped_grad, mu_l, var_l)
+    for _ in range(max(iterations, 1)):
+        run_by_row_blocks(_kernels.warp_rows, height, (right_f, grad, d, weights), (warped, warped_grad))
+        stepped = np.empty_like(d)
+        run_by_row_blocks(_kernels.step_pass, height, (*window, d, window_px, window_rows), (stepped,))
+        d = stepped
+    run_by_row_blocks(_kernels.warp_rows, height, (right_f, grad, d, weights), (warped, warped_grad))
+    out = Disparity(np.empty_like(d), np.empty_like(d), np.empty_like(d))
+    run_by_row_blocks(_kernels.fit_pass, height,
+                      (*window, d, start, window_px, window_rows, np.float32(max_shift_px), np.float32(lowest),
+                       np.float32(highest), np.float32(window_px * window_rows)),
+                      (out.disparity, out.cost, out.sigma))
     return out
-
-
-_BLOCK_ROWS = 128  # rows per block of the compiled passes: a fixed cut, so the bits never depend on the cores
-
-
-def _row_blocks(height: int) -> list[tuple[int, int]]:
-    return [(lo, min(lo + _BLOCK_ROWS, height)) for lo in range(0, height, _BLOCK_ROWS)]
-
-
-def _n_threads(n_blocks: int) -> int:
-    return max(1, min(n_blocks, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1))
 
 
 def _lanczos_weights() -> np.ndarray:
