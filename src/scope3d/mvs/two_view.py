@@ -120,8 +120,8 @@ def reconstruct_pair(
     else:
         disparity = sad_disparity(front_polar, rear_polar, replace(options.sad, num_disparities=num))
     t2 = time.perf_counter()
-    rel = reliability(front_polar, rear_polar, disparity.disparity, disparity.cost, disparity.sigma,
-                      pair.range_sigma, valid, options.confidence)
+    rel = reliability(front_polar, rear_polar, disparity.disparity, disparity.cost, disparity.sigma, pair, valid,
+                      options.confidence)
     range_mm = pair.range_from_disparity(disparity.disparity, where=rel.mask)
     t3 = time.perf_counter()
     times = {"resample": t1 - t0, "match": t2 - t1, "triangulate": t3 - t2, "total": t3 - t0}

@@ -1,10 +1,16 @@
-"""The compiled sub-pixel refinement (mvs/refine_kernels.py) is the OpenCV + NumPy computation, bit for bit."""
+"""The compiled passes of axial stereo are the OpenCV + NumPy computations they replace, bit for bit: the
+sub-pixel refinement (mvs/refine_kernels.py) and the reliability tests (mvs/axial_kernels.py)."""
 import cv2
 import numpy as np
 import pytest
 
+from scope3d.geometry.pose import Pose
+from scope3d.geometry.rotation import look_at
 from scope3d.mvs import dense_matching
+from scope3d.mvs.axial import make_axial_pair
+from scope3d.mvs.confidence import ConfidenceOptions, reliability
 from scope3d.mvs.dense_matching import refine_subpixel
+from scope3d.sensor.camera import Camera
 from scope3d.utils import row_blocks
 
 
@@ -95,3 +101,75 @@ def test_lanczos_weights_are_opencvs_interpolation():
     np.testing.assert_allclose(weights.sum(axis=1), 1.0, atol=1e-6)  # a partition of unity (float32 sums)
     assert weights[0, 3] == 1.0 and np.count_nonzero(weights[0]) == 1  # phase 0 copies the pixel
     np.testing.assert_array_equal(weights[16], weights[16, ::-1])  # half a pixel: symmetric
+
+
+def _reference_reliability(front, rear, disparity, cost, disparity_sigma, pair, valid, options):
+    """The reliability tests as whole-frame OpenCV and NumPy operations (the code before the compiled pass)."""
+    k = (options.window_px, options.window_px)
+    img = front.astype(np.float32)
+    mean_f = cv2.boxFilter(img, cv2.CV_32F, k, borderType=cv2.BORDER_REFLECT)
+    var = cv2.boxFilter(img * img, cv2.CV_32F, k, borderType=cv2.BORDER_REFLECT) - mean_f * mean_f
+    gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=1, scale=0.5)
+    grad_f = np.sqrt(np.maximum(cv2.boxFilter(gx * gx, cv2.CV_32F, k, borderType=cv2.BORDER_REFLECT), 0))
+    std_f = np.sqrt(np.maximum(var, 0))
+    mean_r = cv2.boxFilter(rear.astype(np.float32), cv2.CV_32F, k, borderType=cv2.BORDER_REFLECT)
+    d = disparity
+    sigma_d = np.fmax(disparity_sigma, options.disparity_sigma_floor_px)
+    sigma_d = np.where(np.isfinite(sigma_d), sigma_d, options.disparity_sigma_floor_px)
+    s = pair.grid.log_rho_step
+    d64 = d.astype(float)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        dz = pair.baseline_mm * s * np.exp(d64 * s) / np.expm1(d64 * s) ** 2
+        rho = pair.grid.radii()[None, :]
+        range_sigma = np.where(d64 > 0, dz * np.sqrt(1.0 + rho * rho) * sigma_d, np.nan).astype(np.float32)
+        norm_cost = cost / std_f
+    reasons = {
+        "outside_view": ~valid,
+        "no_match": ~np.isfinite(d),
+        "near_epipole": ~(d >= options.min_disparity_px),
+        "ill_conditioned": ~(range_sigma <= options.max_range_sigma_mm),
+        "dark": ~((mean_f >= options.min_intensity) & (mean_r >= options.min_intensity)),
+        "low_texture": ~(grad_f >= options.min_gradient),
+        "poor_match": np.isfinite(norm_cost) & (norm_cost > options.max_normalised_cost),
+    }
+    mask = ~np.any(list(reasons.values()), axis=0)
+    mask = cv2.erode(mask.astype(np.uint8), np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT,
+                     borderValue=0).astype(bool)
+    with np.errstate(invalid="ignore", over="ignore"):
+        confidence = np.where(mask, 1.0 / (1.0 + (range_sigma / options.max_range_sigma_mm) ** 2), 0.0)
+    return mask, confidence.astype(np.float32), range_sigma, reasons
+
+
+@pytest.mark.parametrize("block_rows", [128, 7])
+def test_compiled_reliability_is_the_opencv_numpy_computation(monkeypatch, block_rows):
+    """Every test on a small grid whose cells take each outcome: dark and flat windows, NaN and tiny
+    disparities, unknown and infinite sigmas, cells outside the view; the range sigma to the bit."""
+    monkeypatch.setattr(row_blocks, "BLOCK_ROWS", block_rows)
+    camera = Camera.from_fov(120, 120, 70.0, mask_radius_px=58.0)
+    down = look_at(np.zeros(3), [0.0, 0.0, -1.0])
+    pair = make_axial_pair(camera, Pose.from_centre(down, [0, 0, 0.0]), Pose.from_centre(down, [0, 0, -0.25]))
+    rng = np.random.default_rng(3)
+    shape = pair.grid.shape
+    front = cv2.GaussianBlur(rng.uniform(0, 255, shape).astype(np.float32), (0, 0), 1.2).astype(np.uint8)
+    rear = cv2.GaussianBlur(rng.uniform(0, 255, shape).astype(np.float32), (0, 0), 1.2).astype(np.uint8)
+    front[:, :6] = 10  # dark and flat: the normalised cost divides by a zero deviation
+    disparity = rng.uniform(1.0, 30.0, shape).astype(np.float32)
+    disparity[rng.uniform(size=shape) < 0.01] = -0.5
+    disparity[rng.uniform(size=shape) < 0.01] = np.nan
+    cost = rng.uniform(0, 8, shape).astype(np.float32)
+    sigma = rng.uniform(0.0, 0.1, shape).astype(np.float32)
+    sigma[rng.uniform(size=shape) < 0.01] = np.nan
+    sigma[rng.uniform(size=shape) < 0.01] = np.inf
+    valid = rng.uniform(size=shape) > 0.01
+    options = ConfidenceOptions(max_normalised_cost=0.8, disparity_sigma_floor_px=0.02, max_range_sigma_mm=0.3)
+    got = reliability(front, rear, disparity, cost, sigma, pair, valid, options)
+    mask, confidence, range_sigma, reasons = _reference_reliability(front, rear, disparity, cost, sigma, pair, valid,
+                                                                    options)
+    assert 0.02 < mask.mean() < 0.9  # kept and rejected cells both compared
+    assert np.array_equal(got.mask, mask)
+    assert np.array_equal(got.confidence, confidence)
+    assert np.array_equal(got.range_sigma_mm, range_sigma, equal_nan=True)
+    assert list(got.reasons) == list(reasons)
+    for name, rejected in reasons.items():
+        assert 0 < rejected.sum() < rejected.size, name  # each test both passes and fails somewhere
+        assert np.array_equal(got.reasons[name], rejected), name
