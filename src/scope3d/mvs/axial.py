@@ -38,6 +38,7 @@ from scope3d.geometry.pose import Pose
 from scope3d.geometry.triangulation import triangulate_midpoint
 from scope3d.sensor.camera import Camera
 from scope3d.utils.aot import load_kernels
+from scope3d.utils.row_blocks import run_by_row_blocks
 
 _kernels = load_kernels("scope3d.mvs.axial_kernels")
 
@@ -192,8 +193,9 @@ class AxialPair:
         intrinsics = np.array([cam.fx, cam.fy, cam.cx, cam.cy, cam.k1, cam.k2], dtype=float)
         map_u = np.empty(self.grid.shape, np.float32)
         map_v = np.empty(self.grid.shape, np.float32)
-        _kernels.polar_maps(cos_sin, np.ascontiguousarray(self.grid.radii()),
-                            np.ascontiguousarray(self.virtual_from_camera(pose).T), intrinsics, image, map_u, map_v)
+        inputs = (cos_sin, np.ascontiguousarray(self.grid.radii()), np.ascontiguousarray(self.virtual_from_camera(pose).T),
+                  intrinsics, image)
+        run_by_row_blocks(_kernels.polar_maps, self.grid.n_angles, inputs, (map_u, map_v))  # on the cores
         return map_u, map_v
 
     def to_polar(self, image: np.ndarray, pose: Pose, *, interpolation: int = cv2.INTER_CUBIC) -> np.ndarray:

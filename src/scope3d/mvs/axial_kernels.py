@@ -10,7 +10,7 @@ from numba import njit
 
 # Exported at install with the exact argument types AxialPair._compute_polar_maps passes (C-contiguous)
 AOT_SIGNATURES = {
-    "polar_maps": "void(f8[::1], f8[::1], f8[:, ::1], f8[::1], f8[::1], f4[:, ::1], f4[:, ::1])",
+    "polar_maps": "void(f8[::1], f8[::1], f8[:, ::1], f8[::1], f8[::1], i8, i8, f4[:, ::1], f4[:, ::1])",
     "reliability_tests": "void(u1[:, ::1], u1[:, ::1], f4[:, ::1], f4[:, ::1], f4[:, ::1], b1[:, ::1], f4[::1], i8, "
                          "i8, i8, b1[:, :, ::1], b1[:, ::1])",
 }
@@ -19,7 +19,7 @@ REASONS = ("outside_view", "no_match", "near_epipole", "ill_conditioned", "dark"
 
 
 @njit(cache=True, nogil=True)
-def polar_maps(cos_sin, radii, camera_from_virtual, intrinsics, image, map_u, map_v):
+def polar_maps(cos_sin, radii, camera_from_virtual, intrinsics, image, row_lo, row_hi, map_u, map_v):
     """Pixels of the camera that sees every log-polar grid direction, in one pass over the grid.
 
     cos_sin : (2 A,) cos and sin of the A grid angles, interleaved; radii : (R,) normalised radii;
@@ -28,12 +28,12 @@ def polar_maps(cos_sin, radii, camera_from_virtual, intrinsics, image, map_u, ma
     the distorted pixel of direction ``camera_from_virtual @ (rho cos t, rho sin t, 1)``, or -1 where the
     direction is behind the camera or lands outside the image (or its circular field): the same
     arithmetic as :meth:`scope3d.sensor.camera.Camera.project` and ``in_image`` per element, without
-    their (A R, 3) float64 temporaries.
+    their (A R, 3) float64 temporaries. Only rows [row_lo, row_hi) of the maps are filled.
     """
     fx, fy, cx, cy, k1, k2 = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3], intrinsics[4], intrinsics[5]
     width, height, mask_radius, mu, mv = image[0], image[1], image[2], image[3], image[4]
     r = camera_from_virtual
-    for a in range(map_u.shape[0]):
+    for a in range(row_lo, row_hi):
         c, s = cos_sin[2 * a], cos_sin[2 * a + 1]
         for j in range(map_u.shape[1]):
             x, y = radii[j] * c, radii[j] * s
