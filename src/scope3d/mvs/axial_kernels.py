@@ -14,8 +14,6 @@ AOT_SIGNATURES = {
     "reliability_tests": "void(u1[:, ::1], u1[:, ::1], f4[:, ::1], f4[:, ::1], f4[:, ::1], b1[:, ::1], f4[::1], i8, "
                          "i8, i8, b1[:, :, ::1], b1[:, ::1])",
 }
-#: order of the tests in reliability_tests' ``reasons`` (confidence.Reliability.reasons keeps it)
-REASONS = ("outside_view", "no_match", "near_epipole", "ill_conditioned", "dark", "low_texture", "poor_match")
 
 
 @njit(cache=True, nogil=True)
@@ -87,7 +85,7 @@ def _add_row(columns, front, rear, row, sign):
         columns[2, x] += sign * (g * g)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True)
 def reliability_tests(front, rear, disparity, cost, range_sigma, valid, thresholds, window, row_lo, row_hi, reasons,
                       keep):
     """Every test of :func:`scope3d.mvs.confidence.reliability` at each cell, in one pass (before the erosion).
@@ -97,16 +95,13 @@ def reliability_tests(front, rear, disparity, cost, range_sigma, valid, threshol
     by both cameras; thresholds : float32 (min disparity, max range sigma, min intensity, min gradient,
     max normalised cost), compared in float32 as NumPy compares a float32 array with a Python float;
     window : odd size of the image statistics, box means with BORDER_REFLECT as cv2.boxFilter. Fills rows
-    [row_lo, row_hi) of reasons (7, A, R) bool in the order of :data:`REASONS` and keep (A, R) bool (no
-    test failed). error_model="numpy": a flat window's normalised cost divides by 0 and gives inf or NaN
-    as in NumPy instead of raising.
+    [row_lo, row_hi) of reasons (7, A, R) bool, in the order of ``confidence.REASONS`` (outside view, no
+    match, near the epipole, ill-conditioned, dark, low texture, poor match), and keep (A, R) bool (no
+    test failed).
     """
     height, width = front.shape
-    min_disparity, max_range_sigma, min_intensity = thresholds[0], thresholds[1], thresholds[2]
-    min_gradient, max_cost = thresholds[3], thresholds[4]
     half = window // 2
     inverse = 1.0 / (window * window)
-    zero = np.float32(0.0)
     columns = np.zeros((4, width))
     padded = np.empty(width + window - 1)
     sums = np.empty(width)
@@ -133,26 +128,37 @@ def reliability_tests(front, rear, disparity, cost, range_sigma, valid, threshol
             mean = means[q]
             for x in range(width):
                 mean[x] = np.float32(sums[x] * inverse)
-        for x in range(width):
-            mean_f = means[0, x]
-            std_f = np.sqrt(max(means[1, x] - mean_f * mean_f, zero))
-            grad_f = np.sqrt(max(means[2, x], zero))
-            mean_r = means[3, x]
-            d = disparity[y, x]
-            normalised_cost = cost[y, x] / std_f
-            outside = not valid[y, x]
-            no_match = not np.isfinite(d)
-            near_epipole = not d >= min_disparity
-            ill_conditioned = not range_sigma[y, x] <= max_range_sigma
-            dark = not (mean_f >= min_intensity and mean_r >= min_intensity)
-            low_texture = not grad_f >= min_gradient
-            poor_match = np.isfinite(normalised_cost) and normalised_cost > max_cost
-            reasons[0, y, x] = outside
-            reasons[1, y, x] = no_match
-            reasons[2, y, x] = near_epipole
-            reasons[3, y, x] = ill_conditioned
-            reasons[4, y, x] = dark
-            reasons[5, y, x] = low_texture
-            reasons[6, y, x] = poor_match
-            keep[y, x] = not (outside or no_match or near_epipole or ill_conditioned or dark or low_texture
-                              or poor_match)
+        _row_tests(means, front.shape[1], disparity[y], cost[y], range_sigma[y], valid[y], thresholds, reasons[:, y],
+                   keep[y])
+
+
+# error_model="numpy" (a callee keeps its own; ahead of time the exported functions get numba's default): a flat
+# window's normalised cost divides by a zero deviation and gives inf or NaN as in NumPy instead of raising
+@njit(cache=True, nogil=True, error_model="numpy")
+def _row_tests(means, width, disparity, cost, range_sigma, valid, thresholds, reasons, keep):
+    """:func:`reliability_tests` on one row, from its window means (4, W) float32."""
+    min_disparity, max_range_sigma, min_intensity = thresholds[0], thresholds[1], thresholds[2]
+    min_gradient, max_cost = thresholds[3], thresholds[4]
+    zero = np.float32(0.0)
+    for x in range(width):
+        mean_f = means[0, x]
+        std_f = np.sqrt(max(means[1, x] - mean_f * mean_f, zero))
+        grad_f = np.sqrt(max(means[2, x], zero))
+        mean_r = means[3, x]
+        d = disparity[x]
+        normalised_cost = cost[x] / std_f
+        outside = not valid[x]
+        no_match = not np.isfinite(d)
+        near_epipole = not d >= min_disparity
+        ill_conditioned = not range_sigma[x] <= max_range_sigma
+        dark = not (mean_f >= min_intensity and mean_r >= min_intensity)
+        low_texture = not grad_f >= min_gradient
+        poor_match = np.isfinite(normalised_cost) and normalised_cost > max_cost
+        reasons[0, x] = outside
+        reasons[1, x] = no_match
+        reasons[2, x] = near_epipole
+        reasons[3, x] = ill_conditioned
+        reasons[4, x] = dark
+        reasons[5, x] = low_texture
+        reasons[6, x] = poor_match
+        keep[x] = not (outside or no_match or near_epipole or ill_conditioned or dark or low_texture or poor_match)

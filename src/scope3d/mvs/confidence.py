@@ -26,6 +26,9 @@ from scope3d.utils.row_blocks import run_by_row_blocks
 
 _kernels = load_kernels("scope3d.mvs.axial_kernels")
 
+#: the tests of :func:`reliability`, in the order the compiled pass writes them (``Reliability.reasons``)
+REASONS = ("outside_view", "no_match", "near_epipole", "ill_conditioned", "dark", "low_texture", "poor_match")
+
 
 @dataclass(frozen=True)
 class ConfidenceOptions:
@@ -110,10 +113,10 @@ def reliability(
         if np.shape(array) != shape:
             raise ValueError(f"reliability: {name} is {np.shape(array)}, the disparity {shape}")
     d = np.ascontiguousarray(disparity, dtype=np.float32)
-    sigma_d = np.fmax(np.asarray(disparity_sigma, dtype=np.float32), options.disparity_sigma_floor_px)
-    sigma_d = np.where(np.isfinite(sigma_d), sigma_d, options.disparity_sigma_floor_px)
+    disparity_sigma = np.asarray(disparity_sigma, dtype=np.float32)
+    floor = options.disparity_sigma_floor_px
     range_sigma = np.empty(shape, np.float32)
-    reasons = np.empty((len(_kernels.REASONS),) + shape, bool)
+    reasons = np.empty((len(REASONS),) + shape, bool)
     mask = np.empty(shape, bool)
     thresholds = np.array([options.min_disparity_px, options.max_range_sigma_mm, options.min_intensity,
                            options.min_gradient, options.max_normalised_cost], np.float32)
@@ -125,7 +128,9 @@ def reliability(
         # the range sigma in NumPy (its exp and expm1 are faster than the compiled ones, the same bits), then
         # the tests; NumPy's loops and the kernel release the GIL, so blocks overlap on the cores
         rows = slice(row_lo, row_hi)
-        range_sigma[rows] = pair.range_sigma(d[rows], sigma_d[rows])
+        sigma_d = np.fmax(disparity_sigma[rows], floor)
+        sigma_d = np.where(np.isfinite(sigma_d), sigma_d, floor)
+        range_sigma[rows] = pair.range_sigma(d[rows], sigma_d)
         _kernels.reliability_tests(*images, d, cost, range_sigma, valid, thresholds, options.window_px, row_lo,
                                    row_hi, reasons, mask)
 
@@ -137,4 +142,4 @@ def reliability(
     confidence = np.zeros(shape, np.float32)
     with np.errstate(invalid="ignore", over="ignore"):
         confidence[mask] = 1.0 / (1.0 + (range_sigma[mask] / options.max_range_sigma_mm) ** 2)
-    return Reliability(mask, confidence, range_sigma, dict(zip(_kernels.REASONS, reasons)))
+    return Reliability(mask, confidence, range_sigma, dict(zip(REASONS, reasons)))
