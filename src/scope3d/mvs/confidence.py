@@ -106,7 +106,7 @@ def reliability(
     The window statistics (mean, standard deviation and RMS row gradient of the front image, mean of the
     rear one, over ``window_px`` boxes) and every test run in one compiled pass over the grid
     (``axial_kernels.reliability_tests``), on blocks of rows shared by the cores: the same bits as
-    cv2.boxFilter, cv2.Sobel and NumPy's expressions of each test (tests/test_refine_kernels.py).
+    cv2.boxFilter, cv2.Sobel and NumPy's expressions of each test (tests/test_stereo_kernels.py).
     """
     shape = np.shape(disparity)
     for name, array in (("front_polar", front_polar), ("rear_polar", rear_polar), ("valid", valid)):

@@ -10,7 +10,7 @@ weights, read from ``cv2.remap`` by the caller, and its 1/32-pixel quantisation 
 window mean is a running column sum in float64 of the float32 products, as ``cv2.boxFilter`` sums them
 (BORDER_REFLECT), scaled and rounded to float32 once. The float32 arithmetic that follows is the order
 of NumPy's expressions in the refinement before these kernels, so the results are the same bits
-(tests/test_refine_kernels.py checks it against the OpenCV and NumPy computation).
+(tests/test_stereo_kernels.py checks it against the OpenCV and NumPy computation).
 
 Every pass writes the rows ``[row_lo, row_hi)`` of its outputs only, so that threads can share a frame by
 blocks of rows (the functions release the GIL).
