@@ -215,7 +215,7 @@ def refine_subpixel(
     var_l = np.maximum(var_l - mu_l * mu_l, 1e-6)
     # Every pixel's window in ``right`` is warped by that pixel's disparity, then the products' window means
     # give the step (refine_kernels.py: one compiled pass per warp and one per set of means, on blocks of
-    # rows shared by the cores; the same bits as cv2.remap + cv2.boxFilter + NumPy, at ~1/4 of the CPU).
+    # rows shared by the cores; the same bits as cv2.remap + cv2.boxFilter + NumPy, at ~1/3 of their CPU).
     weights = _lanczos_weights()
     warped, warped_grad = np.empty_like(left_f), np.empty_like(left_f)
     lowest, highest = (-np.inf, np.inf) if search_range is None else (search_range[0] - 0.5, search_range[1] - 0.5)
