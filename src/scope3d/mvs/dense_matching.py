@@ -209,10 +209,6 @@ def refine_subpixel(
     d = np.where(known, start, 0.0).astype(np.float32)
     grad = cv2.Sobel(right_f, cv2.CV_32F, 1, 0, ksize=1, scale=0.5)  # central difference, grey levels / column
     window_rows = window_rows or window_px
-    mu_l = cv2.boxFilter(left_f, cv2.CV_32F, (window_px, window_rows), normalize=True, borderType=cv2.BORDER_REFLECT)
-    var_l = cv2.boxFilter(left_f * left_f, cv2.CV_32F, (window_px, window_rows), normalize=True,
-                          borderType=cv2.BORDER_REFLECT)
-    var_l = np.maximum(var_l - mu_l * mu_l, 1e-6)
     # Every pixel's window in ``right`` is warped by that pixel's disparity, then the products' window means
     # give the step (refine_kernels.py: one compiled pass per warp and one per set of means, on blocks of
     # rows shared by the cores; the same bits as cv2.remap + cv2.boxFilter + NumPy, at ~1/3 of their CPU).
@@ -220,6 +216,8 @@ def refine_subpixel(
     warped, warped_grad = np.empty_like(left_f), np.empty_like(left_f)
     lowest, highest = (-np.inf, np.inf) if search_range is None else (search_range[0] - 0.5, search_range[1] - 0.5)
     height = left_f.shape[0]
+    mu_l, var_l = np.empty_like(left_f), np.empty_like(left_f)
+    run_by_row_blocks(_kernels.left_statistics, height, (left_f, window_px, window_rows), (mu_l, var_l))
     window = (left_f, warped, warped_grad, mu_l, var_l)
     for _ in range(max(iterations, 1)):
         run_by_row_blocks(_kernels.warp_rows, height, (right_f, grad, d, weights), (warped, warped_grad))

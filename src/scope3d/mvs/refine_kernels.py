@@ -22,6 +22,7 @@ from numba import njit
 
 # Exported at install with the exact argument types dense_matching.refine_subpixel passes (C-contiguous)
 AOT_SIGNATURES = {
+    "left_statistics": "void(f4[:, ::1], i8, i8, i8, i8, f4[:, ::1], f4[:, ::1])",
     "warp_rows": "void(f4[:, ::1], f4[:, ::1], f4[:, ::1], f4[:, ::1], i8, i8, f4[:, ::1], f4[:, ::1])",
     "step_pass": "void(f4[:, ::1], f4[:, ::1], f4[:, ::1], f4[:, ::1], f4[:, ::1], f4[:, ::1], i8, i8, i8, i8, "
                  "f4[:, ::1])",
@@ -47,6 +48,63 @@ def _reflect(index, length):
         else:
             index = 2 * length - index - 1
     return index
+
+
+@njit(cache=True, nogil=True)
+def left_statistics(left, window_cols, window_rows, row_lo, row_hi, mean_left, var_left):
+    """Window mean of ``left`` (H, W) float32 and its variance floored at 1e-6, rows [row_lo, row_hi).
+
+    ``mean(l)`` and ``mean(l^2)`` as ``cv2.boxFilter(..., normalize=True)`` with BORDER_REFLECT (float64
+    running sums of the float32 values and squares, each mean rounded to float32 once), then
+    ``max(mean(l^2) - mean(l)^2, 1e-6)`` in float32 as NumPy computes it.
+    """
+    height, width = left.shape
+    half_r, half_c = window_rows // 2, window_cols // 2
+    inverse = 1.0 / (window_cols * window_rows)
+    tiny = np.float32(1e-6)
+    columns = np.zeros((2, width))
+    padded = np.empty(width + window_cols - 1)
+    sums = np.empty(width)
+    means = np.empty((2, width), np.float32)
+    for y in range(row_lo, row_hi):
+        if y == row_lo:
+            for r in range(y - half_r, y + half_r + 1):
+                _add_left_row(columns, left[_reflect(r, height)], 1.0)
+        else:
+            _add_left_row(columns, left[_reflect(y + half_r, height)], 1.0)
+            _add_left_row(columns, left[_reflect(y - half_r - 1, height)], -1.0)
+        for q in range(2):
+            _horizontal_means(columns[q], half_c, window_cols, inverse, padded, sums, means[q])
+        for x in range(width):
+            mu = means[0, x]
+            mean_left[y, x] = mu
+            var_left[y, x] = max(means[1, x] - mu * mu, tiny)
+
+
+@njit(cache=True, nogil=True)
+def _add_left_row(columns, row, sign):
+    for x in range(row.shape[0]):
+        columns[0, x] += sign * row[x]
+    for x in range(row.shape[0]):
+        columns[1, x] += sign * (row[x] * row[x])
+
+
+@njit(cache=True, nogil=True)
+def _horizontal_means(column, half_c, window_cols, inverse, padded, sums, mean):
+    """``mean[x] = float32(sum(column[x - half_c : x + half_c + 1]) * inverse)``, the ends reflected."""
+    width = column.shape[0]
+    for x in range(width):
+        padded[half_c + x] = column[x]
+    for k in range(half_c):
+        padded[half_c - 1 - k] = column[_reflect(-1 - k, width)]
+        padded[half_c + width + k] = column[_reflect(width + k, width)]
+    for x in range(width):
+        sums[x] = padded[x]
+    for k in range(1, window_cols):
+        for x in range(width):
+            sums[x] += padded[x + k]
+    for x in range(width):
+        mean[x] = np.float32(sums[x] * inverse)
 
 
 @njit(cache=True, nogil=True)
@@ -126,20 +184,7 @@ def _window_means(left, warped, gradient, window_cols, window_rows, n_sums, y, r
         _add_row(columns, n_sums, left, warped, gradient, _reflect(y - half_r - 1, height), -1.0)
     inverse = 1.0 / (window_cols * window_rows)
     for q in range(n_sums):
-        column = columns[q]
-        for x in range(width):
-            padded[half_c + x] = column[x]
-        for k in range(half_c):
-            padded[half_c - 1 - k] = column[_reflect(-1 - k, width)]
-            padded[half_c + width + k] = column[_reflect(width + k, width)]
-        for x in range(width):
-            sums[x] = padded[x]
-        for k in range(1, window_cols):
-            for x in range(width):
-                sums[x] += padded[x + k]
-        mean = means[q]
-        for x in range(width):
-            mean[x] = np.float32(sums[x] * inverse)
+        _horizontal_means(columns[q], half_c, window_cols, inverse, padded, sums, means[q])
 
 
 @njit(cache=True, nogil=True)
