@@ -38,6 +38,7 @@ from scope3d.geometry.pose import Pose
 from scope3d.geometry.triangulation import triangulate_midpoint
 from scope3d.sensor.camera import Camera
 from scope3d.utils.aot import load_kernels
+from scope3d.utils.row_blocks import run_by_row_blocks
 
 _kernels = load_kernels("scope3d.mvs.axial_kernels")
 
@@ -192,8 +193,9 @@ class AxialPair:
         intrinsics = np.array([cam.fx, cam.fy, cam.cx, cam.cy, cam.k1, cam.k2], dtype=float)
         map_u = np.empty(self.grid.shape, np.float32)
         map_v = np.empty(self.grid.shape, np.float32)
-        _kernels.polar_maps(cos_sin, np.ascontiguousarray(self.grid.radii()),
-                            np.ascontiguousarray(self.virtual_from_camera(pose).T), intrinsics, image, map_u, map_v)
+        inputs = (cos_sin, np.ascontiguousarray(self.grid.radii()), np.ascontiguousarray(self.virtual_from_camera(pose).T),
+                  intrinsics, image)
+        run_by_row_blocks(_kernels.polar_maps, self.grid.n_angles, inputs, (map_u, map_v))  # on the cores
         return map_u, map_v
 
     def to_polar(self, image: np.ndarray, pose: Pose, *, interpolation: int = cv2.INTER_CUBIC) -> np.ndarray:
@@ -254,23 +256,42 @@ class AxialPair:
             z = self.baseline_mm / np.expm1(d * self.grid.log_rho_step)
         return np.where(d > 0, z, np.nan)
 
-    def range_from_disparity(self, disparity: np.ndarray) -> np.ndarray:
-        """(n_angles, n_radii) mm: distance from the front camera centre to the point along its grid ray."""
+    def range_from_disparity(self, disparity: np.ndarray, where: np.ndarray | None = None) -> np.ndarray:
+        """(n_angles, n_radii) mm: distance from the front camera centre to the point along its grid ray.
+
+        where : (n_angles, n_radii) bool or None; when given, only those cells are computed (NaN elsewhere).
+        """
         rho = self.grid.radii()[None, :]
-        return self.depth_along_baseline(disparity) * np.sqrt(1.0 + rho * rho)
+        if where is None:
+            return self.depth_along_baseline(disparity) * np.sqrt(1.0 + rho * rho)
+        d = np.asarray(disparity, dtype=float)
+        out = np.full(d.shape, np.nan)
+        rho = np.broadcast_to(rho, d.shape)[where]
+        out[where] = self.depth_along_baseline(d[where]) * np.sqrt(1.0 + rho * rho)
+        return out
 
     def range_sigma(self, disparity: np.ndarray, disparity_sigma: np.ndarray | float) -> np.ndarray:
         """First-order standard deviation (mm) of the range given that of the disparity (columns).
 
         ``dZ/dd = -b step exp(d step) / (exp(d step) - 1)^2``; near the epipole ``d -> 0`` and this blows up
-        as ``Z^2 step / b``: the conditioning that the confidence mask uses.
+        as ``Z^2 step / b``: the conditioning that the confidence mask uses. NaN where ``d <= 0`` or NaN.
         """
         d = np.asarray(disparity, dtype=float)
         s = self.grid.log_rho_step
-        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            dz = self.baseline_mm * s * np.exp(d * s) / np.expm1(d * s) ** 2
         rho = self.grid.radii()[None, :]
-        return np.where(d > 0, dz * np.sqrt(1.0 + rho * rho) * np.asarray(disparity_sigma), np.nan)
+        # In place, in the order of ``b s exp(d s) / expm1(d s)^2 sqrt(1 + rho^2) sigma``: the same
+        # bits without a frame-sized float64 temporary per operation.
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            x = d * s
+            out = np.exp(x)
+            out *= self.baseline_mm * s
+            denominator = np.expm1(x, out=x)
+            np.square(denominator, out=denominator)
+            out /= denominator
+            out *= np.sqrt(1.0 + rho * rho)
+            out *= np.asarray(disparity_sigma)
+        out[~(d > 0)] = np.nan
+        return out
 
     def points_world(self, depth_along_baseline_mm: np.ndarray) -> np.ndarray:
         """(n_angles, n_radii, 3) world points (mm) from :meth:`depth_along_baseline` (NaN propagates)."""

@@ -20,6 +20,15 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from scope3d.mvs.axial import AxialPair
+from scope3d.utils.aot import load_kernels
+from scope3d.utils.row_blocks import run_by_row_blocks
+
+_kernels = load_kernels("scope3d.mvs.axial_kernels")
+
+#: the tests of :func:`reliability`, in the order the compiled pass writes them (``Reliability.reasons``)
+REASONS = ("outside_view", "no_match", "near_epipole", "ill_conditioned", "dark", "low_texture", "poor_match")
+
 
 @dataclass(frozen=True)
 class ConfidenceOptions:
@@ -76,24 +85,13 @@ class Reliability:
     reasons: dict
 
 
-def window_statistics(image: np.ndarray, window_px: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(mean, std, rms row gradient) of an (H, W) grey image over ``window_px`` windows, each (H, W) float32."""
-    img = np.asarray(image, dtype=np.float32)
-    k = (window_px, window_px)
-    mean = cv2.boxFilter(img, cv2.CV_32F, k, borderType=cv2.BORDER_REFLECT)
-    var = cv2.boxFilter(img * img, cv2.CV_32F, k, borderType=cv2.BORDER_REFLECT) - mean * mean
-    gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=1, scale=0.5)
-    grad = np.sqrt(np.maximum(cv2.boxFilter(gx * gx, cv2.CV_32F, k, borderType=cv2.BORDER_REFLECT), 0))
-    return mean, np.sqrt(np.maximum(var, 0)), grad
-
-
 def reliability(
     front_polar: np.ndarray,
     rear_polar: np.ndarray,
     disparity: np.ndarray,
     cost: np.ndarray,
     disparity_sigma: np.ndarray,
-    range_sigma_fn,
+    pair: AxialPair,
     valid: np.ndarray,
     options: ConfidenceOptions = ConfidenceOptions(),
 ) -> Reliability:
@@ -101,36 +99,47 @@ def reliability(
 
     front_polar, rear_polar : (A, R) uint8 polar images (front = matcher's left).
     disparity, cost, disparity_sigma : (A, R) float32 from the matcher (NaN = no match).
-    range_sigma_fn : callable (disparity, disparity_sigma) -> range sigma (mm), e.g.
-        :meth:`scope3d.mvs.axial.AxialPair.range_sigma`.
+    pair : the :class:`~scope3d.mvs.axial.AxialPair` of the grid; the range sigma is its
+        :meth:`~scope3d.mvs.axial.AxialPair.range_sigma` at ``max(disparity_sigma, floor)``.
     valid : (A, R) bool, grid cells seen by both cameras.
+
+    The window statistics (mean, standard deviation and RMS row gradient of the front image, mean of the
+    rear one, over ``window_px`` boxes) and every test run in one compiled pass over the grid
+    (``axial_kernels.reliability_tests``), on blocks of rows shared by the cores: the same bits as
+    cv2.boxFilter, cv2.Sobel and NumPy's expressions of each test (tests/test_stereo_kernels.py).
     """
-    w = options.window_px
-    mean_f, std_f, grad_f = window_statistics(front_polar, w)
-    # Only the rear image's mean is tested: one box filter, as in window_statistics (same border).
-    mean_r = cv2.boxFilter(np.asarray(rear_polar, dtype=np.float32), cv2.CV_32F, (w, w), borderType=cv2.BORDER_REFLECT)
-    d = np.asarray(disparity, dtype=np.float32)
-    sigma_d = np.fmax(np.asarray(disparity_sigma, dtype=np.float32), options.disparity_sigma_floor_px)
-    sigma_d = np.where(np.isfinite(sigma_d), sigma_d, options.disparity_sigma_floor_px)
-    range_sigma = np.asarray(range_sigma_fn(d, sigma_d), dtype=np.float32)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        norm_cost = np.asarray(cost, dtype=np.float32) / std_f
-    reasons = {
-        "outside_view": ~valid,
-        "no_match": ~np.isfinite(d),
-        "near_epipole": ~(d >= options.min_disparity_px),
-        "ill_conditioned": ~(range_sigma <= options.max_range_sigma_mm),
-        "dark": ~((mean_f >= options.min_intensity) & (mean_r >= options.min_intensity)),
-        "low_texture": ~(grad_f >= options.min_gradient),
-        "poor_match": np.isfinite(norm_cost) & (norm_cost > options.max_normalised_cost),
-    }
-    mask = np.ones(d.shape, bool)
-    for reject in reasons.values():
-        mask &= ~reject
+    shape = np.shape(disparity)
+    for name, array in (("front_polar", front_polar), ("rear_polar", rear_polar), ("valid", valid)):
+        if np.shape(array) != shape:
+            raise ValueError(f"reliability: {name} is {np.shape(array)}, the disparity {shape}")
+    d = np.ascontiguousarray(disparity, dtype=np.float32)
+    disparity_sigma = np.asarray(disparity_sigma, dtype=np.float32)
+    floor = options.disparity_sigma_floor_px
+    range_sigma = np.empty(shape, np.float32)
+    reasons = np.empty((len(REASONS),) + shape, bool)
+    mask = np.empty(shape, bool)
+    thresholds = np.array([options.min_disparity_px, options.max_range_sigma_mm, options.min_intensity,
+                           options.min_gradient, options.max_normalised_cost], np.float32)
+    images = (np.ascontiguousarray(front_polar, dtype=np.uint8), np.ascontiguousarray(rear_polar, dtype=np.uint8))
+    cost = np.ascontiguousarray(cost, dtype=np.float32)
+    valid = np.ascontiguousarray(valid, dtype=bool)
+
+    def block(row_lo: int, row_hi: int) -> None:
+        # the range sigma in NumPy (its exp and expm1 are faster than the compiled ones, the same bits), then
+        # the tests; NumPy's loops and the kernel release the GIL, so blocks overlap on the cores
+        rows = slice(row_lo, row_hi)
+        sigma_d = np.fmax(disparity_sigma[rows], floor)
+        sigma_d = np.where(np.isfinite(sigma_d), sigma_d, floor)
+        range_sigma[rows] = pair.range_sigma(d[rows], sigma_d)
+        _kernels.reliability_tests(*images, d, cost, range_sigma, valid, thresholds, options.window_px, row_lo,
+                                   row_hi, reasons, mask)
+
+    run_by_row_blocks(block, shape[0], (), ())
     if options.erode_px:
         k = 2 * options.erode_px + 1
         mask = cv2.erode(mask.astype(np.uint8), np.ones((k, k), np.uint8), borderType=cv2.BORDER_CONSTANT,
                          borderValue=0).astype(bool)
+    confidence = np.zeros(shape, np.float32)
     with np.errstate(invalid="ignore", over="ignore"):
-        confidence = np.where(mask, 1.0 / (1.0 + (range_sigma / options.max_range_sigma_mm) ** 2), 0.0)
-    return Reliability(mask, confidence.astype(np.float32), range_sigma, reasons)
+        confidence[mask] = 1.0 / (1.0 + (range_sigma[mask] / options.max_range_sigma_mm) ** 2)
+    return Reliability(mask, confidence, range_sigma, dict(zip(REASONS, reasons)))

@@ -21,6 +21,11 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from scope3d.utils.aot import load_kernels
+from scope3d.utils.row_blocks import run_by_row_blocks
+
+_kernels = load_kernels("scope3d.mvs.refine_kernels")
+
 # Lanczos-4 resampling in the refinement: linear (and, less so, cubic) interpolation low-passes by a
 # shift-dependent amount and pulls sub-pixel estimates toward integers, the very bias the refinement
 # removes (measured on band-limited textures: cubic leaves ~0.07 px, Lanczos-4 ~0.01 px).
@@ -197,60 +202,50 @@ def refine_subpixel(
     ``std(L) sqrt(2 (1 - zncc))``, and ``sigma = sqrt(mean(e^2) / sum(J^2))`` (columns), the Cramér-Rao
     bound of the shift for white noise.
     """
-    left_f = np.asarray(left, dtype=np.float32)
-    right_f = np.asarray(right, dtype=np.float32)
-    start = np.asarray(disparity, dtype=np.float32)
+    left_f = np.ascontiguousarray(left, dtype=np.float32)
+    right_f = np.ascontiguousarray(right, dtype=np.float32)
+    start = np.ascontiguousarray(disparity, dtype=np.float32)
     known = np.isfinite(start)
     d = np.where(known, start, 0.0).astype(np.float32)
-    h, w = left_f.shape
     grad = cv2.Sobel(right_f, cv2.CV_32F, 1, 0, ksize=1, scale=0.5)  # central difference, grey levels / column
-    xs = np.broadcast_to(np.arange(w, dtype=np.float32), (h, w))
-    ys = np.broadcast_to(np.arange(h, dtype=np.float32)[:, None], (h, w))
     window_rows = window_rows or window_px
-    n = float(window_px * window_rows)
-
-    def mean(a):
-        return cv2.boxFilter(a, cv2.CV_32F, (window_px, window_rows), normalize=True, borderType=cv2.BORDER_REFLECT)
-
-    mu_l = mean(left_f)
-    var_l = np.maximum(mean(left_f * left_f) - mu_l * mu_l, 1e-6)
-
-    # The image and its gradient are warped by one remap of a two-channel image: the same per-channel
-    # interpolation as two remaps (bit-identical), with the coordinates worked out once.
-    right_and_grad = cv2.merge([right_f, grad])
-
-    def statistics(d, with_step=True):
-        map_x = (xs - d).astype(np.float32)
-        warped, g = cv2.split(cv2.remap(right_and_grad, map_x, ys, _INTERP, borderMode=cv2.BORDER_REPLICATE))
-        mu_w, mu_g = mean(warped), mean(g)
-        var_w = np.maximum(mean(warped * warped) - mu_w * mu_w, 1e-6)
-        var_g = np.maximum(mean(g * g) - mu_g * mu_g, 0.0)
-        cov_lw = mean(left_f * warped) - mu_l * mu_w
-        a = np.sqrt(var_l / var_w)
-        jj = a * a * var_g  # mean of J^2
-        ee = np.maximum(var_l - 2 * a * cov_lw + a * a * var_w, 0.0)  # mean of e^2
-        if not with_step:  # the final call needs only the residual and the Jacobian's energy
-            return None, jj, ee
-        cov_gl = mean(g * left_f) - mu_g * mu_l
-        cov_gw = mean(g * warped) - mu_g * mu_w
-        je = a * (cov_gl - a * cov_gw)  # mean of J e over the window
-        return je, jj, ee
-
+    # Every pixel's window in ``right`` is warped by that pixel's disparity, then the products' window means
+    # give the step (refine_kernels.py: one compiled pass per warp and one per set of means, on blocks of
+    # rows shared by the cores; the same bits as cv2.remap + cv2.boxFilter + NumPy, at ~1/3 of their CPU).
+    weights = _lanczos_weights()
+    warped, warped_grad = np.empty_like(left_f), np.empty_like(left_f)
+    lowest, highest = (-np.inf, np.inf) if search_range is None else (search_range[0] - 0.5, search_range[1] - 0.5)
+    height = left_f.shape[0]
+    mu_l, var_l = np.empty_like(left_f), np.empty_like(left_f)
+    run_by_row_blocks(_kernels.left_statistics, height, (left_f, window_px, window_rows), (mu_l, var_l))
+    window = (left_f, warped, warped_grad, mu_l, var_l)
     for _ in range(max(iterations, 1)):
-        je, jj, _ = statistics(d)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            delta = np.where(jj > 1e-9, -je / jj, 0.0)
-        # Damped: a step beyond half a column leaves the linear range of the interpolated gradient.
-        d = d + np.clip(delta, -0.5, 0.5).astype(np.float32)
-    _, jj, ee = statistics(d, with_step=False)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        sigma = np.sqrt(ee / (n * jj))
-    cost = np.sqrt(ee)
-    bad = ~known | (np.abs(d - start) > max_shift_px)
-    if search_range is not None:
-        bad |= (d < search_range[0] - 0.5) | (d > search_range[1] - 0.5)
-    return Disparity(np.where(bad, np.nan, d).astype(np.float32), np.where(bad, np.nan, cost).astype(np.float32),
-                     np.where(bad, np.nan, sigma).astype(np.float32))
+        run_by_row_blocks(_kernels.warp_rows, height, (right_f, grad, d, weights), (warped, warped_grad))
+        stepped = np.empty_like(d)
+        run_by_row_blocks(_kernels.step_pass, height, (*window, d, window_px, window_rows), (stepped,))
+        d = stepped
+    run_by_row_blocks(_kernels.warp_rows, height, (right_f, grad, d, weights), (warped, warped_grad))
+    out = Disparity(np.empty_like(d), np.empty_like(d), np.empty_like(d))
+    run_by_row_blocks(_kernels.fit_pass, height,
+                      (*window, d, start, window_px, window_rows, np.float32(max_shift_px), np.float32(lowest),
+                       np.float32(highest), np.float32(window_px * window_rows)),
+                      (out.disparity, out.cost, out.sigma))
+    return out
+
+
+def _lanczos_weights() -> np.ndarray:
+    """(32, 8) float32: the weights cv2.remap's INTER_LANCZOS4 gives the 8 pixels around a position at
+    each 1/32-pixel phase (OpenCV's INTER_TAB_SIZE, which refine_kernels.warp_rows assumes), read from
+    OpenCV itself by resampling an impulse, so that the compiled warp is OpenCV's to the bit."""
+    steps, taps = 32, 8
+    impulse = np.zeros((1, 4 * taps), np.float32)
+    centre = 2 * taps
+    impulse[0, centre] = 1.0
+    # the output at position p = centre + (taps / 2 - 1) - k + phase / steps weighs the impulse with tap k
+    positions = centre + (taps // 2 - 1) - np.arange(taps)[None, :] + np.arange(steps)[:, None] / steps
+    weights = cv2.remap(impulse, positions.astype(np.float32).reshape(1, -1), np.zeros((1, steps * taps), np.float32),
+                        _INTERP, borderMode=cv2.BORDER_REPLICATE)
+    return np.ascontiguousarray(weights.reshape(steps, taps))
 
 
 def sad_disparity(left: np.ndarray, right: np.ndarray, options: SadOptions = SadOptions()) -> Disparity:

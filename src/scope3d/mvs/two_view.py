@@ -120,9 +120,9 @@ def reconstruct_pair(
     else:
         disparity = sad_disparity(front_polar, rear_polar, replace(options.sad, num_disparities=num))
     t2 = time.perf_counter()
-    rel = reliability(front_polar, rear_polar, disparity.disparity, disparity.cost, disparity.sigma,
-                      pair.range_sigma, valid, options.confidence)
-    range_mm = np.where(rel.mask, pair.range_from_disparity(disparity.disparity), np.nan)
+    rel = reliability(front_polar, rear_polar, disparity.disparity, disparity.cost, disparity.sigma, pair, valid,
+                      options.confidence)
+    range_mm = pair.range_from_disparity(disparity.disparity, where=rel.mask)
     t3 = time.perf_counter()
     times = {"resample": t1 - t0, "match": t2 - t1, "triangulate": t3 - t2, "total": t3 - t0}
     return PairResult(pair, front_polar, rear_polar, disparity, rel, range_mm, times)

@@ -39,6 +39,7 @@ KERNEL_MODULES = (
     "scope3d.estimators.pose_kernels",
     "scope3d.feature.descriptor_kernels",
     "scope3d.mvs.axial_kernels",
+    "scope3d.mvs.refine_kernels",
     "scope3d.phantoms.raycast_kernels",
     "scope3d.phantoms.render_kernels",
 )
