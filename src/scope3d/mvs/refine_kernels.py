@@ -223,7 +223,6 @@ def _step_row(means, mean_left, var_left, disparity, new_disparity):
         mu_w, mu_g = means[0, x], means[1, x]
         var_w = max(means[2, x] - mu_w * mu_w, tiny)
         var_g = max(means[3, x] - mu_g * mu_g, zero)
-        cov_lw = means[4, x] - mu_l * mu_w
         a = np.sqrt(var_l / var_w)
         jj = a * a * var_g  # mean of J^2
         cov_gl = means[5, x] - mu_g * mu_l
