@@ -59,10 +59,6 @@ class CoarseOptions:
     min_pairs_per_frame : int, a frame in fewer verified pairs tries more partners (default 3: one pair
         leaves its distance free, two can leave a hinge). reinforce_rounds : int, rounds of that (default 2).
     noise_px : float, keypoint localisation noise, for the relative poses' uncertainty (default 0.5 px).
-    stop_when_placed : bool, verify a frame's best partners one rank at a time, and its next partner only
-        while it is in fewer than ``min_pairs_per_frame`` verified pairs (default False: all
-        ``partners_per_frame`` of every frame at once, as before). The spanning tree and the rounds that
-        connect groups and reinforce weak frames run either way.
     threads : int, pairs matched at once (OpenCV releases the GIL; default 2, the machine's cores).
     """
 
@@ -73,7 +69,6 @@ class CoarseOptions:
     reinforce_rounds: int = 2
     noise_px: float = 0.5
     threads: int = 2
-    stop_when_placed: bool = False
     retrieval: RetrievalOptions = field(default_factory=RetrievalOptions)
 
     def __post_init__(self) -> None:
@@ -115,21 +110,14 @@ def plausible_partners(measured: list[MeasuredPose], max_view_angle_deg: float) 
     return ok
 
 
-def _ranked_partner(score: np.ndarray, a: int, rank: int) -> tuple[int, int] | None:
-    """Frame ``a``'s ``rank``-th best partner on ``score`` (0 = best) as a sorted pair, or None if implausible."""
-    b = int(np.argsort(-score[a], kind="stable")[rank])
-    return (min(a, b), max(a, b)) if score[a, b] > 0 else None
-
-
 def _first_pairs(score: np.ndarray, per_frame: int) -> set[tuple[int, int]]:
     """Each frame's ``per_frame`` best partners, and the pairs of a maximum spanning forest on ``score``."""
     n = len(score)
     chosen: set[tuple[int, int]] = set()
     for a in range(n):
-        for rank in range(min(per_frame, n)):
-            pair = _ranked_partner(score, a, rank)
-            if pair is not None:
-                chosen.add(pair)
+        for b in np.argsort(-score[a], kind="stable")[:per_frame]:
+            if score[a, b] > 0:
+                chosen.add((min(a, int(b)), max(a, int(b))))
     # maximum spanning forest = minimum spanning forest of (2 - score) over the plausible pairs
     cost = np.where(score > 0, 2.0 - score, 0.0)
     tree = minimum_spanning_tree(np.triu(cost)).tocoo()
@@ -187,25 +175,7 @@ def coarse_poses(camera: Camera, features: list[Features], measured: list[Measur
                     found.append(out)
                 advance(progress)
 
-    def degree() -> np.ndarray:
-        """(n,) verified pairs per frame."""
-        if not found:
-            return np.zeros(n, int)
-        return np.bincount(np.array([(m.i, m.j) for m, _ in found], int).ravel(), minlength=n)
-
-    if options.stop_when_placed:
-        # the spanning tree and every frame's best partner first; a frame's next-ranked partner only while
-        # it is still weakly placed (fewer verified pairs than min_pairs_per_frame: see the reinforce
-        # rounds below). A frame already tied to enough partners learns little more from a pair than the
-        # averaging's other pairs already give it, and each pair costs an exhaustive match and a refinement
-        run(sorted(_first_pairs(score, 1)))
-        for rank in range(1, min(options.partners_per_frame, n - 1)):
-            weak = np.flatnonzero(degree() < options.min_pairs_per_frame)
-            batch = {_ranked_partner(score, int(a), rank) for a in weak} - tried - {None}
-            if batch:
-                run(sorted(batch))
-    else:
-        run(sorted(_first_pairs(score, options.partners_per_frame)))
+    run(sorted(_first_pairs(score, options.partners_per_frame)))
     for _ in range(options.connect_rounds):
         group = _groups(n, [(m.i, m.j) for m, _ in found])
         if len(np.unique(group)) == 1:
@@ -232,11 +202,11 @@ def coarse_poses(camera: Camera, features: list[Features], measured: list[Measur
     centres = np.stack([m.pose.centre for m in measured])
     distance = np.linalg.norm(centres[:, None] - centres[None], axis=2)
     for _ in range(options.reinforce_rounds):
-        verified = degree()
+        degree = np.bincount(np.array([(m.i, m.j) for m, _ in found], int).ravel(), minlength=n) if found else np.zeros(n, int)
         batch = set()
-        for a in np.flatnonzero(verified < options.min_pairs_per_frame):
+        for a in np.flatnonzero(degree < options.min_pairs_per_frame):
             ranked = [np.argsort(-score[a], kind="stable"), np.argsort(np.where(score[a] > 0, distance[a], np.inf), kind="stable")]
-            wanted = options.min_pairs_per_frame - verified[a]
+            wanted = options.min_pairs_per_frame - degree[a]
             picks = []
             for b in (int(b) for pair in zip(*ranked) for b in pair):
                 key = (min(int(a), b), max(int(a), b))
