@@ -129,8 +129,16 @@ def run_atheris(name: str, seed: bytes, seconds: float, work: Path) -> dict:
     progress = work / f"progress_{name.replace(' ', '_')}.json"
     script = _ATHERIS_CHILD.format(src=str(REPO / "src"), tests=str(REPO / "tests"), name=name,
                                    progress=str(progress), seconds=int(seconds), corpus=str(corpus), work=str(work))
-    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=work,
-                          timeout=seconds + 300)
+    try:
+        proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=work,
+                              timeout=seconds + 300)
+    except subprocess.TimeoutExpired as exc:  # libFuzzer's own -timeout did not stop it: a hang, kept as a crash
+        stderr = exc.stderr.decode(errors="replace") if isinstance(exc.stderr, bytes) else (exc.stderr or "")
+        counts = json.loads(progress.read_text()) if progress.is_file() else {"ok": 0, "refused": 0}
+        return {"inputs": counts["ok"] + counts["refused"], "parsed": counts["ok"], "refused": counts["refused"],
+                "crashes": [{"error": f"the child ran {seconds + 300:.0f} s, past -max_total_time={seconds:.0f}: "
+                                      f"{stderr[-400:]}", "input_b64": None}],
+                "corpus_files": len(list(corpus.iterdir()))}
     stats = {}
     for line in proc.stderr.splitlines():
         if line.startswith("stat::number_of_executed_units:"):
