@@ -132,12 +132,19 @@ def run_atheris(name: str, seed: bytes, seconds: float, work: Path) -> dict:
     try:
         proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=work,
                               timeout=seconds + 300)
-    except subprocess.TimeoutExpired as exc:  # libFuzzer's own -timeout did not stop it: a hang, kept as a crash
+    except subprocess.TimeoutExpired as exc:
+        # the child outlived its time by 300 s. libFuzzer stops an input after -timeout=20 s of wall time and
+        # writes it as timeout-*: with such a file it is a hang (a crash); without, the child was starved of
+        # CPU (at nice 19 on a loaded machine its instrumented imports alone took minutes), which is recorded
+        # as unfinished, not as a crash
         stderr = exc.stderr.decode(errors="replace") if isinstance(exc.stderr, bytes) else (exc.stderr or "")
         counts = json.loads(progress.read_text()) if progress.is_file() else {"ok": 0, "refused": 0}
+        hangs = sorted(work.glob("timeout-*")) + sorted(work.glob("crash-*")) + sorted(work.glob("oom-*"))
         return {"inputs": counts["ok"] + counts["refused"], "parsed": counts["ok"], "refused": counts["refused"],
-                "crashes": [{"error": f"the child ran {seconds + 300:.0f} s, past -max_total_time={seconds:.0f}: "
-                                      f"{stderr[-400:]}", "input_b64": None}],
+                "crashes": [{"error": f"{hangs[-1].name}: {stderr[-400:]}",
+                             "input_b64": base64.b64encode(hangs[-1].read_bytes()[:4096]).decode()}] if hangs else [],
+                "unfinished": f"the child ran {seconds + 300:.0f} s wall, past -max_total_time={seconds:.0f}, "
+                              f"without a timeout or crash file (starved of CPU)",
                 "corpus_files": len(list(corpus.iterdir()))}
     stats = {}
     for line in proc.stderr.splitlines():
