@@ -114,7 +114,9 @@ def one_case(survey: str, seed: int, shift_mm: float, tmp: Path, turn_deg: float
             true_offset = np.r_[matrix_to_rotvec(truth[t.frame].rotation @ report.rotation.T),
                                 truth[t.frame].centre - report.centre]
             e = t.offset - true_offset
-            if t.frame in screen:
+            if t.frame in screen and "offset" not in screen[t.frame]:
+                row.update(screen[t.frame])
+            if t.frame in screen and "offset" in screen[t.frame]:
                 row.update(screen[t.frame], screen_d2_vs_truth=round(float(
                     (screen[t.frame]["offset"] - true_offset) @ np.linalg.solve(screen[t.frame]["covariance"],
                                                                                 screen[t.frame]["offset"] - true_offset)), 3))
