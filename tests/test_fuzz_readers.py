@@ -382,9 +382,11 @@ def test_a_truncated_video_is_one_line_on_stderr(targets, tmp_path):
 
 
 @pytest.mark.parametrize("old, new, fragment", [(b'"section": 0', b'"section": Infinity', "view 0"),
+                                                (b'"section": 0', b'"section": -1e308', "view 0"),
                                                 (b'"fov_deg": 70.0', b'"fov_deg": 1' + b"0" * 400, "fov_deg")])
 def test_a_scan_plan_with_an_infinite_section_or_an_enormous_fov_is_refused(targets, old, new, fragment):
-    """Found by the long hypothesis run: int(Infinity) and float(10^400) raised OverflowError."""
+    """Found by the long hypothesis run: int(Infinity) and float(10^400) raised OverflowError; by the long
+    random run (issue 16): int(-1e308) is a Python int the int64 section array cannot hold (OverflowError)."""
     from scope3d.io.scan_plan import read_scan_plan
 
     target = targets["scan plan"]

@@ -34,6 +34,11 @@ tested against what the images and the *other* frames say about it, by an exact 
    replaced by its own estimate, in a box of that estimate's confidence region, as the map's rerun does)
    and the others are tested again, until none is beyond.
 
+By default a linearised screen comes first (:func:`screen_reported_poses`): one bounded adjustment of every
+frame, each frame's leave-one-out read off the normal equations (its Schur complement without its own
+box), and the exact leave-one-out above only for the frames it points at: O(n) adjustments become about
+one on a clean map (docs/reliability.md section 5 measures the agreement and the cost).
+
 :meth:`PoseCheck.released` then replaces a flagged frame's report by the images' estimate, in a box that
 holds the estimate's confidence region at the same rate, and the bounded adjustment runs again: the images
 place the frame, and its report no longer places the map.
