@@ -336,6 +336,45 @@ def test_a_report_json_with_damaged_targets_is_refused_naming_the_entry(targets,
         target.restore()
 
 
+@pytest.mark.parametrize("edit", [
+    lambda r: r["targets"][0].update(size_mm=None),
+    lambda r: r["targets"][0].update(area_mm2=None),
+    lambda r: r["targets_vs_truth"][0].update(true_size_mm=None),
+    lambda r: r.update(dataset="1" * 300),
+    lambda r: r.update(dataset=[1, 2]),
+])
+def test_a_report_json_with_null_sizes_or_an_impossible_dataset_name_still_gives_its_page(targets, edit):
+    """Found by the long random fuzz run (issue 16): a null size (allowed: a size the map could not
+    measure) raised TypeError from float(None) and from formatting None; a dataset name longer than the
+    file system allows raised OSError (ENAMETOOLONG) from is_file(). The page is built, naming what it
+    could not use."""
+    import json
+
+    from scope3d.report import build_page
+
+    target = targets["report.json"]
+    report = json.loads(target.seed)
+    edit(report)
+    target.path.write_text(json.dumps(report))
+    try:
+        assert target.run(target.path.read_bytes()) == "ok"
+    finally:
+        target.restore()
+
+
+def test_map_points_with_a_member_flagged_as_encrypted_are_refused(targets):
+    """Found by the long atheris run (issue 16): a flag bit set in the archive's central directory made
+    zipfile raise RuntimeError ("is encrypted, password required for extraction")."""
+    target = targets["map points"]
+    data = bytearray(target.seed)
+    central = data.index(b"PK\x01\x02")  # the first central directory entry; its flag bits at offset 8
+    data[central + 8] |= 0x01
+    try:
+        assert target.run(bytes(data)) == "refused"
+    finally:
+        target.restore()
+
+
 def test_map_points_whose_header_claims_a_billion_points_are_refused_before_allocating(targets):
     """Found by the huge-header test: np.load allocated the (10^9, 3) array the .npy header claimed
     (MemoryError for 22 GB). The shape is now checked against the member's size first."""
