@@ -607,7 +607,9 @@ def test_reported_poses(camera: Camera, measured: list[MeasuredPose], tracks: Tr
     map's reprojection gate, and the test must see them. poses : (n) the bounded map's ``cam_from_world``.
     A frame with an exact report (trusted by definition), or that the images do not place, is not tested
     (statistic NaN). Each frame's covariance is scaled by :func:`_scale_of_images` of the *other* tested
-    frames (those not flagged), estimated again in every round.
+    frames (those not flagged), estimated again in every round. With ``options.screen`` (the default) every
+    frame is first screened (:func:`screen_reported_poses`) and only the frames the screen points at get
+    the exact leave-one-out; the others keep the screen's test (``FramePoseTest.exact`` False).
     """
     from scipy.stats import f as f_dist
 
@@ -638,8 +640,9 @@ def test_reported_poses(camera: Camera, measured: list[MeasuredPose], tracks: Tr
 
     if options.screen and testable:
         # every frame's linearised leave-one-out (one bounded adjustment): the exact one only for the frames
-        # it cannot place or finds beyond the map's rate per frame; the others keep their screen's test
-        # (and serve the variance factor of every frame's test, as exact tests would)
+        # it cannot place, finds beyond the map's rate per frame, or that lost more observations to the gate
+        # than chance allows; the others keep their screen's test (and serve the variance factor of every
+        # frame's test, as exact tests would)
         screened = screen_reported_poses(camera, measured, testable, tracks, poses, track_options, options)
         unscaled.update(screened)
         lost = _lost_to_the_gate(screened, options.false_alarm_rate)
