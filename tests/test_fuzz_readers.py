@@ -362,6 +362,21 @@ def test_a_report_json_with_null_sizes_or_an_impossible_dataset_name_still_gives
         target.restore()
 
 
+def test_a_ros2_bag_whose_metadata_names_a_topic_by_a_mapping_is_refused(targets):
+    """Found by the long random fuzz run (issue 16): a topic name that is a YAML mapping raised TypeError
+    (unhashable dict) while the import gathered the bag's topics."""
+    import yaml
+
+    target = targets["rosbag2 metadata.yaml"]
+    metadata = yaml.safe_load(target.seed)
+    info = metadata["rosbag2_bagfile_information"]
+    info["topics_with_message_count"][0]["topic_metadata"]["name"] = {"a": 1}
+    try:
+        assert target.run(yaml.safe_dump(metadata).encode()) == "refused"
+    finally:
+        target.restore()
+
+
 def test_map_points_with_a_member_flagged_as_encrypted_are_refused(targets):
     """Found by the long atheris run (issue 16): a flag bit set in the archive's central directory made
     zipfile raise RuntimeError ("is encrypted, password required for extraction")."""
