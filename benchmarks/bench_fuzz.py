@@ -116,7 +116,7 @@ def one(data):
     if sum(counts.values()) % 200 == 1:  # libFuzzer may exit without running atexit handlers
         Path({progress!r}).write_text(json.dumps(counts))
 atheris.Setup([sys.argv[0], "-max_total_time={seconds}", "-rss_limit_mb=2048", "-timeout=20",
-               "-max_len=65536", "-print_final_stats=1", "-artifact_prefix={work}/", {corpus!r}], one)
+               "-max_len=65536", "-print_final_stats=1", "-artifact_prefix={artifacts}/", {corpus!r}], one)
 atheris.Fuzz()
 """
 
@@ -127,10 +127,28 @@ def run_atheris(name: str, seed: bytes, seconds: float, work: Path) -> dict:
     corpus.mkdir(parents=True, exist_ok=True)
     (corpus / "seed").write_bytes(seed)
     progress = work / f"progress_{name.replace(' ', '_')}.json"
+    artifacts = work / f"artifacts_{name.replace(' ', '_')}"  # one folder per reader: a crash file is its own
+    artifacts.mkdir(parents=True, exist_ok=True)
     script = _ATHERIS_CHILD.format(src=str(REPO / "src"), tests=str(REPO / "tests"), name=name,
-                                   progress=str(progress), seconds=int(seconds), corpus=str(corpus), work=str(work))
-    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=work,
-                          timeout=seconds + 300)
+                                   progress=str(progress), seconds=int(seconds), corpus=str(corpus), work=str(work),
+                                   artifacts=str(artifacts))
+    try:
+        proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=work,
+                              timeout=seconds + 300)
+    except subprocess.TimeoutExpired as exc:
+        # the child outlived its time by 300 s. libFuzzer stops an input after -timeout=20 s of wall time and
+        # writes it as timeout-*: with such a file it is a hang (a crash); without, the child was starved of
+        # CPU (at nice 19 on a loaded machine its instrumented imports alone took minutes), which is recorded
+        # as unfinished, not as a crash
+        stderr = exc.stderr.decode(errors="replace") if isinstance(exc.stderr, bytes) else (exc.stderr or "")
+        counts = json.loads(progress.read_text()) if progress.is_file() else {"ok": 0, "refused": 0}
+        hangs = sorted(artifacts.glob("timeout-*")) + sorted(artifacts.glob("crash-*")) + sorted(artifacts.glob("oom-*"))
+        return {"inputs": counts["ok"] + counts["refused"], "parsed": counts["ok"], "refused": counts["refused"],
+                "crashes": [{"error": f"{hangs[-1].name}: {stderr[-400:]}",
+                             "input_b64": base64.b64encode(hangs[-1].read_bytes()[:4096]).decode()}] if hangs else [],
+                "unfinished": f"the child ran {seconds + 300:.0f} s wall, past -max_total_time={seconds:.0f}, "
+                              f"without a timeout or crash file (starved of CPU)",
+                "corpus_files": len(list(corpus.iterdir()))}
     stats = {}
     for line in proc.stderr.splitlines():
         if line.startswith("stat::number_of_executed_units:"):
@@ -139,7 +157,7 @@ def run_atheris(name: str, seed: bytes, seconds: float, work: Path) -> dict:
     crashes = []
     if proc.returncode != 0:
         tail = [line for line in proc.stderr.splitlines() if "FuzzCrash" in line or "Error" in line][-3:]
-        crash_files = sorted(p for pattern in ("crash-*", "oom-*", "timeout-*") for p in work.glob(pattern))
+        crash_files = sorted(p for pattern in ("crash-*", "oom-*", "timeout-*") for p in artifacts.glob(pattern))
         crashes.append({"error": " | ".join(tail)[:500] or proc.stderr[-500:],
                         "input_b64": base64.b64encode(crash_files[-1].read_bytes()[:4096]).decode()
                         if crash_files else None})

@@ -49,7 +49,8 @@ from scope3d.geometry.rotation import matrix_to_rotvec, rotvec_to_matrix  # noqa
 from scope3d.io.dataset import load_dataset  # noqa: E402
 from scope3d.pipelines import surgical_map as sm  # noqa: E402
 from scope3d.sensor.pose_tolerance import MeasuredPose  # noqa: E402
-from scope3d.sfm.pose_checks import PoseCheckOptions, box_mahalanobis, test_reported_poses  # noqa: E402
+from scope3d.sfm.pose_checks import (PoseCheckOptions, _scale_of_images, box_mahalanobis,  # noqa: E402
+                                     screen_reported_poses, test_reported_poses)
 from scope3d.utils.jsonio import write_json  # noqa: E402
 
 SURVEYS = {"dome12": ("grid5x6", 12), "dome30": ("grid5x6", 30), "dome56": ("grid7x8", 56)}
@@ -84,15 +85,22 @@ def one_case(survey: str, seed: int, shift_mm: float, tmp: Path, turn_deg: float
         rotation = rotvec_to_matrix(np.deg2rad([turn_deg, 0.0, 0.0])) @ m.pose.rotation
         poses[k] = MeasuredPose(Pose.from_centre(rotation, m.pose.centre + [shift_mm, 0.0, 0.0]), m.tolerance)
     dataset = replace(dataset, poses=poses)
-    options = replace(sm.MapOptions(), figures=False, fluorescence=None, pose_check=PoseCheckOptions())
+    options = replace(sm.MapOptions(), figures=False, fluorescence=None, pose_check=PoseCheckOptions(screen=False))
+    t0 = time.process_time()
     frames = [dataset.frame(k) for k in range(len(dataset))]
     features = sm.detect_features(options, dataset, frames)
     matching = sm.match_frames(options, dataset, features)
     sparse = sm.reconstruct(options, dataset, features, matching)
     tracks = build_tracks(features, matching.matches, min_track_length=options.tracks.min_track_length)
+    stages_cpu = time.process_time() - t0
+    args = (sparse.camera, dataset.poses, tracks, sparse.poses, options.tracks)
     t0 = time.process_time()
-    check = test_reported_poses(sparse.camera, dataset.poses, tracks, sparse.poses, options.tracks, options.pose_check)
+    check = test_reported_poses(*args, options.pose_check)  # every frame's exact leave-one-out
     cpu = time.process_time() - t0
+    t0 = time.process_time()
+    screened_check = test_reported_poses(*args, PoseCheckOptions())  # the default: the screen, then exact where it says
+    screened_cpu = time.process_time() - t0
+    screen = screen_statistics(*args, check.false_alarm_rate)
     truth = dataset.ground_truth.poses
     rng = np.random.default_rng(seed)
     frames_out = []
@@ -106,6 +114,13 @@ def one_case(survey: str, seed: int, shift_mm: float, tmp: Path, turn_deg: float
             true_offset = np.r_[matrix_to_rotvec(truth[t.frame].rotation @ report.rotation.T),
                                 truth[t.frame].centre - report.centre]
             e = t.offset - true_offset
+            if t.frame in screen and "offset" not in screen[t.frame]:
+                row.update(screen[t.frame])
+            if t.frame in screen and "offset" in screen[t.frame]:
+                row.update(screen[t.frame], screen_d2_vs_truth=round(float(
+                    (screen[t.frame]["offset"] - true_offset) @ np.linalg.solve(screen[t.frame]["covariance"],
+                                                                                screen[t.frame]["offset"] - true_offset)), 3))
+                del row["offset"], row["covariance"]
             row.update(d2=round(t.statistic, 3), critical=round(t.critical_value, 2), p_value=t.p_value,
                        variance_factor=round(t.variance_factor, 3), factor_dof=round(t.factor_dof, 1),
                        d2_vs_truth=round(float(e @ np.linalg.solve(t.covariance, e)), 3), flagged=t.flagged,
@@ -124,11 +139,38 @@ def one_case(survey: str, seed: int, shift_mm: float, tmp: Path, turn_deg: float
             "flagged": flagged,
             "hits": len(set(flagged) & set(glitched)), "false_alarms": sorted(set(flagged) - set(glitched)),
             "variance_factor": check.variance_factor, "frames_tested": sum(r["status"] == "ok" for r in frames_out),
-            "check_cpu_s": round(cpu, 2), "load_average": list(os.getloadavg()), "frames": frames_out,
+            "check_cpu_s": round(cpu, 2), "stages_cpu_s": round(stages_cpu, 2),
+            "screened": {"flagged": [int(k) for k in screened_check.flagged], "hits": len(set(screened_check.flagged) & set(glitched)),
+                         "false_alarms": sorted(int(k) for k in set(screened_check.flagged) - set(glitched)),
+                         "frames_tested_exactly": int(sum(t.exact and np.isfinite(t.statistic) for t in screened_check.tests)),
+                         "check_cpu_s": round(screened_cpu, 2)},
+            "load_average": list(os.getloadavg()), "frames": frames_out,
             **({"predicted_curve": {"frames": curve["frames"], "mm": CURVE_MM.tolist(), "deg": CURVE_DEG.tolist(),
                                     "power_mm": (curve["mm"] / max(curve["frames"], 1)).round(3).tolist(),
                                     "power_deg": (curve["deg"] / max(curve["frames"], 1)).round(3).tolist()}}
                if curve["frames"] else {})}
+
+
+def screen_statistics(camera, measured, tracks, poses, track_options, rate: float) -> dict[int, dict]:
+    """Every frame's linearised leave-one-out (the screen), scaled and judged as its exact test is (the
+    other screened frames' variance factor, the test's per-frame level): for the scatter against the exact
+    statistic."""
+    from scipy.stats import f as f_dist
+
+    testable = [k for k in range(len(measured)) if not measured[k].tolerance.is_exact]
+    screened = screen_reported_poses(camera, measured, testable, tracks, poses, track_options, PoseCheckOptions())
+    alpha = rate / max(len(testable), 1)
+    out = {}
+    for k, t in screened.items():
+        if t.status != "ok":
+            out[k] = {"screen_status": t.status}
+            continue
+        factor, dof, _ = _scale_of_images([s for j, s in screened.items() if j != k and s.status == "ok"], measured, alpha)
+        half = np.r_[measured[k].tolerance.orientation_rad, measured[k].tolerance.position_mm]
+        out[k] = {"screen_status": "ok", "screen_d2": round(box_mahalanobis(t.offset, factor * t.covariance, half)[0], 3),
+                  "screen_critical": round(6.0 * float(f_dist.isf(alpha, 6, dof)), 2),
+                  "screen_kept": int(t.inliers), "offset": t.offset, "covariance": factor * t.covariance}
+    return out
 
 
 def main(argv=None) -> int:
@@ -168,6 +210,7 @@ def main(argv=None) -> int:
         save()
     print(json.dumps(summary(runs), indent=1))
     plot_detection(runs, out.with_name("pose_check_detection.png"))
+    plot_screen(runs, out.with_name("pose_check_screen.png"))
     return 0
 
 
@@ -200,6 +243,37 @@ def map_dome_with_and_without(tmp: Path) -> dict:
 
 def _key(row: dict) -> tuple:
     return row["survey"], row["seed"], row["shift_mm"], row.get("turn_deg", 0.0), tuple(row["glitched"])
+
+
+def plot_screen(runs: list[dict], path: Path) -> None:
+    """The screen's statistic against the exact test's, each over its frame's critical value (log-log; 1 is
+    the line each test draws), clean and glitched frames apart."""
+    from scope3d.utils.figures import new_figure, save_figure
+
+    points = {"clean frame": [], "glitched frame": []}
+    for r in runs:
+        for f in r["frames"]:
+            if f["status"] == "ok" and f.get("screen_status") == "ok":
+                kind = "glitched frame" if f["frame"] in r["glitched"] else "clean frame"
+                points[kind].append((f["d2"] / f["critical"], f["screen_d2"] / f["screen_critical"]))
+    if not points["clean frame"]:
+        return
+    fig = new_figure(figsize=(5.5, 5))
+    ax = fig.add_subplot(1, 1, 1)
+    for (kind, xy), colour in zip(points.items(), ("tab:blue", "tab:red")):
+        if xy:
+            x, y = np.maximum(np.array(xy), 1e-4).T
+            ax.scatter(x, y, s=10, color=colour, alpha=0.6, label=f"{kind} ({len(xy)})")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.axvline(1.0, color="gray", lw=0.8)
+    ax.axhline(1.0, color="gray", lw=0.8)
+    ax.plot([1e-4, 1e2], [1e-4, 1e2], color="gray", lw=0.5, ls=":")
+    ax.set_xlabel("exact leave-one-out: d2 / critical value")
+    ax.set_ylabel("linearised screen: d2 / critical value")
+    ax.set_title("dome, 320 x 240: the screen against the exact test", fontsize=9)
+    ax.legend(fontsize=7, loc="upper left")
+    save_figure(fig, path)
 
 
 def plot_detection(runs: list[dict], path: Path) -> None:
@@ -255,14 +329,27 @@ def summary(runs: list[dict]) -> dict:
                  if clean else None,
                  "clean_frames_tested": len(frames),
                  "clean_frames_beyond_critical_against_truth": sum(f["d2_vs_truth"] > f["critical"] for f in frames),
+                 "screened_clean_maps_with_a_false_alarm": sum(bool(r["screened"]["false_alarms"]) for r in clean
+                                                               if "screened" in r),
+                 "screened_clean_maps": sum("screened" in r for r in clean),
+                 "screened_clean_frames_tested_exactly": sum(r["screened"]["frames_tested_exactly"] for r in clean
+                                                             if "screened" in r),
+                 "check_cpu_over_stages_cpu": {
+                     mode: [round(float(np.percentile([(r["screened"] if mode == "screened" else r)["check_cpu_s"]
+                                                       / r["stages_cpu_s"] for r in clean if "screened" in r], q)), 3)
+                            for q in (0, 50, 100)] if any("screened" in r for r in clean) else None
+                     for mode in ("exact", "screened")},
                  "glitches": {}}
         for r in runs:
             if r["survey"] == survey and r["glitched"]:
                 name = f"{r['turn_deg']:g} deg" if r.get("turn_deg") else f"{r['shift_mm']:g} mm"
-                g = entry["glitches"].setdefault(name, {"runs": 0, "found": 0, "clean_frames_flagged": 0})
+                g = entry["glitches"].setdefault(name, {"runs": 0, "found": 0, "clean_frames_flagged": 0,
+                                                        "found_screened": 0, "clean_frames_flagged_screened": 0})
                 g["runs"] += 1
                 g["found"] += r["hits"]
                 g["clean_frames_flagged"] += len(r["false_alarms"])
+                g["found_screened"] += r.get("screened", {}).get("hits", 0)
+                g["clean_frames_flagged_screened"] += len(r.get("screened", {}).get("false_alarms", []))
         out[survey] = entry
     return out
 

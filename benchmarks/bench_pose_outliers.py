@@ -2,7 +2,7 @@
 
 A robot or tracker occasionally reports a pose that is not the camera's (a glitch, a stale sample). Bounded
 adjustment trusts every box, so such a frame ends on its box's edge and drags the map. The map's pose check
-(:mod:`scope3d.sfm.pose_checks`) tests each report against the images and the other reports at a stated
+(:mod:`scope3d.sfm.pose_checks`, its default: the linearised screen, then the exact test where it points) tests each report against the images and the other reports at a stated
 false-alarm rate and releases the ones found wrong. This benchmark sweeps
 
   glitch size   -- the glitched frames' reported centres moved by G mm along x (``--glitches``; 0 = clean),
@@ -70,6 +70,7 @@ def one_map(dataset, out: Path, check: bool) -> dict:
             "statistics": [round(f["statistic"], 1) for f in test["flagged"]] if test else [],
             "variance_factor": test["variance_factor"] if test else None,
             "frames_tested": test["frames_tested"] if test else None,
+            "frames_tested_exactly": test.get("frames_tested_exactly") if test else None,
             "cpu_s": round(cpu, 2), "pose_check_wall_s": r["timings_s"].get("pose check")}
 
 

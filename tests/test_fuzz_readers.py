@@ -336,6 +336,60 @@ def test_a_report_json_with_damaged_targets_is_refused_naming_the_entry(targets,
         target.restore()
 
 
+@pytest.mark.parametrize("edit", [
+    lambda r: r["targets"][0].update(size_mm=None),
+    lambda r: r["targets"][0].update(area_mm2=None),
+    lambda r: r["targets_vs_truth"][0].update(true_size_mm=None),
+    lambda r: r.update(dataset="1" * 300),
+    lambda r: r.update(dataset=[1, 2]),
+])
+def test_a_report_json_with_null_sizes_or_an_impossible_dataset_name_still_gives_its_page(targets, edit):
+    """Found by the long random fuzz run (issue 16): a null size (allowed: a size the map could not
+    measure) raised TypeError from float(None) and from formatting None; a dataset name longer than the
+    file system allows raised OSError (ENAMETOOLONG) from is_file(). The page is built, naming what it
+    could not use."""
+    import json
+
+    from scope3d.report import build_page
+
+    target = targets["report.json"]
+    report = json.loads(target.seed)
+    edit(report)
+    target.path.write_text(json.dumps(report))
+    try:
+        assert target.run(target.path.read_bytes()) == "ok"
+    finally:
+        target.restore()
+
+
+def test_a_ros2_bag_whose_metadata_names_a_topic_by_a_mapping_is_refused(targets):
+    """Found by the long random fuzz run (issue 16): a topic name that is a YAML mapping raised TypeError
+    (unhashable dict) while the import gathered the bag's topics."""
+    import yaml
+
+    target = targets["rosbag2 metadata.yaml"]
+    metadata = yaml.safe_load(target.seed)
+    info = metadata["rosbag2_bagfile_information"]
+    info["topics_with_message_count"][0]["topic_metadata"]["name"] = {"a": 1}
+    try:
+        assert target.run(yaml.safe_dump(metadata).encode()) == "refused"
+    finally:
+        target.restore()
+
+
+def test_map_points_with_a_member_flagged_as_encrypted_are_refused(targets):
+    """Found by the long atheris run (issue 16): a flag bit set in the archive's central directory made
+    zipfile raise RuntimeError ("is encrypted, password required for extraction")."""
+    target = targets["map points"]
+    data = bytearray(target.seed)
+    central = data.index(b"PK\x01\x02")  # the first central directory entry; its flag bits at offset 8
+    data[central + 8] |= 0x01
+    try:
+        assert target.run(bytes(data)) == "refused"
+    finally:
+        target.restore()
+
+
 def test_map_points_whose_header_claims_a_billion_points_are_refused_before_allocating(targets):
     """Found by the huge-header test: np.load allocated the (10^9, 3) array the .npy header claimed
     (MemoryError for 22 GB). The shape is now checked against the member's size first."""
@@ -382,9 +436,11 @@ def test_a_truncated_video_is_one_line_on_stderr(targets, tmp_path):
 
 
 @pytest.mark.parametrize("old, new, fragment", [(b'"section": 0', b'"section": Infinity', "view 0"),
+                                                (b'"section": 0', b'"section": -1e308', "view 0"),
                                                 (b'"fov_deg": 70.0', b'"fov_deg": 1' + b"0" * 400, "fov_deg")])
 def test_a_scan_plan_with_an_infinite_section_or_an_enormous_fov_is_refused(targets, old, new, fragment):
-    """Found by the long hypothesis run: int(Infinity) and float(10^400) raised OverflowError."""
+    """Found by the long hypothesis run: int(Infinity) and float(10^400) raised OverflowError; by the long
+    random run (issue 16): int(-1e308) is a Python int the int64 section array cannot hold (OverflowError)."""
     from scope3d.io.scan_plan import read_scan_plan
 
     target = targets["scan plan"]

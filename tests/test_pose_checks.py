@@ -67,15 +67,21 @@ def test_a_glitched_report_is_flagged_and_released_and_clean_reports_are_not(tmp
     x (a tracker glitch, 2.5 mm beyond its box). Clean: no frame flagged at the 1 % false-alarm rate.
     Glitched: frame 6 alone is flagged, and the map, adjusted again with its box released, is as
     accurate as the clean one to within the scatter of the surface fit (without the test the glitch
-    raised the mean direct error from 0.21 to 1.6 mm on seed 11, docs/reliability.md section 5)."""
+    raised the mean direct error from 0.17 to 1.06 mm on seed 21, docs/reliability.md section 5). Seed 21
+    because its frame 2 was flagged beside the glitch while frame 6 was set aside as unknown (its PnP start
+    then landed 3 mm off on the glitch's side): the test must name frame 6 alone."""
     from scope3d.pipelines.surgical_map import MapOptions, run
     from scope3d.sfm.pose_checks import PoseCheckOptions
 
-    dataset = _dome(tmp_path, 11)
+    dataset = _dome(tmp_path, 21)
     options = replace(MapOptions(), figures=False, fluorescence=None, pose_check=PoseCheckOptions())
     clean = run(options, dataset, tmp_path / "clean")
     test = clean.report["model_checks"]["reported_pose_test"]
     assert test["flagged"] == [] and test["frames_tested"] >= 9
+    # the default screen sends a right report to the exact test at about twice the map's rate per frame (its
+    # own level, and the gate's binomial at the same level): ~0.2 of 11 frames expected, more than 2 at
+    # p ~ 1e-3 under a Poisson count; every other frame is tested by the screen alone
+    assert test["frames_tested_exactly"] <= 2
     glitch = 6
     poses = list(dataset.poses)
     m = poses[glitch]

@@ -71,7 +71,8 @@ def read_map_points(path: str | Path) -> MapPoints:
         raise InputError(f"{path}: no map points (run `scope3d map` first; it writes {MAP_POINTS_FILE})")
     try:
         arrays = _read_arrays(path)
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile, NotImplementedError, zlib.error) as exc:
+    # RuntimeError: zipfile's refusal of a member flagged as encrypted (found by the long atheris run)
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, NotImplementedError, zlib.error, RuntimeError) as exc:
         raise InputError(f"{path}: not a readable .npz file ({exc})") from None
     if any(arrays[k].dtype.kind not in "biuf" for k in ARRAY_NAMES):
         raise InputError(f"{path}: arrays must hold numbers, found "

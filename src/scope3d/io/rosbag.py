@@ -251,6 +251,10 @@ def import_rosbag(bag: str | Path, out_dir: str | Path, options: RosbagOptions, 
     except Exception as exc:  # noqa: BLE001 - AnyReaderError mostly; a damaged bag raises many kinds of error
         raise InputError(f"{bag}: not a readable ROS 1 or ROS 2 bag ({_one_line(exc)})") from None
     try:
+        # a damaged metadata.yaml can hold a mapping where a name belongs (found by the long fuzz run:
+        # TypeError, unhashable dict, from the dict of topics)
+        if not all(isinstance(c.topic, str) and isinstance(c.msgtype, str) for c in reader.connections):
+            raise InputError(f"{bag}: a topic or message type in its metadata is not a name (damaged bag)")
         topics = {c.topic: c.msgtype for c in reader.connections}
         for topic, allowed in ((options.image_topic, IMAGE_TYPES), (options.pose_topic, POSE_TYPES)):
             if topic not in topics:

@@ -79,7 +79,10 @@ def read_scan_plan(path: str | Path) -> PlanFile:
             if not abs(np.linalg.norm(q) - 1.0) < 1e-6:
                 raise ValueError("quaternion is not unit")
             poses.append(Pose.from_quaternion(q, t))
-            sections.append(int(v.get("section", 0)))
+            section = int(v.get("section", 0))
+            if not -2**63 <= section < 2**63:  # -1e308 is a (huge) int, which the int64 array cannot hold
+                raise ValueError(f"section {v['section']} is beyond int64")
+            sections.append(section)
         except (KeyError, TypeError, ValueError, OverflowError) as exc:  # "section": Infinity
             raise InputError(f"{path}: view {i}: bad pose ({exc})") from None
     info = {k: val for k, val in data.items() if k not in ("views", "fov_deg", "kind", "version")}

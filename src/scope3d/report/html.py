@@ -245,8 +245,8 @@ def _targets_section(scene: ViewScene, report: dict) -> str:
         rows.append(
             f'<tr><td>{_e(t.get("label"))}</td><td>{_e(t.get("shape", ""))}</td>'
             + "".join(f'<td class="num">{v:.3f}</td>' for v in c)
-            + f'<td class="num">{t.get("size_mm", math.nan):.3f}</td><td class="num">{t.get("area_mm2", math.nan):.3f}</td>'
-            f'<td>{_e(truth.get("name", "—"))}</td>'
+            + "".join(f'<td class="num">{math.nan if t.get(k) is None else t[k]:.3f}</td>' for k in ("size_mm", "area_mm2"))
+            + f'<td>{_e(truth.get("name", "—"))}</td>'
             f'<td class="num">{_e(format_value("x_mm", truth.get("centroid_error_mm")))}</td></tr>')
     table = ('<table id="targets"><thead><tr><th>label</th><th>shape</th><th>x (mm)</th><th>y (mm)</th><th>z (mm)</th>'
              '<th>size (mm)</th><th>area (mm²)</th><th>true target</th><th>centre error (mm)</th></tr></thead>'

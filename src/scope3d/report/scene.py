@@ -365,6 +365,13 @@ def checked_targets(report: dict, key: str, centre_key: str, path: Path) -> list
     return entries
 
 
+def _size(target: dict, key: str) -> float:
+    """A target's drawn size (mm): its ``key`` where finite, else 1 mm (checked_targets lets null and NaN
+    through: a size the map could not measure; float(None) raised TypeError, found by the long fuzz run)."""
+    value = target.get(key)
+    return float(value) if value is not None and np.isfinite(float(value)) else 1.0
+
+
 def _finite(value, nan_ok: bool = False) -> bool:
     try:
         return np.isfinite(float(value)) or (nan_ok and np.isnan(float(value)))
@@ -380,8 +387,15 @@ def _dataset(run_dir: Path, report: dict, notes: list[str]):
     name = report.get("dataset")
     if not name:
         return None
+    if not isinstance(name, str):
+        notes.append(f"dataset {name!r:.80} not read: not a path")
+        return None
     for candidate in (run_dir / name, Path(name)):
-        if (candidate / "dataset.json").is_file() or (candidate / "poses.csv").is_file():
+        try:
+            found = (candidate / "dataset.json").is_file() or (candidate / "poses.csv").is_file()
+        except OSError:  # a name longer than the file system allows (ENAMETOOLONG; found by the long fuzz run)
+            found = False
+        if found:
             try:
                 return load_dataset(candidate)
             except InputError as exc:
@@ -441,9 +455,9 @@ def scene_payload(scene: ViewScene) -> dict:
         "frusta": encode(scene.frusta.reshape(-1, 3) - centre, np.float32) if len(scene.frusta) else None,
         "trajectory": encode(scene.trajectory - centre, np.float32) if len(scene.trajectory) > 1 else None,
         "targets": [{"label": t.get("label"), "centre": (np.asarray(t["centroid_mm"], float) - centre).tolist(),
-                     "size_mm": float(t.get("size_mm", 1.0))} for t in scene.targets if "centroid_mm" in t],
+                     "size_mm": _size(t, "size_mm")} for t in scene.targets if "centroid_mm" in t],
         "true_targets": [{"name": t.get("name"), "centre": (np.asarray(t["true_centre_mm"], float) - centre).tolist(),
-                          "size_mm": float(t.get("true_size_mm", 1.0))} for t in scene.true_targets],
+                          "size_mm": _size(t, "true_size_mm")} for t in scene.true_targets],
         "explorer": explorer_payload(scene, centre),
     }
 
