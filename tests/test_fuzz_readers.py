@@ -350,8 +350,6 @@ def test_a_report_json_with_null_sizes_or_an_impossible_dataset_name_still_gives
     could not use."""
     import json
 
-    from scope3d.report import build_page
-
     target = targets["report.json"]
     report = json.loads(target.seed)
     edit(report)
