@@ -275,25 +275,51 @@ def evaluate(problem: BundleProblem, parameters: BundleParameters):
     return r, jc, jp
 
 
-def _linearise(problem, pose, intrinsics, points, r, jc, jp):
+class _Ranges:
+    """Point ranges and their observations, ``(point start, point stop, observation start, observation
+    stop)``, on which the per-observation kernels run, one thread each (they release the GIL): the
+    ranges of the Schur assembly's threads, or all in one."""
+
+    def __init__(self, point_ptr: np.ndarray, point_chunks: np.ndarray | None = None,
+                 pool: ThreadPoolExecutor | None = None) -> None:
+        bounds = point_chunks if pool is not None and point_chunks is not None else [0, point_ptr.size - 1]
+        self.ranges = [(int(a), int(b), int(point_ptr[a]), int(point_ptr[b])) for a, b in zip(bounds[:-1], bounds[1:])]
+        self.pool = pool
+
+    def map(self, fn: Callable[[int, int, int, int], object]) -> list:
+        """``fn(*range)`` for every range, in order."""
+        if len(self.ranges) == 1:
+            return [fn(*self.ranges[0])]
+        return list(self.pool.map(lambda bounds: fn(*bounds), self.ranges))
+
+
+def _linearise(problem, pose, intrinsics, points, r, jc, jp, ranges: _Ranges | None = None):
     rot, trans, rot_jac = problem.camera_state(pose)
     world, point_jac = problem.points_world(points, with_jacobian=True)
     # contiguous arrays: the ahead-of-time kernels take exactly the types of kernels.AOT_SIGNATURES
-    kernels.residuals_and_jacobians(
-        problem.observations_px, problem.camera_index, problem.point_index,
-        problem.intrinsics_index[problem.camera_index], np.ascontiguousarray(rot), np.ascontiguousarray(trans),
-        np.ascontiguousarray(rot_jac), problem.position_parameter == "centre", np.ascontiguousarray(world),
-        np.ascontiguousarray(point_jac), np.ascontiguousarray(intrinsics), bool(problem.square_pixels), r, jc, jp,
-    )
+    state = (np.ascontiguousarray(rot), np.ascontiguousarray(trans), np.ascontiguousarray(rot_jac),
+             problem.position_parameter == "centre", np.ascontiguousarray(world), np.ascontiguousarray(point_jac),
+             np.ascontiguousarray(intrinsics), bool(problem.square_pixels))
+    intr_obs = problem.intrinsics_index[problem.camera_index]
+
+    def run(_pa, _pb, oa, ob):
+        kernels.residuals_and_jacobians(
+            problem.observations_px[oa:ob], problem.camera_index[oa:ob], problem.point_index[oa:ob],
+            intr_obs[oa:ob], *state, r[oa:ob], jc[oa:ob], jp[oa:ob])
+
+    (ranges or _Ranges(problem.point_ptr)).map(run)
 
 
-def _squared_residuals(problem, pose, intrinsics, points, intr_obs, out):
+def _squared_residuals(problem, pose, intrinsics, points, intr_obs, out, ranges: _Ranges | None = None):
     rot, trans, _ = problem.camera_state(pose)
-    world = np.ascontiguousarray(problem.points_world(points))
-    kernels.squared_residuals(
-        problem.observations_px, problem.camera_index, problem.point_index, intr_obs, np.ascontiguousarray(rot),
-        np.ascontiguousarray(trans), world, np.ascontiguousarray(intrinsics), bool(problem.square_pixels), out,
-    )
+    state = (np.ascontiguousarray(rot), np.ascontiguousarray(trans), np.ascontiguousarray(problem.points_world(points)),
+             np.ascontiguousarray(intrinsics), bool(problem.square_pixels))
+
+    def run(_pa, _pb, oa, ob):
+        kernels.squared_residuals(problem.observations_px[oa:ob], problem.camera_index[oa:ob],
+                                  problem.point_index[oa:ob], intr_obs[oa:ob], *state, out[oa:ob])
+
+    (ranges or _Ranges(problem.point_ptr)).map(run)
     return out
 
 
@@ -530,12 +556,12 @@ def solve(
 
     def cost_of(vc, vp) -> float:
         pose, intr = split(vc)
-        _squared_residuals(problem, pose, intr, vp, intr_obs, sq)
+        _squared_residuals(problem, pose, intr, vp, intr_obs, sq, ranges)
         return 0.5 * float(np.sum(loss_rho(options.loss, sq, options.loss_scale_px)))
 
     def linearise(vc, vp) -> float:
         pose, intr = split(vc)
-        _linearise(problem, pose, intr, vp, r, jc, jp)
+        _linearise(problem, pose, intr, vp, r, jc, jp, ranges)
         np.einsum("ki,ki->k", r, r, out=sq)
         weights = loss_weight(options.loss, sq, options.loss_scale_px)
         if weights is not None:
@@ -546,22 +572,25 @@ def solve(
         pose, intr = split(vc)
         return BundleParameters(pose, intr, vp)
 
-    cost = linearise(xc, xp)
-    if not math.isfinite(cost):
-        raise InputError("the initial cost is not finite (a point projects through a camera's centre?)")
-    initial_cost = cost
-    lam = options.initial_damping
-    nu = 2.0
-    log: list[IterationRecord] = []
-    iterations = successes = 0
-    termination = None
-    need_gradient = True
-    pg_norm = 0.0
-    n_active = 0
     with _thread_pool(system.threads) as pool:
+        ranges = _Ranges(problem.point_ptr, system.chunks, pool)
+        cost = linearise(xc, xp)
+        if not math.isfinite(cost):
+            raise InputError("the initial cost is not finite (a point projects through a camera's centre?)")
+        initial_cost = cost
+        lam = options.initial_damping
+        nu = 2.0
+        log: list[IterationRecord] = []
+        iterations = successes = 0
+        termination = None
+        need_gradient = True
+        pg_norm = 0.0
+        n_active = 0
         while termination is None:
             if need_gradient:
-                gc, dc, gp, dp = kernels.gradient_and_diagonal(r, jc, jp, cam_blocks, point_index, n_blocks, n)
+                parts = ranges.map(lambda _pa, _pb, oa, ob: kernels.gradient_and_diagonal(
+                    r[oa:ob], jc[oa:ob], jp[oa:ob], cam_blocks[oa:ob], point_index[oa:ob], n_blocks, n))
+                gc, dc, gp, dp = (sum(part[q] for part in parts) for q in range(4))
                 # eq. 6.10: a scalar is active at a bound whose gradient points out of the box
                 active_c = fixed_c | ((xc <= lower_c) & (gc > 0)) | ((xc >= upper_c) & (gc < 0))
                 active_p = fixed_p | ((xp <= lower_p) & (gp > 0)) | ((xp >= upper_p) & (gp < 0))
@@ -571,7 +600,8 @@ def solve(
                 pg_norm = float(max(np.abs(ghat_c).max(initial=0.0), np.abs(ghat_p).max(initial=0.0)))
                 diag_c = np.clip(dc, options.min_diagonal, options.max_diagonal)
                 diag_p = np.clip(dp, options.min_diagonal, options.max_diagonal)
-                kernels.zero_frozen_columns(jc, jp, cam_blocks, point_index, active_c, active_p)  # eq. 6.12
+                ranges.map(lambda _pa, _pb, oa, ob: kernels.zero_frozen_columns(  # eq. 6.12
+                    jc[oa:ob], jp[oa:ob], cam_blocks[oa:ob], point_index[oa:ob], active_c, active_p))
                 need_gradient = False
                 if not log:
                     log.append(IterationRecord(0, cost, 0.0, lam, n_active, pg_norm, 0.0, True,
@@ -594,7 +624,8 @@ def solve(
             accepted = False
             change = 0.0
             if delta_c is not None:
-                delta_p = kernels.back_substitute(jc, jp, cam_blocks, problem.point_ptr, v_inv, gp_buf, delta_c)
+                delta_p = np.concatenate(ranges.map(lambda pa, pb, _oa, _ob: kernels.back_substitute(
+                    jc, jp, cam_blocks, problem.point_ptr[pa:pb + 1], v_inv[pa:pb], gp_buf[pa:pb], delta_c)))
                 trial_c = np.where(active_c, xc, np.clip(xc + delta_c, lower_c, upper_c))  # eq. 6.9
                 trial_p = np.where(active_p, xp, np.clip(xp + delta_p, lower_p, upper_p))
                 step_c = trial_c - xc
@@ -608,7 +639,9 @@ def solve(
                     break
                 new_cost = cost_of(trial_c, trial_p)
                 model_decrease = -(float(ghat_c @ step_c) + float(np.sum(ghat_p * step_p))
-                                   + 0.5 * kernels.jacobian_step_norm2(jc, jp, cam_blocks, point_index, step_c, step_p))
+                                   + 0.5 * sum(ranges.map(lambda _pa, _pb, oa, ob: kernels.jacobian_step_norm2(
+                                       jc[oa:ob], jp[oa:ob], cam_blocks[oa:ob], point_index[oa:ob], step_c,
+                                       step_p))))
                 change = cost - new_cost
                 accepted = math.isfinite(new_cost) and change > 0
             if accepted:
