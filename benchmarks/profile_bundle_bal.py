@@ -3,7 +3,8 @@
 Wraps each stage of :func:`scope3d.estimators.bundle.solve` (the kernels and the reduced system's
 assembly and solve) in wall and CPU timers (``time.process_time``: all threads of the process), solves
 ``--repeats`` times after a warm-up and keeps the fastest solve. Same tolerances as
-``bench_bundle_bal.py``. CPU time is the figure to compare on the shared machine.
+``bench_bundle_bal.py``. CPU time is the figure to compare on the shared machine; with more than one
+thread the per-kernel rows add up both threads' CPU time (``time.process_time`` is per process).
 
 Run: ``PYTHONPATH=src .venv/bin/python benchmarks/profile_bundle_bal.py [--threads 1] [--repeats 3]``.
 Writes benchmarks/results/profile_bundle_bal_<threads>t.json and prints the table.
