@@ -430,6 +430,8 @@ def assemble_point_range(j_start, j_stop, pos, residuals, jc, jp, cam_blocks, po
                         if bi < bk or (bi == bk and i == k):
                             for s in range(6):
                                 a0 = jc[oi, 0, ci + s]; a1 = jc[oi, 1, ci + s]
+                                if a0 == 0.0 and a1 == 0.0:
+                                    continue  # a fixed or active column: its row of the term is zero
                                 row = out[base + s * stride:]
                                 row[0] += a0 * t0 + a1 * u0
                                 row[1] += a0 * t1 + a1 * u1
@@ -441,6 +443,8 @@ def assemble_point_range(j_start, j_stop, pos, residuals, jc, jp, cam_blocks, po
                             # stored transposed: the term's row s is column s of the upper block
                             for s in range(6):
                                 a0 = jc[oi, 0, ci + s]; a1 = jc[oi, 1, ci + s]
+                                if a0 == 0.0 and a1 == 0.0:
+                                    continue
                                 col = out[base + s:]
                                 col[0] += a0 * t0 + a1 * u0
                                 col[stride] += a0 * t1 + a1 * u1
