@@ -6,8 +6,8 @@ assembly and solve) in wall and CPU timers (``time.process_time``: all threads o
 ``bench_bundle_bal.py``. CPU time is the figure to compare on the shared machine; with more than one
 thread the per-kernel rows add up both threads' CPU time (``time.process_time`` is per process).
 
-Run: ``PYTHONPATH=src .venv/bin/python benchmarks/profile_bundle_bal.py [--threads 1] [--repeats 3]``.
-Writes benchmarks/results/profile_bundle_bal_<threads>t.json and prints the table.
+Run: ``PYTHONPATH=src .venv/bin/python benchmarks/profile_bundle_bal.py [--threads 1] [--repeats 3] [--jit]``.
+Writes benchmarks/results/profile_bundle_bal_<threads>t[_jit].json and prints the table.
 """
 from __future__ import annotations
 
@@ -46,7 +46,13 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--threads", type=int, default=0, help="0: all cores (the solver's default)")
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--jit", action="store_true",
+                        help="numba's JIT kernels instead of those compiled at install (as bench_bundle_bal.py)")
     args = parser.parse_args()
+    if args.jit:
+        from scope3d.estimators.bundle import kernels as jit_kernels
+
+        solver_module.kernels = jit_kernels
 
     problem = bal_to_problem(read_bal(DATA))
     options = SolverOptions(**TOLERANCES, num_threads=args.threads)
@@ -99,7 +105,8 @@ def main() -> int:
            "stages": {name: {"wall_s": w, "cpu_s": c, "calls": n, "cpu_ms_per_iteration": 1000 * c / its}
                       for name, (w, c, n) in best["stages"].items()}}
     RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / f"profile_bundle_bal_{args.threads}t.json").write_text(json.dumps(out, indent=2))
+    name = f"profile_bundle_bal_{args.threads}t{'_jit' if args.jit else ''}.json"
+    (RESULTS / name).write_text(json.dumps(out, indent=2))
     print(f"{out['kernels']} kernels, {best['threads']} thread(s), {its} iterations, wall {best['wall_s']:.3f} s, "
           f"CPU {best['cpu_s']:.3f} s, load {out['load_average'][0]:.1f}")
     print(f"{'stage':56s} {'CPU s':>7s} {'ms/it':>7s} {'share':>6s}")
