@@ -17,6 +17,7 @@ import time
 
 import numpy as np
 import pytest
+import scipy.sparse
 
 from scope3d.estimators.bundle import BundleProblem, SolverOptions, kernels
 from scope3d.estimators.bundle import solver as solver_module
@@ -138,31 +139,35 @@ def test_every_kernel_agrees_with_the_jit(aot_kernels, position_parameter, squar
         indices = np.ascontiguousarray(keys % n_blocks)
         indptr = np.searchsorted(keys // n_blocks, np.arange(n_blocks + 1)).astype(np.int64)
         slots, slot_ptr = module.pair_slots(cam_blocks, problem.point_ptr, indptr, indices)
-        used = np.arange(12, dtype=np.int64)
         damp_c, damp_p = np.full(6 * n_blocks, 1e-3), np.full((n, 3), 1e-3)
-        data, rhs = np.empty((keys.size, 6, 6)), np.empty(6 * n_blocks)
         v_inv, gp = np.empty((n, 3, 3)), np.empty((n, 3))
-        ok = module.assemble_reduced_system(r, jc, jp, cam_blocks, problem.point_ptr, damp_c, damp_p, indptr,
-                                            indices, data, rhs, v_inv, gp, used, slots)
+
+        def assembled(start, stop, dense):
+            """S and rhs of points [start, stop), as the BSR blocks or the dense matrix."""
+            out = np.zeros(36 * n_blocks * n_blocks if dense else 36 * keys.size)
+            rhs = np.zeros(6 * n_blocks)
+            assert module.assemble_point_range(start, stop, 0 if dense else int(slot_ptr[start]), r, jc, jp,
+                                               cam_blocks, problem.point_ptr, damp_p, out, dense,
+                                               6 * n_blocks if dense else 6, rhs, v_inv, gp, slots)
+            return out, rhs
+
+        data, rhs = assembled(0, n, False)
+        data = data.reshape(-1, 6, 6)
+        module.add_diagonal(indptr, indices, data, damp_c)
+        dense, rhs_dense = assembled(0, n, True)
+        dense = dense.reshape(6 * n_blocks, 6 * n_blocks) + np.diag(damp_c)
         # the same system from two point ranges added up (what the threads do)
         half = n // 2
-        parts = []
-        for start, stop in ((0, half), (half, n)):
-            d, h = np.zeros_like(data), np.zeros_like(rhs)
-            assert module.assemble_point_range(start, stop, int(slot_ptr[start]), r, jc, jp, cam_blocks,
-                                               problem.point_ptr, damp_p, d, h, v_inv, gp, used, slots)
-            parts.append((d, h))
-        data_split = parts[0][0] + parts[1][0]
+        parts = [assembled(start, stop, False) for start, stop in ((0, half), (half, n))]
+        data_split = (parts[0][0] + parts[1][0]).reshape(-1, 6, 6)
         module.add_diagonal(indptr, indices, data_split, damp_c)
-        dense = module.bsr_to_dense(indptr, indices, data)
         delta_c = np.linspace(-1e-3, 1e-3, 6 * n_blocks)
         delta_p = module.back_substitute(jc, jp, cam_blocks, problem.point_ptr, v_inv, gp, delta_c)
         norm2 = module.jacobian_step_norm2(jc, jp, cam_blocks, problem.point_index, delta_c, delta_p)
         out[name] = dict(r=r, jc=jc, jp=jp, sq=sq, gc=grads[0], dc=grads[1], gp_=grads[2], dp=grads[3], keys=keys,
-                         slots=slots, slot_ptr=slot_ptr, ok=ok, data=data, rhs=rhs, v_inv=v_inv, gp=gp,
+                         slots=slots, slot_ptr=slot_ptr, data=data, rhs=rhs, v_inv=v_inv, gp=gp,
                          data_split=data_split, rhs_split=parts[0][1] + parts[1][1], dense=dense,
-                         delta_p=delta_p, norm2=norm2)
-    assert out["jit"]["ok"] and out["aot"]["ok"]
+                         rhs_dense=rhs_dense, delta_p=delta_p, norm2=norm2)
     for key, value in out["jit"].items():
         np.testing.assert_allclose(out["aot"][key], value, rtol=RTOL, atol=0, err_msg=key)
     # and the split assembly is the one-pass assembly, up to the order of the sums
@@ -171,6 +176,11 @@ def test_every_kernel_agrees_with_the_jit(aot_kernels, position_parameter, squar
         np.testing.assert_allclose(out[name]["data_split"], out[name]["data"], rtol=0, atol=1e-12 * scale)
         np.testing.assert_allclose(out[name]["rhs_split"], out[name]["rhs"], rtol=0,
                                    atol=1e-12 * np.abs(out[name]["rhs"]).max())
+        # the dense layout holds the same upper block triangle as the blocks
+        upper = scipy.sparse.bsr_matrix((out[name]["data"], out[name]["keys"] % n_blocks, indptr),
+                                        shape=(6 * n_blocks, 6 * n_blocks)).toarray()
+        np.testing.assert_allclose(out[name]["dense"], upper, rtol=0, atol=1e-12 * scale)
+        np.testing.assert_allclose(out[name]["rhs_dense"], out[name]["rhs"], rtol=0, atol=0)
 
 
 @pytest.mark.parametrize("options", [SolverOptions(max_iterations=15),

@@ -452,17 +452,20 @@ class BundleProblem:
         """World points (n, 3) mm from point parameters (n, 3); optionally also d X / d y (n, 3, 3)."""
         y = np.asarray(point_params, dtype=float)
         sph = self.point_kind == POINT_SPHERICAL
+        if not sph.any():
+            # linear points only: X = o + Q y and d X / d y = Q, without n products by the identity
+            world = self.point_origin + np.einsum("nij,nj->ni", self.point_frame, y)
+            return (world, np.array(self.point_frame, order="C")) if with_jacobian else world
         local = y.copy()
         jac_local = np.broadcast_to(np.eye(3), y.shape + (3,)).copy() if with_jacobian else None
-        if sph.any():
-            r, th, ph = y[sph, 0], y[sph, 1], y[sph, 2]
-            st, ct, sp, cp = np.sin(th), np.cos(th), np.sin(ph), np.cos(ph)
-            u = np.stack([st * cp, st * sp, ct], axis=1)
-            local[sph] = r[:, None] * u
-            if with_jacobian:
-                du_dth = np.stack([ct * cp, ct * sp, -st], axis=1)
-                du_dph = np.stack([-st * sp, st * cp, np.zeros_like(st)], axis=1)
-                jac_local[sph] = np.stack([u, r[:, None] * du_dth, r[:, None] * du_dph], axis=2)
+        r, th, ph = y[sph, 0], y[sph, 1], y[sph, 2]
+        st, ct, sp, cp = np.sin(th), np.cos(th), np.sin(ph), np.cos(ph)
+        u = np.stack([st * cp, st * sp, ct], axis=1)
+        local[sph] = r[:, None] * u
+        if with_jacobian:
+            du_dth = np.stack([ct * cp, ct * sp, -st], axis=1)
+            du_dph = np.stack([-st * sp, st * cp, np.zeros_like(st)], axis=1)
+            jac_local[sph] = np.stack([u, r[:, None] * du_dth, r[:, None] * du_dph], axis=2)
         world = self.point_origin + np.einsum("nij,nj->ni", self.point_frame, local)
         if not with_jacobian:
             return world

@@ -275,25 +275,51 @@ def evaluate(problem: BundleProblem, parameters: BundleParameters):
     return r, jc, jp
 
 
-def _linearise(problem, pose, intrinsics, points, r, jc, jp):
+class _Ranges:
+    """Point ranges and their observations, ``(point start, point stop, observation start, observation
+    stop)``, on which the per-observation kernels run, one thread each (they release the GIL): the
+    ranges of the Schur assembly's threads, or all in one."""
+
+    def __init__(self, point_ptr: np.ndarray, point_chunks: np.ndarray | None = None,
+                 pool: ThreadPoolExecutor | None = None) -> None:
+        bounds = point_chunks if pool is not None and point_chunks is not None else [0, point_ptr.size - 1]
+        self.ranges = [(int(a), int(b), int(point_ptr[a]), int(point_ptr[b])) for a, b in zip(bounds[:-1], bounds[1:])]
+        self.pool = pool
+
+    def map(self, fn: Callable[[int, int, int, int], object]) -> list:
+        """``fn(*range)`` for every range, in order."""
+        if len(self.ranges) == 1:
+            return [fn(*self.ranges[0])]
+        return list(self.pool.map(lambda bounds: fn(*bounds), self.ranges))
+
+
+def _linearise(problem, pose, intrinsics, points, r, jc, jp, ranges: _Ranges | None = None):
     rot, trans, rot_jac = problem.camera_state(pose)
     world, point_jac = problem.points_world(points, with_jacobian=True)
     # contiguous arrays: the ahead-of-time kernels take exactly the types of kernels.AOT_SIGNATURES
-    kernels.residuals_and_jacobians(
-        problem.observations_px, problem.camera_index, problem.point_index,
-        problem.intrinsics_index[problem.camera_index], np.ascontiguousarray(rot), np.ascontiguousarray(trans),
-        np.ascontiguousarray(rot_jac), problem.position_parameter == "centre", np.ascontiguousarray(world),
-        np.ascontiguousarray(point_jac), np.ascontiguousarray(intrinsics), bool(problem.square_pixels), r, jc, jp,
-    )
+    state = (np.ascontiguousarray(rot), np.ascontiguousarray(trans), np.ascontiguousarray(rot_jac),
+             problem.position_parameter == "centre", np.ascontiguousarray(world), np.ascontiguousarray(point_jac),
+             np.ascontiguousarray(intrinsics), bool(problem.square_pixels))
+    intr_obs = problem.intrinsics_index[problem.camera_index]
+
+    def run(_pa, _pb, oa, ob):
+        kernels.residuals_and_jacobians(
+            problem.observations_px[oa:ob], problem.camera_index[oa:ob], problem.point_index[oa:ob],
+            intr_obs[oa:ob], *state, r[oa:ob], jc[oa:ob], jp[oa:ob])
+
+    (ranges or _Ranges(problem.point_ptr)).map(run)
 
 
-def _squared_residuals(problem, pose, intrinsics, points, intr_obs, out):
+def _squared_residuals(problem, pose, intrinsics, points, intr_obs, out, ranges: _Ranges | None = None):
     rot, trans, _ = problem.camera_state(pose)
-    world = np.ascontiguousarray(problem.points_world(points))
-    kernels.squared_residuals(
-        problem.observations_px, problem.camera_index, problem.point_index, intr_obs, np.ascontiguousarray(rot),
-        np.ascontiguousarray(trans), world, np.ascontiguousarray(intrinsics), bool(problem.square_pixels), out,
-    )
+    state = (np.ascontiguousarray(rot), np.ascontiguousarray(trans), np.ascontiguousarray(problem.points_world(points)),
+             np.ascontiguousarray(intrinsics), bool(problem.square_pixels))
+
+    def run(_pa, _pb, oa, ob):
+        kernels.squared_residuals(problem.observations_px[oa:ob], problem.camera_index[oa:ob],
+                                  problem.point_index[oa:ob], intr_obs[oa:ob], *state, out[oa:ob])
+
+    (ranges or _Ranges(problem.point_ptr)).map(run)
     return out
 
 
@@ -323,100 +349,130 @@ def warm_up() -> None:
 
 
 class _ReducedSystem:
-    """Block structure of the reduced camera matrix and the chosen way of solving it."""
+    """Layout of the reduced camera matrix and the chosen way of solving it.
+
+    The dense solver assembles straight into a dense matrix and factors only the rows and columns of
+    parameters not fixed in every block (BAL: fy, cx, cy fixed; 441 of 588 on ladybug-49). The sparse
+    and PCG solvers assemble 6x6 blocks in BSR layout.
+    """
 
     def __init__(self, problem: BundleProblem, cam_blocks: np.ndarray, method: str, fixed_c: np.ndarray,
                  num_threads: int) -> None:
         n_blocks = problem.num_cameras + problem.num_groups
-        m = problem.num_cameras
-        # Jacobian columns fixed in every block are skipped (BAL: fy, cx, cy): fewer flops per pair
-        pose_fixed = fixed_c[: 6 * m].reshape(m, 6).all(axis=0)
-        intr_fixed = fixed_c[6 * m:].reshape(-1, 6).all(axis=0)
-        self.used_cols = np.flatnonzero(~np.concatenate([pose_fixed, intr_fixed])).astype(np.int64)
-        if self.used_cols.size == 0:
-            self.used_cols = np.array([0], dtype=np.int64)
-        keys = np.unique(kernels.block_structure_keys(cam_blocks, problem.point_ptr, n_blocks))
-        rows = keys // n_blocks
-        self.indices = np.ascontiguousarray(keys % n_blocks)
-        self.indptr = np.searchsorted(rows, np.arange(n_blocks + 1)).astype(np.int64)
-        self.data = np.empty((keys.size, 6, 6))
-        self.slots, self.slot_ptr = kernels.pair_slots(cam_blocks, problem.point_ptr, self.indptr, self.indices)
+        point_ptr = problem.point_ptr
+        self.method = method
+        self.dense = method == "dense"
+        self.size = 6 * n_blocks
+        if self.dense:
+            self.stride = self.size
+            self.out = np.empty(self.size * self.size)
+            self.slots = np.empty(0, dtype=np.int32)
+            deg = np.diff(point_ptr)
+            self.slot_ptr = np.concatenate([[0], np.cumsum(4 * deg * (deg + 1) // 2 - deg)])
+            # a column fixed in every block of its kind (pose or intrinsics) is zero in S but for the damping
+            m = problem.num_cameras
+            kind_fixed = np.concatenate([np.broadcast_to(fixed_c[: 6 * m].reshape(m, 6).all(axis=0), (m, 6)),
+                                         np.broadcast_to(fixed_c[6 * m:].reshape(-1, 6).all(axis=0),
+                                                         (n_blocks - m, 6))]).ravel()
+            self.free_index = np.flatnonzero(~kind_fixed) if not kind_fixed.all() else np.arange(self.size)
+            pieces = int(self.slot_ptr[-1])
+        else:
+            keys = np.unique(kernels.block_structure_keys(cam_blocks, point_ptr, n_blocks))
+            self.indices = np.ascontiguousarray(keys % n_blocks)
+            self.indptr = np.searchsorted(keys // n_blocks, np.arange(n_blocks + 1)).astype(np.int64)
+            self.data = np.empty((keys.size, 6, 6))
+            self.out = self.data.reshape(-1)
+            self.stride = 6
+            self.slots, self.slot_ptr = kernels.pair_slots(cam_blocks, point_ptr, self.indptr, self.indices)
+            self.diag_slots = self.indptr[:-1] + np.array(
+                [np.searchsorted(self.indices[self.indptr[b]:self.indptr[b + 1]], b) for b in range(n_blocks)]
+            )
+            pieces = self.slots.size
         threads = num_threads or _available_cores()
-        # parallel only when there is enough work to pay for the per-thread copies of S
-        if threads > 1 and self.slots.size > 20 * keys.size and self.slots.size > 50_000:
-            targets = np.linspace(0, self.slots.size, threads + 1)
+        # parallel only when there is enough work (terms, one 6x6 quadrant each) to pay for the per-thread
+        # copies of S
+        if threads > 1 and pieces > 20 * (self.out.size // 36) and pieces > 50_000:
+            targets = np.linspace(0, pieces, threads + 1)
             self.chunks = np.unique(np.searchsorted(self.slot_ptr, targets)).astype(np.int64)
             self.chunks[-1] = problem.num_points
-            self.data_t = np.empty((self.chunks.size - 1, keys.size, 6, 6))
-            self.rhs_t = np.empty((self.chunks.size - 1, 6 * n_blocks))
+            self.out_t = np.empty((self.chunks.size - 1, self.out.size))
+            self.rhs_t = np.empty((self.chunks.size - 1, self.size))
         else:
             self.chunks = None
         self.threads = 1 if self.chunks is None else self.chunks.size - 1
-        self.rhs = np.empty(6 * n_blocks)
-        self.size = 6 * n_blocks
-        self.method = method
-        self.diag_slots = self.indptr[:-1] + np.array(
-            [np.searchsorted(self.indices[self.indptr[b]:self.indptr[b + 1]], b) for b in range(n_blocks)]
-        )
+        self.rhs = np.empty(self.size)
 
     def assemble(self, r, jc, jp, cam_blocks, point_ptr, damp_c, damp_p, v_inv, gp, pool) -> bool:
-        """Fill data and rhs with the damped reduced camera system (eq. 6.7 with eq. 6.13); with point
-        chunks, one thread per chunk (the kernels release the GIL) into its own copy, then summed."""
+        """Fill the damped reduced camera system (eq. 6.7 with eq. 6.13); with point chunks, one thread
+        per chunk (the kernels release the GIL) into its own copy, then summed."""
         if self.chunks is None:
-            return kernels.assemble_reduced_system(
-                r, jc, jp, cam_blocks, point_ptr, damp_c, damp_p, self.indptr, self.indices, self.data, self.rhs,
-                v_inv, gp, self.used_cols, self.slots)
+            self.out[:] = 0.0
+            self.rhs[:] = 0.0
+            ok = kernels.assemble_point_range(0, point_ptr.size - 1, 0, r, jc, jp, cam_blocks, point_ptr, damp_p,
+                                              self.out, self.dense, self.stride, self.rhs, v_inv, gp, self.slots)
+        else:
+            def chunk(t: int) -> bool:
+                self.out_t[t] = 0.0
+                self.rhs_t[t] = 0.0
+                start, stop = int(self.chunks[t]), int(self.chunks[t + 1])
+                pos = 0 if self.dense else int(self.slot_ptr[start])
+                return kernels.assemble_point_range(
+                    start, stop, pos, r, jc, jp, cam_blocks, point_ptr, damp_p, self.out_t[t], self.dense,
+                    self.stride, self.rhs_t[t], v_inv, gp, self.slots)
 
-        def chunk(t: int) -> bool:
-            self.data_t[t] = 0.0
-            self.rhs_t[t] = 0.0
-            start, stop = int(self.chunks[t]), int(self.chunks[t + 1])
-            return kernels.assemble_point_range(
-                start, stop, int(self.slot_ptr[start]), r, jc, jp, cam_blocks, point_ptr, damp_p, self.data_t[t],
-                self.rhs_t[t], v_inv, gp, self.used_cols, self.slots)
-
-        oks = list(pool.map(chunk, range(self.threads)))
-        np.sum(self.data_t, axis=0, out=self.data)
-        np.sum(self.rhs_t, axis=0, out=self.rhs)
-        kernels.add_diagonal(self.indptr, self.indices, self.data, damp_c)
-        return all(oks)
+            ok = all(list(pool.map(chunk, range(self.threads))))
+            np.sum(self.out_t, axis=0, out=self.out)
+            np.sum(self.rhs_t, axis=0, out=self.rhs)
+        if self.dense:
+            self.out[:: self.size + 1] += damp_c
+        else:
+            kernels.add_diagonal(self.indptr, self.indices, self.data, damp_c)
+        return ok
 
     def solve(self, options: SolverOptions) -> np.ndarray | None:
-        """delta_c of eq. 6.7 or None when the matrix is not positive definite."""
-        if self.method == "dense":
-            s = kernels.bsr_to_dense(self.indptr, self.indices, self.data)
+        """delta_c of eq. 6.7 (6 n_blocks,) or None when the matrix is not positive definite."""
+        if self.dense:
+            # only the upper triangle is filled; an upper Cholesky factorisation reads nothing else
+            free = self.free_index
+            s = self.out.reshape(self.size, self.size)
+            if free.size < self.size:
+                s = s[np.ix_(free, free)]
             with blas_threads(options.blas_threads):
                 try:
                     factor = scipy.linalg.cho_factor(s, lower=False, overwrite_a=True, check_finite=False)
                 except np.linalg.LinAlgError:
                     return None
-                out = scipy.linalg.cho_solve(factor, self.rhs, check_finite=False)
+                solved = scipy.linalg.cho_solve(factor, self.rhs[free], check_finite=False)
+            if not np.all(np.isfinite(solved)):
+                return None
+            out = np.zeros(self.size)
+            out[free] = solved  # the rows of fixed columns are decoupled and their right-hand side is 0
+            return out
+        upper = scipy.sparse.bsr_matrix((self.data, self.indices, self.indptr), shape=(self.size, self.size))
+        off_diagonal = self.data.copy()
+        off_diagonal[self.diag_slots] = 0.0  # diagonal blocks are stored whole, not halved
+        strict = scipy.sparse.bsr_matrix((off_diagonal, self.indices, self.indptr), shape=upper.shape)
+        mat = (upper.tocsr() + strict.T.tocsr()).tocsr()
+        if self.method == "sparse":
+            try:
+                lu = scipy.sparse.linalg.splu(mat.tocsc(), permc_spec="MMD_AT_PLUS_A",
+                                              options={"SymmetricMode": True})
+            except RuntimeError:
+                return None
+            out = lu.solve(self.rhs)
         else:
-            upper = scipy.sparse.bsr_matrix((self.data, self.indices, self.indptr), shape=(self.size, self.size))
-            off_diagonal = self.data.copy()
-            off_diagonal[self.diag_slots] = 0.0  # diagonal blocks are stored whole, not halved
-            strict = scipy.sparse.bsr_matrix((off_diagonal, self.indices, self.indptr), shape=upper.shape)
-            mat = (upper.tocsr() + strict.T.tocsr()).tocsr()
-            if self.method == "sparse":
-                try:
-                    lu = scipy.sparse.linalg.splu(mat.tocsc(), permc_spec="MMD_AT_PLUS_A",
-                                                  options={"SymmetricMode": True})
-                except RuntimeError:
-                    return None
-                out = lu.solve(self.rhs)
-            else:
-                diag = self.data[self.diag_slots]  # full 6x6 blocks (diagonal blocks are stored whole)
-                try:
-                    inv_blocks = np.linalg.inv(diag)
-                except np.linalg.LinAlgError:
-                    return None
+            diag = self.data[self.diag_slots]  # full 6x6 blocks (diagonal blocks are stored whole)
+            try:
+                inv_blocks = np.linalg.inv(diag)
+            except np.linalg.LinAlgError:
+                return None
 
-                def precondition(v):
-                    return np.einsum("bij,bj->bi", inv_blocks, v.reshape(-1, 6)).ravel()
+            def precondition(v):
+                return np.einsum("bij,bj->bi", inv_blocks, v.reshape(-1, 6)).ravel()
 
-                prec = scipy.sparse.linalg.LinearOperator(mat.shape, matvec=precondition, dtype=float)
-                out, _ = scipy.sparse.linalg.cg(mat, self.rhs, rtol=options.pcg_tolerance,
-                                                maxiter=options.pcg_max_iterations, M=prec)
+            prec = scipy.sparse.linalg.LinearOperator(mat.shape, matvec=precondition, dtype=float)
+            out, _ = scipy.sparse.linalg.cg(mat, self.rhs, rtol=options.pcg_tolerance,
+                                            maxiter=options.pcg_max_iterations, M=prec)
         if not np.all(np.isfinite(out)):
             return None
         return out
@@ -500,12 +556,12 @@ def solve(
 
     def cost_of(vc, vp) -> float:
         pose, intr = split(vc)
-        _squared_residuals(problem, pose, intr, vp, intr_obs, sq)
+        _squared_residuals(problem, pose, intr, vp, intr_obs, sq, ranges)
         return 0.5 * float(np.sum(loss_rho(options.loss, sq, options.loss_scale_px)))
 
     def linearise(vc, vp) -> float:
         pose, intr = split(vc)
-        _linearise(problem, pose, intr, vp, r, jc, jp)
+        _linearise(problem, pose, intr, vp, r, jc, jp, ranges)
         np.einsum("ki,ki->k", r, r, out=sq)
         weights = loss_weight(options.loss, sq, options.loss_scale_px)
         if weights is not None:
@@ -516,22 +572,25 @@ def solve(
         pose, intr = split(vc)
         return BundleParameters(pose, intr, vp)
 
-    cost = linearise(xc, xp)
-    if not math.isfinite(cost):
-        raise InputError("the initial cost is not finite (a point projects through a camera's centre?)")
-    initial_cost = cost
-    lam = options.initial_damping
-    nu = 2.0
-    log: list[IterationRecord] = []
-    iterations = successes = 0
-    termination = None
-    need_gradient = True
-    pg_norm = 0.0
-    n_active = 0
     with _thread_pool(system.threads) as pool:
+        ranges = _Ranges(problem.point_ptr, system.chunks, pool)
+        cost = linearise(xc, xp)
+        if not math.isfinite(cost):
+            raise InputError("the initial cost is not finite (a point projects through a camera's centre?)")
+        initial_cost = cost
+        lam = options.initial_damping
+        nu = 2.0
+        log: list[IterationRecord] = []
+        iterations = successes = 0
+        termination = None
+        need_gradient = True
+        pg_norm = 0.0
+        n_active = 0
         while termination is None:
             if need_gradient:
-                gc, dc, gp, dp = kernels.gradient_and_diagonal(r, jc, jp, cam_blocks, point_index, n_blocks, n)
+                parts = ranges.map(lambda _pa, _pb, oa, ob: kernels.gradient_and_diagonal(
+                    r[oa:ob], jc[oa:ob], jp[oa:ob], cam_blocks[oa:ob], point_index[oa:ob], n_blocks, n))
+                gc, dc, gp, dp = (sum(part[q] for part in parts) for q in range(4))
                 # eq. 6.10: a scalar is active at a bound whose gradient points out of the box
                 active_c = fixed_c | ((xc <= lower_c) & (gc > 0)) | ((xc >= upper_c) & (gc < 0))
                 active_p = fixed_p | ((xp <= lower_p) & (gp > 0)) | ((xp >= upper_p) & (gp < 0))
@@ -541,7 +600,8 @@ def solve(
                 pg_norm = float(max(np.abs(ghat_c).max(initial=0.0), np.abs(ghat_p).max(initial=0.0)))
                 diag_c = np.clip(dc, options.min_diagonal, options.max_diagonal)
                 diag_p = np.clip(dp, options.min_diagonal, options.max_diagonal)
-                kernels.zero_frozen_columns(jc, jp, cam_blocks, point_index, active_c, active_p)  # eq. 6.12
+                ranges.map(lambda _pa, _pb, oa, ob: kernels.zero_frozen_columns(  # eq. 6.12
+                    jc[oa:ob], jp[oa:ob], cam_blocks[oa:ob], point_index[oa:ob], active_c, active_p))
                 need_gradient = False
                 if not log:
                     log.append(IterationRecord(0, cost, 0.0, lam, n_active, pg_norm, 0.0, True,
@@ -564,7 +624,8 @@ def solve(
             accepted = False
             change = 0.0
             if delta_c is not None:
-                delta_p = kernels.back_substitute(jc, jp, cam_blocks, problem.point_ptr, v_inv, gp_buf, delta_c)
+                delta_p = np.concatenate(ranges.map(lambda pa, pb, _oa, _ob: kernels.back_substitute(
+                    jc, jp, cam_blocks, problem.point_ptr[pa:pb + 1], v_inv[pa:pb], gp_buf[pa:pb], delta_c)))
                 trial_c = np.where(active_c, xc, np.clip(xc + delta_c, lower_c, upper_c))  # eq. 6.9
                 trial_p = np.where(active_p, xp, np.clip(xp + delta_p, lower_p, upper_p))
                 step_c = trial_c - xc
@@ -578,7 +639,9 @@ def solve(
                     break
                 new_cost = cost_of(trial_c, trial_p)
                 model_decrease = -(float(ghat_c @ step_c) + float(np.sum(ghat_p * step_p))
-                                   + 0.5 * kernels.jacobian_step_norm2(jc, jp, cam_blocks, point_index, step_c, step_p))
+                                   + 0.5 * sum(ranges.map(lambda _pa, _pb, oa, ob: kernels.jacobian_step_norm2(
+                                       jc[oa:ob], jp[oa:ob], cam_blocks[oa:ob], point_index[oa:ob], step_c,
+                                       step_p))))
                 change = cost - new_cost
                 accepted = math.isfinite(new_cost) and change > 0
             if accepted:
