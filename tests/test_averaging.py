@@ -13,6 +13,7 @@ from scope3d.estimators.averaging import (
     average_positions,
     average_rotations,
     positions_from_points,
+    refine_relative_pose,
     relative_pose,
 )
 from scope3d.estimators.gauge import gauge_from_measurements
@@ -262,3 +263,21 @@ def test_positions_from_points_solve_two_groups_that_share_no_point():
     assert solved.all()
     # exact rays and exact measurements: both rows come back exactly (to the solver's round-off)
     np.testing.assert_allclose(out, all_centres, atol=1e-6)
+
+
+def test_refinement_from_a_start_degrees_off_needs_its_first_inliers_selected_wide():
+    """A start 5 deg off (the bearings' rotation of a scope turning inside a cavity is off by the parallax)
+    puts 40 right matches tens of pixels off: selected at the 1.5 px threshold, fewer than eight are inliers
+    and the refinement gives up; selected within the start's error and narrowed, it reaches the truth."""
+    camera, xi, xj, R, t = _noisy_pair_rays(3, n=40)
+    px_i, px_j = (camera.project(np.c_[x, np.ones(len(x))]) for x in (xi, xj))
+    start = rotvec_to_matrix([0.0, np.deg2rad(5.0), 0.0]) @ R
+    tight = refine_relative_pose(camera, px_i, px_j, start, t, threshold_px=1.5, noise_px=0.3)
+    assert tight is None
+    # 5 deg of a 400 px / 53 deg field is ~35 px: a start error of f tan(6 deg) covers it
+    wide = refine_relative_pose(camera, px_i, px_j, start, t, threshold_px=1.5, noise_px=0.3,
+                                start_error_px=camera.fx * np.tan(np.deg2rad(6.0)))
+    assert wide is not None and wide.n_inliers >= 0.9 * len(px_i)
+    # the truth within 4 of the estimate's own sigmas (0.3 px noise)
+    assert rotation_angle_between(wide.rotation, R) < 4 * wide.rotation_sigma_rad
+    assert np.arccos(np.clip(wide.direction @ t, -1, 1)) < 4 * wide.direction_sigma_rad

@@ -221,6 +221,11 @@ def cavity_relative_pose(camera: Camera, pixels_i: np.ndarray, pixels_j: np.ndar
     if essential is not None:
         candidates.append(essential)
     bearing = _bearing_rotation(camera, pixels_i, pixels_j)
+    # a start from the bearings is off by up to the turn between starts: a right match may lie that many
+    # degrees of the field from where the start puts it, so the refinements select their first inliers that
+    # wide (with the tight threshold, the 15-60 matches of a pale wet wall's pairs left every such start
+    # under eight inliers: only the essential matrix's candidate, in the bas-relief basin, was judged)
+    start_error_px = 0.5 * (camera.fx + camera.fy) * np.tan(np.deg2rad(_START_TURN_DEG))
     # cheapest first: the essential matrix, then starts from the bearings' rotation, then those turned;
     # stop as soon as the best candidate puts the wall at nearly one distance
     rounds = [np.zeros((1, 3)), np.r_[np.eye(3), -np.eye(3)] * np.deg2rad(_START_TURN_DEG)]
@@ -229,7 +234,8 @@ def cavity_relative_pose(camera: Camera, pixels_i: np.ndarray, pixels_j: np.ndar
         for turn in [] if turns is None else turns:
             for axis in np.r_[np.eye(3), -np.eye(3)]:
                 r = refine_relative_pose(camera, pixels_i, pixels_j, rotvec_to_matrix(turn) @ bearing, axis,
-                                         threshold_px=threshold_px, noise_px=noise_px, i=i, j=j)
+                                         threshold_px=threshold_px, noise_px=noise_px, i=i, j=j,
+                                         start_error_px=start_error_px)
                 if r is not None:
                     candidates.append(r)
         if not candidates:
