@@ -1,5 +1,5 @@
 """The compiled passes of axial stereo are the OpenCV + NumPy computations they replace, bit for bit: the
-sub-pixel refinement (mvs/refine_kernels.py) and the reliability tests (mvs/axial_kernels.py)."""
+sub-pixel refinement (mvs/refine_kernels.py) and the reliability tests (the same module)."""
 import cv2
 import numpy as np
 import pytest

@@ -24,7 +24,7 @@ from scope3d.mvs.axial import AxialPair
 from scope3d.utils.aot import load_kernels
 from scope3d.utils.row_blocks import run_by_row_blocks
 
-_kernels = load_kernels("scope3d.mvs.axial_kernels")
+_kernels = load_kernels("scope3d.mvs.refine_kernels")
 
 #: the tests of :func:`reliability`, in the order the compiled pass writes them (``Reliability.reasons``)
 REASONS = ("outside_view", "no_match", "near_epipole", "ill_conditioned", "dark", "low_texture", "poor_match")
@@ -105,7 +105,7 @@ def reliability(
 
     The window statistics (mean, standard deviation and RMS row gradient of the front image, mean of the
     rear one, over ``window_px`` boxes) and every test run in one compiled pass over the grid
-    (``axial_kernels.reliability_tests``), on blocks of rows shared by the cores: the same bits as
+    (``refine_kernels.reliability_tests``), on blocks of rows shared by the cores: the same bits as
     cv2.boxFilter, cv2.Sobel and NumPy's expressions of each test (tests/test_stereo_kernels.py).
     """
     shape = np.shape(disparity)

@@ -1,5 +1,6 @@
-"""Compiled passes of the sub-pixel disparity refinement (:func:`scope3d.mvs.dense_matching.refine_subpixel`): a
-kernel module of :mod:`scope3d.utils.aot` (compiled at install; numba's JIT where that could not run). It imports
+"""Compiled window-statistics passes of dense matching: the sub-pixel disparity refinement
+(:func:`scope3d.mvs.dense_matching.refine_subpixel`) and the axial pair's reliability tests
+(:func:`scope3d.mvs.confidence.reliability`), which share the box means below. A kernel module of :mod:`scope3d.utils.aot` (compiled at install; numba's JIT where that could not run). It imports
 only numpy and numba (setup.py compiles it without importing scope3d).
 
 The refinement warps the right image and its row gradient by every pixel's disparity and then needs seven
@@ -20,8 +21,11 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-# Exported at install with the exact argument types dense_matching.refine_subpixel passes (C-contiguous)
+# Exported at install with the exact argument types dense_matching.refine_subpixel and confidence.reliability pass
+# (C-contiguous)
 AOT_SIGNATURES = {
+    "reliability_tests": "void(u1[:, ::1], u1[:, ::1], f4[:, ::1], f4[:, ::1], f4[:, ::1], b1[:, ::1], f4[::1], i8, "
+                         "i8, i8, b1[:, :, ::1], b1[:, ::1])",
     "left_statistics": "void(f4[:, ::1], i8, i8, i8, i8, f4[:, ::1], f4[:, ::1])",
     "warp_rows": "void(f4[:, ::1], f4[:, ::1], f4[:, ::1], f4[:, ::1], i8, i8, f4[:, ::1], f4[:, ::1])",
     "step_pass": "void(f4[:, ::1], f4[:, ::1], f4[:, ::1], f4[:, ::1], f4[:, ::1], f4[:, ::1], i8, i8, i8, i8, "
@@ -278,3 +282,90 @@ def _fit_row(means, mean_left, var_left, disparity, start, max_shift, lowest, hi
         out_disparity[x] = d if keep else nan
         out_cost[x] = np.sqrt(ee) if keep else nan
         out_sigma[x] = np.sqrt(ee / (samples * jj)) if keep else nan  # inf or NaN where mean(J^2) is 0, as NumPy
+
+
+@njit(cache=True, nogil=True)
+def _add_polar_row(columns, front, rear, row, sign):
+    """Add (sign 1) or subtract (sign -1) one row to the column sums of the window statistics: front,
+    front^2, (front row gradient)^2, rear. The row gradient is cv2.Sobel's ksize=1 central difference times
+    1/2 (BORDER_REFLECT_101); every term is a multiple of 1/4 below 2^16, so the float64 sums are exact."""
+    width = front.shape[1]
+    f, r = front[row], rear[row]
+    for x in range(width):
+        value = np.float64(f[x])
+        columns[0, x] += sign * value
+        columns[1, x] += sign * (value * value)
+        columns[3, x] += sign * np.float64(r[x])
+    if width < 2:  # cv2.Sobel's difference of a one-pixel row is 0
+        return
+    for x in range(width):
+        right = f[x + 1] if x + 1 < width else f[width - 2]
+        left = f[x - 1] if x > 0 else f[1]
+        g = 0.5 * (np.float64(right) - np.float64(left))
+        columns[2, x] += sign * (g * g)
+
+
+@njit(cache=True, nogil=True)
+def reliability_tests(front, rear, disparity, cost, range_sigma, valid, thresholds, window, row_lo, row_hi, reasons,
+                      keep):
+    """Every test of :func:`scope3d.mvs.confidence.reliability` at each cell, in one pass (before the erosion).
+
+    front, rear : (A, R) uint8 polar images; disparity, cost : (A, R) float32 from the matcher (NaN =
+    none); range_sigma : (A, R) float32 predicted range sigma (mm, NaN = none); valid : (A, R) bool, seen
+    by both cameras; thresholds : float32 (min disparity, max range sigma, min intensity, min gradient,
+    max normalised cost), compared in float32 as NumPy compares a float32 array with a Python float;
+    window : odd size of the image statistics, box means with BORDER_REFLECT as cv2.boxFilter. Fills rows
+    [row_lo, row_hi) of reasons (7, A, R) bool, in the order of ``confidence.REASONS`` (outside view, no
+    match, near the epipole, ill-conditioned, dark, low texture, poor match), and keep (A, R) bool (no
+    test failed).
+    """
+    height, width = front.shape
+    half = window // 2
+    inverse = 1.0 / (window * window)
+    columns = np.zeros((4, width))
+    padded = np.empty(width + window - 1)
+    sums = np.empty(width)
+    means = np.empty((4, width), np.float32)
+    for y in range(row_lo, row_hi):
+        if y == row_lo:
+            for r in range(y - half, y + half + 1):
+                _add_polar_row(columns, front, rear, _reflect(r, height), 1.0)
+        else:
+            _add_polar_row(columns, front, rear, _reflect(y + half, height), 1.0)
+            _add_polar_row(columns, front, rear, _reflect(y - half - 1, height), -1.0)
+        for q in range(4):
+            _horizontal_means(columns[q], half, window, inverse, padded, sums, means[q])
+        _row_tests(means, front.shape[1], disparity[y], cost[y], range_sigma[y], valid[y], thresholds, reasons[:, y],
+                   keep[y])
+
+
+# error_model="numpy" (a callee keeps its own; ahead of time the exported functions get numba's default): a flat
+# window's normalised cost divides by a zero deviation and gives inf or NaN as in NumPy instead of raising
+@njit(cache=True, nogil=True, error_model="numpy")
+def _row_tests(means, width, disparity, cost, range_sigma, valid, thresholds, reasons, keep):
+    """:func:`reliability_tests` on one row, from its window means (4, W) float32."""
+    min_disparity, max_range_sigma, min_intensity = thresholds[0], thresholds[1], thresholds[2]
+    min_gradient, max_cost = thresholds[3], thresholds[4]
+    zero = np.float32(0.0)
+    for x in range(width):
+        mean_f = means[0, x]
+        std_f = np.sqrt(max(means[1, x] - mean_f * mean_f, zero))
+        grad_f = np.sqrt(max(means[2, x], zero))
+        mean_r = means[3, x]
+        d = disparity[x]
+        normalised_cost = cost[x] / std_f
+        outside = not valid[x]
+        no_match = not np.isfinite(d)
+        near_epipole = not d >= min_disparity
+        ill_conditioned = not range_sigma[x] <= max_range_sigma
+        dark = not (mean_f >= min_intensity and mean_r >= min_intensity)
+        low_texture = not grad_f >= min_gradient
+        poor_match = np.isfinite(normalised_cost) and normalised_cost > max_cost
+        reasons[0, x] = outside
+        reasons[1, x] = no_match
+        reasons[2, x] = near_epipole
+        reasons[3, x] = ill_conditioned
+        reasons[4, x] = dark
+        reasons[5, x] = low_texture
+        reasons[6, x] = poor_match
+        keep[x] = not (outside or no_match or near_epipole or ill_conditioned or dark or low_texture or poor_match)
