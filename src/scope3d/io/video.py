@@ -12,6 +12,7 @@ so a variable-rate video keeps its real timing.
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -64,6 +65,11 @@ def _open(path: Path) -> cv2.VideoCapture:
     # FFmpeg also opens still images as one-frame "videos"; a photo given as a video is a mistake
     if cv2.haveImageReader(str(path)):
         raise InputError(f"{path}: is a still image, not a video")
+    # FFmpeg's decoder threads report a damaged stream ("[mpeg4 @ ...] ac-tex damaged") on stderr whenever
+    # they reach it, outside quiet_decoders' window around each call: the import then printed lines beside
+    # its own. OpenCV sets FFmpeg's log level once, from this variable, when it first loads FFmpeg in the
+    # process; quiet (AV_LOG_QUIET, -8) unless the user set it
+    os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
     with quiet_decoders():
         capture = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
     if not capture.isOpened():
