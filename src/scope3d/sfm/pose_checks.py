@@ -538,7 +538,8 @@ def _gate_loss_p_values(total: np.ndarray, lost: np.ndarray, keep: np.ndarray) -
         value = others[np.arange(frames), at]
         better = value > best
         best[better] = value[better]
-        argbest[better] = np.c_[np.full(better.sum(), s), np.column_stack(np.unravel_index(at[better], table.shape[1:]))]
+        where = np.column_stack(np.unravel_index(at[better], table.shape[1:]))  # (logit, rho) indices
+        argbest[better] = np.c_[np.full(better.sum(), s), where]
     mean = expit(_GATE_LOGIT[argbest[:, 1]] + _GATE_SLOPE[argbest[:, 0]] * size)
     return np.array([_beta_binomial_sf(lost[i], total[i], mean[i], _GATE_RHO[argbest[i, 2]]) if lost[i] > 0 else 1.0
                      for i in range(frames)])
@@ -570,9 +571,10 @@ def _lost_to_the_gate(screened: dict[int, FramePoseTest], level: float) -> set[i
     Measured (docs/reliability.md section 5): on 19 clean maps (14 of 12 frames, 5 of 30) it sent 5 of 300
     frames on at a level of 1 %, where the binomial sent 16. Its tail is the fit's, not a predictive one:
     a dispersion fitted to about ten frames is mostly too small, and on synthetic maps drawn from the model
-    itself (12 frames, rho 0.01) it fires at ~4x its level (tests/test_pose_checks.py); averaging the tail
-    over the grid's parameters by their likelihood fired at 0.8-2x but missed 4 glitches of 2-5 mm the fit's
-    tail sent on (of 34 glitched dome12 and dome30 maps). A fired frame costs an exact test, not a false alarm.
+    itself (12 frames, rho 0.01) it fires at 3-6x its level (docs/reliability.md section 5); averaging the
+    tail over the grid's parameters by their likelihood fired at 0.8-2x, but the check then found 4 of 34
+    glitches of 2-5 mm fewer (dome12 and dome30). A frame sent on wrongly costs an exact test, not a false
+    alarm.
     """
     rows = [(k, t.observations, t.observations - t.inliers) for k, t in screened.items() if t.status != "unseen"]
     if len(rows) < 5:
@@ -660,7 +662,8 @@ def _scale_terms(t: FramePoseTest, m: MeasuredPose, level: float) -> tuple[np.nd
             level)
 
 
-def _scale_from_terms(terms: list[tuple[np.ndarray, ...]], tests: list[FramePoseTest]) -> tuple[float, float, list[int]]:
+def _scale_from_terms(terms: list[tuple[np.ndarray, ...]],
+                      tests: list[FramePoseTest]) -> tuple[float, float, list[int]]:
     """:func:`_scale_of_images` from its frames' :func:`_scale_terms`."""
     grid = _SCALE_GRID
     p, lam = np.array([t[0] for t in terms]), np.array([t[1] for t in terms])
