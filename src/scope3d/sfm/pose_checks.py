@@ -576,7 +576,9 @@ def _lost_to_the_gate(screened: dict[int, FramePoseTest], level: float) -> set[i
     glitches of 2-5 mm fewer (dome12 and dome30). A frame sent on wrongly costs an exact test, not a false
     alarm.
     """
-    rows = [(k, t.observations, t.observations - t.inliers) for k, t in screened.items() if t.status != "unseen"]
+    # (a screen that could not place any frame lists frames without observations too: nothing to count)
+    rows = [(k, t.observations, t.observations - t.inliers) for k, t in screened.items()
+            if t.status != "unseen" and t.observations > 0]
     if len(rows) < 5:
         return {k for k, _, lost in rows if lost > 0}
     frames, total, lost = (np.array(column) for column in zip(*rows))
