@@ -125,9 +125,10 @@ class MapOptions:
         for the coarse pass to run, test every reported pose against the images and the other reports
         after the adjustment, and map again with the reports found wrong replaced by what the images say
         (:func:`check_reported_poses`). Default None (every report trusted to lie in its box): with its
-        linearised screen the check holds its rate on the clean maps measured, but it still costs 16-27 %
-        of a whole map's CPU (12 and 30 frames, docs/reliability.md section 5), above the 15 % set for
-        turning it on by default, so it is opt-in (``PoseCheckOptions()``).
+        linearised screen and its beta-binomial gate-loss test the check holds its rate on the clean maps
+        measured and costs 3-18 % of a 12-frame map's CPU, but 21-25 % of a 30-frame one's, where 1-2 clean
+        frames per map still go to the exact test (docs/reliability.md section 5), so it is opt-in
+        (``PoseCheckOptions()``).
     """
 
     pose_mode: str = "bounded"
