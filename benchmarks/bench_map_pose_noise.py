@@ -46,6 +46,8 @@ Per level (and seed), the same dataset is mapped by:
       least-squares similarity from the true to the reported camera centres (what a least-squares
       gauge fit of the centres can reach), then the same ICP. Its camera error (true centres moved by
       that similarity) is the camera-error floor: a common bias is a translation no image can see.
+      camera_error_box_gauge_mm: the true centres placed by the bounded map's own gauge rule instead
+      (estimators.gauge.align_gauge, bounded): the camera error a bounded map with a perfect shape has.
       A scale error costs more after ICP on a wider point set, so each method's row also has
       floor_on_own_points_mm: the oracle on the true-surface points nearest to that method's points
       (after ICP). The tolerance boxes hold more than a least-squares fit uses: the oracle row also
@@ -94,6 +96,7 @@ import numpy as np
 
 from scope3d import __version__ as scope3d_version
 from scope3d import phantoms
+from scope3d.estimators.gauge import align_gauge
 from scope3d.geometry.pose import Pose
 from scope3d.io.dataset import load_dataset, write_dataset
 from scope3d.metrology.evaluation import EvaluationOptions, distance_summary, icp_from_initial_poses
@@ -306,6 +309,11 @@ def oracle_floor(scene: Scene, measured: list[MeasuredPose]) -> dict:
     sim = similarity(true_c, np.stack([m.pose.centre for m in measured]))
     row = {"method": "oracle", "status": "ok", "similarity": _sim_summary(sim),
            "camera_error_mm": float(np.mean(np.linalg.norm(_apply(sim, true_c) - true_c, axis=1)))}
+    # the true shape placed by the map's own bounded gauge rule (the least-squares placement well inside
+    # every box, estimators.gauge.align_gauge): what a bounded map with a perfect shape is left with
+    boxed = np.stack([p.centre for p in align_gauge(scene.true_poses, measured, bounded=True)])
+    row["camera_error_box_gauge_mm"] = float(np.mean(np.linalg.norm(boxed - true_c, axis=1)))
+    row["camera_error_box_gauge_max_mm"] = float(np.max(np.linalg.norm(boxed - true_c, axis=1)))
     interval = feasible_scales(true_c - true_c.mean(axis=0), measured)
     if interval is not None:
         lo, hi = interval

@@ -1,6 +1,8 @@
 """Pair selection from poses, feature position prediction, guided vs exhaustive matching on a rendered pair."""
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -136,6 +138,25 @@ def test_guided_batches_match_as_one(pair, monkeypatch):
     assert sum(len(m) for m in alone) > 0
     for a, b in zip(alone, together):
         assert (a.i, a.j, a.n_putative, a.n_candidates) == (b.i, b.j, b.n_putative, b.n_candidates)
+        np.testing.assert_array_equal(a.idx_i, b.idx_i)
+        np.testing.assert_array_equal(a.idx_j, b.idx_j)
+
+
+def test_candidate_search_in_chunks_finds_the_same_candidates(pair, monkeypatch):
+    """match_guided_many searches segment samples in chunks of bounded tree hits (to bound memory at
+    wide windows): the candidates, hence the matches, must not depend on the chunk size (one sample per
+    chunk against the default). A tracker's tolerance gives windows of tens of px, several samples each."""
+    import scope3d.feature.matching as matching
+
+    seq, feats = pair
+    tracker = [replace(m, tolerance=OPTICAL_TRACKER) for m in seq.measured_poses]
+    pairs = [(0, 1, 1.0), (1, 2, 1.0), (0, 2, 1.0)]
+    whole = match_pairs(seq.camera, feats, tracker, pairs, DepthPrior(12.0, 28.0))
+    monkeypatch.setattr(matching, "_CANDIDATE_HITS_PER_CHUNK", 1)
+    chunked = match_pairs(seq.camera, feats, tracker, pairs, DepthPrior(12.0, 28.0))
+    assert sum(m.n_candidates for m in whole) > 0 and sum(len(m) for m in whole) > 0
+    for a, b in zip(chunked, whole):
+        assert (a.i, a.j, a.n_putative, a.n_candidates, a.method) == (b.i, b.j, b.n_putative, b.n_candidates, "guided")
         np.testing.assert_array_equal(a.idx_i, b.idx_i)
         np.testing.assert_array_equal(a.idx_j, b.idx_j)
 

@@ -183,6 +183,10 @@ def best_two_per_query(query: np.ndarray, candidate: np.ndarray, d2: np.ndarray,
 # descriptor copy take tens of MB, not GB (the 1,000-frame survey's 3,800 pairs in one batch peaked at GB)
 _GUIDED_PAIRS_PER_BATCH = 128
 
+# tree hits (keypoint near a segment sample) examined at once by match_guided_many: each hit holds ~200 bytes
+# of temporaries until the exact distance test, so a chunk takes ~100 MB however wide the windows are
+_CANDIDATE_HITS_PER_CHUNK = 1 << 19
+
 # rows of descriptors compared at once by _two_nearest: a (rows x N) float32 block, 16 MB at N = 4,000
 _NEAREST_BLOCK_ROWS = 1024
 
@@ -218,6 +222,23 @@ def _two_nearest(desc_a: np.ndarray, desc_b: np.ndarray) -> tuple[np.ndarray, np
         second[lo:lo + len(block)] = d2.min(axis=1)
     # rounding of non-integer descriptors can leave a tiny negative square
     return nearest, np.sqrt(np.maximum(best, 0.0)), np.sqrt(np.maximum(second, 0.0))
+
+
+def _on_segment(q: np.ndarray, p0: np.ndarray, p1: np.ndarray, rad: np.ndarray, owner: np.ndarray, last: np.ndarray,
+                sample_k: np.ndarray, si: np.ndarray) -> np.ndarray:
+    """Which tree hits are candidates: keypoint ``q`` (H, 2) within its segment's radius of the segment
+    (p0, p1 (S, 2), rad (S,), per segment), and found from the sample nearest to its foot on the segment
+    (a keypoint near several samples of one segment is kept once). si (H,) sample of each hit; owner,
+    last, sample_k (per sample) its segment, that segment's last sample index and its own index."""
+    sg = owner[si]
+    s0 = p0[sg]
+    d = p1[sg] - s0
+    off = q - s0
+    tpar = np.clip(np.einsum("ij,ij->i", off, d) / np.maximum(np.einsum("ij,ij->i", d, d), 1e-12), 0.0, 1.0)
+    off -= tpar[:, None] * d
+    keep = np.einsum("ij,ij->i", off, off) <= rad[sg] ** 2
+    keep &= np.rint(tpar * last[si]).astype(np.int64) == sample_k[si]
+    return keep
 
 
 def _verify(
@@ -377,31 +398,34 @@ def match_guided_many(
         sample_group = group[owner]
         order_s = np.argsort(sample_group, kind="stable")
         starts = np.flatnonzero(np.r_[True, np.diff(sample_group[order_s]) != 0])
+        # the tree search returns every keypoint within the query radius of a sample, several times the
+        # candidates that survive the exact distance test (neighbouring samples' discs overlap, and the
+        # group's widest window sets the radius); those hits, each with a dozen temporaries, were what
+        # held memory (15 million at +-3 mm: 2.5 GB). So samples are searched in chunks whose expected
+        # hits (the keypoints a query disc covers, as a share of the image) stay bounded, and each chunk
+        # keeps only its exact candidates; the candidates per sample are the same whatever the chunking
         si_parts, b_parts = [], []
         for lo, hi in zip(starts, np.r_[starts[1:], len(order_s)]):  # per (frame, window size) loop
             sel = order_s[lo:hi]
             fj = int(frame_j[owner[sel[0]]])
             if len(features[fj]) == 0:
                 continue
-            r_max = float(rad[owner[sel]].max())
-            hits = cKDTree(samples[sel]).sparse_distance_matrix(
-                cKDTree(features[fj].keypoints), np.sqrt(1.0 + 0.25 * _SAMPLE_SPACING**2) * r_max * 1.0001, output_type="ndarray")
-            si_parts.append(sel[hits["i"]])
-            b_parts.append(offsets[fj] + hits["j"].astype(np.int64))
+            r_query = np.sqrt(1.0 + 0.25 * _SAMPLE_SPACING**2) * float(rad[owner[sel]].max()) * 1.0001
+            share = min(1.0, np.pi * r_query**2 / (camera.width * camera.height))
+            per_chunk = max(1, int(_CANDIDATE_HITS_PER_CHUNK / max(share * len(features[fj]), 1.0)))
+            kp_tree = cKDTree(features[fj].keypoints)
+            for c0 in range(0, len(sel), per_chunk):
+                chunk = sel[c0:c0 + per_chunk]
+                hits = cKDTree(samples[chunk]).sparse_distance_matrix(kp_tree, r_query, output_type="ndarray")
+                si, b_loc = chunk[hits["i"]], hits["j"].astype(np.int64)
+                del hits
+                keep = _on_segment(features[fj].keypoints[b_loc], p0, p1, rad, owner, last, sample_k, si)
+                si_parts.append(si[keep])
+                b_parts.append(offsets[fj] + b_loc[keep])
         si = np.concatenate(si_parts) if si_parts else np.zeros(0, np.int64)
         b_glob = np.concatenate(b_parts) if b_parts else np.zeros(0, np.int64)
         order_h = np.argsort(si, kind="stable")  # grouped by sample, hence by segment
-        si, b_glob = si[order_h], b_glob[order_h]
-        sg = owner[si]
-        # exact distance to the segment, within the pair's own radius; de-duplication: a keypoint near
-        # several samples of one segment is kept from the sample nearest to its foot on the segment
-        q = kp_all[b_glob]
-        s0, d = p0[sg], p1[sg] - p0[sg]
-        tpar = np.clip(np.einsum("ij,ij->i", q - s0, d) / np.maximum(np.einsum("ij,ij->i", d, d), 1e-12), 0.0, 1.0)
-        off = q - s0 - tpar[:, None] * d
-        keep = np.einsum("ij,ij->i", off, off) <= rad[sg] ** 2
-        keep &= np.rint(tpar * last[si]).astype(np.int64) == sample_k[si]
-        sg, b_glob = sg[keep], b_glob[keep]
+        sg, b_glob = owner[si[order_h]], b_glob[order_h]
         pair_c = pair_of[sg]
         i_frames = np.array([pairs[k][0] for k in range(len(pairs))], np.int64)
         a_glob = offsets[i_frames[pair_c]] + a_loc[sg]
