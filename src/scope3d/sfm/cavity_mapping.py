@@ -101,10 +101,11 @@ class CavityOptions:
         gets, spreads its distances by less than that).
     nominal_radius_mm : float, without a plan the provisional scale: the sphere fitted to the start's
         points gets this radius (default 40 mm: a sphere of 270 ml, a bladder half filled for cystoscopy).
-    min_radius_mm, max_radius_mm : float, the anatomical shell about the centre of the sphere fitted to the
-        points (defaults 20 and 70 mm: spheres of 34 ml and 1.4 l, an almost empty and an over-filled adult
-        bladder): final points outside it are dropped, the shell stage bounds the points to it, and with
-        planned poses the wall is placed between these distances to find the overlapping pairs.
+    min_radius_mm, max_radius_mm : float, the anatomical shell about the centre of the sphere fitted robustly
+        to the points (:func:`anatomical_shell`; defaults 20 and 70 mm: spheres of 34 ml and 1.4 l, an
+        almost empty and an over-filled adult bladder): final points outside it are dropped, the shell
+        stage bounds the points to it, and with planned poses the wall is placed between these distances
+        to find the overlapping pairs.
     shell_stage : bool, a first adjustment with every point bounded to the shell, then released (the
         reference's proposal; default False: from the depth-scaled start it was measured to hurt, on the
         36-frame spiral at 256 px the wall went from 2.45 to 5.71 mm mean, the bounded points sticking
