@@ -493,8 +493,8 @@ def fit_sphere(points: np.ndarray, *, robust: bool = False) -> tuple[np.ndarray,
     ``|X - c| - r``, under a soft-L1 loss whose scale is the residuals' robust spread (1.4826 x their
     median absolute deviation), re-estimated over three rounds. Why: the start's triangulation of the 30
     mm default spiral (planned poses) has 1 % of its points 100-240 mm from the cavity's centre; the
-    algebraic sphere sat 28.7 mm off the true centre (radius 52 mm) and the
-    shell about it cut the near end's real wall, the robust one is 0.5 mm off (radius 38 mm)."""
+    algebraic sphere sat 28.7 mm off the true centre (radius 52 mm) and the shell about it cut the near
+    end's real wall, the robust one is 0.5 mm off (radius 38 mm)."""
     X = np.asarray(points, float)
     A = np.c_[2.0 * X, np.ones(len(X))]
     sol = np.linalg.lstsq(A, np.einsum("ij,ij->i", X, X), rcond=None)[0]
