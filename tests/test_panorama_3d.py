@@ -196,3 +196,37 @@ def test_wall_spread_is_small_for_a_wall_at_one_distance_and_grows_when_scattere
     # deviation ~0.06; uniform radii between 20 and 70 mm: 12.5 / 45 ~ 0.28
     assert wall_spread(ellipsoid) < 0.15 < 0.2 < wall_spread(scattered)
     assert wall_spread(ellipsoid[:3]) == float("inf")
+
+
+def test_the_anatomical_shell_keeps_the_near_wall_of_an_elongated_cavity_despite_far_points():
+    from scope3d.sfm.cavity_mapping import anatomical_shell, fit_sphere, inside_shell
+    rng = np.random.default_rng(3)
+    semi_axes = np.array([45.0, 38.0, 32.0])  # the bladder phantom's (~90 x 76 x 64 mm)
+
+    def on_wall(directions):
+        d = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+        return d / np.sqrt(((d / semi_axes) ** 2).sum(axis=1, keepdims=True))
+
+    d = rng.normal(size=(6000, 3))
+    # seen unevenly: 2000 points all round, 2000 more at the -x end of the long axis (the 30 mm default
+    # spiral's frame 27 looks there), 0.2 mm of noise (the maps' wall error)
+    near_end = d[2000:][d[2000:, 0] < -0.6][:2000]
+    wall = on_wall(np.r_[d[:2000], near_end]) + rng.normal(scale=0.2, size=(2000 + len(near_end), 3))
+    # 2 % triangulated far off along the long axis, 100-250 mm away (rays meeting at small angles: the
+    # start of that spiral had 1 % of its points 100-240 mm from the centre)
+    toward = d[-60:] * [1.0, 0.5, 0.5]
+    toward[:, 0] = -np.abs(toward[:, 0]) - 1.0
+    far = toward / np.linalg.norm(toward, axis=1, keepdims=True) * rng.uniform(100.0, 250.0, (60, 1))
+    points = np.r_[wall, far]
+    options = CavityOptions()
+    centre, r_min, r_max = shell = anatomical_shell(points, [], options)
+    # the wall is 32-45 mm from the true centre: a centre within a few mm keeps all of it inside 20-70 mm
+    assert np.linalg.norm(centre) < 3.0 and 36.0 < fit_sphere(points, robust=True)[1] < 41.0
+    keep = inside_shell(points, shell)
+    assert keep[:len(wall)].all() and not keep[len(wall):].any()
+    # the algebraic fit (squared radii) is pulled tens of mm towards the far points, and the same shell
+    # about it cut the near end's wall (as it did frame 27's)
+    algebraic_centre, algebraic_radius = fit_sphere(points)
+    s = algebraic_radius / options.nominal_radius_mm
+    cut = inside_shell(points, (algebraic_centre, s * options.min_radius_mm, s * options.max_radius_mm))
+    assert np.linalg.norm(algebraic_centre) > 20.0 and not cut[:len(wall)].all()
