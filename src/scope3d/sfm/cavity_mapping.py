@@ -28,9 +28,10 @@ distance, the ambiguous one bends it (:func:`cavity_relative_pose`). The steps, 
    bounded to the spherical shell between an anatomical minimum and maximum radius
    (:meth:`BundleProblem.bound_points_to_shell`); bundle adjustment, observations farther than the
    reprojection gate dropped and the adjustment repeated; points outside the shell dropped. The chain of
-   posed pairs alone, adjusted from the depth-scaled start, is the fallback; the all-pair map is kept when
-   it explains more verified matches within the gate and its wall is no less at one distance from the
-   centre (:func:`wall_spread`). Planned poses (finite tolerance) start the poses and bound
+   posed pairs alone, adjusted from the depth-scaled start, is the fallback; a map whose cameras are not
+   inside near its wall's centre (:func:`cameras_off_centre`) loses to one whose are; otherwise the
+   all-pair map is kept when it explains more verified matches within the gate and its wall is no less at
+   one distance from the centre (:func:`wall_spread`). Planned poses (finite tolerance) start the poses and bound
    them (BCBA) instead of steps 2-4, and the pairs the plan says overlap are matched.
 
 What limited the image-only map (36-frame spiral): the frames overlap only their neighbours (35-65 %),
@@ -40,7 +41,9 @@ verified pair in the tracks and the centres from their rays, 0.175 mm at 608 px.
 2.6 deg off and the all-pair map falls into another minimum (a block of frames 9 deg off): the chain's map
 (2.44 mm) is kept. On an unseen cavity at 608 px six posed pairs 10-110 deg off pulled the start's centres
 5 mm off through their baselines and the all-pair map ended at 11.4 mm; without them (:func:`consistent_pairs`)
-0.194 mm.
+0.194 mm. On an unseen wet cavity (608 px) a start 6-12 deg off let the tracks' centres build a cap of a
+sphere 3.4 times too large with the cameras against it (26.5 mm), which explained more and fitted a sphere
+better than the chain's map: the cameras' place now rules it out (1.6 mm, the chain's).
 
 Units: mm (provisional until :mod:`scope3d.metrology.star_scale` rescales), radians; pixels with their
 origin at the top-left pixel's centre. Poses are ``cam_from_world``.
