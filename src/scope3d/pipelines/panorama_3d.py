@@ -128,7 +128,7 @@ def self_check(cavity: CavityMap, options: CavityOptions, scaled: bool) -> dict:
 
     Measured (docs/panorama.md, "A wrong map reported as a map"): the unseen wet cavity's broken map had
     its cameras 0.97 radii off centre and, from the stars, a 107 mm wall radius (the truth: 29-38 mm
-    semi-axes); the maps kept on the phantoms (dry, wet, unseen shapes), 0.03-0.07 and 34-41 mm."""
+    semi-axes); the maps kept on the phantoms (dry, wet, unseen shapes), 0.02-0.07 and 34-41 mm."""
     off = cameras_off_centre(cavity.tracks.points, cavity.poses)
     problems = []
     if not off <= MAX_OFF_CENTRE:

@@ -513,7 +513,7 @@ def wall_spread(points: np.ndarray) -> float:
 #: within 0.3 radii of it), and a plan of views at a fixed stand-off around the whole wall is centred on it
 #: too. Half the radius leaves room for an uneven scan and rejects the measured failure, a map whose cameras
 #: sit at the wall of a sphere 3.4 times the cavity's size (0.97; the maps kept on the phantoms,
-#: dry, wet, unseen shapes: 0.03-0.07, docs/panorama.md)
+#: dry, wet, unseen shapes: 0.02-0.07, docs/panorama.md)
 MAX_OFF_CENTRE = 0.5
 
 
