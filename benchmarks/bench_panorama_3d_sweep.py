@@ -50,7 +50,10 @@ UNSEEN = ["--shape-seed", "5", "--cavity-mm", "40,35,30"]
 SWEEPS = {
     "density": [("dry_d1", 1.0, None, ["--pose-noise", "1"])]
                + [(f"wet_d{d:g}", d, None, ["--pose-noise", "1", "--wet", "--vessel-density", f"{d:g}"])
-                  for d in (1.0, 0.5, 0.25, 0.1)],
+                  for d in (1.0, 0.5, 0.25, 0.1)]
+               # an unseen wet cavity, smaller than the default (its image-only map was a wrong map, 26.5 mm)
+               + [("wet_d0.5_unseen11", 0.5, None, ["--pose-noise", "1", "--seed", "3", "--wet", "--vessel-density",
+                                                    "0.5", "--shape-seed", "11", "--cavity-mm", "38,34,29"])],
     "spirals": [(f"spiral{s}_{'unseen' if u else 'default'}", s, (s, u), ["--pose-noise", "1"] + (UNSEEN if u else []))
                 for s in (30, 15) for u in (False, True)],
 }

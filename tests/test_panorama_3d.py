@@ -230,3 +230,76 @@ def test_the_anatomical_shell_keeps_the_near_wall_of_an_elongated_cavity_despite
     s = algebraic_radius / options.nominal_radius_mm
     cut = inside_shell(points, (algebraic_centre, s * options.min_radius_mm, s * options.max_radius_mm))
     assert np.linalg.norm(algebraic_centre) > 20.0 and not cut[:len(wall)].all()
+
+
+def _cavity_map(points, centres, radius_scale=1.0):
+    """A CavityMap of ``points`` (N, 3) seen by cameras at ``centres`` (n, 3), each observation of a point by
+    frame 0 (only the points and poses matter to the self-check)."""
+    from scope3d.geometry.pose import Pose
+    from scope3d.scene.tracks import Tracks
+    from scope3d.sfm.cavity_mapping import CavityMap, fit_sphere
+    n_points = len(points)
+    tracks = Tracks(np.arange(n_points), np.zeros(n_points, int), np.arange(n_points), np.zeros((n_points, 2)),
+                    np.zeros((n_points, 3), np.uint8), np.asarray(points, float))
+    poses = [Pose.from_centre(np.eye(3), c) for c in centres]
+    centre, radius = fit_sphere(points)
+    return CavityMap(tracks, poses, centre, radius_scale * radius, np.ones(len(centres), bool), [], [], 0, [], False)
+
+
+def _wall_and_cap():
+    """The bladder phantom's wall (semi-axes 45, 38, 32 mm) with cameras on a spiral 8 mm about its centre
+    (the 36-frame spiral's camera spread), and the measured failure's shape: a cap of a sphere 3.4 times
+    larger (131 mm radius, 30 deg wide) with the same cameras pressed against it (its points 5 mm away)."""
+    rng = np.random.default_rng(5)
+    d = rng.normal(size=(3000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    wall = d * np.array([45.0, 38.0, 32.0])
+    t = np.linspace(0.0, 4.0 * np.pi, 36)
+    cameras = np.c_[8.0 * np.cos(t), 8.0 * np.sin(t), np.linspace(-6.0, 6.0, 36)]
+    cone = d[d[:, 2] > np.cos(np.deg2rad(30.0))]
+    cap = 131.0 * cone - np.array([0.0, 0.0, 131.0 - 5.0])  # the cap's apex 5 mm above the cameras' centroid
+    return wall, cap, cameras
+
+
+def test_cameras_off_centre_separates_a_cavity_seen_from_inside_from_a_cap_seen_from_its_wall():
+    from scope3d.geometry.pose import Pose
+    from scope3d.sfm.cavity_mapping import MAX_OFF_CENTRE, cameras_off_centre, wall_spread
+    wall, cap, cameras = _wall_and_cap()
+    poses = [Pose.from_centre(np.eye(3), c) for c in cameras]
+    # the cameras' centroid is the wall's centre: 0 up to the fit of an ellipsoid by a sphere; the cap's
+    # centre is 126 mm from them on a 131 mm radius: 0.96 (the unseen wet cavity's broken map: 0.97)
+    assert cameras_off_centre(wall, poses) < 0.1 < MAX_OFF_CENTRE < 0.9 < cameras_off_centre(cap, poses)
+    assert wall_spread(cap) < wall_spread(wall)  # why the wall's spread alone chose the cap (0.025 vs 0.039)
+    assert cameras_off_centre(wall[:3], poses) == float("inf")
+
+
+def test_self_check_flags_cameras_off_centre_and_a_radius_outside_the_anatomical_shell():
+    from scope3d.pipelines.panorama_3d import self_check
+    wall, cap, cameras = _wall_and_cap()
+    options = CavityOptions()
+    good = self_check(_cavity_map(wall, cameras), options, scaled=True)
+    assert good["passed"] and not good["problems"] and 32.0 < good["wall_radius_mm"] < 45.0
+    bad = self_check(_cavity_map(cap, cameras), options, scaled=True)
+    assert not bad["passed"] and len(bad["problems"]) == 2  # off centre, and 131 mm > 70 mm
+    # without a physical scale only the cameras' place is checked
+    unscaled = self_check(_cavity_map(cap, cameras), options, scaled=False)
+    assert unscaled["wall_radius_mm"] is None and len(unscaled["problems"]) == 1
+    # a right shape at a wrong scale (stars 3x off) is flagged by the anatomical radius alone
+    big = self_check(_cavity_map(wall, cameras, radius_scale=3.0), options, scaled=True)
+    assert not big["passed"] and "anatomical" in big["problems"][0]
+
+
+def test_a_map_failing_the_self_check_is_refused_unless_kept(bladder, tmp_path, monkeypatch):
+    import scope3d.pipelines.panorama_3d as panorama_3d
+    ds = load_dataset(bladder)
+    _, cap, cameras = _wall_and_cap()
+    broken = _cavity_map(cap, cameras[:len(ds)])
+    monkeypatch.setattr(panorama_3d, "map_cavity", lambda *args, **kwargs: broken)
+    monkeypatch.setattr(panorama_3d, "evaluate", lambda *args: {})  # the fake map has no true positions
+    options = PanoramaOptions(stars=None, use_planned_poses=False, figures=False, texture=None)
+    with pytest.raises(InputError, match="no cavity seen from inside"):
+        run(options, ds, tmp_path / "refused")
+    assert not (tmp_path / "refused").exists()  # nothing half-written
+    report, _ = run(replace(options, refuse_implausible=False), ds, tmp_path / "kept")
+    saved = json.loads((tmp_path / "kept" / "report.json").read_text())
+    assert not report["self_check"]["passed"] and saved["self_check"]["cameras_off_centre"] > 0.9

@@ -105,6 +105,9 @@ def register_panorama(subparsers) -> None:
                    help="outer (tip circle) diameter of the star targets, mm (default 6)")
     p.add_argument("--ignore-poses", action="store_true",
                    help="do not use planned poses even when poses.csv gives finite tolerances (image-only)")
+    p.add_argument("--keep-implausible", action="store_true",
+                   help="write the map even when its self-check fails (cameras far off the wall's centre, or a "
+                        "wall radius outside the anatomical 20-70 mm); by default such a map is refused (exit 2)")
     add_job_arguments(p)
     p.set_defaults(func=_run_panorama)
 
@@ -120,7 +123,8 @@ def _run_panorama(args) -> int:
         stars = None if args.no_scale else StarScaleOptions(outer_diameter_mm=args.star_mm)
     except ValueError as exc:
         raise InputError(str(exc)) from None
-    options = PanoramaOptions(stars=stars, use_planned_poses=not args.ignore_poses)
+    options = PanoramaOptions(stars=stars, use_planned_poses=not args.ignore_poses,
+                              refuse_implausible=not args.keep_implausible)
     dataset = load_dataset(args.dataset)
     with job_folder(args.out) as staged, progress_bar(show_progress(args), "frame") as progress:
         report, _ = run(options, dataset, staged, progress=progress)
@@ -132,5 +136,7 @@ def _run_panorama(args) -> int:
         lines.append(f"wall error after similarity: mean {err['mean']:.3f}, median {err['median']:.3f}, "
                      f"p95 {err['p95']:.3f} mm" + (f"; scale error {report['scale_error_fraction']:+.2%}"
                                                   if "scale_error_fraction" in report else ""))
+    if not report["self_check"]["passed"]:
+        lines.append("self-check FAILED, the map is kept as asked: " + "; ".join(report["self_check"]["problems"]))
     lines.append(f"wrote {args.out}/ (report.json, sparse/, points.ply, mesh.ply, wall.obj, panorama_3d.png)")
     return finish_job(args, args.out, report, lines)

@@ -37,7 +37,7 @@ from scope3d.metrology.star_scale import StarScaleOptions, star_scale
 from scope3d.mvs.texturing import TextureOptions, texture_mesh
 from scope3d.pipelines.surgical_map import MapOptions, detect_features
 from scope3d.scene.mesh import Mesh, PointCloud, SampledSurface
-from scope3d.sfm.cavity_mapping import CavityMap, CavityOptions, map_cavity
+from scope3d.sfm.cavity_mapping import MAX_OFF_CENTRE, CavityMap, CavityOptions, cameras_off_centre, map_cavity
 from scope3d.utils.atomic import atomic_directory
 from scope3d.utils.figures import new_figure, save_figure
 from scope3d.utils.jsonio import write_json
@@ -54,7 +54,8 @@ class PanoramaOptions:
     planned poses with finite tolerances start and bound the adjustment (default True); False ignores them
     (image-only). evaluation_step_mm : sample spacing of the true surface for the wall error (default 0.25).
     figures : write panorama_3d.png (default True). texture : the textured wall's options, or None for no
-    wall.obj."""
+    wall.obj. refuse_implausible : a map failing :func:`self_check` raises InputError instead of being
+    written (default True); False writes it with the check's problems in report.json."""
 
     features: FeatureOptions = field(default_factory=FeatureOptions)
     pale_features: FeatureOptions | None = field(
@@ -67,6 +68,7 @@ class PanoramaOptions:
     evaluation_step_mm: float = 0.25
     figures: bool = True
     texture: TextureOptions | None = field(default_factory=TextureOptions)
+    refuse_implausible: bool = True
 
     def __post_init__(self) -> None:
         if self.evaluation_step_mm <= 0 or self.min_median_features < 0:
@@ -117,6 +119,30 @@ def evaluate(dataset: Dataset, cavity: CavityMap, step_mm: float) -> dict:
             "_distances": distances}
 
 
+def self_check(cavity: CavityMap, options: CavityOptions, scaled: bool) -> dict:
+    """Whether the map can be a cavity seen from inside, from the map alone (no truth): the cameras' centroid
+    within :data:`MAX_OFF_CENTRE` of the wall's radius from its centre (:func:`cameras_off_centre`), and,
+    when the map has a physical scale (stars or plan), the wall's fitted radius within the anatomical shell
+    (``options.min_radius_mm``-``max_radius_mm``, the prior's own range). Returns the measures, the
+    ``problems`` found (sentences) and ``passed``.
+
+    Measured (docs/panorama.md, "A wrong map reported as a map"): the unseen wet cavity's broken map had
+    its cameras 0.97 radii off centre and, from the stars, a 107 mm wall radius (the truth: 29-38 mm
+    semi-axes); the maps kept on the phantoms (dry, wet, unseen shapes), 0.02-0.07 and 34-41 mm."""
+    off = cameras_off_centre(cavity.tracks.points, cavity.poses)
+    problems = []
+    if not off <= MAX_OFF_CENTRE:
+        problems.append(f"the cameras' centroid is {off:.2f} of the wall's radius from its centre "
+                        f"(a scope inside a cavity: at most {MAX_OFF_CENTRE:g})")
+    radius = float(cavity.radius_mm) if scaled else None
+    if radius is not None and not options.min_radius_mm <= radius <= options.max_radius_mm:
+        problems.append(f"the wall's radius is {radius:.1f} mm, outside the anatomical "
+                        f"{options.min_radius_mm:g}-{options.max_radius_mm:g} mm")
+    return {"cameras_off_centre": off, "max_off_centre": MAX_OFF_CENTRE, "wall_radius_mm": radius,
+            "anatomical_radius_mm": [options.min_radius_mm, options.max_radius_mm], "problems": problems,
+            "passed": not problems}
+
+
 def save_panorama_png(path: Path, cavity: CavityMap, distances: np.ndarray | None) -> None:
     """Three orthogonal views of the points (coloured by their wall error when known, else their colour)
     with the camera centres."""
@@ -165,6 +191,10 @@ def run(options: PanoramaOptions, dataset: Dataset, out_dir: str | Path, *, prog
         cavity = cavity.scaled(scale_info.scale)
         timings["scale_s"] = time.perf_counter() - t1
     scale_source = "stars" if scale_info is not None else ("plan" if cavity.scale_known else "none")
+    check = self_check(cavity, options.cavity, scale_source != "none")
+    if options.refuse_implausible and not check["passed"]:
+        raise InputError(f"{dataset.root}: the map is no cavity seen from inside, so it is not written: "
+                         + "; ".join(check["problems"]) + " (keep it anyway with --keep-implausible)")
     evaluation = evaluate(dataset, cavity, options.evaluation_step_mm)
     distances = evaluation.pop("_distances", None)
     if scale_source == "none":
@@ -184,6 +214,7 @@ def run(options: PanoramaOptions, dataset: Dataset, out_dir: str | Path, *, prog
         "cavity_radius": cavity.radius_mm,
         "length_unit": "mm" if scale_source != "none" else "map units (no physical scale)",
         "stages": cavity.stages,
+        "self_check": check,
         **evaluation,
         "timings_s": timings,
         "time_s": time.perf_counter() - t0,

@@ -28,9 +28,10 @@ distance, the ambiguous one bends it (:func:`cavity_relative_pose`). The steps, 
    bounded to the spherical shell between an anatomical minimum and maximum radius
    (:meth:`BundleProblem.bound_points_to_shell`); bundle adjustment, observations farther than the
    reprojection gate dropped and the adjustment repeated; points outside the shell dropped. The chain of
-   posed pairs alone, adjusted from the depth-scaled start, is the fallback; the all-pair map is kept when
-   it explains more verified matches within the gate and its wall is no less at one distance from the
-   centre (:func:`wall_spread`). Planned poses (finite tolerance) start the poses and bound
+   posed pairs alone, adjusted from the depth-scaled start, is the fallback; a map whose cameras are not
+   inside near its wall's centre (:func:`cameras_off_centre`) loses to one whose are; otherwise the
+   all-pair map is kept when it explains more verified matches within the gate and its wall is no less at
+   one distance from the centre (:func:`wall_spread`). Planned poses (finite tolerance) start the poses and bound
    them (BCBA) instead of steps 2-4, and the pairs the plan says overlap are matched.
 
 What limited the image-only map (36-frame spiral): the frames overlap only their neighbours (35-65 %),
@@ -40,7 +41,9 @@ verified pair in the tracks and the centres from their rays, 0.175 mm at 608 px.
 2.6 deg off and the all-pair map falls into another minimum (a block of frames 9 deg off): the chain's map
 (2.44 mm) is kept. On an unseen cavity at 608 px six posed pairs 10-110 deg off pulled the start's centres
 5 mm off through their baselines and the all-pair map ended at 11.4 mm; without them (:func:`consistent_pairs`)
-0.194 mm.
+0.194 mm. On an unseen wet cavity (608 px) a start 6-12 deg off let the tracks' centres build a cap of a
+sphere 3.4 times too large with the cameras against it (26.5 mm), which explained more and fitted a sphere
+better than the chain's map: the cameras' place now rules it out (1.6 mm, the chain's).
 
 Units: mm (provisional until :mod:`scope3d.metrology.star_scale` rescales), radians; pixels with their
 origin at the top-left pixel's centre. Poses are ``cam_from_world``.
@@ -531,6 +534,34 @@ def wall_spread(points: np.ndarray) -> float:
     return float(np.median(np.abs(r - med)) / med)
 
 
+#: the cameras' centroid of a scope scanning a cavity from inside lies within this fraction of the wall's
+#: radius from the wall's centre: the scope turns about the cavity's centre (the bladder spiral: its centres
+#: within 0.3 radii of it), and a plan of views at a fixed stand-off around the whole wall is centred on it
+#: too. Half the radius leaves room for an uneven scan and rejects the measured failure, a map whose cameras
+#: sit at the wall of a sphere 3.4 times the cavity's size (0.97; the maps kept on the phantoms,
+#: dry, wet, unseen shapes: 0.02-0.07, docs/panorama.md)
+MAX_OFF_CENTRE = 0.5
+
+
+def cameras_off_centre(points: np.ndarray, poses: list[Pose]) -> float:
+    """Distance of the cameras' centroid from the centre of the points' (N, 3) fitted sphere
+    (:func:`fit_sphere`), over its radius; inf with fewer than four points. Scale-free: a map whose cameras
+    look at their wall from inside near its centre is near 0; above :data:`MAX_OFF_CENTRE` the map is not a
+    cavity seen from inside.
+
+    Why: with the rotations degrees off, the known-rotation problem can place the centres so that the
+    adjusted map is a cap of a large sphere with the cameras against it (the unseen wet cavity,
+    ``--shape-seed 11``: cameras 0.97 radii off, points at 0.04 radii from the cameras, every point ~26 mm
+    off the truth). That cap fits a sphere better than a real wall does, so :func:`wall_spread` preferred
+    it; where the cameras are is what gives it away."""
+    if len(points) < 4:
+        return float("inf")
+    centre, radius = fit_sphere(points)
+    if radius <= 0:
+        return float("inf")
+    return float(np.linalg.norm(np.mean([p.centre for p in poses], axis=0) - centre) / radius)
+
+
 # --- 4. adjustment --------------------------------------------------------------------------------
 
 
@@ -704,11 +735,21 @@ def map_cavity(camera: Camera, features: list[Features], measured: list[Measured
         chain_tracks, chain_poses, chain_stages = adjust_cavity(camera, chain, start, options)
         explained = [triangulate_tracks(camera, p, every, options.tracks).n_observations for p in (poses, chain_poses)]
         spread = [wall_spread(t.points) for t in (tracks, chain_tracks)]
-        if explained[1] > explained[0] or spread[0] > spread[1]:
+        # a map that is no cavity seen from inside (cameras far off its wall's centre) loses to one that is,
+        # whatever it explains (the unseen wet cavity: the all-pair map a cap of a 3.4x larger sphere, 26.5
+        # mm wall error, explaining 9738 observations against the chain's 9382 at 1.6 mm)
+        off = [cameras_off_centre(t.points, p) for t, p in ((tracks, poses), (chain_tracks, chain_poses))]
+        inside = [o <= MAX_OFF_CENTRE for o in off]
+        if inside[0] != inside[1]:
+            use_chain = inside[1]
+        else:
+            use_chain = explained[1] > explained[0] or spread[0] > spread[1]
+        if use_chain:
             tracks, poses, stages = chain_tracks, chain_poses, chain_stages
         else:
             matches = matches + more
-        stages = [{**st, "explained_observations": explained, "wall_spread": spread} for st in stages]
+        stages = [{**st, "explained_observations": explained, "wall_spread": spread, "cameras_off_centre": off}
+                  for st in stages]
         times["adjust_s"] = time.perf_counter() - t0
     centre, radius = fit_sphere(tracks.points)
     registered = np.bincount(tracks.frame, minlength=n) >= options.min_observations
