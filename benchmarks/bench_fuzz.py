@@ -170,6 +170,7 @@ def main() -> None:
     parser.add_argument("--seconds-per-reader", type=float, default=60.0)
     parser.add_argument("--engines", default="hypothesis,atheris", help="any of hypothesis, random, atheris")
     parser.add_argument("--readers", default="", help="comma-separated target names (default: all)")
+    parser.add_argument("--seed", type=int, default=0, help="the random engine's seed (another seed, other chains)")
     parser.add_argument("--results", type=Path, default=RESULTS, help="JSON to write (benchmarks/results/fuzz.json)")
     parser.add_argument("--work-dir", default="/dev/shm" if Path("/dev/shm").is_dir() else None,
                         help="where the mutated files are written (default: /dev/shm, memory, where it exists)")
@@ -185,6 +186,7 @@ def main() -> None:
             "seconds_per_reader_and_engine": args.seconds_per_reader,
             "load_average_at_start": os.getloadavg(),
             "python": sys.version.split()[0],
+            "random_seed": args.seed,
             "work_dir": str(work),
             "readers": {},
         }
@@ -197,7 +199,7 @@ def main() -> None:
                 entry["hypothesis"]["inputs_per_s"] = round(entry["hypothesis"]["inputs"] / args.seconds_per_reader, 1)
             if "random" in engines:
                 start = time.process_time()
-                entry["random"] = run_random(targets[name], args.seconds_per_reader)
+                entry["random"] = run_random(targets[name], args.seconds_per_reader, seed=args.seed)
                 entry["random"]["cpu_s"] = round(time.process_time() - start, 1)
                 entry["random"]["inputs_per_s"] = round(entry["random"]["inputs"] / args.seconds_per_reader, 1)
             if "atheris" in engines:
