@@ -143,6 +143,8 @@ def test_import_every_and_keyframes_write_datasets_with_unknown_poses(video, cam
                for m in ds.poses)
     source = json.loads((every / "dataset.json").read_text())["source"]
     assert source["frame_indices"] == list(range(0, len(centres), 7))
+    # a clean video (sensor noise, motion, a roll) has no frame flagged as damaged
+    assert source["decode_damage"]["checked"] and source["decode_damage"]["frames"] == []
 
     keys = import_video(path, tmp_path / "keys", VideoImportOptions(keyframes=KeyframeOptions()), camera=camera)
     selector = KeyframeSelector()
@@ -200,7 +202,8 @@ def test_cli_import_video(video, tmp_path, capsys):
     write_json(cam, camera_to_dict(Camera.from_fov(WIDTH, HEIGHT, 60.0)))
     assert main(["import", "video", str(path), "--camera", str(cam), "--keyframes", "--out", str(tmp_path / "k"),
                  "--no-progress"]) == 0
-    assert "frames" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "frames" in out and "damage" not in out
     assert main(["import", "video", str(path), "--fov", "70", "--every", "10", "--out", str(tmp_path / "e"),
                  "--no-progress"]) == 0
     source = json.loads((tmp_path / "e" / "dataset.json").read_text())["source"]
@@ -301,3 +304,76 @@ def test_a_damaged_mp4_imports_without_ffmpegs_complaints_on_stderr(tmp_path):
     assert "@ 0x" not in run.stderr and "damaged" not in run.stderr, run.stderr
     # either outcome is allowed for a damaged stream, each said in at most one line: imported, or refused
     assert (run.returncode, len(run.stderr.strip().splitlines())) in {(0, 0), (2, 1)}, run.stderr
+    if run.returncode == 0:  # imported: the output says which frames FFmpeg concealed
+        assert "could not be decoded cleanly" in run.stdout, run.stdout
+        source = json.loads((tmp_path / "out" / "dataset.json").read_text())["source"]
+        assert source["decode_damage"]["frames"], source["decode_damage"]
+
+
+def _sample_spans(mp4: bytes) -> list[tuple[int, int]]:
+    """(start, end) byte range of each frame's sample in an MP4 with one video track, from its sample table
+    (stsz: sizes, stco: chunk offsets, stsc: samples per chunk)."""
+    import struct
+
+    def body(tag):
+        return mp4.index(tag) + 4
+
+    at = body(b"stsz")
+    fixed, n = struct.unpack(">4xII", mp4[at:at + 12])
+    sizes = [fixed] * n if fixed else list(struct.unpack(f">{n}I", mp4[at + 12:at + 12 + 4 * n]))
+    at = body(b"stco")
+    (n_chunks,) = struct.unpack(">4xI", mp4[at:at + 8])
+    offsets = struct.unpack(f">{n_chunks}I", mp4[at + 8:at + 8 + 4 * n_chunks])
+    at = body(b"stsc")
+    (n_runs,) = struct.unpack(">4xI", mp4[at:at + 8])
+    runs = [struct.unpack(">III", mp4[at + 8 + 12 * k:at + 20 + 12 * k]) for k in range(n_runs)]
+    spans, sample = [], 0
+    for chunk, start in enumerate(offsets):
+        for _ in range([per for first, per, _ in runs if first - 1 <= chunk][-1]):
+            spans.append((start, start + sizes[sample]))
+            start += sizes[sample]
+            sample += 1
+    return spans
+
+
+def test_damaged_frames_are_named_and_clean_frames_are_not(tmp_path, capsys):
+    """Bits flipped inside frames 2, 9 and 15 of an MP4 (their samples found in the file's sample table):
+    FFmpeg conceals them and OpenCV returns them as whole; the reader names exactly those frames, from
+    FFmpeg's own error lines, and the import says so in its output and dataset.json."""
+    import random
+
+    from scope3d.io.video import DamagedFrame
+
+    noise = np.random.default_rng(1)  # noise frames: past each frame's header, coefficient data
+    clean = write_video(tmp_path / "clean.mp4",
+                        [noise.integers(0, 256, (96, 128, 3), dtype=np.uint8) for _ in range(20)], FPS)
+    data = bytearray(clean.read_bytes())
+    spans = _sample_spans(bytes(data))
+    assert len(spans) == 20
+    flips = random.Random(0)
+    for frame in (2, 9, 15):
+        start, end = spans[frame]
+        # 8 flips a frame, in the last three quarters of its sample (past the frame's own header): a single
+        # flip often leaves a valid stream that decodes to wrong pixels without a word (benchmarks/
+        # bench_video_damage.py measures how often); this seeded case is seen in all three frames
+        for _ in range(8):
+            data[flips.randrange(start + (end - start) // 4, end)] ^= 1 << flips.randrange(8)
+    damaged_path = tmp_path / "damaged.mp4"
+    damaged_path.write_bytes(bytes(data))
+
+    damaged: list[DamagedFrame] = []
+    frames = list(read_video(damaged_path, every=4, damaged=damaged))
+    assert [f.index for f in frames] == [0, 4, 8, 12, 16]  # every frame is still returned (concealed)
+    assert [d.index for d in damaged] == [2, 9, 15]  # skipped frames are checked too
+    assert all(d.messages and all("@" in line for line in d.messages) for d in damaged)
+    assert damaged[1].time_s == pytest.approx(9 / FPS)
+    untouched: list[DamagedFrame] = []
+    assert len(list(read_video(clean, damaged=untouched))) == 20 and untouched == []
+
+    assert main(["import", "video", str(damaged_path), "--fov", "60", "--every", "3", "--out",
+                 str(tmp_path / "d"), "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    assert "3 frames could not be decoded cleanly (frames 2, 9, 15; 2 of them in the dataset)" in out, out
+    record = json.loads((tmp_path / "d" / "dataset.json").read_text())["source"]["decode_damage"]
+    assert record["frames"] == [2, 9, 15] and record["frames_kept"] == [9, 15]
+    assert json.loads((tmp_path / "d" / "report.json").read_text())["decode_damage"]["frames"] == [2, 9, 15]
