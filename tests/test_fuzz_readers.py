@@ -142,6 +142,25 @@ def test_bal_observation_of_a_camera_not_in_the_file(tmp_path):
     _expect_refusal(lambda: read_bal(path), path, "observation 1 (0-based)", "2 cameras")
 
 
+@pytest.mark.parametrize("rx", ["1e308", "1e200", "4.6e15"])
+def test_bal_rotation_vector_too_large_to_name_a_rotation_is_refused(tmp_path, rx):
+    """Found by the long random fuzz run (issue 16): a rotation vector component of 1e308 is finite, so the
+    reader took it, and Rodrigues' formula overflowed: the bundle problem refused 'rotations row 0 has NaN
+    or infinite values' without naming the file. Refused by the reader now, naming file and camera; an
+    angle of thousands of radians (a solver's unwrapped output) is still a rotation."""
+    from scope3d.estimators.bundle import bal_to_problem, read_bal
+
+    path = _tiny_bal(tmp_path / "p.txt")
+    lines = path.read_text().splitlines()
+    lines[12] = rx  # camera 1's rx (header, 2 observations, camera 0's 9 numbers before it)
+    path.write_text("\n".join(lines) + "\n")
+    _expect_refusal(lambda: read_bal(path), path, "camera 1 (0-based)", "rotation")
+    lines[12] = "6283.2"  # 1000 turns: the same rotation as 0.0147 rad
+    path.write_text("\n".join(lines) + "\n")
+    rotation = bal_to_problem(read_bal(path)).reference_rotations[1]
+    assert np.all(np.isfinite(rotation)) and np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-12)
+
+
 @pytest.fixture
 def bal_problem(tmp_path):
     from scope3d.estimators.bundle import bal_to_problem, read_bal
