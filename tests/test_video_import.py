@@ -367,13 +367,48 @@ def test_damaged_frames_are_named_and_clean_frames_are_not(tmp_path, capsys):
     assert [d.index for d in damaged] == [2, 9, 15]  # skipped frames are checked too
     assert all(d.messages and all("@" in line for line in d.messages) for d in damaged)
     assert damaged[1].time_s == pytest.approx(9 / FPS)
+    # every noise frame is coded as a key frame (nothing to predict it from): no frame carries another's damage
+    assert [d.next_key_frame for d in damaged] == [3, 10, 16]
+    assert [k for k in range(20) if any(d.carries_damage(k) for d in damaged)] == [2, 9, 15]
     untouched: list[DamagedFrame] = []
     assert len(list(read_video(clean, damaged=untouched))) == 20 and untouched == []
 
     assert main(["import", "video", str(damaged_path), "--fov", "60", "--every", "3", "--out",
                  str(tmp_path / "d"), "--no-progress"]) == 0
     out = capsys.readouterr().out
-    assert "3 frames could not be decoded cleanly (frames 2, 9, 15; 2 of them in the dataset)" in out, out
+    assert ("3 frames could not be decoded cleanly (frames 2, 9, 15; 2 of them in the dataset, and 2 of the "
+            "dataset's frames are them or predicted from them)") in out, out
     record = json.loads((tmp_path / "d" / "dataset.json").read_text())["source"]["decode_damage"]
     assert record["frames"] == [2, 9, 15] and record["frames_kept"] == [9, 15]
+    assert record["kept_frames_carrying_damage"] == [9, 15]
     assert json.loads((tmp_path / "d" / "report.json").read_text())["decode_damage"]["frames"] == [2, 9, 15]
+
+
+def test_damage_in_a_predicted_frame_is_carried_to_the_next_key_frame(tmp_path):
+    """A smooth texture panning 3 px a frame: the wheel's MPEG-4 encoder writes key frames 0 and 12 and
+    predicts the others from the frame before. Frames 4 and 15 damaged (64 flips each, seeded): the frames
+    predicted from them, up to the next key frame, are said to carry the damage."""
+    import random
+
+    from scope3d.io.video import DamagedFrame
+
+    rng = np.random.default_rng(2)
+    texture = cv2.normalize(cv2.GaussianBlur(rng.random((100, 200)).astype(np.float32), (0, 0), 3.0), None,
+                            0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    clean = write_video(tmp_path / "pan.mp4", [texture[2:98, 3 * k:3 * k + 128] for k in range(20)], FPS)
+    data = bytearray(clean.read_bytes())
+    spans = _sample_spans(bytes(data))
+    flips = random.Random(0)
+    for frame in (4, 15):
+        start, end = spans[frame]
+        for _ in range(64):
+            data[flips.randrange(start + (end - start) // 4, end)] ^= 1 << flips.randrange(8)
+    (tmp_path / "d.mp4").write_bytes(bytes(data))
+    damaged: list[DamagedFrame] = []
+    frames = list(read_video(tmp_path / "d.mp4", damaged=damaged))
+    assert [(d.index, d.next_key_frame) for d in damaged] == [(4, 12), (15, None)]
+    carrying = [k for k in range(20) if any(d.carries_damage(k) for d in damaged)]
+    assert carrying == [*range(4, 12), *range(15, 20)]
+    # and those are the frames whose pixels differ from the undamaged video's
+    wrong = [f.index for f, c in zip(frames, read_video(clean)) if not np.array_equal(f.image, c.image)]
+    assert wrong == carrying

@@ -26,7 +26,7 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -72,11 +72,20 @@ class VideoFrame:
 @dataclass(frozen=True)
 class DamagedFrame:
     """A frame FFmpeg decoded with errors and concealed. index : int, position in the video (0 = first).
-    time_s : float, its presentation time in seconds. messages : tuple of str, FFmpeg's lines about it."""
+    time_s : float, its presentation time in seconds. messages : tuple of str, FFmpeg's lines about it.
+    next_key_frame : int or None, the index of the next key (intra) frame after it, or None if the video
+    ended first (or its container does not say which frames are key frames): frames ``index`` up to it
+    (excluded) may carry the concealment, each predicted from the one before (with B frames, a frame
+    just before ``index`` may too)."""
 
     index: int
     time_s: float
     messages: tuple[str, ...]
+    next_key_frame: int | None = None
+
+    def carries_damage(self, frame_index: int) -> bool:
+        """Whether the frame at ``frame_index`` is this one or predicted from it (see the class docstring)."""
+        return self.index <= frame_index and (self.next_key_frame is None or frame_index < self.next_key_frame)
 
 
 def damage_check_available() -> bool:
@@ -143,7 +152,7 @@ def read_video(path: str | Path, *, every: int = 1, damaged: list[DamagedFrame] 
     (``grab``), not converted to RGB: an inter-frame codec must decode every frame anyway, so this is
     all a skip can save. damaged : if given, a :class:`DamagedFrame` is appended to it for every frame,
     yielded or skipped, that FFmpeg said it decoded with errors (see the module docstring for what this
-    misses), before that frame is yielded. Yields :class:`VideoFrame`; raises InputError naming the file
+    misses), before that frame is yielded; its ``next_key_frame`` is filled in when that frame is reached. Yields :class:`VideoFrame`; raises InputError naming the file
     if it cannot be opened or holds no frame at all.
     """
     if isinstance(every, bool) or not isinstance(every, int) or every < 1:
@@ -152,6 +161,7 @@ def read_video(path: str | Path, *, every: int = 1, damaged: list[DamagedFrame] 
     capture = _open(path)
     try:
         index = 0
+        open_damage: list[int] = []  # positions in ``damaged`` whose next key frame is not reached yet
         while True:
             messages: list[str] = []
             with quiet_decoders(messages):
@@ -162,8 +172,14 @@ def read_video(path: str | Path, *, every: int = 1, damaged: list[DamagedFrame] 
                 wanted = index % every == 0
                 ok, bgr = capture.retrieve() if wanted else (True, None)
             time_s = capture.get(cv2.CAP_PROP_POS_MSEC) / 1000.0
-            if messages and damaged is not None:
-                damaged.append(DamagedFrame(index, time_s, tuple(messages)))
+            if damaged is not None:
+                if open_damage and capture.get(cv2.CAP_PROP_FRAME_TYPE) == ord("I"):  # predicted from nothing
+                    for position in open_damage:
+                        damaged[position] = replace(damaged[position], next_key_frame=index)
+                    open_damage.clear()
+                if messages:
+                    open_damage.append(len(damaged))
+                    damaged.append(DamagedFrame(index, time_s, tuple(messages)))
             if wanted:
                 if not ok:
                     raise InputError(f"{path}: frame {index} does not decode")

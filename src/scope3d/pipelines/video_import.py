@@ -140,16 +140,19 @@ def decode_damage_record(damaged: list[DamagedFrame], kept_indices: list[int]) -
     """What ``dataset.json`` says about the frames FFmpeg decoded with errors and concealed (imported as if
     whole, since that is what OpenCV returns): ``checked`` (False when the user's OpenCV FFmpeg log
     setting hides FFmpeg's lines), ``frames`` (their indices in the video), ``frames_kept`` (those among
-    the dataset's frames), ``messages`` (FFmpeg's lines for the first few, by frame index) and what the
-    check cannot see."""
+    the dataset's frames), ``kept_frames_carrying_damage`` (the dataset's frames that are damaged or
+    predicted from a damaged one, up to the next key frame), ``messages`` (FFmpeg's lines for the first
+    few, by frame index) and what the check cannot see."""
     kept = set(kept_indices)
     return {
         "checked": damage_check_available(),
         "frames": [d.index for d in damaged],
         "frames_kept": [d.index for d in damaged if d.index in kept],
+        # a concealed block is copied into every frame predicted from it, up to the next key frame
+        "kept_frames_carrying_damage": [i for i in kept_indices if any(d.carries_damage(i) for d in damaged)],
         "messages": {str(d.index): list(d.messages) for d in damaged[:MESSAGES_KEPT]},
         "not_seen": "damage that leaves a valid stream (a flipped bit decoding to wrong pixels without an "
-                    "error), and frames predicted from a damaged one up to the next key frame",
+                    "error) and the frames predicted from such a frame",
     }
 
 
@@ -162,6 +165,8 @@ def decode_damage_summary(record: dict) -> str | None:
     if not frames:
         return None
     shown = ", ".join(str(i) for i in frames[:20]) + (", ..." if len(frames) > 20 else "")
+    carrying = len(record.get("kept_frames_carrying_damage", []))
     return (f"damage        {len(frames)} frame{'s' if len(frames) != 1 else ''} could not be decoded cleanly "
-            f"(frames {shown}; {len(record.get('frames_kept', []))} of them in the dataset): FFmpeg concealed "
-            f"the damage; dataset.json source.decode_damage lists them")
+            f"(frames {shown}; {len(record.get('frames_kept', []))} of them in the dataset, and {carrying} of "
+            f"the dataset's frames are them or predicted from them): FFmpeg concealed the damage; "
+            f"dataset.json source.decode_damage lists them")
