@@ -13,7 +13,11 @@ captured per frame). This measures that check against the truth of where the bit
   (the packets are found in the file from OpenCV's raw packets, ``CAP_PROP_FORMAT`` -1, so every
   container is covered the same way). Per codec and F: the fraction of damaged frames named (recall),
   the frames named that were not damaged (misnamed), the damaged frames left unnamed whose decoded pixels
-  differ from the clean video's (silently wrong), and the videos refused outright.
+  differ from the clean video's (silently wrong; with an inter-frame codec possibly through an earlier
+  damaged frame), and the videos refused outright. And what a user sees: of the frames whose decoded
+  pixels differ from the clean video's (wrong), how many the import flags as damaged or predicted from a
+  damaged frame up to the next key frame (``DamagedFrame.carries_damage``), and how many it flags whose
+  pixels are right.
 * Clean videos: the same videos undamaged, and 60-frame ones: frames named (must be none).
 * Cost: decoding a 608 x 608 MPEG-4 video on one decoder thread (what the check needs) against OpenCV's
   default (one per core), wall and CPU time, with the machine's load recorded.
@@ -93,7 +97,8 @@ def damage_trials(work: Path, n_videos: int, n_frames: int) -> dict:
     for fourcc, ext in CODECS:
         for flips in FLIPS_PER_FRAME:
             counts = {"damaged_frames": 0, "named": 0, "misnamed": 0, "silently_wrong": 0, "unchanged": 0,
-                      "videos": 0, "videos_refused": 0}
+                      "videos": 0, "videos_refused": 0, "wrong_frames": 0, "wrong_frames_flagged": 0,
+                      "right_frames_flagged": 0}
             for v in range(n_videos):
                 clean = work / f"clean_{fourcc}_{v}{ext}"
                 if not clean.exists():
@@ -123,7 +128,14 @@ def damage_trials(work: Path, n_videos: int, n_frames: int) -> dict:
                 for k in set(truth) - named_set:
                     same = k < len(frames) and np.array_equal(frames[k], clean_frames[k])
                     counts["unchanged" if same else "silently_wrong"] += 1
+                for k, (frame, clean_frame) in enumerate(zip(frames, clean_frames)):
+                    wrong = not np.array_equal(frame, clean_frame)
+                    flagged = any(d.carries_damage(k) for d in named)
+                    counts["wrong_frames"] += wrong
+                    counts["wrong_frames_flagged"] += wrong and flagged
+                    counts["right_frames_flagged"] += flagged and not wrong
             counts["recall"] = round(counts["named"] / max(counts["damaged_frames"], 1), 3)
+            counts["wrong_flagged_fraction"] = round(counts["wrong_frames_flagged"] / max(counts["wrong_frames"], 1), 3)
             results[f"{fourcc} {flips}"] = {"codec": fourcc, "container": ext, "flips_per_frame": flips, **counts}
             print(fourcc, flips, counts, flush=True)
     return results
@@ -171,19 +183,21 @@ def decode_cost(work: Path, n_frames: int = 120) -> dict:
 
 
 def plot(results: dict, path: Path) -> None:
-    fig = new_figure(figsize=(7.5, 4.2))
-    ax = fig.add_subplot(1, 1, 1)
-    for fourcc, _ in CODECS:
-        rows = [results[f"{fourcc} {f}"] for f in FLIPS_PER_FRAME]
-        ax.plot(FLIPS_PER_FRAME, [r["recall"] for r in rows], marker="o", label=fourcc)
-    ax.set_xscale("log")
-    ax.set_xticks(FLIPS_PER_FRAME, [str(f) for f in FLIPS_PER_FRAME])
-    ax.set_ylim(-0.03, 1.03)
-    ax.set_xlabel("bits flipped in a frame's packet")
-    ax.set_ylabel("damaged frames named by the import")
-    ax.set_title("FFmpeg's error lines as a damage check (no clean frame named)")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+    fig = new_figure(figsize=(11, 4.2))
+    for column, (key, label) in enumerate((("recall", "damaged frames named"),
+                                           ("wrong_flagged_fraction", "wrong frames flagged (named or predicted)"))):
+        ax = fig.add_subplot(1, 2, column + 1)
+        for fourcc, _ in CODECS:
+            rows = [results[f"{fourcc} {f}"] for f in FLIPS_PER_FRAME]
+            ax.plot(FLIPS_PER_FRAME, [r[key] for r in rows], marker="o", label=fourcc)
+        ax.set_xscale("log")
+        ax.set_xticks(FLIPS_PER_FRAME, [str(f) for f in FLIPS_PER_FRAME])
+        ax.set_ylim(-0.03, 1.03)
+        ax.set_xlabel("bits flipped in each damaged frame's packet")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.suptitle("FFmpeg's error lines as a damage check (no frame of a clean video named)")
     save_figure(fig, path, dpi=110)
 
 
