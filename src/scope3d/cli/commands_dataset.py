@@ -88,7 +88,9 @@ def register(subparsers) -> None:
                     "Nth frame, or the key frames (a frame is kept when the view has moved by --min-shift of the "
                     "image since the last key frame, or no longer matches it by a shift). Poses are unknown "
                     "(tolerance inf) unless --plan assigns the scan plan's poses by time, within --tolerance. "
-                    "See docs/datasets.md.",
+                    "Frames FFmpeg could decode only with errors (and conceal) are imported, and named in the "
+                    "output and in dataset.json (source.decode_damage); damage that leaves a valid stream is "
+                    "not seen. See docs/datasets.md.",
     )
     vid.add_argument("video", metavar="VIDEO", type=Path, help="the video file")
     vid.add_argument("--out", metavar="DIR", type=Path, required=True,
