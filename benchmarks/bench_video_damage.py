@@ -36,7 +36,7 @@ import cv2
 import numpy as np
 
 from scope3d.errors import InputError
-from scope3d.io.video import DamagedFrame, read_video
+from scope3d.io.video import DamagedFrame, DecodeCheck, read_video
 from scope3d.utils.figures import new_figure, save_figure
 
 RESULTS = Path(__file__).resolve().parents[1] / "benchmarks" / "results"
@@ -88,8 +88,8 @@ def packet_spans(path: Path) -> list[tuple[int, int]]:
 
 
 def decoded(path: Path) -> tuple[list[np.ndarray], list[DamagedFrame]]:
-    damaged: list[DamagedFrame] = []
-    return [f.image for f in read_video(path, damaged=damaged)], damaged
+    check = DecodeCheck()
+    return [f.image for f in read_video(path, check=check)], check.damaged
 
 
 def damage_trials(work: Path, n_videos: int, n_frames: int) -> dict:

@@ -487,7 +487,7 @@ def _add_later_readers(root: Path, add) -> None:
     from scope3d.io.rosbag import RosbagOptions, import_rosbag
     from scope3d.io.scan_plan import read_scan_plan
     from scope3d.io.tracker import read_tracker
-    from scope3d.io.video import probe_video, read_video
+    from scope3d.io.video import DecodeCheck, probe_video, read_video
     from scope3d.pipelines.hand_eye import robot_flange_poses
     from scope3d.report import build_page
 
@@ -507,7 +507,7 @@ def _add_later_readers(root: Path, add) -> None:
 
     video = root / "video" / "v.mp4"
     (root / "video").mkdir(parents=True, exist_ok=True)
-    add("video mp4", video, _video_seed(root / "video"), lambda: (probe_video(video), list(read_video(video, damaged=[]))))
+    add("video mp4", video, _video_seed(root / "video"), lambda: (probe_video(video), list(read_video(video, check=DecodeCheck()))))
     plan = root / "plan" / "plan.json"
     (root / "plan").mkdir(parents=True, exist_ok=True)
     add("scan plan", plan, _plan_seed(root / "plan"), lambda: read_scan_plan(plan))

@@ -145,6 +145,7 @@ def test_import_every_and_keyframes_write_datasets_with_unknown_poses(video, cam
     assert source["frame_indices"] == list(range(0, len(centres), 7))
     # a clean video (sensor noise, motion, a roll) has no frame flagged as damaged
     assert source["decode_damage"]["checked"] and source["decode_damage"]["frames"] == []
+    assert source["decode_damage"]["frames_decoded"] == source["decode_damage"]["frames_in_container"] == len(centres)
 
     keys = import_video(path, tmp_path / "keys", VideoImportOptions(keyframes=KeyframeOptions()), camera=camera)
     selector = KeyframeSelector()
@@ -342,7 +343,7 @@ def test_damaged_frames_are_named_and_clean_frames_are_not(tmp_path, capsys):
     FFmpeg's own error lines, and the import says so in its output and dataset.json."""
     import random
 
-    from scope3d.io.video import DamagedFrame
+    from scope3d.io.video import DecodeCheck
 
     noise = np.random.default_rng(1)  # noise frames: past each frame's header, coefficient data
     clean = write_video(tmp_path / "clean.mp4",
@@ -361,17 +362,19 @@ def test_damaged_frames_are_named_and_clean_frames_are_not(tmp_path, capsys):
     damaged_path = tmp_path / "damaged.mp4"
     damaged_path.write_bytes(bytes(data))
 
-    damaged: list[DamagedFrame] = []
-    frames = list(read_video(damaged_path, every=4, damaged=damaged))
+    check = DecodeCheck()
+    frames = list(read_video(damaged_path, every=4, check=check))
+    damaged = check.damaged
     assert [f.index for f in frames] == [0, 4, 8, 12, 16]  # every frame is still returned (concealed)
+    assert check.frames_decoded == 20
     assert [d.index for d in damaged] == [2, 9, 15]  # skipped frames are checked too
     assert all(d.messages and all("@" in line for line in d.messages) for d in damaged)
     assert damaged[1].time_s == pytest.approx(9 / FPS)
     # every noise frame is coded as a key frame (nothing to predict it from): no frame carries another's damage
     assert [d.next_key_frame for d in damaged] == [3, 10, 16]
     assert [k for k in range(20) if any(d.carries_damage(k) for d in damaged)] == [2, 9, 15]
-    untouched: list[DamagedFrame] = []
-    assert len(list(read_video(clean, damaged=untouched))) == 20 and untouched == []
+    untouched = DecodeCheck()
+    assert len(list(read_video(clean, check=untouched))) == 20 and untouched.damaged == []
 
     assert main(["import", "video", str(damaged_path), "--fov", "60", "--every", "3", "--out",
                  str(tmp_path / "d"), "--no-progress"]) == 0
@@ -390,7 +393,7 @@ def test_damage_in_a_predicted_frame_is_carried_to_the_next_key_frame(tmp_path):
     predicted from them, up to the next key frame, are said to carry the damage."""
     import random
 
-    from scope3d.io.video import DamagedFrame
+    from scope3d.io.video import DecodeCheck
 
     rng = np.random.default_rng(2)
     texture = cv2.normalize(cv2.GaussianBlur(rng.random((100, 200)).astype(np.float32), (0, 0), 3.0), None,
@@ -404,11 +407,35 @@ def test_damage_in_a_predicted_frame_is_carried_to_the_next_key_frame(tmp_path):
         for _ in range(64):
             data[flips.randrange(start + (end - start) // 4, end)] ^= 1 << flips.randrange(8)
     (tmp_path / "d.mp4").write_bytes(bytes(data))
-    damaged: list[DamagedFrame] = []
-    frames = list(read_video(tmp_path / "d.mp4", damaged=damaged))
+    check = DecodeCheck()
+    frames = list(read_video(tmp_path / "d.mp4", check=check))
+    damaged = check.damaged
     assert [(d.index, d.next_key_frame) for d in damaged] == [(4, 12), (15, None)]
     carrying = [k for k in range(20) if any(d.carries_damage(k) for d in damaged)]
     assert carrying == [*range(4, 12), *range(15, 20)]
     # and those are the frames whose pixels differ from the undamaged video's
     wrong = [f.index for f, c in zip(frames, read_video(clean)) if not np.array_equal(f.image, c.image)]
     assert wrong == carrying
+
+
+def test_a_truncated_avi_imports_what_it_holds_and_says_how_many_frames_are_missing(tmp_path, capsys):
+    """An AVI (Motion JPEG) cut at 60 % of its bytes: FFmpeg reads the frames before the cut and the
+    container's index still states all 30; the import keeps what it read and says the rest is missing
+    (an MP4 cut so is refused: its index comes last). The whole file: no such line."""
+    rng = np.random.default_rng(3)
+    path = tmp_path / "scope.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), FPS, (64, 48))
+    for _ in range(30):
+        writer.write(rng.integers(0, 256, (48, 64, 3), dtype=np.uint8))
+    writer.release()
+    data = path.read_bytes()
+    cut = tmp_path / "cut.avi"
+    cut.write_bytes(data[:int(0.6 * len(data))])
+    assert main(["import", "video", str(cut), "--fov", "60", "--out", str(tmp_path / "c"), "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    record = json.loads((tmp_path / "c" / "dataset.json").read_text())["source"]["decode_damage"]
+    assert record["frames_in_container"] == 30 and 0 < record["frames_decoded"] < 30
+    assert len(load_dataset(tmp_path / "c")) == record["frames_decoded"]
+    assert f"the container states 30 frames, {record['frames_decoded']} could be read" in out, out
+    assert main(["import", "video", str(path), "--fov", "60", "--out", str(tmp_path / "w"), "--no-progress"]) == 0
+    assert "damage" not in capsys.readouterr().out

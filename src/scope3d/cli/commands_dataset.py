@@ -271,5 +271,4 @@ def run_import_video(args) -> int:
     with progress_bar(show_progress(args), "frame") as progress:
         out = import_video(args.video, args.out, options, camera=camera, plan=plan, intrinsics=intrinsics,
                            progress=progress, finish=finish_with_damage)
-    note = decode_damage_summary(report["decode_damage"])
-    return _finish_import(args, out, report, (note,) if note else ())
+    return _finish_import(args, out, report, tuple(decode_damage_summary(report["decode_damage"])))

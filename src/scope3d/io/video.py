@@ -26,7 +26,7 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -88,6 +88,16 @@ class DamagedFrame:
         return self.index <= frame_index and (self.next_key_frame is None or frame_index < self.next_key_frame)
 
 
+@dataclass
+class DecodeCheck:
+    """What :func:`read_video` saw while decoding, filled in as it goes. damaged : list of
+    :class:`DamagedFrame`, in order. frames_decoded : int, frames read so far, yielded or skipped (fewer
+    than the container states: a truncated or damaged file, or a container's estimate)."""
+
+    damaged: list[DamagedFrame] = field(default_factory=list)
+    frames_decoded: int = 0
+
+
 def damage_check_available() -> bool:
     """Whether FFmpeg's error lines reach stderr, where :func:`read_video` reads them: not when the user set
     ``OPENCV_FFMPEG_LOGLEVEL`` or ``OPENCV_FFMPEG_DEBUG`` (OpenCV then prints FFmpeg's log on stdout at the
@@ -144,15 +154,15 @@ def probe_video(path: str | Path) -> VideoInfo:
     return VideoInfo(path, width, height, fps, max(n_frames, 1))
 
 
-def read_video(path: str | Path, *, every: int = 1, damaged: list[DamagedFrame] | None = None
-               ) -> Iterator[VideoFrame]:
+def read_video(path: str | Path, *, every: int = 1, check: DecodeCheck | None = None) -> Iterator[VideoFrame]:
     """The frames of a video, decoded one at a time, in order.
 
     every : int >= 1, yield frames 0, every, 2 * every... The others are only demuxed and decoded
     (``grab``), not converted to RGB: an inter-frame codec must decode every frame anyway, so this is
-    all a skip can save. damaged : if given, a :class:`DamagedFrame` is appended to it for every frame,
-    yielded or skipped, that FFmpeg said it decoded with errors (see the module docstring for what this
-    misses), before that frame is yielded; its ``next_key_frame`` is filled in when that frame is reached. Yields :class:`VideoFrame`; raises InputError naming the file
+    all a skip can save. check : if given, a :class:`DamagedFrame` is appended to ``check.damaged`` for
+    every frame, yielded or skipped, that FFmpeg said it decoded with errors (see the module docstring for
+    what this misses), before that frame is yielded (its ``next_key_frame`` is filled in when that frame
+    is reached), and ``check.frames_decoded`` counts the frames read. Yields :class:`VideoFrame`; raises InputError naming the file
     if it cannot be opened or holds no frame at all.
     """
     if isinstance(every, bool) or not isinstance(every, int) or every < 1:
@@ -161,7 +171,7 @@ def read_video(path: str | Path, *, every: int = 1, damaged: list[DamagedFrame] 
     capture = _open(path)
     try:
         index = 0
-        open_damage: list[int] = []  # positions in ``damaged`` whose next key frame is not reached yet
+        open_damage: list[int] = []  # positions in ``check.damaged`` whose next key frame is not reached yet
         while True:
             messages: list[str] = []
             with quiet_decoders(messages):
@@ -172,7 +182,9 @@ def read_video(path: str | Path, *, every: int = 1, damaged: list[DamagedFrame] 
                 wanted = index % every == 0
                 ok, bgr = capture.retrieve() if wanted else (True, None)
             time_s = capture.get(cv2.CAP_PROP_POS_MSEC) / 1000.0
-            if damaged is not None:
+            if check is not None:
+                check.frames_decoded = index + 1
+                damaged = check.damaged
                 if open_damage and capture.get(cv2.CAP_PROP_FRAME_TYPE) == ord("I"):  # predicted from nothing
                     for position in open_damage:
                         damaged[position] = replace(damaged[position], next_key_frame=index)

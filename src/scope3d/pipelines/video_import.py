@@ -27,7 +27,7 @@ from scope3d.feature.keyframes import KeyframeOptions, KeyframeSelector
 from scope3d.geometry.pose import Pose
 from scope3d.io.dataset import write_dataset
 from scope3d.io.scan_plan import PlanFile
-from scope3d.io.video import DamagedFrame, damage_check_available, probe_video, read_video
+from scope3d.io.video import DecodeCheck, damage_check_available, probe_video, read_video
 from scope3d.sensor.camera import Camera
 from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance
 from scope3d.utils.progress import Progress, advance, stage
@@ -102,8 +102,8 @@ def import_video(video: str | Path, out_dir: str | Path, options: VideoImportOpt
         paths, names, indices, times, measured = [], [], [], [], []
         n_planned = 0
         unknown = MeasuredPose(Pose.identity(), PoseTolerance.unknown())
-        damaged: list[DamagedFrame] = []
-        for frame in read_video(video, every=1 if selector else options.every, damaged=damaged):
+        check = DecodeCheck()
+        for frame in read_video(video, every=1 if selector else options.every, check=check):
             advance(progress, 1 if selector else min(options.every, max(info.n_frames - frame.index, 1)))
             if selector is not None and not selector.offer(frame.image).keep:
                 continue
@@ -123,7 +123,7 @@ def import_video(video: str | Path, out_dir: str | Path, options: VideoImportOpt
         source = {"video": str(video), "fps": info.fps, "frames_in_container": info.n_frames, "frames_kept": len(paths),
                   "intrinsics": intrinsics,
                   "selection": selection, "frame_indices": indices, "frame_times_s": times,
-                  "decode_damage": decode_damage_record(damaged, indices)}
+                  "decode_damage": decode_damage_record(check, indices, info.n_frames)}
         if plan is not None:
             source["plan"] = {"views": len(plan.poses), "seconds_per_view": options.seconds_per_view,
                               "start_s": options.plan_start_s,
@@ -136,15 +136,20 @@ def import_video(video: str | Path, out_dir: str | Path, options: VideoImportOpt
 MESSAGES_KEPT = 20  # FFmpeg's lines are recorded for this many damaged frames (a wrecked video has thousands)
 
 
-def decode_damage_record(damaged: list[DamagedFrame], kept_indices: list[int]) -> dict:
-    """What ``dataset.json`` says about the frames FFmpeg decoded with errors and concealed (imported as if
-    whole, since that is what OpenCV returns): ``checked`` (False when the user's OpenCV FFmpeg log
-    setting hides FFmpeg's lines), ``frames`` (their indices in the video), ``frames_kept`` (those among
+def decode_damage_record(check: DecodeCheck, kept_indices: list[int], frames_in_container: int) -> dict:
+    """What ``dataset.json`` says about a damaged video: ``frames_in_container`` and ``frames_decoded``
+    (fewer decoded than stated: a truncated or damaged file, or a container's estimate), and the frames
+    FFmpeg decoded with errors and concealed (imported as if whole, since that is what OpenCV returns):
+    ``checked`` (False when the user's OpenCV FFmpeg log setting hides FFmpeg's lines), ``frames`` (their
+    indices in the video), ``frames_kept`` (those among
     the dataset's frames), ``kept_frames_carrying_damage`` (the dataset's frames that are damaged or
     predicted from a damaged one, up to the next key frame), ``messages`` (FFmpeg's lines for the first
     few, by frame index) and what the check cannot see."""
     kept = set(kept_indices)
+    damaged = check.damaged
     return {
+        "frames_in_container": frames_in_container,
+        "frames_decoded": check.frames_decoded,
         "checked": damage_check_available(),
         "frames": [d.index for d in damaged],
         "frames_kept": [d.index for d in damaged if d.index in kept],
@@ -156,17 +161,23 @@ def decode_damage_record(damaged: list[DamagedFrame], kept_indices: list[int]) -
     }
 
 
-def decode_damage_summary(record: dict) -> str | None:
-    """One line for the import's output about damaged frames, or None when none were seen and the check ran."""
+def decode_damage_summary(record: dict) -> list[str]:
+    """Lines for the import's output about a damaged video (none for a clean one)."""
+    lines = []
+    stated, decoded = record.get("frames_in_container", 0), record.get("frames_decoded", 0)
+    if decoded < stated:
+        lines.append(f"damage        the container states {stated} frames, {decoded} could be read: the file is "
+                     f"truncated or damaged (or its frame count an estimate)")
     if not record.get("checked", False):
-        return ("damage        not checked: OPENCV_FFMPEG_LOGLEVEL or OPENCV_FFMPEG_DEBUG sends FFmpeg's "
-                "error lines away from scope3d")
+        lines.append("damage        frames not checked: OPENCV_FFMPEG_LOGLEVEL or OPENCV_FFMPEG_DEBUG sends "
+                     "FFmpeg's error lines away from scope3d")
+        return lines
     frames = record.get("frames", [])
-    if not frames:
-        return None
-    shown = ", ".join(str(i) for i in frames[:20]) + (", ..." if len(frames) > 20 else "")
-    carrying = len(record.get("kept_frames_carrying_damage", []))
-    return (f"damage        {len(frames)} frame{'s' if len(frames) != 1 else ''} could not be decoded cleanly "
-            f"(frames {shown}; {len(record.get('frames_kept', []))} of them in the dataset, and {carrying} of "
-            f"the dataset's frames are them or predicted from them): FFmpeg concealed the damage; "
-            f"dataset.json source.decode_damage lists them")
+    if frames:
+        shown = ", ".join(str(i) for i in frames[:20]) + (", ..." if len(frames) > 20 else "")
+        carrying = len(record.get("kept_frames_carrying_damage", []))
+        lines.append(f"damage        {len(frames)} frame{'s' if len(frames) != 1 else ''} could not be decoded "
+                     f"cleanly (frames {shown}; {len(record.get('frames_kept', []))} of them in the dataset, and "
+                     f"{carrying} of the dataset's frames are them or predicted from them): FFmpeg concealed the "
+                     f"damage; dataset.json source.decode_damage lists them")
+    return lines
