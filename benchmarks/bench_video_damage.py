@@ -18,7 +18,10 @@ captured per frame). This measures that check against the truth of where the bit
   pixels differ from the clean video's (wrong), how many the import flags as damaged or predicted from a
   damaged frame up to the next key frame (``DamagedFrame.carries_damage``), and how many it flags whose
   pixels are right.
-* Clean videos: the same videos undamaged, and 60-frame ones: frames named (must be none).
+* Headers zeroed: frames 5 and 6 with the first 64 bytes of their packets zeroed (a lost block): frames
+  the container states, frames read (OpenCV stops at a frame it cannot decode in some codecs) and named.
+* Clean videos: the same videos undamaged, and 60-frame ones: frames named (must be none), and the
+  frames their containers state against those read (the import says when fewer are read).
 * Cost: decoding a 608 x 608 MPEG-4 video on one decoder thread (what the check needs) against OpenCV's
   default (one per core), wall and CPU time, with the machine's load recorded.
 """
@@ -36,7 +39,7 @@ import cv2
 import numpy as np
 
 from scope3d.errors import InputError
-from scope3d.io.video import DamagedFrame, DecodeCheck, read_video
+from scope3d.io.video import DamagedFrame, DecodeCheck, probe_video, read_video
 from scope3d.utils.figures import new_figure, save_figure
 
 RESULTS = Path(__file__).resolve().parents[1] / "benchmarks" / "results"
@@ -89,7 +92,9 @@ def packet_spans(path: Path) -> list[tuple[int, int]]:
 
 def decoded(path: Path) -> tuple[list[np.ndarray], list[DamagedFrame]]:
     check = DecodeCheck()
-    return [f.image for f in read_video(path, check=check)], check.damaged
+    frames = [f.image for f in read_video(path, check=check)]
+    assert check.frames_decoded == len(frames)
+    return frames, check.damaged
 
 
 def damage_trials(work: Path, n_videos: int, n_frames: int) -> dict:
@@ -141,18 +146,44 @@ def damage_trials(work: Path, n_videos: int, n_frames: int) -> dict:
     return results
 
 
+def header_trials(work: Path, n_frames: int) -> dict:
+    """Frames 5 and 6 of each codec's video with the first 64 bytes of their packets zeroed (a lost or
+    overwritten block of the file): frames the container states, frames read, frames named."""
+    out = {}
+    for fourcc, ext in CODECS:
+        path = work / f"header_{fourcc}{ext}"
+        write(path, scope_frames(n_frames, seed=50), fourcc)
+        spans = packet_spans(path)
+        data = bytearray(path.read_bytes())
+        for k in (5, 6):
+            start, end = spans[k]
+            data[start:min(start + 64, end)] = bytes(min(64, end - start))
+        path.write_bytes(bytes(data))
+        try:
+            check = DecodeCheck()
+            frames = sum(1 for _ in read_video(path, check=check))
+            out[fourcc] = {"frames_in_container": probe_video(path).n_frames, "frames_read": frames,
+                           "frames_named": [d.index for d in check.damaged]}
+        except InputError as exc:
+            out[fourcc] = {"refused": str(exc)}
+        print("headers zeroed", fourcc, out[fourcc], flush=True)
+    return out
+
+
 def clean_trials(work: Path, n_videos: int) -> dict:
     """Longer clean videos of every codec: frames named (must be none)."""
     out = {}
     for fourcc, ext in CODECS:
-        named = frames = 0
+        named = frames = stated = 0
         for v in range(n_videos):
             path = work / f"long_{fourcc}_{v}{ext}"
             write(path, scope_frames(60, seed=100 + v), fourcc)
             images, damaged = decoded(path)
             frames += len(images)
             named += len(damaged)
-        out[fourcc] = {"videos": n_videos, "frames": frames, "frames_named": named}
+            stated += probe_video(path).n_frames
+        # the container's count against the frames read: the import says when fewer are read
+        out[fourcc] = {"videos": n_videos, "frames": frames, "frames_named": named, "frames_in_container": stated}
         print("clean", fourcc, out[fourcc], flush=True)
     return out
 
@@ -212,12 +243,13 @@ def main() -> None:
         work = Path(tmp)
         cpu = time.process_time()
         damage = damage_trials(work, args.videos, args.frames)
+        headers = header_trials(work, args.frames)
         clean = clean_trials(work, 3)
         cost = decode_cost(work)
         cpu = time.process_time() - cpu
     report = {"what": __doc__.split("\n\n")[0], "damaged_frames_per_video": list(DAMAGED_FRAMES),
               "size_px": [WIDTH, HEIGHT], "frames_per_video": args.frames, "videos": args.videos,
-              "damage": damage, "clean": clean, "decode_cost": cost, "cpu_s": round(cpu, 1),
+              "damage": damage, "headers_zeroed": headers, "clean": clean, "decode_cost": cost, "cpu_s": round(cpu, 1),
               "load_average_at_start": start_load, "load_average_at_end": os.getloadavg()}
     args.results.parent.mkdir(parents=True, exist_ok=True)
     args.results.write_text(json.dumps(report, indent=2) + "\n")
