@@ -210,13 +210,16 @@ def _run_atheris(name: str, seed: bytes, seconds: float, work: Path, max_inputs:
             stats["inputs"] = int(line.split(":")[-1])
     counts = json.loads(progress.read_text()) if progress.is_file() else {"ok": 0, "refused": 0}
     crashes = []
-    if proc.returncode != 0:
-        tail = [line for line in proc.stderr.splitlines() if "FuzzCrash" in line or "Error" in line][-3:]
+    if proc.returncode != 0:  # a negative code is the signal that ended the child (-9: killed from outside)
+        stats["returncode"] = proc.returncode
+        tail = [line for line in proc.stderr.splitlines()
+                if "FuzzCrash" in line or "Error" in line or "ERROR" in line][-3:]
         crash_files = sorted(p for pattern in ("crash-*", "oom-*", "timeout-*") for p in artifacts.glob(pattern))
         crashes.append({"error": " | ".join(tail)[:500] or proc.stderr[-500:],
                         "input_b64": base64.b64encode(crash_files[-1].read_bytes()[:4096]).decode()
                         if crash_files else None})
-    return {"inputs": stats.get("inputs", counts["ok"] + counts["refused"]), "parsed": counts["ok"],
+    return {**({"returncode": stats["returncode"]} if "returncode" in stats else {}),
+            "inputs": stats.get("inputs", counts["ok"] + counts["refused"]), "parsed": counts["ok"],
             "refused": counts["refused"], "crashes": crashes, "corpus_files": len(list(corpus.iterdir()))}
 
 
