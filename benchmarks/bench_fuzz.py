@@ -212,7 +212,8 @@ def _run_atheris(name: str, seed: bytes, seconds: float, work: Path, max_inputs:
     crashes = []
     if proc.returncode != 0:  # a negative code is the signal that ended the child (-9: killed from outside)
         stats["returncode"] = proc.returncode
-        tail = [line for line in proc.stderr.splitlines()
+        # atheris prints an uncaught Python exception on stdout, libFuzzer its own reports on stderr
+        tail = [line for line in (proc.stdout + proc.stderr).splitlines()
                 if "FuzzCrash" in line or "Error" in line or "ERROR" in line][-3:]
         crash_files = sorted(p for pattern in ("crash-*", "oom-*", "timeout-*") for p in artifacts.glob(pattern))
         crashes.append({"error": " | ".join(tail)[:500] or proc.stderr[-500:],

@@ -361,6 +361,7 @@ def test_a_report_json_with_damaged_targets_is_refused_naming_the_entry(targets,
     lambda r: r["targets_vs_truth"][0].update(true_size_mm=None),
     lambda r: r.update(dataset="1" * 300),
     lambda r: r.update(dataset=[1, 2]),
+    lambda r: r.update(dataset=0.41),  # the long run's lost atheris crash, reproduced on its code (TypeError)
 ])
 def test_a_report_json_with_null_sizes_or_an_impossible_dataset_name_still_gives_its_page(targets, edit):
     """Found by the long random fuzz run (issue 16): a null size (allowed: a size the map could not
