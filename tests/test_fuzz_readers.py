@@ -331,6 +331,25 @@ def test_a_damaged_bag_is_refused_in_one_line(targets, name):
         target.restore()
 
 
+@pytest.mark.parametrize("fields, fragment", [
+    ({"K": 20.0}, "K has 1 values, not 9"),  # the long random run's input (below): a float64 where float64[9] was
+    ({"K": "twenty"}, "not numbers"),
+    ({"K": [20.0, 0, 7.5, 0, 20.0, 5.5, 0, 0, 1], "D": "plumb"}, "not numbers"),
+])
+def test_camera_info_whose_matrix_is_no_matrix_is_refused_naming_the_topic(fields, fragment):
+    """Found by the long random fuzz run (issue 16, ROS 1 bag target, input 2,627 of seed 1): two connection
+    ids swapped in a chunk's index made a message of another type be read as the camera info, whose K
+    came out as one number: numpy's reshape ValueError, not a refusal."""
+    from types import SimpleNamespace
+
+    from scope3d.io.rosbag import camera_from_info
+
+    message = SimpleNamespace(width=16, height=12, **{"D": [0.0] * 5, **fields})
+    with pytest.raises(InputError) as info:
+        camera_from_info(message, "scope.bag: /info")
+    assert str(info.value).startswith("scope.bag: /info: ") and fragment in str(info.value), str(info.value)
+
+
 @pytest.mark.parametrize("edit, fragment", [
     (lambda r: r["targets_vs_truth"][0].pop("name"), "every true target needs a name"),
     (lambda r: r["targets"][0].update(centroid_mm=[1.0, 2.0]), "targets[0]: centroid_mm must be three"),
