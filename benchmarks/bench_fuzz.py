@@ -67,7 +67,8 @@ def run_hypothesis(target, seconds: float, max_inputs: int | None = None) -> dic
         try:
             counts[target.run(data)] += 1
         except FuzzCrash as exc:
-            crashes.append({"error": str(exc)[:300], "input_b64": base64.b64encode(data[:MAX_RECORDED_INPUT]).decode()})
+            kept = base64.b64encode(data[:MAX_RECORDED_INPUT]).decode()
+            crashes.append({"error": str(exc)[:300], "input_b64": kept})
 
     try:
         check()
@@ -100,7 +101,8 @@ def run_random(target, seconds: float, seed: int = 0, max_inputs: int | None = N
         try:
             counts[target.run(data)] += 1
         except FuzzCrash as exc:
-            crashes.append({"error": str(exc)[:300], "input_b64": base64.b64encode(data[:MAX_RECORDED_INPUT]).decode()})
+            kept = base64.b64encode(data[:MAX_RECORDED_INPUT]).decode()
+            crashes.append({"error": str(exc)[:300], "input_b64": kept})
     target.restore()
     return {"inputs": counts["ok"] + counts["refused"] + len(crashes), "parsed": counts["ok"],
             "refused": counts["refused"], "crashes": crashes}
@@ -201,9 +203,9 @@ def _run_atheris(name: str, seed: bytes, seconds: float, work: Path, max_inputs:
         stderr = exc.stderr.decode(errors="replace") if isinstance(exc.stderr, bytes) else (exc.stderr or "")
         counts = json.loads(progress.read_text()) if progress.is_file() else {"ok": 0, "refused": 0}
         hangs = sorted(artifacts.glob("timeout-*")) + sorted(artifacts.glob("crash-*")) + sorted(artifacts.glob("oom-*"))
+        kept = base64.b64encode(hangs[-1].read_bytes()[:MAX_RECORDED_INPUT]).decode() if hangs else None
         return {"inputs": counts["ok"] + counts["refused"], "parsed": counts["ok"], "refused": counts["refused"],
-                "crashes": [{"error": f"{hangs[-1].name}: {stderr[-400:]}",
-                             "input_b64": base64.b64encode(hangs[-1].read_bytes()[:MAX_RECORDED_INPUT]).decode()}] if hangs else [],
+                "crashes": [{"error": f"{hangs[-1].name}: {stderr[-400:]}", "input_b64": kept}] if hangs else [],
                 "unfinished": f"the child ran {seconds + 300:.0f} s wall, past -max_total_time={seconds:.0f}, "
                               f"without a timeout or crash file (starved of CPU)",
                 "corpus_files": len(list(corpus.iterdir()))}

@@ -507,7 +507,8 @@ def _add_later_readers(root: Path, add) -> None:
 
     video = root / "video" / "v.mp4"
     (root / "video").mkdir(parents=True, exist_ok=True)
-    add("video mp4", video, _video_seed(root / "video"), lambda: (probe_video(video), list(read_video(video, check=DecodeCheck()))))
+    add("video mp4", video, _video_seed(root / "video"),
+        lambda: (probe_video(video), list(read_video(video, check=DecodeCheck()))))
     plan = root / "plan" / "plan.json"
     (root / "plan").mkdir(parents=True, exist_ok=True)
     add("scan plan", plan, _plan_seed(root / "plan"), lambda: read_scan_plan(plan))

@@ -162,8 +162,8 @@ def read_video(path: str | Path, *, every: int = 1, check: DecodeCheck | None = 
     all a skip can save. check : if given, a :class:`DamagedFrame` is appended to ``check.damaged`` for
     every frame, yielded or skipped, that FFmpeg said it decoded with errors (see the module docstring for
     what this misses), before that frame is yielded (its ``next_key_frame`` is filled in when that frame
-    is reached), and ``check.frames_decoded`` counts the frames read. Yields :class:`VideoFrame`; raises InputError naming the file
-    if it cannot be opened or holds no frame at all.
+    is reached), and ``check.frames_decoded`` counts the frames read. Yields :class:`VideoFrame`; raises
+    InputError naming the file if it cannot be opened or holds no frame at all.
     """
     if isinstance(every, bool) or not isinstance(every, int) or every < 1:
         raise ValueError(f"every must be a whole number >= 1, got {every!r}")
