@@ -10,6 +10,7 @@ no file) is a crash, raised as :class:`FuzzCrash`.
 """
 from __future__ import annotations
 
+import bisect
 import json
 import re
 import struct
@@ -72,8 +73,10 @@ def mutate(data: bytes, kind: str, a: float, b: float, pick: int) -> bytes:
         return data
     if kind == "swap_tokens":  # two fields of one line: a swapped column
         i = int(a * len(spans))
-        line_of = data.count(b"\n", 0, spans[i][0])
-        same = [s for s in spans if data.count(b"\n", 0, s[0]) == line_of]
+        line_start = data.rfind(b"\n", 0, spans[i][0]) + 1
+        line_end = data.find(b"\n", spans[i][0]) % (n + 1)  # -1 (the last line) becomes n
+        starts = [start for start, _ in spans]
+        same = spans[bisect.bisect_left(starts, line_start) : bisect.bisect_left(starts, line_end)]
         j = same[int(b * len(same))]
         (s0, e0), (s1, e1) = sorted([spans[i], j])
         if s0 == s1:
@@ -96,17 +99,12 @@ MUTATIONS = ("truncate", "bitflip", "swap_tokens", "swap_lines", "nasty_token", 
 
 def _token_spans(data: bytes) -> list[tuple[int, int]]:
     """(start, end) of every run of bytes that is not white space, a comma, a quote or a bracket."""
-    spans, start = [], None
-    for i, c in enumerate(data):
-        sep = c in b" \t\r\n,:[]{}\""
-        if start is None and not sep:
-            start = i
-        elif start is not None and sep:
-            spans.append((start, i))
-            start = None
-    if start is not None:
-        spans.append((start, len(data)))
-    return spans
+    # one regular expression, not a Python loop over the bytes: the loop was most of a mutation's time on
+    # the larger seeds (a 28 kB ROS 2 bag: 2 ms of the 17 ms an input took)
+    return [match.span() for match in _TOKEN.finditer(data)]
+
+
+_TOKEN = re.compile(rb'[^ \t\r\n,:\[\]{}"]+')
 
 
 # --- the outcome rule ------------------------------------------------------------------------------
@@ -489,7 +487,7 @@ def _add_later_readers(root: Path, add) -> None:
     from scope3d.io.rosbag import RosbagOptions, import_rosbag
     from scope3d.io.scan_plan import read_scan_plan
     from scope3d.io.tracker import read_tracker
-    from scope3d.io.video import probe_video, read_video
+    from scope3d.io.video import DecodeCheck, probe_video, read_video
     from scope3d.pipelines.hand_eye import robot_flange_poses
     from scope3d.report import build_page
 
@@ -509,7 +507,8 @@ def _add_later_readers(root: Path, add) -> None:
 
     video = root / "video" / "v.mp4"
     (root / "video").mkdir(parents=True, exist_ok=True)
-    add("video mp4", video, _video_seed(root / "video"), lambda: (probe_video(video), list(read_video(video))))
+    add("video mp4", video, _video_seed(root / "video"),
+        lambda: (probe_video(video), list(read_video(video, check=DecodeCheck()))))
     plan = root / "plan" / "plan.json"
     (root / "plan").mkdir(parents=True, exist_ok=True)
     add("scan plan", plan, _plan_seed(root / "plan"), lambda: read_scan_plan(plan))

@@ -142,6 +142,25 @@ def test_bal_observation_of_a_camera_not_in_the_file(tmp_path):
     _expect_refusal(lambda: read_bal(path), path, "observation 1 (0-based)", "2 cameras")
 
 
+@pytest.mark.parametrize("rx", ["1e308", "1e200", "4.6e15"])
+def test_bal_rotation_vector_too_large_to_name_a_rotation_is_refused(tmp_path, rx):
+    """Found by the long random fuzz run (issue 16): a rotation vector component of 1e308 is finite, so the
+    reader took it, and Rodrigues' formula overflowed: the bundle problem refused 'rotations row 0 has NaN
+    or infinite values' without naming the file. Refused by the reader now, naming file and camera; an
+    angle of thousands of radians (a solver's unwrapped output) is still a rotation."""
+    from scope3d.estimators.bundle import bal_to_problem, read_bal
+
+    path = _tiny_bal(tmp_path / "p.txt")
+    lines = path.read_text().splitlines()
+    lines[12] = rx  # camera 1's rx (header, 2 observations, camera 0's 9 numbers before it)
+    path.write_text("\n".join(lines) + "\n")
+    _expect_refusal(lambda: read_bal(path), path, "camera 1 (0-based)", "rotation")
+    lines[12] = "6283.2"  # 1000 turns: the same rotation as 0.0147 rad
+    path.write_text("\n".join(lines) + "\n")
+    rotation = bal_to_problem(read_bal(path)).reference_rotations[1]
+    assert np.all(np.isfinite(rotation)) and np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-12)
+
+
 @pytest.fixture
 def bal_problem(tmp_path):
     from scope3d.estimators.bundle import bal_to_problem, read_bal
@@ -312,6 +331,25 @@ def test_a_damaged_bag_is_refused_in_one_line(targets, name):
         target.restore()
 
 
+@pytest.mark.parametrize("fields, fragment", [
+    ({"K": 20.0}, "K has 1 values, not 9"),  # the long random run's input (below): a float64 where float64[9] was
+    ({"K": "twenty"}, "not numbers"),
+    ({"K": [20.0, 0, 7.5, 0, 20.0, 5.5, 0, 0, 1], "D": "plumb"}, "not numbers"),
+])
+def test_camera_info_whose_matrix_is_no_matrix_is_refused_naming_the_topic(fields, fragment):
+    """Found by the long random fuzz run (issue 16, ROS 1 bag target, input 2,627 of seed 1): two connection
+    ids swapped in a chunk's index made a message of another type be read as the camera info, whose K
+    came out as one number: numpy's reshape ValueError, not a refusal."""
+    from types import SimpleNamespace
+
+    from scope3d.io.rosbag import camera_from_info
+
+    message = SimpleNamespace(width=16, height=12, **{"D": [0.0] * 5, **fields})
+    with pytest.raises(InputError) as info:
+        camera_from_info(message, "scope.bag: /info")
+    assert str(info.value).startswith("scope.bag: /info: ") and fragment in str(info.value), str(info.value)
+
+
 @pytest.mark.parametrize("edit, fragment", [
     (lambda r: r["targets_vs_truth"][0].pop("name"), "every true target needs a name"),
     (lambda r: r["targets"][0].update(centroid_mm=[1.0, 2.0]), "targets[0]: centroid_mm must be three"),
@@ -342,6 +380,7 @@ def test_a_report_json_with_damaged_targets_is_refused_naming_the_entry(targets,
     lambda r: r["targets_vs_truth"][0].update(true_size_mm=None),
     lambda r: r.update(dataset="1" * 300),
     lambda r: r.update(dataset=[1, 2]),
+    lambda r: r.update(dataset=0.41),  # the long run's lost atheris crash, reproduced on its code (TypeError)
 ])
 def test_a_report_json_with_null_sizes_or_an_impossible_dataset_name_still_gives_its_page(targets, edit):
     """Found by the long random fuzz run (issue 16): a null size (allowed: a size the map could not

@@ -88,7 +88,9 @@ def register(subparsers) -> None:
                     "Nth frame, or the key frames (a frame is kept when the view has moved by --min-shift of the "
                     "image since the last key frame, or no longer matches it by a shift). Poses are unknown "
                     "(tolerance inf) unless --plan assigns the scan plan's poses by time, within --tolerance. "
-                    "See docs/datasets.md.",
+                    "Frames FFmpeg could decode only with errors (and conceal) are imported, and named in the "
+                    "output and in dataset.json (source.decode_damage); damage that leaves a valid stream is "
+                    "not seen. See docs/datasets.md.",
     )
     vid.add_argument("video", metavar="VIDEO", type=Path, help="the video file")
     vid.add_argument("--out", metavar="DIR", type=Path, required=True,
@@ -167,11 +169,12 @@ def run_check(args) -> int:
     return 0
 
 
-def _finish_import(args, out: Path, report: dict) -> int:
-    """The import's summary (or its report as JSON, --json); report.json and report.html are in ``out``."""
+def _finish_import(args, out: Path, report: dict, notes: tuple[str, ...] = ()) -> int:
+    """The import's summary (or its report as JSON, --json), then ``notes`` (lines of warning); report.json
+    and report.html are in ``out``."""
     from scope3d.io.dataset import load_dataset
 
-    return finish_job(args, None, report, [load_dataset(out).summary(), f"wrote {out / 'report.html'}"])
+    return finish_job(args, None, report, [load_dataset(out).summary(), *notes, f"wrote {out / 'report.html'}"])
 
 
 def _import_report(args, source: str) -> tuple[dict, object]:
@@ -223,7 +226,8 @@ def run_import_video(args) -> int:
     from scope3d.io.camera_json import read_camera_json
     from scope3d.io.scan_plan import read_scan_plan
     from scope3d.io.video import probe_video
-    from scope3d.pipelines.video_import import VideoImportOptions, import_video
+    from scope3d.io.json_object import read_json_object
+    from scope3d.pipelines.video_import import VideoImportOptions, decode_damage_summary, import_video
     from scope3d.sensor.camera import Camera
     from scope3d.sensor.pose_tolerance import PoseTolerance
 
@@ -259,7 +263,12 @@ def run_import_video(args) -> int:
         camera = Camera.from_fov(info.width, info.height, args.fov)
         intrinsics = f"nominal, not calibrated: pinhole, {args.fov:g} deg across the width, centred, no distortion"
     report, finish = _import_report(args, str(args.video))
+
+    def finish_with_damage(folder: Path) -> None:  # the damaged frames into report.json too
+        report["decode_damage"] = read_json_object(folder / "dataset.json")["source"]["decode_damage"]
+        finish(folder)
+
     with progress_bar(show_progress(args), "frame") as progress:
         out = import_video(args.video, args.out, options, camera=camera, plan=plan, intrinsics=intrinsics,
-                           progress=progress, finish=finish)
-    return _finish_import(args, out, report)
+                           progress=progress, finish=finish_with_damage)
+    return _finish_import(args, out, report, tuple(decode_damage_summary(report["decode_damage"])))

@@ -40,11 +40,16 @@ class BALProblem:
         return 0.5 * float(np.sum((pix - self.observations_px) ** 2))
 
 
+MAX_ROTATION_COMPONENT_RAD = 2.0**52  # a float's spacing is 1 rad here: the angle modulo 2 pi is noise
+
+
 def read_bal(path: str | os.PathLike) -> BALProblem:
     """Read a BAL text file (uncompressed). Raises InputError, naming the file, on a malformed file.
 
     Rotations are rotation vectors: any finite one is a rotation however few digits it is printed
-    with, so unlike a printed matrix or quaternion there is no rounding to absorb.
+    with, so unlike a printed matrix or quaternion there is no rounding to absorb; but a component of
+    2^52 rad or more is refused: there a float's spacing reaches 1 rad, so the digits name no definite
+    rotation, and beyond 1e154 rad Rodrigues' formula overflows to NaN (found by the long fuzz run).
     """
     text = read_ascii_text(path, "a BAL file")
     try:
@@ -69,6 +74,11 @@ def read_bal(path: str | os.PathLike) -> BALProblem:
         bad = np.flatnonzero(~np.all(np.isfinite(block), axis=1))
         if bad.size:
             raise InputError(f"{path}: {what} {bad[0]} (0-based) has NaN or infinite values")
+    bad = np.flatnonzero(np.abs(cams[:, :3]).max(axis=1) >= MAX_ROTATION_COMPONENT_RAD)
+    if bad.size:
+        raise InputError(f"{path}: camera {bad[0]} (0-based): a rotation vector component of "
+                         f"{np.abs(cams[bad[0], :3]).max():.3g} rad names no definite rotation "
+                         f"(at 2^52 rad and beyond, a float's spacing is 1 rad or more)")
     bad = np.flatnonzero(np.any(obs[:, :2] != np.round(obs[:, :2]), axis=1))
     if bad.size:
         raise InputError(f"{path}: observation {bad[0]} (0-based): camera and point indices must be integers")

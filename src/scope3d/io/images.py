@@ -61,46 +61,67 @@ def decode_image_data(data: np.ndarray, where: str | Path, flag: int) -> np.ndar
 class _StderrSilencer:
     """libpng, libjpeg and FFmpeg print their complaints about a damaged file ("libpng error: IDAT: incorrect data
     check") straight to file descriptor 2, past OpenCV's log level: the CLI's one-line refusal would come
-    with a second line. While any thread decodes, fd 2 points to /dev/null; the first decoder in saves it,
-    the last one out restores it (a count, so that threads decoding at once never restore each other's)."""
+    with a second line. While any thread decodes, fd 2 points to a file in memory; the first decoder in
+    saves fd 2, the last one out restores it (a count, so that threads decoding at once never restore each
+    other's). A window may ask for the lines written while it was open (FFmpeg's say which frame was
+    damaged); with several threads decoding at once, it also gets the others' lines of that time."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._users = 0
         self._saved: int | None = None
+        self._sink: int | None = None
 
     @contextlib.contextmanager
-    def __call__(self):
+    def __call__(self, messages: list[str] | None = None):
         with self._lock:
             if self._users == 0:
                 sys.stderr.flush()
                 self._saved = os.dup(2)
-                null = os.open(os.devnull, os.O_WRONLY)
-                os.dup2(null, 2)
-                os.close(null)
+                self._sink = _memory_file()
+                os.dup2(self._sink, 2)
             self._users += 1
+            start = os.lseek(self._sink, 0, os.SEEK_END)
         try:
             yield
         finally:
             with self._lock:
+                if messages is not None:
+                    end = os.lseek(self._sink, 0, os.SEEK_END)
+                    text = os.pread(self._sink, end - start, start).decode("utf-8", errors="replace")
+                    messages.extend(line for line in text.splitlines() if line.strip())
                 self._users -= 1
                 if self._users == 0:
                     os.dup2(self._saved, 2)
                     os.close(self._saved)
-                    self._saved = None
+                    os.close(self._sink)
+                    self._saved = self._sink = None
+
+
+def _memory_file() -> int:
+    """A file descriptor of an anonymous file (in memory on Linux), gone when closed."""
+    if hasattr(os, "memfd_create"):
+        return os.memfd_create("scope3d-decoder-stderr")
+    import tempfile
+
+    handle = tempfile.TemporaryFile()
+    descriptor = os.dup(handle.fileno())
+    handle.close()
+    return descriptor
 
 
 _decoder_stderr_silenced = _StderrSilencer()
 
 
 @contextlib.contextmanager
-def quiet_decoders():
+def quiet_decoders(messages: list[str] | None = None):
     """While decoding a file that may be damaged: OpenCV's log silenced, and what libpng, libjpeg or FFmpeg
-    print on stderr themselves discarded (the caller reports the problem in one line)."""
+    print on stderr themselves kept from the terminal (the caller reports the problem in one line).
+    messages : if given, the non-empty lines the decoders printed while this block ran are appended to it."""
     old_level = cv2.utils.logging.getLogLevel()
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
     try:
-        with _decoder_stderr_silenced():
+        with _decoder_stderr_silenced(messages):
             yield
     finally:
         cv2.utils.logging.setLogLevel(old_level)

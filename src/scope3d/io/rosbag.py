@@ -150,8 +150,15 @@ def decode_image(msg, msgtype: str, where: str) -> np.ndarray:
 def camera_from_info(msg, where: str) -> Camera:
     """A Camera from a CameraInfo message (plumb_bob / rational_polynomial: k1, k2 kept; the others must
     be negligible, as scope3d's model has k1, k2 only)."""
-    k = np.asarray(getattr(msg, "k", getattr(msg, "K", None)), float).reshape(3, 3)
-    d = np.asarray(getattr(msg, "d", getattr(msg, "D", [])), float)
+    # a damaged bag's message definition can turn K into one number or D into text: refused, not reshaped
+    try:
+        k = np.asarray(getattr(msg, "k", getattr(msg, "K", None)), float)
+        d = np.asarray(getattr(msg, "d", getattr(msg, "D", [])), float).ravel()
+    except (TypeError, ValueError):
+        raise InputError(f"{where}: camera info's K or D is not numbers") from None
+    if k.size != 9:
+        raise InputError(f"{where}: camera info's K has {k.size} values, not 9")
+    k = k.reshape(3, 3)
     if not k[0, 0] > 0 or not k[1, 1] > 0:
         raise InputError(f"{where}: camera info has no focal length (uncalibrated camera)")
     if len(d) > 2 and np.any(np.abs(d[2:]) > 1e-9):

@@ -8,13 +8,25 @@ the one the opencv wheel can encode without extra libraries.
 
 Times are the container's presentation times (``CAP_PROP_POS_MSEC``), in seconds from the first frame,
 so a variable-rate video keeps its real timing.
+
+Damaged frames. FFmpeg conceals a damaged frame (it fills the blocks it cannot decode from their
+neighbours and the previous frame) and returns it as if whole; OpenCV exposes no flag for that. What
+FFmpeg does say is a line on stderr at its error level ("[mpeg4 @ 0x...] ac-tex damaged at 17 13"). Frames
+are therefore decoded on one thread (with decoder threads the line comes while a later frame is being
+read, and can come outside the window in which stderr is captured), and the lines written during each
+frame's decoding are that frame's :attr:`DamagedFrame.messages`. This finds damage the bitstream's syntax
+reveals, not all of it: a flipped bit can leave a valid stream that decodes to wrong pixels without a
+word (measured in ``benchmarks/bench_video_damage.py``), and frames predicted from a damaged one up to the
+next key frame carry its concealment silently. A user's own ``OPENCV_FFMPEG_LOGLEVEL`` or
+``OPENCV_FFMPEG_DEBUG`` sends FFmpeg's lines elsewhere (OpenCV prints them on stdout): no damage can be
+seen then (:func:`damage_check_available`).
 """
 from __future__ import annotations
 
 import math
 import os
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -57,6 +69,42 @@ class VideoFrame:
     image: np.ndarray
 
 
+@dataclass(frozen=True)
+class DamagedFrame:
+    """A frame FFmpeg decoded with errors and concealed. index : int, position in the video (0 = first).
+    time_s : float, its presentation time in seconds. messages : tuple of str, FFmpeg's lines about it.
+    next_key_frame : int or None, the index of the next key (intra) frame after it, or None if the video
+    ended first (or its container does not say which frames are key frames): frames ``index`` up to it
+    (excluded) may carry the concealment, each predicted from the one before (with B frames, a frame
+    just before ``index`` may too)."""
+
+    index: int
+    time_s: float
+    messages: tuple[str, ...]
+    next_key_frame: int | None = None
+
+    def carries_damage(self, frame_index: int) -> bool:
+        """Whether the frame at ``frame_index`` is this one or predicted from it (see the class docstring)."""
+        return self.index <= frame_index and (self.next_key_frame is None or frame_index < self.next_key_frame)
+
+
+@dataclass
+class DecodeCheck:
+    """What :func:`read_video` saw while decoding, filled in as it goes. damaged : list of
+    :class:`DamagedFrame`, in order. frames_decoded : int, frames read so far, yielded or skipped (fewer
+    than the container states: a truncated or damaged file, or a container's estimate)."""
+
+    damaged: list[DamagedFrame] = field(default_factory=list)
+    frames_decoded: int = 0
+
+
+def damage_check_available() -> bool:
+    """Whether FFmpeg's error lines reach stderr, where :func:`read_video` reads them: not when the user set
+    ``OPENCV_FFMPEG_LOGLEVEL`` or ``OPENCV_FFMPEG_DEBUG`` (OpenCV then prints FFmpeg's log on stdout at the
+    level given; without them it leaves FFmpeg's own printer on stderr at its error level)."""
+    return "OPENCV_FFMPEG_LOGLEVEL" not in os.environ and "OPENCV_FFMPEG_DEBUG" not in os.environ
+
+
 def _open(path: Path) -> cv2.VideoCapture:
     if not path.exists():
         raise InputError(f"{path}: no such video file")
@@ -65,15 +113,13 @@ def _open(path: Path) -> cv2.VideoCapture:
     # FFmpeg also opens still images as one-frame "videos"; a photo given as a video is a mistake
     if cv2.haveImageReader(str(path)):
         raise InputError(f"{path}: is a still image, not a video")
-    # FFmpeg's decoder threads report a damaged stream ("[mpeg4 @ ...] ac-tex damaged") on stderr whenever
-    # they reach it, outside quiet_decoders' window around each call: the import then printed lines beside
-    # its own. OpenCV sets FFmpeg's log level once, from this variable, when it first loads FFmpeg in the
-    # process; quiet (AV_LOG_QUIET, -8) unless the user set it
-    os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
+    # one decoder thread: FFmpeg's decoder threads reported a damaged stream ("[mpeg4 @ ...] ac-tex damaged")
+    # on stderr whenever they reached it, outside quiet_decoders' window around each call (the import
+    # printed lines beside its own), and a line could not be told to belong to one frame
     with quiet_decoders():
-        capture = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
+        capture = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG, [cv2.CAP_PROP_N_THREADS, 1])
     if not capture.isOpened():
-        capture.release()
+        _quietly(capture.release)
         raise InputError(f"{path}: not a video file OpenCV's FFmpeg can decode (empty, truncated or another format)")
     return capture
 
@@ -99,7 +145,7 @@ def probe_video(path: str | Path) -> VideoInfo:
         with quiet_decoders():
             ok, _ = capture.read()
     finally:
-        capture.release()
+        _quietly(capture.release)
     if not ok or width <= 0 or height <= 0:
         raise InputError(f"{path}: the video has no frames")
     if not (math.isfinite(fps) and fps > 0):
@@ -108,13 +154,16 @@ def probe_video(path: str | Path) -> VideoInfo:
     return VideoInfo(path, width, height, fps, max(n_frames, 1))
 
 
-def read_video(path: str | Path, *, every: int = 1) -> Iterator[VideoFrame]:
+def read_video(path: str | Path, *, every: int = 1, check: DecodeCheck | None = None) -> Iterator[VideoFrame]:
     """The frames of a video, decoded one at a time, in order.
 
     every : int >= 1, yield frames 0, every, 2 * every... The others are only demuxed and decoded
     (``grab``), not converted to RGB: an inter-frame codec must decode every frame anyway, so this is
-    all a skip can save. Yields :class:`VideoFrame`; raises InputError naming the file if it cannot be
-    opened or holds no frame at all.
+    all a skip can save. check : if given, a :class:`DamagedFrame` is appended to ``check.damaged`` for
+    every frame, yielded or skipped, that FFmpeg said it decoded with errors (see the module docstring for
+    what this misses), before that frame is yielded (its ``next_key_frame`` is filled in when that frame
+    is reached), and ``check.frames_decoded`` counts the frames read. Yields :class:`VideoFrame`; raises
+    InputError naming the file if it cannot be opened or holds no frame at all.
     """
     if isinstance(every, bool) or not isinstance(every, int) or every < 1:
         raise ValueError(f"every must be a whole number >= 1, got {every!r}")
@@ -122,18 +171,36 @@ def read_video(path: str | Path, *, every: int = 1) -> Iterator[VideoFrame]:
     capture = _open(path)
     try:
         index = 0
-        while _quietly(capture.grab):
-            if index % every == 0:
-                ok, bgr = _quietly(capture.retrieve)
+        open_damage: list[int] = []  # positions in ``check.damaged`` whose next key frame is not reached yet
+        while True:
+            messages: list[str] = []
+            with quiet_decoders(messages):
+                if not capture.grab():
+                    break
+                # the frame is decoded by grab; retrieve only converts it (to BGR), which is also where an
+                # undecodable one shows
+                wanted = index % every == 0
+                ok, bgr = capture.retrieve() if wanted else (True, None)
+            time_s = capture.get(cv2.CAP_PROP_POS_MSEC) / 1000.0
+            if check is not None:
+                check.frames_decoded = index + 1
+                damaged = check.damaged
+                if open_damage and capture.get(cv2.CAP_PROP_FRAME_TYPE) == ord("I"):  # predicted from nothing
+                    for position in open_damage:
+                        damaged[position] = replace(damaged[position], next_key_frame=index)
+                    open_damage.clear()
+                if messages:
+                    open_damage.append(len(damaged))
+                    damaged.append(DamagedFrame(index, time_s, tuple(messages)))
+            if wanted:
                 if not ok:
                     raise InputError(f"{path}: frame {index} does not decode")
-                time_s = capture.get(cv2.CAP_PROP_POS_MSEC) / 1000.0
                 yield VideoFrame(index, time_s, cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB))
             index += 1
         if index == 0:
             raise InputError(f"{path}: the video has no frames")
     finally:
-        capture.release()
+        _quietly(capture.release)
 
 
 def write_video(path: str | Path, frames: Iterable[np.ndarray], fps: float) -> Path:

@@ -27,7 +27,7 @@ from scope3d.feature.keyframes import KeyframeOptions, KeyframeSelector
 from scope3d.geometry.pose import Pose
 from scope3d.io.dataset import write_dataset
 from scope3d.io.scan_plan import PlanFile
-from scope3d.io.video import probe_video, read_video
+from scope3d.io.video import DecodeCheck, damage_check_available, probe_video, read_video
 from scope3d.sensor.camera import Camera
 from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance
 from scope3d.utils.progress import Progress, advance, stage
@@ -86,7 +86,8 @@ def import_video(video: str | Path, out_dir: str | Path, options: VideoImportOpt
     docstring), or None for unknown poses. intrinsics : where the camera came from, recorded in
     ``dataset.json`` (e.g. "nominal, not calibrated"). progress : counts frames read (see
     :mod:`scope3d.utils.progress`). ``dataset.json``'s ``source`` records the video, the selection rule,
-    and each kept frame's index and time. finish : see :func:`scope3d.io.dataset.write_dataset`. Raises
+    each kept frame's index and time, and the frames FFmpeg decoded with errors (``decode_damage``, see
+    :func:`decode_damage_record`). finish : see :func:`scope3d.io.dataset.write_dataset`. Raises
     InputError naming the file for a missing, unreadable or empty video, or a camera of another size.
     """
     video = Path(video)
@@ -101,7 +102,8 @@ def import_video(video: str | Path, out_dir: str | Path, options: VideoImportOpt
         paths, names, indices, times, measured = [], [], [], [], []
         n_planned = 0
         unknown = MeasuredPose(Pose.identity(), PoseTolerance.unknown())
-        for frame in read_video(video, every=1 if selector else options.every):
+        check = DecodeCheck()
+        for frame in read_video(video, every=1 if selector else options.every, check=check):
             advance(progress, 1 if selector else min(options.every, max(info.n_frames - frame.index, 1)))
             if selector is not None and not selector.offer(frame.image).keep:
                 continue
@@ -120,7 +122,8 @@ def import_video(video: str | Path, out_dir: str | Path, options: VideoImportOpt
                      else {"rule": "every", "every": options.every})
         source = {"video": str(video), "fps": info.fps, "frames_in_container": info.n_frames, "frames_kept": len(paths),
                   "intrinsics": intrinsics,
-                  "selection": selection, "frame_indices": indices, "frame_times_s": times}
+                  "selection": selection, "frame_indices": indices, "frame_times_s": times,
+                  "decode_damage": decode_damage_record(check, indices, info.n_frames)}
         if plan is not None:
             source["plan"] = {"views": len(plan.poses), "seconds_per_view": options.seconds_per_view,
                               "start_s": options.plan_start_s,
@@ -128,3 +131,53 @@ def import_video(video: str | Path, out_dir: str | Path, options: VideoImportOpt
         return write_dataset(out_dir, camera, paths, measured, names=names, metadata={"source": source},
                              finish=finish)
 
+
+
+MESSAGES_KEPT = 20  # FFmpeg's lines are recorded for this many damaged frames (a wrecked video has thousands)
+
+
+def decode_damage_record(check: DecodeCheck, kept_indices: list[int], frames_in_container: int) -> dict:
+    """What ``dataset.json`` says about a damaged video: ``frames_in_container`` and ``frames_decoded``
+    (fewer decoded than stated: a truncated or damaged file, or a container's estimate), and the frames
+    FFmpeg decoded with errors and concealed (imported as if whole, since that is what OpenCV returns):
+    ``checked`` (False when the user's OpenCV FFmpeg log setting hides FFmpeg's lines), ``frames`` (their
+    indices in the video), ``frames_kept`` (those among
+    the dataset's frames), ``kept_frames_carrying_damage`` (the dataset's frames that are damaged or
+    predicted from a damaged one, up to the next key frame), ``messages`` (FFmpeg's lines for the first
+    few, by frame index) and what the check cannot see."""
+    kept = set(kept_indices)
+    damaged = check.damaged
+    return {
+        "frames_in_container": frames_in_container,
+        "frames_decoded": check.frames_decoded,
+        "checked": damage_check_available(),
+        "frames": [d.index for d in damaged],
+        "frames_kept": [d.index for d in damaged if d.index in kept],
+        # a concealed block is copied into every frame predicted from it, up to the next key frame
+        "kept_frames_carrying_damage": [i for i in kept_indices if any(d.carries_damage(i) for d in damaged)],
+        "messages": {str(d.index): list(d.messages) for d in damaged[:MESSAGES_KEPT]},
+        "not_seen": "damage that leaves a valid stream (a flipped bit decoding to wrong pixels without an "
+                    "error) and the frames predicted from such a frame",
+    }
+
+
+def decode_damage_summary(record: dict) -> list[str]:
+    """Lines for the import's output about a damaged video (none for a clean one)."""
+    lines = []
+    stated, decoded = record.get("frames_in_container", 0), record.get("frames_decoded", 0)
+    if decoded < stated:
+        lines.append(f"damage        the container states {stated} frames, {decoded} could be read: the file is "
+                     f"truncated or damaged (or its frame count an estimate)")
+    if not record.get("checked", False):
+        lines.append("damage        frames not checked: OPENCV_FFMPEG_LOGLEVEL or OPENCV_FFMPEG_DEBUG sends "
+                     "FFmpeg's error lines away from scope3d")
+        return lines
+    frames = record.get("frames", [])
+    if frames:
+        shown = ", ".join(str(i) for i in frames[:20]) + (", ..." if len(frames) > 20 else "")
+        carrying = len(record.get("kept_frames_carrying_damage", []))
+        lines.append(f"damage        {len(frames)} frame{'s' if len(frames) != 1 else ''} could not be decoded "
+                     f"cleanly (frames {shown}; {len(record.get('frames_kept', []))} of them in the dataset, and "
+                     f"{carrying} of the dataset's frames are them or predicted from them): FFmpeg concealed the "
+                     f"damage; dataset.json source.decode_damage lists them")
+    return lines
