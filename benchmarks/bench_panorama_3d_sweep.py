@@ -162,6 +162,9 @@ def main() -> None:
             continue
         path, commands = dataset_for(args.cache, tag, plan, phantom_args)
         case = {"x": value, "commands": commands, **run_case(path, args)}
+        # read again: another run of the sweep (pycolmap alone, say) may have merged its rows meanwhile
+        if out.exists():
+            result["cases"] = json.loads(out.read_text())["cases"]
         if tag in result["cases"]:  # rows not run again: those of an earlier run on the same frames
             ran = {r["method"] for r in case["rows"]}
             kept = [r for r in result["cases"][tag]["rows"] if r["method"] not in ran
