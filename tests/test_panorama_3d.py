@@ -22,7 +22,8 @@ from scope3d.metrology.star_scale import combine_views, fit_local_wall, pentagra
 from scope3d.sensor.camera import Camera
 from scope3d.phantoms import generate, write
 from scope3d.pipelines.panorama_3d import PanoramaOptions, evaluate, run
-from scope3d.sfm.cavity_mapping import CavityOptions, map_cavity, overlapping_pairs, verified_matches
+from scope3d.sfm.cavity_mapping import (CavityOptions, _wall_distance, map_cavity, overlapping_pairs, pair_poses,
+                                        verified_matches)
 
 # frames 10-23 of the 36-frame spiral: one turn, with three stars seen whole (frames 13, 14, 17, 22)
 FIRST, LAST = 10, 23
@@ -204,6 +205,20 @@ def test_pairs_the_start_says_overlap_are_matched_and_verified_against_the_truth
     # 1.0 % against 5-10 %); a few dozen cross-turn matches here, so at most 5 % (2 of 40)
     assert wrong(verified).sum() <= wrong(more).sum()
     assert wrong(verified).mean() <= 0.05
+
+
+def test_planned_pairs_found_at_the_measured_wall_distance(turn_features):
+    ds, features = turn_features
+    default = pair_poses(ds.camera, features, CavityOptions(), measured=ds.poses)
+    at_wall = pair_poses(ds.camera, features, CavityOptions(plan_overlap_at_wall=True), measured=ds.poses)
+    # the first pairs measure the wall's distance: against the true depth maps of the frames (z-depths;
+    # the distance along a ray is up to 1/cos(35 deg) = 1.22 x longer at the field's edge, ~1.1 x on average)
+    posed = [(m, r) for m, r in zip(at_wall[0], at_wall[1])]
+    distance = _wall_distance(ds.camera, features, [p.pose for p in ds.poses], posed)
+    true_depth = np.nanmedian(np.concatenate([ds.ground_truth.depth(k)[ds.camera.mask()].ravel() for k in range(len(ds))]))
+    assert 0.95 * true_depth < distance < 1.3 * true_depth
+    # this turn sees the wall at 25-35 mm, near the shell's 37 mm: the same pairs are posed
+    assert {(m.i, m.j) for m in at_wall[0]} == {(m.i, m.j) for m in default[0]}
 
 
 def test_pairs_disagreeing_with_the_averaged_rotations_are_inconsistent():
