@@ -321,7 +321,7 @@ def _wall_distance(camera: Camera, features: list[Features], poses: list[Pose], 
     """Distance (mm) from the cameras to the wall: the median over the posed pairs of their inliers' median
     distance from the first camera, triangulated with the plan's relative pose (pairs with fewer than half
     their points in front of both cameras left out, as in :func:`depth_spread`); None without such a pair.
-    The plan's pose, not the pair's own: on the 200 px turn the pairs' own baseline directions put 8 of 15
+    The plan's pose, not the pair's own: on the 200 px turn the pairs' own baseline directions put 9 of 15
     pairs' points 4-16 x too far. Per pair first, then the median over pairs: a few bad pairs do not move it."""
     distances = []
     for m, rel in found:
