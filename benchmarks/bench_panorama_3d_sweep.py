@@ -122,7 +122,8 @@ def save_picture(sweep: str, cases: dict, path: Path) -> None:
         for t in tags:
             row = next((r for r in cases[t]["rows"] if r["method"] == m), {})
             err.append((row.get("surface_error_mm") or {}).get("mean", np.nan))
-            reg.append(row.get("n_registered", 0) / cases[t]["n_frames"])
+            # a method not run on a case is no point (not 0 frames registered)
+            reg.append(row.get("n_registered", 0) / cases[t]["n_frames"] if row else np.nan)
         ax_err.plot(x, err, "o-", label=m)
         ax_reg.plot(x, reg, "o-", label=m)
     ax_err.axhline(0.2, color="grey", ls=":", lw=1, label="issue's 0.2 mm")
