@@ -59,6 +59,7 @@ def ours(ds, work: Path, use_planned: bool, stars: bool = False) -> dict:
             "scale_source": report["scale_source"], "scale_error_fraction": report.get("scale_error_fraction"),
             "n_star_views": (report["stars"] or {}).get("n_views", 0), "stars_error": stars_error,
             "self_check": report.get("self_check"),
+            "scale_uncertainty_fraction": report.get("scale_uncertainty_fraction"),
             "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0, "timings_s": report["timings_s"]}
 
 

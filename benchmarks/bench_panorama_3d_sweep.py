@@ -18,10 +18,10 @@ from there afterwards. Results are merged per case into benchmarks/results/panor
 case run again replaces its entry), with a picture of the error and registered frames per case.
 
 Usage: PYTHONPATH=src python benchmarks/bench_panorama_3d_sweep.py {density,spirals} [--cases TAG ...]
-    [--no-colmap] [--ours {both,images,planned}] [--incremental] [--cache DIR]
+    [--no-colmap] [--ours {both,images,planned,none}] [--incremental] [--cache DIR]
 (``--no-colmap`` keeps pycolmap's rows of an earlier run of the same case: its result does not depend on our
 code, and it is the slow half of the benchmark; ``--ours images`` likewise keeps the planned-pose rows, for a
-change that only the image-only map goes through.)
+change that only the image-only map goes through; ``--ours none`` runs pycolmap alone and keeps ours.)
 """
 from __future__ import annotations
 
@@ -92,7 +92,7 @@ def run_case(path: Path, args) -> dict:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
-        for use_planned in {"both": (False, True), "images": (False,), "planned": (True,)}[args.ours]:
+        for use_planned in {"both": (False, True), "images": (False,), "planned": (True,), "none": ()}[args.ours]:
             before = load()
             try:
                 row = ours(ds, work, use_planned, stars=True)
@@ -125,7 +125,8 @@ def save_picture(sweep: str, cases: dict, path: Path) -> None:
         for t in tags:
             row = next((r for r in cases[t]["rows"] if r["method"] == m), {})
             err.append((row.get("surface_error_mm") or {}).get("mean", np.nan))
-            reg.append(row.get("n_registered", 0) / cases[t]["n_frames"])
+            # a method not run on a case is no point (not 0 frames registered)
+            reg.append(row.get("n_registered", 0) / cases[t]["n_frames"] if row else np.nan)
         ax_err.plot(x, err, "o-", label=m)
         ax_reg.plot(x, reg, "o-", label=m)
     ax_err.axhline(0.2, color="grey", ls=":", lw=1, label="issue's 0.2 mm")
@@ -146,8 +147,9 @@ def main() -> None:
     ap.add_argument("--cases", nargs="*", help="case tags to run (default all of the sweep)")
     ap.add_argument("--no-colmap", action="store_true",
                     help="ours only; pycolmap's rows of an earlier run of the case are kept (same frames)")
-    ap.add_argument("--ours", choices=("both", "images", "planned"), default="both",
-                    help="which of our maps to run (default both); the other's rows of an earlier run are kept")
+    ap.add_argument("--ours", choices=("both", "images", "planned", "none"), default="both",
+                    help="which of our maps to run (default both; none: pycolmap only); the rows not run of an "
+                         "earlier run of the case are kept")
     ap.add_argument("--incremental", action="store_true", help="also pycolmap.incremental_mapping (slow)")
     ap.add_argument("--sequential-above", type=int, default=100,
                     help="pycolmap matches each frame with its next 10 above this many frames (default 100)")
@@ -164,6 +166,9 @@ def main() -> None:
             continue
         path, commands = dataset_for(args.cache, tag, plan, phantom_args)
         case = {"x": value, "commands": commands, **run_case(path, args)}
+        # read again: another run of the sweep (pycolmap alone, say) may have merged its rows meanwhile
+        if out.exists():
+            result["cases"] = json.loads(out.read_text())["cases"]
         if tag in result["cases"]:  # rows not run again: those of an earlier run on the same frames
             ran = {r["method"] for r in case["rows"]}
             kept = [r for r in result["cases"][tag]["rows"] if r["method"] not in ran

@@ -129,7 +129,9 @@ def _run_panorama(args) -> int:
     with job_folder(args.out) as staged, progress_bar(show_progress(args), "frame") as progress:
         report, _ = run(options, dataset, staged, progress=progress)
     summary = (f"{report['n_registered']}/{report['n_frames']} frames registered, {report['n_points']} points, "
-               f"scale from {report['scale_source']}, {report['time_s']:.1f} s")
+               f"scale from {report['scale_source']}"
+               + (f" (± {report['scale_uncertainty_fraction']:.2%})" if report.get("scale_uncertainty_fraction") else "")
+               + f", {report['time_s']:.1f} s")
     lines = [summary]
     err = report.get("surface_error_mm", {}).get("after_similarity")
     if err:

@@ -211,6 +211,7 @@ def run(options: PanoramaOptions, dataset: Dataset, out_dir: str | Path, *, prog
         "poses": "planned (bounded)" if cavity.scale_known else "images only",
         "scale_source": scale_source,
         "stars": None if scale_info is None else scale_info.to_dict(),
+        "scale_uncertainty_fraction": None if scale_info is None else scale_info.uncertainty,
         "cavity_radius": cavity.radius_mm,
         "length_unit": "mm" if scale_source != "none" else "map units (no physical scale)",
         "stages": cavity.stages,
