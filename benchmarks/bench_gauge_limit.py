@@ -32,22 +32,12 @@ import numpy as np
 from scope3d import phantoms
 from scope3d.estimators.gauge import align_gauge
 from scope3d.geometry.rotation import rotation_angle_between
+from scope3d.geometry.similarity import fit_similarity
 from scope3d.phantoms.trajectories import build_trajectory
 from scope3d.utils.jsonio import write_json
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "results" / "map_gauge_limit.json"
-
-
-def umeyama_scale_and_centres(true_c: np.ndarray, reported_c: np.ndarray) -> tuple[float, np.ndarray]:
-    """The least-squares similarity of the true centres onto the reported ones: (scale, moved centres)."""
-    ca, cb = true_c.mean(axis=0), reported_c.mean(axis=0)
-    a, b = true_c - ca, reported_c - cb
-    U, S, Vt = np.linalg.svd(b.T @ a)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    R = U @ D @ Vt
-    s = float(np.trace(np.diag(S) @ D) / np.sum(a * a))
-    return s, s * a @ R.T + cb
 
 
 def placement_errors(true_poses, placed_centres: np.ndarray, placed_rotations: np.ndarray | None) -> dict:
@@ -82,8 +72,8 @@ def main(argv=None) -> None:
                 rows.append({"rule": rule, "level_mm": level, "seed": seed,
                              **placement_errors(true_poses, np.stack([q.centre for q in placed]),
                                                 np.stack([q.rotation for q in placed]))})
-            _, centres = umeyama_scale_and_centres(np.stack([q.centre for q in true_poses]),
-                                                   np.stack([m.pose.centre for m in measured]))
+            true_centres = np.stack([q.centre for q in true_poses])
+            centres = fit_similarity(true_centres, np.stack([m.pose.centre for m in measured])).apply(true_centres)
             rows.append({"rule": "centres", "level_mm": level, "seed": seed,
                          **placement_errors(true_poses, centres, None)})
             rows.append({"rule": "reported", "level_mm": level, "seed": seed,

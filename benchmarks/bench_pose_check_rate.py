@@ -46,7 +46,7 @@ from scope3d import phantoms  # noqa: E402
 from scope3d.feature.tracks import build_tracks  # noqa: E402
 from scope3d.geometry.pose import Pose  # noqa: E402
 from scope3d.geometry.rotation import matrix_to_rotvec, rotvec_to_matrix  # noqa: E402
-from scope3d.io.dataset import load_dataset  # noqa: E402
+from scope3d.io.dataset import Dataset, load_dataset  # noqa: E402
 from scope3d.pipelines import surgical_map as sm  # noqa: E402
 from scope3d.sensor.pose_tolerance import MeasuredPose  # noqa: E402
 from scope3d.sfm.pose_checks import (PoseCheckOptions, _scale_of_images, box_mahalanobis,  # noqa: E402
@@ -74,7 +74,11 @@ def glitch_vector(kind: str, size: float) -> np.ndarray:
     return np.r_[0.0, 0.0, 0.0, size, 0.0, 0.0] if kind == "mm" else np.r_[np.deg2rad(size), 0.0, 0.0, 0.0, 0.0, 0.0]
 
 
-def one_case(survey: str, seed: int, shift_mm: float, tmp: Path, turn_deg: float = 0.0, frame: int | None = None) -> dict:
+def glitched_dataset(survey: str, seed: int, shift_mm: float, tmp: Path, turn_deg: float = 0.0,
+                     frame: int | None = None) -> tuple[Dataset, list[int]]:
+    """The survey's dome phantom (320 x 240, reports within 0.5 mm) written under ``tmp``, one frame's report
+    (``frame``, default the middle one) moved ``shift_mm`` along x and turned ``turn_deg`` about x; -> (the
+    dataset, the glitched frames: none without a glitch)."""
     trajectory, n = SURVEYS[survey]
     seq = phantoms.generate("dome", trajectory, size=(320, 240), seed=seed, n_frames=n, pose_noise_mm=0.5)
     dataset = load_dataset(phantoms.write(seq, tmp / f"{survey}_{seed}"))
@@ -84,7 +88,11 @@ def one_case(survey: str, seed: int, shift_mm: float, tmp: Path, turn_deg: float
         m = poses[k]
         rotation = rotvec_to_matrix(np.deg2rad([turn_deg, 0.0, 0.0])) @ m.pose.rotation
         poses[k] = MeasuredPose(Pose.from_centre(rotation, m.pose.centre + [shift_mm, 0.0, 0.0]), m.tolerance)
-    dataset = replace(dataset, poses=poses)
+    return replace(dataset, poses=poses), glitched
+
+
+def one_case(survey: str, seed: int, shift_mm: float, tmp: Path, turn_deg: float = 0.0, frame: int | None = None) -> dict:
+    dataset, glitched = glitched_dataset(survey, seed, shift_mm, tmp, turn_deg, frame)
     options = replace(sm.MapOptions(), figures=False, fluorescence=None, pose_check=PoseCheckOptions(screen=False))
     t0 = time.process_time()
     frames = [dataset.frame(k) for k in range(len(dataset))]

@@ -34,15 +34,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "src"))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from bench_pose_check_rate import SURVEYS  # noqa: E402
+from bench_pose_check_rate import glitched_dataset  # noqa: E402
 
-from scope3d import phantoms  # noqa: E402
 from scope3d.feature.tracks import build_tracks  # noqa: E402
-from scope3d.geometry.pose import Pose  # noqa: E402
-from scope3d.geometry.rotation import rotvec_to_matrix  # noqa: E402
-from scope3d.io.dataset import load_dataset  # noqa: E402
 from scope3d.pipelines import surgical_map as sm  # noqa: E402
-from scope3d.sensor.pose_tolerance import MeasuredPose  # noqa: E402
 from scope3d.sfm.pose_checks import PoseCheckOptions, _lost_to_the_gate, screen_reported_poses  # noqa: E402
 from scope3d.utils.jsonio import write_json  # noqa: E402
 
@@ -55,16 +50,7 @@ def bounded_map(case: str, tmp: Path, cache: Path | None) -> dict:
     survey, seed, size = case.split(":")
     size, frame = size.split("@") if "@" in size else (size, None)
     shift, turn = (0.0, float(size[:-3])) if size.endswith("deg") else (float(size), 0.0)
-    trajectory, n = SURVEYS[survey]
-    seq = phantoms.generate("dome", trajectory, size=(320, 240), seed=int(seed), n_frames=n, pose_noise_mm=0.5)
-    dataset = load_dataset(phantoms.write(seq, tmp / f"{survey}_{seed}"))
-    glitched = [n // 2 if frame is None else int(frame)] if shift or turn else []
-    poses = list(dataset.poses)
-    for k in glitched:
-        m = poses[k]
-        rotation = rotvec_to_matrix(np.deg2rad([turn, 0.0, 0.0])) @ m.pose.rotation
-        poses[k] = MeasuredPose(Pose.from_centre(rotation, m.pose.centre + [shift, 0.0, 0.0]), m.tolerance)
-    dataset = replace(dataset, poses=poses)
+    dataset, glitched = glitched_dataset(survey, int(seed), shift, tmp, turn, None if frame is None else int(frame))
     options = replace(sm.MapOptions(), figures=False, fluorescence=None)
     frames = [dataset.frame(k) for k in range(len(dataset))]
     features = sm.detect_features(options, dataset, frames)
