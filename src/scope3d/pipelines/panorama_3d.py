@@ -90,6 +90,7 @@ def panorama_features(options: PanoramaOptions, dataset: Dataset, *, progress=No
     frames = [dataset.frame(k) for k in range(len(dataset))]
     features = detect_features(MapOptions(features=options.features), dataset, frames, progress=progress)
     if options.pale_features is not None and np.median([len(f) for f in features]) < options.min_median_features:
+        stage(progress, "panorama: features (pale wall)", len(frames))
         features = detect_features(MapOptions(features=options.pale_features), dataset, frames, progress=progress)
     return features
 

@@ -28,4 +28,8 @@ def stage(progress: Progress | None, description: str, total: int | None = None)
     """Start a new stage of ``total`` units (None: unknown) named ``description``."""
     if progress is not None:
         progress.reset(total=total)
+        if total is None and getattr(progress, "total", None) is not None:
+            # tqdm's reset(total=None) keeps the last stage's total: the bar then showed "1/36" and counted
+            # past it for a stage of unknown length
+            progress.total = None
         progress.set_description(description)
