@@ -69,24 +69,36 @@ def test_points_surround_a_star_only_when_no_half_plane_is_empty():
     assert not surrounds(ring[np.cos(angles) > 0.1], np.array([100.0, 50.0]))
 
 
-def test_isotropic_wall_on_an_anisotropic_wall_about_a_star():
-    # a wall curved by 25 mm one way and 45 mm the other (an ellipsoidal cavity's end) seen from 27 mm
-    # inside it, points within 7 mm of the star: its sag there is 1.0 and 0.5 mm, and its anisotropic part
-    # (+-0.22 mm) cancels over points spread around the star, which the isotropic quadratic relies on
+WALLS = {
+    # a sphere of 35 mm radius seen from 15 mm inside its wall (the 15 mm spiral): the wall 7 mm from the
+    # star lies up to 0.7 mm in front of its tangent plane, so a plane through the points passes ~0.35 mm in
+    # front of the star (2.3 % of the depth); the quadratic leaves the sphere's fourth-order terms (< 0.01 mm
+    # at 7 mm) and the noise averaged over 80 points (0.02 / sqrt(80) x ~2 ~ 0.005 mm)
+    "sphere": (15.0, lambda x, y: 35.0 - np.sqrt(35.0 ** 2 - x ** 2 - y ** 2), 0.02, 80, 0.03),
+    # a wall curved by 25 mm one way and 45 mm the other (an ellipsoidal cavity's end) seen from 27 mm (the
+    # 36-frame spiral): its sag 7 mm out is 1.0 and 0.5 mm, and its anisotropic part (+-0.22 mm) cancels
+    # over points spread around the star, which the isotropic quadratic relies on; left: that part's
+    # imbalance over 60 random points (0.22 / sqrt(60) ~ 0.03 mm, three of them) and the noise averaged by
+    # the fit (0.1 / sqrt(60) x ~2 ~ 0.03 mm)
+    "ellipsoid": (27.0, lambda x, y: x ** 2 / (2 * 25.0) + y ** 2 / (2 * 45.0), 0.1, 60, 0.1),
+}
+
+
+@pytest.mark.parametrize("wall", sorted(WALLS))
+def test_curved_wall_about_a_star_seen_from_inside(wall):
+    depth, sag, noise_mm, n, tolerance_mm = WALLS[wall]
     camera = Camera(608, 608, 434.0, 434.0, 303.5, 303.5)
     rng = np.random.default_rng(1)
-    r = 7.0 * np.sqrt(rng.uniform(0, 1, 60))
-    a = rng.uniform(0, 2 * np.pi, 60)
+    r = 7.0 * np.sqrt(rng.uniform(0, 1, n))  # within 7 mm: a 6 mm star's 4 radii
+    a = rng.uniform(0, 2 * np.pi, n)
     x, y = r * np.cos(a), r * np.sin(a)
-    z = 27.0 - x ** 2 / (2 * 25.0) - y ** 2 / (2 * 45.0)
-    points = np.c_[x, y, z] + rng.normal(0, 0.1, (60, 3))  # 0.1 mm: the 36-frame maps' point noise
-    curved = fit_local_wall(camera, Pose.identity(), points, np.array([303.5, 303.5]))
-    plane = fit_local_wall(camera, Pose.identity(), points, np.array([303.5, 303.5]), curved=False)
-    depth = curved.depth(np.zeros((1, 2)))[0]
-    # left: the anisotropic part's imbalance over 60 random points (0.22 mm / sqrt(60) ~ 0.03 mm, three of
-    # them) and the noise averaged by the fit (0.1 / sqrt(60) x ~2 ~ 0.03 mm)
-    assert depth == pytest.approx(27.0, abs=0.1)
-    # the plane passes in front of the star by about the mean sag over the points (~0.4 mm)
-    assert plane.depth(np.zeros((1, 2)))[0] < 27.0 - 0.2
-    # and the fit's stated sigma at the centre is of the order of the noise's share
-    assert curved.sigma_fraction * 27.0 == pytest.approx(0.03, rel=1.0)
+    points = np.c_[x, y, depth - sag(x, y)] + rng.normal(0, noise_mm, (n, 3))
+    centre_px = np.array([303.5, 303.5])
+    curved = fit_local_wall(camera, Pose.identity(), points, centre_px)
+    plane = fit_local_wall(camera, Pose.identity(), points, centre_px, curved=False)
+    assert curved.depth(np.zeros((1, 2)))[0] == pytest.approx(depth, abs=tolerance_mm)
+    # the plane passes in front of the star by about the mean sag over the points
+    assert plane.depth(np.zeros((1, 2)))[0] < depth - 0.2
+    # the fit's stated sigma at the centre: the noise over sqrt(n), twice that for the intercept of a
+    # quadratic over points spread evenly on a disc (its r^2 term correlates with the constant)
+    assert curved.sigma_fraction * depth / (noise_mm / np.sqrt(n)) == pytest.approx(2.0, rel=0.5)

@@ -24,8 +24,8 @@ depth at the star's centre (the fit's residuals, its covariance), and half that 
 pixels' noise (the ring's scatter) and from the edge's aliasing (each edge pixel counted 0 or 1 by the ray
 through its centre when the optics do not blur it); the map's scale is the inverse-variance weighted mean
 over the views, its uncertainty the weighted mean's, inflated by the views' scatter when they disagree by
-more than their uncertainties (Birge ratio). Over the sweep's 15 good maps of unseen cavities the errors
-over these uncertainties had an rms of 0.9 and all were within 2 of them (docs/panorama.md). Not in it:
+more than their uncertainties (Birge ratio). Over the sweep's 17 good maps of unseen cavities the errors
+over these uncertainties had an rms of 1.04 and all were within 2 of them (docs/panorama.md). Not in it:
 the phantom's stars are drawn on the curved wall by projection, so their true area is 0.05-0.14 % more
 than the flat pentagram's (-0.03 to -0.07 % of the scale).
 
