@@ -18,8 +18,7 @@ from scope3d.feature.matching import match_exhaustive
 from scope3d.feature.tracks import build_tracks
 from scope3d.io.dataset import load_dataset
 from scope3d.geometry.pose import Pose
-from scope3d.metrology.star_scale import combine_views, fit_local_wall, pentagram_area_mm2, star_scale
-from scope3d.sensor.camera import Camera
+from scope3d.metrology.star_scale import combine_views, pentagram_area_mm2, star_scale
 from scope3d.phantoms import generate, write
 from scope3d.pipelines.panorama_3d import PanoramaOptions, evaluate, run
 from scope3d.sfm.cavity_mapping import (CavityOptions, _wall_distance, map_cavity, overlapping_pairs, pair_poses,
@@ -65,30 +64,6 @@ def turn_features(bladder):
 def test_pentagram_area():
     # the phantom's 6 mm star: outer radius 3 mm, flat area 10.103 mm^2 (scene.json flat_area_mm2)
     assert pentagram_area_mm2(6.0) == pytest.approx(10.1031, abs=1e-4)
-
-
-def test_local_wall_follows_the_curvature_of_a_cavity_seen_from_inside():
-    # a sphere of 35 mm radius seen from 15 mm inside its wall, points within 7 mm of the axis (a 6 mm
-    # star's neighbourhood at the 15 mm spiral): the wall there lies up to 0.7 mm in front of its tangent
-    # plane, so a plane through the points passes ~0.35 mm in front of the star (2.3 % of the depth)
-    camera = Camera(608, 608, 434.0, 434.0, 303.5, 303.5)
-    rng = np.random.default_rng(0)
-    r = 7.0 * np.sqrt(rng.uniform(0, 1, 80))
-    a = rng.uniform(0, 2 * np.pi, 80)
-    x, y = r * np.cos(a), r * np.sin(a)
-    z = 15.0 - (35.0 - np.sqrt(35.0 ** 2 - x ** 2 - y ** 2))  # the sphere's centre at z = 15 - 35
-    points = np.c_[x, y, z] + rng.normal(0, 0.02, (80, 3))  # 0.02 mm: the 15 mm maps' point noise
-    pose = Pose.identity()
-    centre_px = np.array([303.5, 303.5])
-    curved = fit_local_wall(camera, pose, points, centre_px, curved=True)
-    plane = fit_local_wall(camera, pose, points, centre_px, curved=False)
-    depth_curved, depth_plane = curved.depth(np.zeros((1, 2)))[0], plane.depth(np.zeros((1, 2)))[0]
-    # the quadratic inverse depth leaves the sphere's fourth-order terms (< 0.01 mm at 7 mm) and the noise
-    # averaged over 80 points (0.02 / sqrt(80) x ~3 for the fit's six terms ~ 0.007 mm)
-    assert depth_curved == pytest.approx(15.0, abs=0.03)
-    assert depth_plane < 15.0 - 0.2
-    # the fit's own uncertainty at the centre (a fraction of the inverse depth) is of that order too
-    assert 1e-4 < curved.sigma_fraction < 0.03 / 15.0 * 3
 
 
 def test_views_combine_by_their_uncertainties():
