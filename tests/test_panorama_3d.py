@@ -265,7 +265,6 @@ def test_the_anatomical_shell_keeps_the_near_wall_of_an_elongated_cavity_despite
 def _cavity_map(points, centres, radius_scale=1.0):
     """A CavityMap of ``points`` (N, 3) seen by cameras at ``centres`` (n, 3), each observation of a point by
     frame 0 (only the points and poses matter to the self-check)."""
-    from scope3d.geometry.pose import Pose
     from scope3d.scene.tracks import Tracks
     from scope3d.sfm.cavity_mapping import CavityMap, fit_sphere
     n_points = len(points)
@@ -292,7 +291,6 @@ def _wall_and_cap():
 
 
 def test_cameras_off_centre_separates_a_cavity_seen_from_inside_from_a_cap_seen_from_its_wall():
-    from scope3d.geometry.pose import Pose
     from scope3d.sfm.cavity_mapping import MAX_OFF_CENTRE, cameras_off_centre, wall_spread
     wall, cap, cameras = _wall_and_cap()
     poses = [Pose.from_centre(np.eye(3), c) for c in cameras]
