@@ -237,9 +237,13 @@ _UNTESTED_WORDS = {"unseen": "too few observations", "unplaced": "too few of the
 
 
 def pose_check_lines(checks: dict) -> list[str]:
-    """For people (from :meth:`PoseCheck.as_dict`): one line naming the reports that could not be tested
-    (and so were taken on trust), grouped by why, then one line per flagged frame."""
-    lines = []
+    """For people (from :meth:`PoseCheck.as_dict`): one line saying how many reports were tested and what was
+    found, one naming the reports that could not be tested (and so were taken on trust), grouped by why, then
+    one line per flagged frame."""
+    found = len(checks["flagged"])
+    lines = [f"reported poses tested against the images: {checks['frames_tested']} frames at a false-alarm rate of "
+             f"{checks['false_alarm_rate']:g} per map; "
+             + (f"{found} disagree beyond their tolerance" if found else "none disagrees beyond its tolerance")]
     untested: dict[str, list[str]] = {}
     for u in checks.get("untested", []):
         if u["status"] in _UNTESTED_WORDS:  # an exact report is trusted by definition: nothing to say
@@ -369,8 +373,6 @@ def leave_one_out(camera: Camera, measured: list[MeasuredPose], k: int, tracks: 
     without any box lets a weakly tied neighbour float with it, and the neighbour was then flagged (dome12,
     seed 21, frame 6 3 mm off: frame 2 too, its estimate 3.2 mm from its truth; docs/reliability.md).
     """
-    from scipy.linalg import cho_factor, cho_solve
-    from scipy.stats import f as f_dist
 
     observations = int(np.count_nonzero(tracks.frame == k))
     least = options.absolute_pose.min_inliers
@@ -412,25 +414,38 @@ def leave_one_out(camera: Camera, measured: list[MeasuredPose], k: int, tracks: 
     prior[~seen] = 1.0  # a frame without observations: any weight keeps the system regular, and is independent
     at = result.parameters.pose  # (n, 6): w (rad, from each report's orientation), centre (mm)
     rhs = -gradient / noise_px**2 + (prior * (report - at)).ravel()
-    columns = np.zeros((6 * len(measured), 6))
+    return _frame_estimate(k, system / noise_px**2 + np.diag(prior.ravel()), rhs, at, report, measured[k], noise_px,
+                           int(np.count_nonzero(current.frame == k)), redundancy, observations)
+
+
+def _frame_estimate(k: int, matrix: np.ndarray, rhs: np.ndarray, at: np.ndarray, report: np.ndarray,
+                    reported: MeasuredPose, noise_px: float, inliers: int, redundancy: int,
+                    observations: int) -> FramePoseTest:
+    """Frame ``k``'s test from the Gauss-Newton system of every pose with its report released: ``matrix`` (6n,
+    6n) and ``rhs`` (6n,) of the step from ``at`` (n, 6); its estimate (``at[k]`` + its step), covariance (its
+    block of ``matrix^-1``), offset from ``report[k]`` and distance from the reported box."""
+    from scipy.linalg import cho_factor, cho_solve
+    from scipy.stats import f as f_dist
+
+    columns = np.zeros((len(rhs), 6))
     columns[6 * k:6 * k + 6] = np.eye(6)
-    try:
-        factor = cho_factor(system / noise_px**2 + np.diag(prior.ravel()))
-    except np.linalg.LinAlgError:  # the other reports cannot place the images without this one
-        return FramePoseTest(k, "unplaced", observations=observations,
-                             why="the other reports cannot place the images without its own")
-    solved = cho_solve(factor, np.c_[rhs, columns])
+    with blas_threads(1):  # OpenBLAS's default threads spin: 80 ms of CPU for a 180 x 180 factor, 0.5 ms with one
+        try:
+            factor = cho_factor(matrix)
+        except np.linalg.LinAlgError:  # the other reports cannot place the images without this one
+            return FramePoseTest(k, "unplaced", observations=observations,
+                                 why="the other reports cannot place the images without its own")
+        solved = cho_solve(factor, np.c_[rhs, columns])
     covariance = solved[6 * k:6 * k + 6, 1:]
     covariance = 0.5 * (covariance + covariance.T)
     posterior = at[k] + solved[6 * k:6 * k + 6, 0]
     offset = posterior - report[k]
-    estimate = Pose.from_centre(rotvec_to_matrix(posterior[:3]) @ measured[k].pose.rotation, posterior[3:])
-    half_k = np.r_[measured[k].tolerance.orientation_rad, measured[k].tolerance.position_mm]
-    statistic, nearest = box_mahalanobis(offset, covariance, half_k)
+    estimate = Pose.from_centre(rotvec_to_matrix(posterior[:3]) @ reported.pose.rotation, posterior[3:])
+    half = np.r_[reported.tolerance.orientation_rad, reported.tolerance.position_mm]
+    statistic, nearest = box_mahalanobis(offset, covariance, half)
     return FramePoseTest(k, "ok", estimate, offset, covariance, statistic,
-                         float(f_dist.sf(statistic / 6.0, 6, redundancy)), float("nan"), noise_px,
-                         int(np.count_nonzero(current.frame == k)), redundancy, np.abs(offset - nearest),
-                         observations=observations)
+                         float(f_dist.sf(statistic / 6.0, 6, redundancy)), float("nan"), noise_px, inliers, redundancy,
+                         np.abs(offset - nearest), observations=observations)
 
 
 @dataclass
@@ -536,8 +551,6 @@ def local_leave_one_out(camera: Camera, measured: list[MeasuredPose], k: int, tr
     (``tests/test_pose_checks.py`` checks it against a Monte Carlo). Linearised about ``model`` for the
     others only; frame k's own nonlinearity (its wrong report's pose) is solved, not linearised.
     """
-    from scipy.linalg import cho_factor, cho_solve
-    from scipy.stats import f as f_dist
 
     observations = int(np.count_nonzero(tracks.frame == k))
     least = options.absolute_pose.min_inliers
@@ -578,26 +591,8 @@ def local_leave_one_out(camera: Camera, measured: list[MeasuredPose], k: int, tr
     here = at.copy()
     here[involved] = result.parameters.pose
     rhs = rest_system @ (at - here).ravel() - rest_gradient - gradient + (prior * (report - here)).ravel()
-    columns = np.zeros((6 * n, 6))
-    columns[6 * k:6 * k + 6] = np.eye(6)
-    with blas_threads(1):  # OpenBLAS's default threads spin: 80 ms of CPU for a 180 x 180 factor, 0.5 ms with one
-        try:
-            factor = cho_factor(rest_system + system + np.diag(prior.ravel()))
-        except np.linalg.LinAlgError:
-            return FramePoseTest(k, "unplaced", observations=observations,
-                                 why="the other reports cannot place the images without its own")
-        solved = cho_solve(factor, np.c_[rhs, columns])
-    covariance = solved[6 * k:6 * k + 6, 1:]
-    covariance = 0.5 * (covariance + covariance.T)
-    posterior = here[k] + solved[6 * k:6 * k + 6, 0]
-    offset = posterior - report[k]
-    estimate = Pose.from_centre(rotvec_to_matrix(posterior[:3]) @ measured[k].pose.rotation, posterior[3:])
-    half_k = np.r_[measured[k].tolerance.orientation_rad, measured[k].tolerance.position_mm]
-    statistic, nearest = box_mahalanobis(offset, covariance, half_k)
-    return FramePoseTest(k, "ok", estimate, offset, covariance, statistic,
-                         float(f_dist.sf(statistic / 6.0, 6, model.redundancy)), float("nan"), noise,
-                         int(np.count_nonzero(current.frame == local)), model.redundancy, np.abs(offset - nearest),
-                         observations=observations)
+    return _frame_estimate(k, rest_system + system + np.diag(prior.ravel()), rhs, here, report, measured[k], noise,
+                           int(np.count_nonzero(current.frame == local)), model.redundancy, observations)
 
 
 def screen_reported_poses(model: _Linearised, measured: list[MeasuredPose], testable: list[int], tracks: Tracks,
