@@ -141,7 +141,7 @@ def one_case(survey: str, seed: int, shift_mm: float, tmp: Path, turn_deg: float
             half = np.r_[dataset.poses[t.frame].tolerance.orientation_rad, dataset.poses[t.frame].tolerance.position_mm]
             if t.frame in glitched:
                 row["predicted_power"] = predicted_power(true_offset, t.covariance, half, t.critical_value, rng)
-            elif not glitched and not t.flagged:  # what this frame's geometry could detect, were it glitched
+            elif not glitched and not t.flagged and reference:  # what this frame's geometry could detect, were it glitched
                 curve["frames"] += 1
                 for kind, sizes in (("mm", CURVE_MM), ("deg", CURVE_DEG)):
                     curve[kind] += [predicted_power(true_offset - glitch_vector(kind, g), t.covariance, half,
