@@ -36,8 +36,11 @@ tested against what the images and the *other* frames say about it, by an exact 
 
 By default a linearised screen comes first (:func:`screen_reported_poses`): one bounded adjustment of every
 frame, each frame's leave-one-out read off the normal equations (its Schur complement without its own
-box), and the exact leave-one-out above only for the frames it points at: O(n) adjustments become about
-one on a clean map (docs/reliability.md section 5 measures the agreement and the cost).
+box), and an exact leave-one-out only for the frames it points at; and that exact test is local
+(:func:`local_leave_one_out`): step 1 re-solves only the frame's pose and the points it sees, the others
+held, and step 2's system takes the other frames' images from the screen's adjustment, so that their
+uncertainty is propagated into the frame's covariance. O(n) adjustments of the whole map become one on a
+clean map (docs/reliability.md section 5 measures the agreement and the cost).
 
 :meth:`PoseCheck.released` then replaces a flagged frame's report by the images' estimate, in a box that
 holds the estimate's confidence region at the same rate, and the bounded adjustment runs again: the images
@@ -90,7 +93,11 @@ class PoseCheckOptions:
         one bounded adjustment for all frames) and run the exact leave-one-out only for the frames it cannot
         place or finds beyond the critical value at ``false_alarm_rate`` per frame (not divided by the
         number of frames: n times looser than the test itself, so that the screen's linearisation does not
-        decide); default True. False: every frame gets the exact test (one bounded adjustment per frame).
+        decide); default True. False: every frame gets the exact test.
+    local : bool, the exact test is :func:`local_leave_one_out` (the frame and its points re-solved, the other
+        frames from the screen's adjustment, linearised; default True); False: :func:`leave_one_out`, the
+        bounded adjustment of every frame again per tested frame (the reference the local test is measured
+        against: docs/reliability.md section 5).
     """
 
     false_alarm_rate: float = 0.01
@@ -126,8 +133,8 @@ class FramePoseTest:
     beyond_box : (6,) how far the prediction lies outside the box per scalar (0 inside; rad, mm).
     flagged : the report disagrees with the images (set aside by the data snooping).
     observations : the frame's matched observations; why : for a frame not tested, the reason in words.
-    exact : tested by its own leave-one-out adjustment (:func:`leave_one_out`); False: by the linearised
-        screen alone (:func:`screen_reported_poses`), which found it well within its level.
+    exact : tested by its own leave-one-out adjustment (:func:`local_leave_one_out` or :func:`leave_one_out`);
+        False: by the linearised screen alone (:func:`screen_reported_poses`), which found it well within its level.
     """
 
     frame: int
