@@ -1,7 +1,9 @@
 """Does the per-frame pose check (scope3d.sfm.pose_checks) hold its stated false-alarm rate? (issue 16 section 5)
 
 For each case (survey, seed, glitch) the map's stages run up to the bounded adjustment, then the check
-alone (cheaper than two whole maps, which benchmarks/bench_pose_outliers.py runs). Recorded per frame:
+alone (cheaper than two whole maps, which benchmarks/bench_pose_outliers.py runs), twice on the same map:
+the default (``screened``: the screen, then the local exact test where it points) and the reference, every
+frame's full leave-one-out (``--no-reference`` skips it: 30-60 s of CPU on a 30-frame map). Recorded per frame:
 the statistic d2, its critical value, the p-value, and d2 against the *true* pose (what the test assumes is
 about 6 F(6, nu)); per case: flagged frames, hits (glitched frames found), false alarms, the variance
 factor, CPU time. A glitch moves frame n // 2's reported centre along x by G mm (``dome12:21:3``) or turns
