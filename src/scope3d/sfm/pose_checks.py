@@ -321,6 +321,12 @@ def _noise_px(residuals: np.ndarray, loss_scale_px: float, redundancy: int) -> f
     return float(np.sqrt(weighted.sum() / redundancy))
 
 
+def _unseen(k: int, observations: int, options: PoseCheckOptions) -> FramePoseTest:
+    """Frame ``k``'s test when it has fewer matched observations than a test needs: not tested, with why."""
+    return FramePoseTest(k, "unseen", observations=observations, why=f"{observations} matched observations, fewer "
+                         f"than the {options.absolute_pose.min_inliers} a test needs")
+
+
 def _best_start(camera: Camera, tracks: Tracks, start: list[Pose], k: int, fallback: Pose, track_options: TrackOptions,
                 options: PoseCheckOptions) -> tuple[list[Pose], Tracks]:
     """Frame ``k``'s start for its leave-one-out, the others at ``start``: its image-only pose
@@ -382,10 +388,8 @@ def leave_one_out(camera: Camera, measured: list[MeasuredPose], k: int, tracks: 
     """
 
     observations = int(np.count_nonzero(tracks.frame == k))
-    least = options.absolute_pose.min_inliers
-    if observations < least:
-        return FramePoseTest(k, "unseen", observations=observations,
-                             why=f"{observations} matched observations, fewer than the {least} a test needs")
+    if observations < options.absolute_pose.min_inliers:
+        return _unseen(k, observations, options)
     released = list(measured)
     released[k] = MeasuredPose(measured[k].pose, PoseTolerance.unknown())
     start = list(poses)
@@ -560,10 +564,8 @@ def local_leave_one_out(camera: Camera, measured: list[MeasuredPose], k: int, tr
     """
 
     observations = int(np.count_nonzero(tracks.frame == k))
-    least = options.absolute_pose.min_inliers
-    if observations < least:
-        return FramePoseTest(k, "unseen", observations=observations,
-                             why=f"{observations} matched observations, fewer than the {least} a test needs")
+    if observations < options.absolute_pose.min_inliers:
+        return _unseen(k, observations, options)
     n = len(measured)
     own = tracks.subset(np.isin(tracks.track, tracks.track[tracks.frame == k]))
     # the frames that share a track with k: the local adjustment's cameras (its cost then follows frame k's
@@ -643,8 +645,7 @@ def screen_reported_poses(model: _Linearised, measured: list[MeasuredPose], test
     step = inverse @ rhs
     for k in testable:
         if observations[k] < least:
-            out[k] = FramePoseTest(k, "unseen", observations=int(observations[k]),
-                                   why=f"{observations[k]} matched observations, fewer than the {least} a test needs")
+            out[k] = _unseen(k, int(observations[k]), options)
             continue
         if fitted[k] < least:
             out[k] = FramePoseTest(k, "unplaced", inliers=int(fitted[k]), observations=int(observations[k]),
