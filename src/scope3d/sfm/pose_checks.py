@@ -250,7 +250,8 @@ def pose_check_lines(checks: dict) -> list[str]:
     found = len(checks["flagged"])
     lines = [f"reported poses tested against the images: {checks['frames_tested']} frames at a false-alarm rate of "
              f"{checks['false_alarm_rate']:g} per map; "
-             + (f"{found} disagree beyond their tolerance" if found else "none disagrees beyond its tolerance")]
+             + (f"{found} disagree{'s' if found == 1 else ''} beyond their tolerance" if found
+                else "none disagrees beyond its tolerance")]
     untested: dict[str, list[str]] = {}
     for u in checks.get("untested", []):
         if u["status"] in _UNTESTED_WORDS:  # an exact report is trusted by definition: nothing to say
