@@ -38,7 +38,8 @@ from bench_pose_check_rate import glitched_dataset  # noqa: E402
 
 from scope3d.feature.tracks import build_tracks  # noqa: E402
 from scope3d.pipelines import surgical_map as sm  # noqa: E402
-from scope3d.sfm.pose_checks import PoseCheckOptions, _lost_to_the_gate, screen_reported_poses  # noqa: E402
+from scope3d.sfm.pose_checks import (PoseCheckOptions, _linearise, _lost_to_the_gate,  # noqa: E402
+                                     screen_reported_poses)
 from scope3d.utils.jsonio import write_json  # noqa: E402
 
 
@@ -87,8 +88,8 @@ def main(argv=None) -> int:
     for case in args.cases.split(","):
         d = bounded_map(case, tmp, Path(args.cache) if args.cache else None)
         testable = [k for k in range(len(d["measured"])) if not d["measured"][k].tolerance.is_exact]
-        screened = screen_reported_poses(d["camera"], d["measured"], testable, d["tracks"], d["poses"],
-                                         d["track_options"], options)
+        model = _linearise(d["camera"], d["measured"], d["tracks"], d["poses"], d["track_options"], options)
+        screened = screen_reported_poses(model, d["measured"], testable, d["tracks"], options)
         t0 = time.process_time()
         sent = _lost_to_the_gate(screened, level)
         cpu = time.process_time() - t0

@@ -39,8 +39,9 @@ def register(subparsers) -> None:
                    help="bounded mode: test every reported pose against the images and the other reports, and "
                         "map again with the reports found wrong beyond their tolerance released; RATE is the "
                         "chance of flagging any frame of a map whose reports are all right, e.g. 0.01 "
-                        "(default 0: trust every report; measured on the dome: no clean map of 12 flagged, "
-                        "glitches of 2 mm and more mostly found, 3-25 %% more CPU per map; see docs/reliability.md)")
+                        "(default 0: trust every report; measured on the dome: no clean map of 12 or 30 frames "
+                        "flagged, glitches of 2 mm and more mostly found, 0.1-0.2 s CPU per 12-frame map and "
+                        "0.5-1.2 s per 30-frame map; see docs/reliability.md)")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     add_job_arguments(p)
