@@ -105,6 +105,12 @@ def register_panorama(subparsers) -> None:
                    help="outer (tip circle) diameter of the star targets, mm (default 6)")
     p.add_argument("--ignore-poses", action="store_true",
                    help="do not use planned poses even when poses.csv gives finite tolerances (image-only)")
+    p.add_argument("--texel-mm", type=float, default=None, metavar="MM",
+                   help="texel size of the textured wall on the wall, mm (default: the frames' own pixel footprint, "
+                        "as fine as --atlas-px allows; report.json's texture_texel_mm says what was used)")
+    p.add_argument("--atlas-px", type=int, default=2048, metavar="N",
+                   help="the texture atlas's longest side at most (default 2048, 2.8 M texels: on a 15 mm spiral "
+                        "0.1 mm texels; 4096 halves the texel and takes ~3x the texturing time)")
     p.add_argument("--keep-implausible", action="store_true",
                    help="write the map even when its self-check fails (cameras far off the wall's centre, or a "
                         "wall radius outside the anatomical 20-70 mm); by default such a map is refused (exit 2)")
@@ -117,13 +123,15 @@ def _run_panorama(args) -> int:
     from scope3d.errors import InputError
     from scope3d.io.dataset import load_dataset
     from scope3d.metrology.star_scale import StarScaleOptions
+    from scope3d.mvs.texturing import TextureOptions
     from scope3d.pipelines.panorama_3d import PanoramaOptions, run
 
     try:
         stars = None if args.no_scale else StarScaleOptions(outer_diameter_mm=args.star_mm)
+        texture = TextureOptions(texel_mm=args.texel_mm, max_atlas_px=args.atlas_px)
     except ValueError as exc:
         raise InputError(str(exc)) from None
-    options = PanoramaOptions(stars=stars, use_planned_poses=not args.ignore_poses,
+    options = PanoramaOptions(stars=stars, use_planned_poses=not args.ignore_poses, texture=texture,
                               refuse_implausible=not args.keep_implausible)
     dataset = load_dataset(args.dataset)
     with job_folder(args.out) as staged, progress_bar(show_progress(args), "frame") as progress:
@@ -138,6 +146,10 @@ def _run_panorama(args) -> int:
         lines.append(f"wall error after similarity: mean {err['mean']:.3f}, median {err['median']:.3f}, "
                      f"p95 {err['p95']:.3f} mm" + (f"; scale error {report['scale_error_fraction']:+.2%}"
                                                   if "scale_error_fraction" in report else ""))
+    if "texture_texel_mm" in report:
+        lines.append(f"textured wall: {report['texture_texel_mm']:.3f} mm per texel, atlas "
+                     f"{report['texture_atlas_px'][0]} x {report['texture_atlas_px'][1]} px, "
+                     f"{report['textured_fraction']:.0%} of the wall seen")
     if not report["self_check"]["passed"]:
         lines.append("self-check FAILED, the map is kept as asked: " + "; ".join(report["self_check"]["problems"]))
     lines.append(f"wrote {args.out}/ (report.json, sparse/, points.ply, mesh.ply, wall.obj, panorama_3d.png)")

@@ -174,23 +174,25 @@ def run(options: PanoramaOptions, dataset: Dataset, out_dir: str | Path, *, prog
     if options.stars is not None and dataset.fluorescence_paths is None:
         raise InputError(f"{dataset.root}: no fluorescence frames, so no star targets to set the scale "
                          "(use --no-scale for an unscaled model)")
-    timings = {}
+    timings, cpu = {}, {}  # wall and CPU seconds per stage (CPU: every thread of the process)
     stage(progress, "panorama: features", n)
     features = panorama_features(options, dataset, progress=progress)
     timings["features_s"] = time.perf_counter() - t0
+    cpu["features_s"] = time.process_time() - c0
     stage(progress, "panorama: pairs", None)
     measured = dataset.poses if options.use_planned_poses else None
     cavity = map_cavity(dataset.camera, features, measured, options.cavity, options.matching,
                         where=str(dataset.root), progress=progress)
     timings.update(cavity.time_s)
+    cpu["map_s"] = time.process_time() - c0 - sum(cpu.values())
     scale_info = None
     if options.stars is not None:
-        t1 = time.perf_counter()
+        t1, c1 = time.perf_counter(), time.process_time()
         fluorescence = [dataset.fluorescence_frame(k) for k in range(n)]
         scale_info = star_scale(dataset.camera, cavity.poses, cavity.tracks, fluorescence, options.stars,
                                 where=str(dataset.root))
         cavity = cavity.scaled(scale_info.scale)
-        timings["scale_s"] = time.perf_counter() - t1
+        timings["scale_s"], cpu["scale_s"] = time.perf_counter() - t1, time.process_time() - c1
     scale_source = "stars" if scale_info is not None else ("plan" if cavity.scale_known else "none")
     check = self_check(cavity, options.cavity, scale_source != "none")
     if options.refuse_implausible and not check["passed"]:
@@ -219,6 +221,7 @@ def run(options: PanoramaOptions, dataset: Dataset, out_dir: str | Path, *, prog
         "self_check": check,
         **evaluation,
         "timings_s": timings,
+        "cpu_by_stage_s": cpu,
         "time_s": time.perf_counter() - t0,
         "cpu_s": time.process_time() - c0,
     }
@@ -228,18 +231,20 @@ def run(options: PanoramaOptions, dataset: Dataset, out_dir: str | Path, *, prog
             wall = cavity_mesh(tr.points, cavity.centre_mm, tr.colors)
             write_ply(tmp / "mesh.ply", wall)
             if options.texture is not None:
-                t1 = time.perf_counter()
+                t1, c1 = time.perf_counter(), time.process_time()
                 poses = [p if ok else None for p, ok in zip(cavity.poses, cavity.registered)]
                 textured = texture_mesh(wall, cavity.centre_mm, dataset.camera, poses, dataset.frame, options.texture)
                 write_textured_obj(tmp / "wall.obj", textured.mesh.vertices, textured.mesh.faces, textured.uv,
                                    textured.face_uv, textured.image)
-                report.update({"texture_texel_mm": textured.texel_mm, "textured_fraction": textured.textured_fraction})
-                timings["texture_s"] = time.perf_counter() - t1
+                report.update({"texture_texel_mm": textured.texel_mm, "textured_fraction": textured.textured_fraction,
+                               "texture_atlas_px": list(textured.image.shape[1::-1])})
+                timings["texture_s"], cpu["texture_s"] = time.perf_counter() - t1, time.process_time() - c1
         model = SparseModel.from_observations(dataset.camera, dataset.names, cavity.poses, tr.points, tr.frame,
                                               tr.track, tr.pixels, colors=tr.colors)
         write_colmap_text(model, tmp / "sparse")
         if options.figures:
             save_panorama_png(tmp / "panorama_3d.png", cavity, distances)
-        report["time_s"] = time.perf_counter() - t0
+        report["time_s"], report["cpu_s"] = time.perf_counter() - t0, time.process_time() - c0
+        cpu["rest_s"] = report["cpu_s"] - sum(cpu.values())  # evaluation, mesh, files
         write_json(tmp / "report.json", report)
     return report, cavity
