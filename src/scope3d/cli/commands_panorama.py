@@ -132,12 +132,17 @@ def _run_panorama(args) -> int:
                f"scale from {report['scale_source']}"
                + (f" (± {report['scale_uncertainty_fraction']:.2%})" if report.get("scale_uncertainty_fraction") else "")
                + f", {report['time_s']:.1f} s")
+    disagreement = (report["self_check"]["map_choice"] or {}).get("disagreement")
+    if disagreement:  # image-only: how far the two candidate maps are apart (both right: ~0.003 of the radius)
+        summary += (f"; the two image-only maps disagree by {disagreement['median']:.1%} of the wall's radius "
+                    f"(p95 {disagreement['p95']:.1%})")
     lines = [summary]
     err = report.get("surface_error_mm", {}).get("after_similarity")
     if err:
         lines.append(f"wall error after similarity: mean {err['mean']:.3f}, median {err['median']:.3f}, "
                      f"p95 {err['p95']:.3f} mm" + (f"; scale error {report['scale_error_fraction']:+.2%}"
                                                   if "scale_error_fraction" in report else ""))
+    lines += [f"self-check WARNING: {w}" for w in report["self_check"]["warnings"]]
     if not report["self_check"]["passed"]:
         lines.append("self-check FAILED, the map is kept as asked: " + "; ".join(report["self_check"]["problems"]))
     lines.append(f"wrote {args.out}/ (report.json, sparse/, points.ply, mesh.ply, wall.obj, panorama_3d.png)")
