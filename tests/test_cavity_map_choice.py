@@ -35,9 +35,8 @@ def _tracks(points: np.ndarray, frame: np.ndarray) -> Tracks:
                   np.zeros((2 * n, 3), np.uint8), np.asarray(points, float))
 
 
-def _figures(explained: int, per_frame=None) -> dict:
-    return {"explained_observations": explained, "cameras_off_centre": 0.05,
-            "explained_per_frame": per_frame if per_frame is not None else [explained // N_FRAMES] * N_FRAMES}
+def _figures(explained: int) -> dict:
+    return {"explained_observations": explained, "cameras_off_centre": 0.05}
 
 
 def _look(direction: np.ndarray, centre: np.ndarray) -> Pose:
@@ -48,7 +47,7 @@ def _look(direction: np.ndarray, centre: np.ndarray) -> Pose:
     return Pose.from_centre(np.stack([x, np.cross(z, x), z]), centre)
 
 
-def test_a_map_with_a_block_of_frames_turned_off_loses_to_one_that_explains_every_frame():
+def test_a_map_with_a_block_of_frames_turned_off_loses_to_one_that_explains_more():
     # a 36-view spiral inside the phantom's wall, 8 mm about its centre, 70 deg field at 256 px; every wall
     # point seen by the views whose field holds it
     camera = Camera(256, 256, 183.0, 183.0, 127.5, 127.5)
@@ -67,22 +66,24 @@ def test_a_map_with_a_block_of_frames_turned_off_loses_to_one_that_explains_ever
     every = Tracks(track, frame, track, np.concatenate(pixels), np.zeros((len(track), 3), np.uint8),
                    np.zeros((len(points), 3)))
     options = CavityOptions()
-    # the all-pair map: frames 27-35 turned together by 9 deg about the cavity's centre (tracks within the
-    # block still agree, those across it do not); the chain's map: every frame 0.45 deg off in its own way (it explains less in all: 5170 of 7862 observations, the block map 6046)
+    # the all-pair map: frames 27-35 turned together by 9 deg about the cavity's centre (the 256 px spiral's
+    # measured failure: tracks within the block still agree, those across it do not); the chain's map:
+    # every frame 0.3 deg off in its own way
     turn = rotvec_to_matrix(np.deg2rad([0.0, 0.0, 9.0]))
     block = [Pose.from_centre(p.rotation @ turn.T, turn @ p.centre) if k >= 27 else p for k, p in enumerate(truth)]
     rng = np.random.default_rng(8)
-    wobbly = [Pose.from_centre(rotvec_to_matrix(np.deg2rad(rng.normal(scale=0.45, size=3))) @ p.rotation, p.centre)
+    wobbly = [Pose.from_centre(rotvec_to_matrix(np.deg2rad(rng.normal(scale=0.3, size=3))) @ p.rotation, p.centre)
               for p in truth]
     mapped = Tracks(np.arange(len(points)), np.zeros(len(points), int), np.arange(len(points)),
                     np.zeros((len(points), 2)), np.zeros((len(points), 3), np.uint8), points)
     all_pairs, chain, right = (map_figures(camera, every, mapped, poses, options) for poses in (block, wobbly, truth))
-    assert chain["explained_observations"] < all_pairs["explained_observations"] < right["explained_observations"]
+    # the turned block loses the observations of the tracks across it (frames 10-19 and 27-35 see the same
+    # wall), more than the wobble loses
+    assert all_pairs["explained_observations"] < chain["explained_observations"] < right["explained_observations"]
     use_chain, reason = choose_map(all_pairs, chain, (0.0, 1.0))
-    assert use_chain and "of frame" in reason, reason
-    assert int(reason.split("of frame ")[1].split("'")[0]) >= 27  # a frame of the block
-    # against the true poses the chain's wobble loses
-    assert not choose_map(right, chain, (0.0, 1.0))[0]
+    assert use_chain and "explains more" in reason
+    # the right map against either is kept
+    assert not choose_map(right, chain, (0.0, 1.0))[0] and not choose_map(right, all_pairs, (0.0, 1.0))[0]
 
 
 def test_a_bent_wall_loses_on_its_spread_a_slightly_wider_one_does_not():
