@@ -129,3 +129,21 @@ def test_disagreement_is_zero_up_to_a_similarity_and_the_perturbation_otherwise(
     assert abs(moved["median"] * radius - 1.0) < 0.1 and abs(moved["p95"] * radius - 1.0) < 0.1
     # maps holding different points share none
     assert np.isnan(map_disagreement(a, _tracks(points, frame).subset(np.zeros(2 * len(points), bool)))["median"])
+
+
+def test_self_check_warns_when_the_two_maps_disagree_by_more_than_half_the_radius():
+    from scope3d.pipelines.panorama_3d import self_check
+    from scope3d.sfm.cavity_mapping import CavityMap, fit_sphere
+    points, frame = _wall(seed=9, n=500)
+    tracks = _tracks(points, frame)
+    poses = [Pose.from_centre(np.eye(3), c) for c in np.random.default_rng(10).normal(scale=5.0, size=(N_FRAMES, 3))]
+    centre, radius = fit_sphere(points)
+    # the other map: the same wall with a third of it moved by a whole radius (a cap-like failure)
+    moved = points.copy()
+    moved[frame < 12] += [radius, 0.0, 0.0]
+    for other, warns in ((points + 0.3, False), (moved, True)):
+        choice = {"kept": "all pairs", "reason": "test", "disagreement": map_disagreement(tracks, _tracks(other, frame))}
+        cavity = CavityMap(tracks, poses, centre, radius, np.ones(N_FRAMES, bool), [], [], 0, [], False, {},
+                           None, choice)
+        check = self_check(cavity, CavityOptions(), scaled=False)
+        assert check["passed"] and bool(check["warnings"]) == warns and check["map_choice"] == choice

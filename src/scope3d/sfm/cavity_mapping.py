@@ -617,7 +617,7 @@ def map_figures(camera: Camera, every: Tracks, tracks: Tracks, poses: list[Pose]
 
 
 #: the all-pair map's wall must spread more than the chain's by this many standard errors to lose on the
-#: spread (a one-sided 3-sigma test: 0.13 % by chance); measured on 16 cases (docs/panorama.md, "Which
+#: spread (a one-sided 3-sigma test: 0.13 % by chance); measured on 14 mapped cases (docs/panorama.md, "Which
 #: image-only map"): -2.8 to +2.4 standard errors, none deciding
 SIGNIFICANT_SIGMAS = 3.0
 
@@ -669,8 +669,9 @@ def spread_difference(a: Tracks, b: Tracks, *, draws: int = 200, seed: int = 0) 
 
     Why over frames and on the same points: a map's errors are shared by the wall a frame sees (a block of
     frames off moves all of its points), so points are no independent samples (a bootstrap over points gave
-    standard errors ~10 times smaller); and two maps holding different parts of a wall that is no sphere
-    differ in spread by the parts alone. (0, inf) with fewer than four common points."""
+    standard errors 2-46 times smaller on 11 maps, docs/panorama.md); and two maps holding different parts
+    of a wall that is no sphere differ in spread by the parts alone. (0, inf) with fewer than four common
+    points."""
     pa, pb, frame = common_points(a, b)
     if len(pa) < 4:
         return 0.0, float("inf")
