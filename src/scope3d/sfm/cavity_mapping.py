@@ -31,18 +31,19 @@ distance, the ambiguous one bends it (:func:`cavity_relative_pose`). The steps, 
    posed pairs alone, adjusted from the depth-scaled start, is the fallback (:func:`choose_map`): a map
    whose cameras are not inside near its wall's centre (:func:`cameras_off_centre`) loses to one whose
    are; otherwise the all-pair map is kept unless the chain's explains more of the verified observations
-   within the gate, or the all-pair wall spreads significantly more on the points both hold (:func:`spread_difference`). How far the two maps disagree
-   (:func:`map_disagreement`) is reported with the choice (``CavityMap.choice``). Planned poses (finite tolerance) start the poses and bound
-   them (BCBA) instead of steps 2-4, and the pairs the plan says overlap are matched.
+   within the gate, or the all-pair wall spreads significantly more on the points both hold
+   (:func:`spread_difference`). How far the two maps disagree (:func:`map_disagreement`) is reported with
+   the choice (``CavityMap.choice``). Planned poses (finite tolerance) start the poses and bound them
+   (BCBA) instead of steps 2-4, and the pairs the plan says overlap are matched.
 
 What limited the image-only map (36-frame spiral): the frames overlap only their neighbours (35-65 %),
 so the pairs that passed the shape test formed a chain with a few cross-turn links and tracks of 2.1
 views, which fix no ratio between baselines (wall 2.06 mm mean at 608 px). With every geometrically
 verified pair in the tracks and the centres from their rays, 0.175 mm at 608 px. At 256 px the start was
 2.6 deg off and the all-pair map fell into another minimum (a block of frames 9 deg off) and the chain's
-map (2.44 mm) was kept; with today's pairs the all-pair map there is 0.48 mm and kept. On an unseen cavity at 608 px six posed pairs 10-110 deg off pulled the start's centres
-5 mm off through their baselines and the all-pair map ended at 11.4 mm; without them (:func:`consistent_pairs`)
-0.194 mm. On an unseen wet cavity (608 px) a start 6-12 deg off let the tracks' centres build a cap of a
+map (2.44 mm) was kept; with today's pairs the all-pair map there is 0.48 mm and kept. On an unseen
+cavity at 608 px six posed pairs 10-110 deg off pulled the start's centres 5 mm off through their
+baselines and the all-pair map ended at 11.4 mm; without them (:func:`consistent_pairs`) 0.194 mm. On an unseen wet cavity (608 px) a start 6-12 deg off let the tracks' centres build a cap of a
 sphere 3.4 times too large with the cameras against it (26.5 mm), which explained more and fitted a sphere
 better than the chain's map: the cameras' place now rules it out (1.6 mm, the chain's).
 The wall's spread alone, compared as it was, kept the chain's map whenever the all-pair wall spread 1-5 %
@@ -607,8 +608,9 @@ def cameras_off_centre(points: np.ndarray, poses: list[Pose]) -> float:
 
 def map_figures(camera: Camera, every: Tracks, tracks: Tracks, poses: list[Pose], options: CavityOptions) -> dict:
     """What tells one image-only candidate map from another without the truth: the observations of every
-    verified track (``every``, untriangulated) explained within the reprojection gate by ``poses``, the wall's spread (:func:`wall_spread`) and the cameras' place (:func:`cameras_off_centre`)
-    of the adjusted ``tracks``, and the frames registered."""
+    verified track (``every``, untriangulated) explained within the reprojection gate by ``poses``, the
+    wall's spread (:func:`wall_spread`) and the cameras' place (:func:`cameras_off_centre`) of the adjusted
+    ``tracks``, and the frames registered."""
     n = len(poses)
     explained = triangulate_tracks(camera, poses, every, options.tracks)
     return {"explained_observations": int(explained.n_observations),
@@ -641,14 +643,15 @@ def choose_map(all_pairs: dict, chain: dict, spread_excess: tuple[float, float])
     over an all-pair map 0.21 mm off whose spread was 5 % larger (an unseen cavity)."""
     inside = [f["cameras_off_centre"] <= MAX_OFF_CENTRE for f in (all_pairs, chain)]
     if inside[0] != inside[1]:
-        return inside[1], f"only the {'chain' if inside[1] else 'all-pair'} map has its cameras inside the cavity"
+        return inside[1], "only the " + ("chain's" if inside[1] else "all-pair") + " map has its cameras inside the cavity"
     if chain["explained_observations"] > all_pairs["explained_observations"]:
         return True, "the chain's map explains more of the verified observations"
     excess, sigma = spread_excess
     if excess > SIGNIFICANT_SIGMAS * sigma:
         return True, (f"the all-pair map's wall spreads more than the chain's on the same points "
                       f"({excess:.3f}, {excess / sigma:.1f} standard errors)")
-    return False, "the all-pair map explains more of the verified observations, its wall spreads not significantly more"
+    return False, ("the all-pair map explains at least as many of the verified observations, and its wall "
+                   "spreads not significantly more")
 
 
 def common_points(a: Tracks, b: Tracks) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -695,7 +698,8 @@ def map_disagreement(a: Tracks, b: Tracks) -> dict:
     pa, pb, _ = common_points(a, b)
     if len(pa) < 4:
         return {"median": float("nan"), "p95": float("nan"), "n_common_points": int(len(pa))}
-    d = [np.linalg.norm(fit_similarity(q, p).apply(q) - p, axis=1) / fit_sphere(p)[1] for p, q in ((pa, pb), (pb, pa))]
+    d = [np.linalg.norm(fit_similarity(q, p).apply(q) - p, axis=1) / fit_sphere(p)[1]
+         for p, q in ((pa, pb), (pb, pa))]
     return {"median": float(max(np.median(x) for x in d)), "p95": float(max(np.percentile(x, 95) for x in d)),
             "n_common_points": int(len(pa))}
 
@@ -712,7 +716,9 @@ class CavityMap:
     registered : (n,) bool, frames with at least ``min_observations`` observations in the final map;
     matches, relative : the verified pairs; n_pairs_tried : pairs matched; stages : per adjustment
     (name, cost before and after, iterations); scale_known : the poses were planned (mm are mm);
-    time_s : per step (pairs, start, adjustment).
+    time_s : per step (pairs, start, adjustment); alternative : images only, the candidate map not kept
+    (tracks, poses); choice : images only, why the map was kept (:func:`choose_map`: both candidates'
+    :func:`map_figures`, the spread excess, the reason) and their :func:`map_disagreement`.
     """
 
     tracks: Tracks
@@ -878,10 +884,13 @@ def map_cavity(camera: Camera, features: list[Features], measured: list[Measured
         figures = [map_figures(camera, every, t, p, options) for t, p in ((tracks, poses), (chain_tracks, chain_poses))]
         excess = spread_difference(tracks, chain_tracks)
         use_chain, reason = choose_map(*figures, excess)
-        kept, other = ((chain_tracks, chain_poses), (tracks, poses)) if use_chain else ((tracks, poses), (chain_tracks, chain_poses))
+        kept, other = (chain_tracks, chain_poses), (tracks, poses)
+        if not use_chain:
+            kept, other = other, kept
         choice = {"kept": "chain" if use_chain else "all pairs", "reason": reason,
                   "all_pairs": figures[0], "chain": figures[1],
-                  "spread_excess": {"value": excess[0], "standard_error": excess[1]}, "disagreement": map_disagreement(kept[0], other[0])}
+                  "spread_excess": {"value": excess[0], "standard_error": excess[1]},
+                  "disagreement": map_disagreement(kept[0], other[0])}
         alternative = other
         if use_chain:
             stages = chain_stages
