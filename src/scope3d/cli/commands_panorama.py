@@ -107,7 +107,9 @@ def register_panorama(subparsers) -> None:
                    help="do not use planned poses even when poses.csv gives finite tolerances (image-only)")
     p.add_argument("--keep-implausible", action="store_true",
                    help="write the map even when its self-check fails (cameras far off the wall's centre, or a "
-                        "wall radius outside the anatomical 20-70 mm); by default such a map is refused (exit 2)")
+                        "wall radius outside the anatomical 20-70 mm); by default such a map is refused (exit 2). "
+                        "Images only, a map whose two candidate maps disagree (p95 over half the wall's radius) is "
+                        "written with a warning, not refused")
     add_job_arguments(p)
     p.set_defaults(func=_run_panorama)
 
