@@ -149,10 +149,11 @@ def self_check(cavity: CavityMap, options: CavityOptions, scaled: bool) -> dict:
     warnings = []
     disagreement = cavity.choice.get("disagreement", {})
     if disagreement.get("p95", 0.0) > MAX_OFF_CENTRE:  # NaN (no common points) does not warn
+        kept = "all-pair" if cavity.choice["kept"] == "all pairs" else "chain's"
         warnings.append(f"the two image-only maps disagree: 5 % of their common points are "
                         f"{disagreement['p95']:.2f} of the wall's radius apart or more (median "
                         f"{disagreement['median']:.2f}), so at least one is wrong; kept the "
-                        f"{cavity.choice['kept']} map: {cavity.choice['reason']}")
+                        f"{kept} map: {cavity.choice['reason']}")
     return {"cameras_off_centre": off, "max_off_centre": MAX_OFF_CENTRE, "wall_radius_mm": radius,
             "anatomical_radius_mm": [options.min_radius_mm, options.max_radius_mm], "problems": problems,
             "passed": not problems, "map_choice": cavity.choice or None, "warnings": warnings}
