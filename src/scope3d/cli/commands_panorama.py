@@ -113,7 +113,9 @@ def register_panorama(subparsers) -> None:
                         "0.1 mm texels; 4096 halves the texel and takes ~3x the texturing time)")
     p.add_argument("--keep-implausible", action="store_true",
                    help="write the map even when its self-check fails (cameras far off the wall's centre, or a "
-                        "wall radius outside the anatomical 20-70 mm); by default such a map is refused (exit 2)")
+                        "wall radius outside the anatomical 20-70 mm); by default such a map is refused (exit 2). "
+                        "Images only, a map whose two candidate maps disagree (p95 over half the wall's radius) is "
+                        "written with a warning, not refused")
     add_job_arguments(p)
     p.set_defaults(func=_run_panorama)
 
@@ -140,6 +142,10 @@ def _run_panorama(args) -> int:
                f"scale from {report['scale_source']}"
                + (f" (± {report['scale_uncertainty_fraction']:.2%})" if report.get("scale_uncertainty_fraction") else "")
                + f", {report['time_s']:.1f} s")
+    disagreement = (report["self_check"]["map_choice"] or {}).get("disagreement")
+    if disagreement:  # image-only: how far the two candidate maps are apart (both right: ~0.003 of the radius)
+        summary += (f"; the two image-only maps disagree by {disagreement['median']:.1%} of the wall's radius "
+                    f"(p95 {disagreement['p95']:.1%})")
     lines = [summary]
     err = report.get("surface_error_mm", {}).get("after_similarity")
     if err:
@@ -150,6 +156,7 @@ def _run_panorama(args) -> int:
         lines.append(f"textured wall: {report['texture_texel_mm']:.3f} mm per texel, atlas "
                      f"{report['texture_atlas_px'][0]} x {report['texture_atlas_px'][1]} px, "
                      f"{report['textured_fraction']:.0%} of the wall seen")
+    lines += [f"self-check WARNING: {w}" for w in report["self_check"]["warnings"]]
     if not report["self_check"]["passed"]:
         lines.append("self-check FAILED, the map is kept as asked: " + "; ".join(report["self_check"]["problems"]))
     lines.append(f"wrote {args.out}/ (report.json, sparse/, points.ply, mesh.ply, wall.obj, panorama_3d.png)")

@@ -125,11 +125,18 @@ def self_check(cavity: CavityMap, options: CavityOptions, scaled: bool) -> dict:
     within :data:`MAX_OFF_CENTRE` of the wall's radius from its centre (:func:`cameras_off_centre`), and,
     when the map has a physical scale (stars or plan), the wall's fitted radius within the anatomical shell
     (``options.min_radius_mm``-``max_radius_mm``, the prior's own range). Returns the measures, the
-    ``problems`` found (sentences) and ``passed``.
+    ``problems`` found (sentences), ``passed``, the image-only map's choice (``map_choice``: both candidates'
+    figures, why one was kept, their disagreement) and ``warnings``.
 
     Measured (docs/panorama.md, "A wrong map reported as a map"): the unseen wet cavity's broken map had
     its cameras 0.97 radii off centre and, from the stars, a 107 mm wall radius (the truth: 29-38 mm
-    semi-axes); the maps kept on the phantoms (dry, wet, unseen shapes), 0.02-0.07 and 34-41 mm."""
+    semi-axes); the maps kept on the phantoms (dry, wet, unseen shapes), 0.02-0.07 and 34-41 mm.
+
+    The warning: the two image-only candidate maps (:func:`scope3d.sfm.cavity_mapping.map_cavity`) come from
+    different starts and pair sets; when 5 % of the points they share lie more than :data:`MAX_OFF_CENTRE` of
+    the wall's radius apart after a similarity (:func:`scope3d.sfm.cavity_mapping.map_disagreement`), they
+    cannot both be the cavity, and the kept one is not confirmed. A warning, not a refusal: the kept map may
+    be the right one (docs/panorama.md, "Which image-only map")."""
     off = cameras_off_centre(cavity.tracks.points, cavity.poses)
     problems = []
     if not off <= MAX_OFF_CENTRE:
@@ -139,9 +146,17 @@ def self_check(cavity: CavityMap, options: CavityOptions, scaled: bool) -> dict:
     if radius is not None and not options.min_radius_mm <= radius <= options.max_radius_mm:
         problems.append(f"the wall's radius is {radius:.1f} mm, outside the anatomical "
                         f"{options.min_radius_mm:g}-{options.max_radius_mm:g} mm")
+    warnings = []
+    disagreement = cavity.choice.get("disagreement", {})
+    if disagreement.get("p95", 0.0) > MAX_OFF_CENTRE:  # NaN (no common points) does not warn
+        kept = "all-pair" if cavity.choice["kept"] == "all pairs" else "chain's"
+        warnings.append(f"the two image-only maps disagree: 5 % of their common points are "
+                        f"{disagreement['p95']:.2f} of the wall's radius apart or more (median "
+                        f"{disagreement['median']:.2f}), so at least one is wrong; kept the "
+                        f"{kept} map: {cavity.choice['reason']}")
     return {"cameras_off_centre": off, "max_off_centre": MAX_OFF_CENTRE, "wall_radius_mm": radius,
             "anatomical_radius_mm": [options.min_radius_mm, options.max_radius_mm], "problems": problems,
-            "passed": not problems}
+            "passed": not problems, "map_choice": cavity.choice or None, "warnings": warnings}
 
 
 def save_panorama_png(path: Path, cavity: CavityMap, distances: np.ndarray | None) -> None:

@@ -28,22 +28,27 @@ distance, the ambiguous one bends it (:func:`cavity_relative_pose`). The steps, 
    bounded to the spherical shell between an anatomical minimum and maximum radius
    (:meth:`BundleProblem.bound_points_to_shell`); bundle adjustment, observations farther than the
    reprojection gate dropped and the adjustment repeated; points outside the shell dropped. The chain of
-   posed pairs alone, adjusted from the depth-scaled start, is the fallback; a map whose cameras are not
-   inside near its wall's centre (:func:`cameras_off_centre`) loses to one whose are; otherwise the
-   all-pair map is kept when it explains more verified matches within the gate and its wall is no less at
-   one distance from the centre (:func:`wall_spread`). Planned poses (finite tolerance) start the poses and bound
-   them (BCBA) instead of steps 2-4, and the pairs the plan says overlap are matched.
+   posed pairs alone, adjusted from the depth-scaled start, is the fallback (:func:`choose_map`): a map
+   whose cameras are not inside near its wall's centre (:func:`cameras_off_centre`) loses to one whose
+   are; otherwise the all-pair map is kept unless the chain's explains more of the verified observations
+   within the gate, or the all-pair wall spreads significantly more on the points both hold
+   (:func:`spread_difference`). How far the two maps disagree (:func:`map_disagreement`) is reported with
+   the choice (``CavityMap.choice``). Planned poses (finite tolerance) start the poses and bound them
+   (BCBA) instead of steps 2-4, and the pairs the plan says overlap are matched.
 
 What limited the image-only map (36-frame spiral): the frames overlap only their neighbours (35-65 %),
 so the pairs that passed the shape test formed a chain with a few cross-turn links and tracks of 2.1
 views, which fix no ratio between baselines (wall 2.06 mm mean at 608 px). With every geometrically
-verified pair in the tracks and the centres from their rays, 0.175 mm at 608 px. At 256 px the start is
-2.6 deg off and the all-pair map falls into another minimum (a block of frames 9 deg off): the chain's map
-(2.44 mm) is kept. On an unseen cavity at 608 px six posed pairs 10-110 deg off pulled the start's centres
-5 mm off through their baselines and the all-pair map ended at 11.4 mm; without them (:func:`consistent_pairs`)
-0.194 mm. On an unseen wet cavity (608 px) a start 6-12 deg off let the tracks' centres build a cap of a
+verified pair in the tracks and the centres from their rays, 0.175 mm at 608 px. At 256 px the start was
+2.6 deg off and the all-pair map fell into another minimum (a block of frames 9 deg off) and the chain's
+map (2.44 mm) was kept; with today's pairs the all-pair map there is 0.48 mm and kept. On an unseen
+cavity at 608 px six posed pairs 10-110 deg off pulled the start's centres 5 mm off through their
+baselines and the all-pair map ended at 11.4 mm; without them (:func:`consistent_pairs`) 0.194 mm. On an unseen wet cavity (608 px) a start 6-12 deg off let the tracks' centres build a cap of a
 sphere 3.4 times too large with the cameras against it (26.5 mm), which explained more and fitted a sphere
 better than the chain's map: the cameras' place now rules it out (1.6 mm, the chain's).
+The wall's spread alone, compared as it was, kept the chain's map whenever the all-pair wall spread 1-5 %
+more (an unseen cavity: 1.14 mm kept against 0.213 mm; the 30 mm spirals: 0.227 against 0.137 mm); the
+choice now asks the spread for a significant difference only (docs/panorama.md, "Which image-only map").
 
 Units: mm (provisional until :mod:`scope3d.metrology.star_scale` rescales), radians; pixels with their
 origin at the top-left pixel's centre. Poses are ``cam_from_world``.
@@ -73,6 +78,7 @@ from scope3d.feature.pairs import frame_overlap
 from scope3d.feature.retrieval import RetrievalOptions, image_similarity
 from scope3d.feature.tracks import build_tracks
 from scope3d.geometry.pose import Pose
+from scope3d.geometry.similarity import fit_similarity
 from scope3d.geometry.rotation import rotvec_to_matrix
 from scope3d.scene.tracks import Tracks
 from scope3d.sensor.camera import Camera
@@ -601,6 +607,104 @@ def cameras_off_centre(points: np.ndarray, poses: list[Pose]) -> float:
     return float(np.linalg.norm(np.mean([p.centre for p in poses], axis=0) - centre) / radius)
 
 
+def map_figures(camera: Camera, every: Tracks, tracks: Tracks, poses: list[Pose], options: CavityOptions) -> dict:
+    """What tells one image-only candidate map from another without the truth: the observations of every
+    verified track (``every``, untriangulated) explained within the reprojection gate by ``poses``, the
+    wall's spread (:func:`wall_spread`) and the cameras' place (:func:`cameras_off_centre`) of the adjusted
+    ``tracks``, and the frames registered."""
+    n = len(poses)
+    explained = triangulate_tracks(camera, poses, every, options.tracks)
+    return {"explained_observations": int(explained.n_observations),
+            "wall_spread": wall_spread(tracks.points), "cameras_off_centre": cameras_off_centre(tracks.points, poses),
+            "n_registered": int((np.bincount(tracks.frame, minlength=n) >= options.min_observations).sum())}
+
+
+#: the all-pair map's wall must spread more than the chain's by this many standard errors to lose on the
+#: spread (a one-sided 3-sigma test: 0.13 % by chance); measured on 14 mapped cases (docs/panorama.md, "Which
+#: image-only map"): -2.8 to +2.4 standard errors, none deciding
+SIGNIFICANT_SIGMAS = 3.0
+
+
+def choose_map(all_pairs: dict, chain: dict, spread_excess: tuple[float, float]) -> tuple[bool, str]:
+    """Whether to keep the chain's map rather than the all-pair map, and why, from their
+    :func:`map_figures` and how much more the all-pair map's wall spreads than the chain's on the points
+    both hold, with its standard error (:func:`spread_difference`).
+
+    A map that is no cavity seen from inside (:func:`cameras_off_centre`) loses to one that is. Otherwise the
+    data decide: the all-pair map, adjusted from tracks that tie more frames, is kept unless the chain's
+    explains more of the verified observations within the gate, or unless the all-pair map's wall spreads
+    significantly more than the chain's on the same points (by more than :data:`SIGNIFICANT_SIGMAS` standard
+    errors: a bent map that still explains more, as the 256 px spiral's once did, 0.22 against 0.04).
+    Not per frame: a test that the all-pair map explains no frame significantly less than the chain's
+    (3 sigmas of the frame's count) kept a chain's map of 4.0 mm over an all-pair map of 0.42 mm that had
+    lost one frame (an unseen cavity).
+
+    Why not the spreads as they are: two maps of one wall differ in spread by which parts of the wall they
+    hold and by their regional errors; a rule preferring the smaller spread kept a chain's map 1.1 mm off
+    over an all-pair map 0.21 mm off whose spread was 5 % larger (an unseen cavity)."""
+    inside = [f["cameras_off_centre"] <= MAX_OFF_CENTRE for f in (all_pairs, chain)]
+    if inside[0] != inside[1]:
+        return inside[1], "only the " + ("chain's" if inside[1] else "all-pair") + " map has its cameras inside the cavity"
+    if chain["explained_observations"] > all_pairs["explained_observations"]:
+        return True, "the chain's map explains more of the verified observations"
+    excess, sigma = spread_excess
+    if excess > SIGNIFICANT_SIGMAS * sigma:
+        return True, (f"the all-pair map's wall spreads more than the chain's on the same points "
+                      f"({excess:.3f}, {excess / sigma:.1f} standard errors)")
+    return False, ("the all-pair map explains at least as many of the verified observations, and its wall "
+                   "spreads not significantly more")
+
+
+def common_points(a: Tracks, b: Tracks) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The points (K, 3) of two maps of the same features that share an observation (frame, feature), one
+    row per pair of tracks, and the first frame (K,) observing each in map a."""
+    key_a = a.frame.astype(np.int64) * (1 << 32) + a.feature
+    key_b = b.frame.astype(np.int64) * (1 << 32) + b.feature
+    _, ia, ib = np.intersect1d(key_a, key_b, return_indices=True)
+    pairs = np.unique(np.c_[a.track[ia], b.track[ib]], axis=0)
+    first = np.full(a.n_tracks, np.iinfo(np.int64).max)
+    np.minimum.at(first, a.track, a.frame.astype(np.int64))
+    return a.points[pairs[:, 0]], b.points[pairs[:, 1]], first[pairs[:, 0]]
+
+
+def spread_difference(a: Tracks, b: Tracks, *, draws: int = 200, seed: int = 0) -> tuple[float, float]:
+    """``wall_spread`` of map a minus map b on the points both hold (:func:`common_points`), and its
+    standard error by a bootstrap over frames (each point drawn with the first frame that sees it).
+
+    Why over frames and on the same points: a map's errors are shared by the wall a frame sees (a block of
+    frames off moves all of its points), so points are no independent samples (a bootstrap over points gave
+    standard errors 2-46 times smaller on 11 maps, docs/panorama.md); and two maps holding different parts
+    of a wall that is no sphere differ in spread by the parts alone. (0, inf) with fewer than four common
+    points."""
+    pa, pb, frame = common_points(a, b)
+    if len(pa) < 4:
+        return 0.0, float("inf")
+    frames, index = np.unique(frame, return_inverse=True)
+    rng = np.random.default_rng(seed)
+    diffs = []
+    for _ in range(draws):
+        weight = np.bincount(rng.integers(0, len(frames), len(frames)), minlength=len(frames))[index]
+        keep = np.repeat(np.arange(len(pa)), weight)
+        if len(keep) >= 4:
+            diffs.append(wall_spread(pa[keep]) - wall_spread(pb[keep]))
+    return wall_spread(pa) - wall_spread(pb), float(np.std(diffs)) if len(diffs) > 1 else float("inf")
+
+
+def map_disagreement(a: Tracks, b: Tracks) -> dict:
+    """How far two maps of the same frames disagree: the points they share (:func:`common_points`) after the
+    similarity that best takes one's onto the other's, their distances over the wall radius of the map
+    taken onto (median, p95), the larger of both ways (a map fallen into a cap of a sphere 3.4 times too
+    large shrinks the other's distances over its radius: 0.07 against 0.90 on an unseen cavity), and how many
+    points. Scale-free; 0 for maps equal up to a similarity. NaN with fewer than four common points."""
+    pa, pb, _ = common_points(a, b)
+    if len(pa) < 4:
+        return {"median": float("nan"), "p95": float("nan"), "n_common_points": int(len(pa))}
+    d = [np.linalg.norm(fit_similarity(q, p).apply(q) - p, axis=1) / fit_sphere(p)[1]
+         for p, q in ((pa, pb), (pb, pa))]
+    return {"median": float(max(np.median(x) for x in d)), "p95": float(max(np.percentile(x, 95) for x in d)),
+            "n_common_points": int(len(pa))}
+
+
 # --- 4. adjustment --------------------------------------------------------------------------------
 
 
@@ -613,7 +717,9 @@ class CavityMap:
     registered : (n,) bool, frames with at least ``min_observations`` observations in the final map;
     matches, relative : the verified pairs; n_pairs_tried : pairs matched; stages : per adjustment
     (name, cost before and after, iterations); scale_known : the poses were planned (mm are mm);
-    time_s : per step (pairs, start, adjustment).
+    time_s : per step (pairs, start, adjustment); alternative : images only, the candidate map not kept
+    (tracks, poses); choice : images only, why the map was kept (:func:`choose_map`: both candidates'
+    :func:`map_figures`, the spread excess, the reason) and their :func:`map_disagreement`.
     """
 
     tracks: Tracks
@@ -627,14 +733,22 @@ class CavityMap:
     stages: list[dict]
     scale_known: bool
     time_s: dict = field(default_factory=dict)
+    alternative: tuple[Tracks, list[Pose]] | None = None
+    choice: dict = field(default_factory=dict)
 
     def scaled(self, factor: float) -> "CavityMap":
         """The map with every length multiplied by ``factor`` (e.g. the stars' scale)."""
         t = self.tracks
         poses = [Pose(p.rotation, factor * p.translation) for p in self.poses]
         tracks = Tracks(t.track, t.frame, t.feature, t.pixels, t.colors, factor * t.points)
+        alternative = None
+        if self.alternative is not None:
+            a, a_poses = self.alternative
+            alternative = (Tracks(a.track, a.frame, a.feature, a.pixels, a.colors, factor * a.points),
+                           [Pose(p.rotation, factor * p.translation) for p in a_poses])
         return CavityMap(tracks, poses, factor * self.centre_mm, factor * self.radius_mm, self.registered,
-                         self.matches, self.relative, self.n_pairs_tried, self.stages, self.scale_known, self.time_s)
+                         self.matches, self.relative, self.n_pairs_tried, self.stages, self.scale_known, self.time_s,
+                         alternative, self.choice)
 
 
 def _adjust(camera: Camera, tracks: Tracks, poses: list[Pose], measured: list[MeasuredPose] | None,
@@ -732,6 +846,7 @@ def map_cavity(camera: Camera, features: list[Features], measured: list[Measured
     t0 = time.perf_counter()
     planned = knows_poses(measured)
     n_tried = len(tried)
+    alternative, choice = None, {}
     if planned:  # the plan places every frame: one that shares no matches is left unregistered, not refused
         if not matches:
             raise InputError(f"{where}: no two frames overlap (no pair of frames verified by their matches)")
@@ -765,34 +880,29 @@ def map_cavity(camera: Camera, features: list[Features], measured: list[Measured
         t0 = time.perf_counter()
         tracks, poses, stages = adjust_cavity(camera, every, poses_from(rotations, centres), options)
         # the chain of posed pairs alone, adjusted from the depth-scaled start, is the fallback: a start
-        # degrees off (2.6 deg at 256 px) can let the cross-turn tracks pull a block of frames into another
-        # minimum. The all-pair map is kept only when it is the better one by the data (explains more of
-        # the verified matches within the reprojection gate) and by the cavity (its wall spreads its
-        # distances from the fitted centre no more): on the 256 px spiral a broken all-pair map (14.7 mm
-        # mean wall error) explained 6,897 observations against the chain's 6,716, with a spread of 0.22
-        # against 0.04
+        # degrees off can let the cross-turn tracks pull a block of frames into another minimum (choose_map)
         chain_tracks, chain_poses, chain_stages = adjust_cavity(camera, chain, start, options)
-        explained = [triangulate_tracks(camera, p, every, options.tracks).n_observations for p in (poses, chain_poses)]
-        spread = [wall_spread(t.points) for t in (tracks, chain_tracks)]
-        # a map that is no cavity seen from inside (cameras far off its wall's centre) loses to one that is,
-        # whatever it explains (the unseen wet cavity: the all-pair map a cap of a 3.4x larger sphere, 26.5
-        # mm wall error, explaining 9738 observations against the chain's 9382 at 1.6 mm)
-        off = [cameras_off_centre(t.points, p) for t, p in ((tracks, poses), (chain_tracks, chain_poses))]
-        inside = [o <= MAX_OFF_CENTRE for o in off]
-        if inside[0] != inside[1]:
-            use_chain = inside[1]
-        else:
-            use_chain = explained[1] > explained[0] or spread[0] > spread[1]
+        figures = [map_figures(camera, every, t, p, options) for t, p in ((tracks, poses), (chain_tracks, chain_poses))]
+        excess = spread_difference(tracks, chain_tracks)
+        use_chain, reason = choose_map(*figures, excess)
+        kept, other = (chain_tracks, chain_poses), (tracks, poses)
+        if not use_chain:
+            kept, other = other, kept
+        choice = {"kept": "chain" if use_chain else "all pairs", "reason": reason,
+                  "all_pairs": figures[0], "chain": figures[1],
+                  "spread_excess": {"value": excess[0], "standard_error": excess[1]},
+                  "disagreement": map_disagreement(kept[0], other[0])}
+        alternative = other
         if use_chain:
-            tracks, poses, stages = chain_tracks, chain_poses, chain_stages
+            stages = chain_stages
         else:
             matches = matches + more
-        stages = [{**st, "explained_observations": explained, "wall_spread": spread, "cameras_off_centre": off}
-                  for st in stages]
+        tracks, poses = kept
         times["adjust_s"] = time.perf_counter() - t0
     centre, radius = fit_sphere(tracks.points)
     registered = np.bincount(tracks.frame, minlength=n) >= options.min_observations
-    return CavityMap(tracks, poses, centre, radius, registered, matches, relative, n_tried, stages, planned, times)
+    return CavityMap(tracks, poses, centre, radius, registered, matches, relative, n_tried, stages, planned, times,
+                     alternative, choice)
 
 
 def _provisional_scale(camera: Camera, poses: list[Pose], tracks: Tracks, options: CavityOptions) -> list[Pose]:
