@@ -22,8 +22,10 @@ from scope3d.metrology.star_scale import combine_views, fit_local_wall, pentagra
 from scope3d.sensor.camera import Camera
 from scope3d.phantoms import generate, write
 from scope3d.pipelines.panorama_3d import PanoramaOptions, evaluate, run
-from scope3d.sfm.cavity_mapping import (CavityOptions, _wall_distance, map_cavity, overlapping_pairs, pair_poses,
-                                        verified_matches)
+from scope3d.metrology.evaluation import true_track_points
+from scope3d.estimators.triangulation import ray_angles_deg
+from scope3d.sfm.cavity_mapping import (CavityOptions, _wall_distance, adjust_cavity, map_cavity, overlapping_pairs,
+                                        pair_poses, verified_matches)
 
 # frames 10-23 of the 36-frame spiral: one turn, with three stars seen whole (frames 13, 14, 17, 22)
 FIRST, LAST = 10, 23
@@ -205,6 +207,40 @@ def test_pairs_the_start_says_overlap_are_matched_and_verified_against_the_truth
     # 1.0 % against 5-10 %); a few dozen cross-turn matches here, so at most 5 % (2 of 40)
     assert wrong(verified).sum() <= wrong(more).sum()
     assert wrong(verified).mean() <= 0.05
+
+
+def test_the_adjustment_keeps_the_best_determined_tracks_under_its_cap(turn_features):
+    ds, features = turn_features
+    cam, gt = ds.camera, ds.ground_truth
+    pairs = [match_exhaustive(cam, features[k], features[k + d], i=k, j=k + d) for d in (1, 2)
+             for k in range(len(ds) - d)]
+    tracks = build_tracks(features, pairs)
+    every = triangulate_tracks(cam, gt.poses, tracks, CavityOptions().tracks)
+    # a cap of half the tracks, the phantom's poses (exact: 0.01 mm, bounded) holding the rays in place
+    options = CavityOptions(max_points=every.n_tracks // 2)
+    kept, poses, _ = adjust_cavity(cam, tracks, [m.pose for m in ds.poses], options, ds.poses)
+
+    def observations(t):  # each track as its set of (frame, feature)
+        return [frozenset(zip(t.frame[t.track == k].tolist(), t.feature[t.track == k].tolist())) for k in range(t.n_tracks)]
+
+    kept_keys = set(observations(kept))
+    is_kept = np.array([key in kept_keys for key in observations(every)])
+    length, angle = every.lengths(), ray_angles_deg(cam, gt.poses, every)
+    # the tracks are two-view here (consecutive and two-apart pairs); the widest rays are kept (measured with
+    # the true poses; the bounded poses and the adjusted points move the angles by hundredths of a degree,
+    # so at most 1 % cross over)
+    two = length == 2
+    assert two.mean() > 0.9 and 0 < is_kept.sum() <= options.max_points
+    assert np.mean(angle[two & ~is_kept] > angle[two & is_kept].min()) <= 0.01
+    # physics: a point's depth error is its distance times the keypoint noise over its rays' angle, so the
+    # kept two-view points lie nearer their true positions than the dropped ones (with the true poses), by
+    # about the ratio of their mean inverse angles (0.86 here; measured 0.82): each mean of ~500 points whose
+    # errors spread by about their mean is good to ~5 %, the ratio to ~7 %, so within 3 of those
+    truth = true_track_points(cam, gt.poses, gt.depth, every.frame, every.track, every.pixels, every.n_tracks)
+    error = np.linalg.norm(every.points - truth, axis=1)
+    ratio = np.nanmean(error[two & is_kept]) / np.nanmean(error[two & ~is_kept])
+    expected = np.mean(1 / angle[two & is_kept]) / np.mean(1 / angle[two & ~is_kept])
+    assert ratio < 1.0 and abs(ratio - expected) < 0.2
 
 
 def test_planned_pairs_found_at_the_measured_wall_distance(turn_features):
