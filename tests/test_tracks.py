@@ -166,6 +166,19 @@ def test_build_tracks_joins_chains_and_drops_inconsistent_components():
     assert t.colors.tolist() == [[100, 100, 100]]
 
 
+def test_strongest_keeps_the_longest_then_the_highest_priority():
+    a = np.array
+    # tracks 0 (3 views), 1, 2, 3 (2 views each)
+    t = Tracks(a([0, 0, 0, 1, 1, 2, 2, 3, 3]), a([0, 1, 2, 0, 1, 1, 2, 0, 2]), a(range(9)), np.zeros((9, 2)),
+               np.zeros((4, 3), np.uint8))
+    assert sorted(np.unique(t.feature[np.isin(t.track, [0, 1])]).tolist()) == \
+        sorted(t.strongest(2).feature.tolist())  # without a priority: the lowest id among the ties
+    # with one: the three-view track, then the two-view track of the highest priority (track 2)
+    kept = t.strongest(2, priority=a([0.0, 1.0, 5.0, 2.0]))
+    assert sorted(kept.feature.tolist()) == [0, 1, 2, 5, 6]
+    assert t.strongest(4, priority=a([0.0, 1.0, 5.0, 2.0])) is t
+
+
 def test_build_tracks_with_no_matches_is_empty():
     feats = [Features.empty(), Features.empty()]
     assert build_tracks(feats, []).n_tracks == 0

@@ -48,11 +48,13 @@ class Tracks:
             self.colors[kept_tracks], None if self.points is None else self.points[kept_tracks],
         )
 
-    def strongest(self, max_tracks: int) -> "Tracks":
-        """The ``max_tracks`` longest tracks (ties: lowest id), with all their observations."""
+    def strongest(self, max_tracks: int, priority: np.ndarray | None = None) -> "Tracks":
+        """The ``max_tracks`` longest tracks, with all their observations. Ties: the highest ``priority``
+        (n_tracks,) first when given (e.g. the tracks' ray angles), then the lowest id."""
         if self.n_tracks <= max_tracks:
             return self
-        keep_ids = np.argsort(-self.lengths(), kind="stable")[:max_tracks]
+        order = np.arange(self.n_tracks) if priority is None else -np.asarray(priority, float)
+        keep_ids = np.lexsort((order, -self.lengths()))[:max_tracks]
         keep = np.zeros(self.n_tracks, bool)
         keep[keep_ids] = True
         return self.subset(keep[self.track])
