@@ -120,10 +120,33 @@ def test_ctrl_c_the_moment_a_temporary_appears_leaves_no_litter(tmp_path, monkey
             raise KeyboardInterrupt
         return create
 
-    monkeypatch.setattr(atomic.tempfile, "mkstemp", interrupted(atomic.tempfile.mkstemp))
-    monkeypatch.setattr(atomic.tempfile, "mkdtemp", interrupted(atomic.tempfile.mkdtemp))
+    monkeypatch.setattr(atomic, "_new_temporary", interrupted(atomic._new_temporary))
     destination = tmp_path / "out" / "result.txt"
     with pytest.raises(KeyboardInterrupt):
         with getattr(atomic, writer)(destination):
             pytest.fail("the writer's block must not run")
     assert sorted(p.name for p in destination.parent.iterdir()) == []
+
+
+@pytest.mark.parametrize("umask", [0o022, 0o077])
+def test_outputs_get_the_permissions_of_a_plain_write_not_owner_only(tmp_path, umask):
+    # the temporaries are renamed onto the destinations: created owner-only (tempfile's 0o600 / 0o700),
+    # every file and folder a job wrote was unreadable to anyone else whatever the user's umask
+    import os
+    from scope3d.utils.atomic import atomic_directory, atomic_file, atomic_path
+
+    old = os.umask(umask)
+    try:
+        with atomic_file(tmp_path / "a.txt") as handle:
+            handle.write("x")
+        with atomic_path(tmp_path / "b.png") as path:
+            path.write_bytes(b"x")
+        with atomic_directory(tmp_path / "run") as folder:
+            (folder / "c.txt").write_text("x")
+        with atomic_directory(tmp_path / "run") as folder:  # replacing an existing result
+            (folder / "c.txt").write_text("y")
+    finally:
+        os.umask(old)
+    for name, full in (("a.txt", 0o666), ("b.png", 0o666), ("run", 0o777)):
+        assert (tmp_path / name).stat().st_mode & 0o777 == full & ~umask, name
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt", "b.png", "run"]

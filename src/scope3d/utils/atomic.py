@@ -14,8 +14,8 @@ import ctypes
 import ctypes.util
 import os
 import re
+import secrets
 import shutil
-import tempfile
 from contextlib import ExitStack, contextmanager
 from pathlib import Path
 from typing import Iterator, Sequence
@@ -25,6 +25,27 @@ _TEMPORARY = re.compile(r"^\.(?P<name>.+)\.(?P<pid>\d+)\.[^.]+\.(tmp|old)(\.[^.]
 
 def _prefix(path: Path) -> str:
     return f".{path.name}.{os.getpid()}."
+
+
+def _new_temporary(path: Path, suffix: str, *, directory: bool = False) -> Path:
+    """Create a new hidden sibling ``.NAME.PID.XXXXXXXX<suffix>`` of ``path`` (a file, or a folder) and
+    return it.
+
+    Created with the permissions a plain ``open`` or ``mkdir`` gives (0o666 or 0o777 less the umask), not
+    ``tempfile``'s owner-only 0o600 / 0o700: the temporary is renamed onto the destination, so those would
+    leave every output readable by its owner alone (a report served by a web server, results a Dask worker
+    writes for a colleague, a folder shared on a lab machine)."""
+    for _ in range(100):
+        name = path.parent / f"{_prefix(path)}{secrets.token_hex(4)}{suffix}"
+        try:
+            if directory:
+                os.mkdir(name, 0o777)
+            else:
+                os.close(os.open(name, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
+            return name
+        except FileExistsError:
+            continue
+    raise FileExistsError(f"{path}: could not create a temporary beside it")
 
 
 def _process_alive(pid: int) -> bool:
@@ -92,8 +113,7 @@ def atomic_file(path: str | os.PathLike, mode: str = "w", **open_kwargs) -> Iter
     path.parent.mkdir(parents=True, exist_ok=True)
     remove_stale_temporaries(path)
     try:
-        fd, tmp = tempfile.mkstemp(prefix=_prefix(path), suffix=".tmp", dir=path.parent)
-        os.close(fd)
+        tmp = _new_temporary(path, ".tmp")
         with open(tmp, mode, **open_kwargs) as handle:
             yield handle
         os.replace(tmp, path)
@@ -112,9 +132,8 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     path.parent.mkdir(parents=True, exist_ok=True)
     remove_stale_temporaries(path)
     try:
-        fd, name = tempfile.mkstemp(prefix=_prefix(path), suffix=f".tmp{path.suffix}", dir=path.parent)
-        os.close(fd)
-        yield Path(name)
+        name = _new_temporary(path, f".tmp{path.suffix}")
+        yield name
         os.replace(name, path)
     except BaseException:
         _remove_own_temporaries(path)
@@ -176,7 +195,7 @@ def atomic_directory(path: str | os.PathLike, *, overwrite: bool = True) -> Iter
     path.parent.mkdir(parents=True, exist_ok=True)
     remove_stale_temporaries(path)
     try:
-        tmp = Path(tempfile.mkdtemp(prefix=_prefix(path), suffix=".tmp", dir=path.parent))
+        tmp = _new_temporary(path, ".tmp", directory=True)
         yield tmp
         if path.exists():
             if not overwrite:
@@ -184,7 +203,7 @@ def atomic_directory(path: str | os.PathLike, *, overwrite: bool = True) -> Iter
             if _exchange(tmp, path):
                 shutil.rmtree(tmp, ignore_errors=True)  # tmp now holds the previous result
                 return
-            old = Path(tempfile.mkdtemp(prefix=_prefix(path), suffix=".old", dir=path.parent))
+            old = _new_temporary(path, ".old", directory=True)
             os.replace(path, old)
             os.replace(tmp, path)
             shutil.rmtree(old, ignore_errors=True)
