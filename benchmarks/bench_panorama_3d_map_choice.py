@@ -9,7 +9,7 @@ rule can be judged against the truth on every case.
 
 Cases: the density sweep and the 30 mm (and with ``--cases``, 15 mm) stand-off spirals of
 ``bench_panorama_3d_sweep.py``, the 256 px spiral, and unseen cavities (shape seeds 5 at 608 and 224 px, 23,
-11; and 31, 37 and a wet 31, which the rule was not designed on). Each dataset is rendered once into
+11; and 31, 37, a wet 31, 43 and a wet 47, which the rule was not designed on). Each dataset is rendered once into
 ``--cache``. Results are merged per case into benchmarks/results/panorama_3d_map_choice.json.
 
 Usage: PYTHONPATH=src python benchmarks/bench_panorama_3d_map_choice.py [--cases TAG ...] [--cache DIR]
@@ -44,6 +44,10 @@ EXTRA = {
     "unseen31": (["--shape-seed", "31", "--cavity-mm", "44,36,31", "--pose-noise", "1", "--seed", "4"], False),
     "unseen37": (["--shape-seed", "37", "--cavity-mm", "39,35,33", "--pose-noise", "1", "--seed", "6"], False),
     "unseen31_wet_d0.5": (["--shape-seed", "31", "--cavity-mm", "44,36,31", "--pose-noise", "1", "--seed", "4",
+                           "--wet", "--vessel-density", "0.5"], False),
+    # rendered after the last change of the rule (the significance of the explained difference), unseen by it
+    "unseen43": (["--shape-seed", "43", "--cavity-mm", "41,37,32", "--pose-noise", "1", "--seed", "5"], False),
+    "unseen47_wet_d0.5": (["--shape-seed", "47", "--cavity-mm", "43,35,30", "--pose-noise", "1", "--seed", "8",
                            "--wet", "--vessel-density", "0.5"], False),
 }
 #: the sweeps' cases run by default (the 15 mm spirals, 165-194 views, only when named)
