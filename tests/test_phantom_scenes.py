@@ -3,7 +3,8 @@ import numpy as np
 import pytest
 
 from scope3d.errors import InputError
-from scope3d.phantoms import build_scene, iso_thread_profile
+from scope3d.geometry.iso_thread import iso_thread_profile
+from scope3d.phantoms import build_scene
 from scope3d.phantoms.scenes import star_outline, target_outline
 
 ISO_MINOR_MM = {"M8x1.25": 6.647, "M6x1": 4.917, "M10x1.5": 8.376}

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from scope3d.metrology.thread_gauge import THREAD_SIZES
+from scope3d.geometry.iso_thread import THREAD_SIZES
 from scope3d.metrology.thread_scan_plan import (ScanPlanOptions, measured_quadrant_scan, plan_quadrant_scan,
                                                 view_extent_mm)
 from scope3d.phantoms.trajectories import quadrant_trajectory

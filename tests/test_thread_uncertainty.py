@@ -8,11 +8,10 @@ import pytest
 import trimesh
 
 from scope3d.geometry.pose import Pose
-from scope3d.metrology.thread_gauge import (GaugeOptions, gauge_thread, profile_bias_systematic, profile_parts,
-                                           with_systematic)
+from scope3d.metrology.thread_gauge import GaugeOptions, gauge_thread, profile_parts
+from scope3d.metrology.thread_uncertainty import profile_bias_systematic, registration_systematic, with_systematic
 from scope3d.phantoms.scenes import build_thread
-from scope3d.pipelines.thread_scan import registration_systematic
-from scope3d.registration.panorama import PanoramaResult, _stage_poses
+from scope3d.registration.panorama import PanoramaResult, StagePoseModel
 
 NOISE_MM = 0.01  # a sparse reconstruction's point noise
 MOUNT_SHIFT_SIGMA_MM = 0.005  # the mount offset's 1-sigma, the size the joint solve states on the 90° scans
@@ -29,7 +28,7 @@ def _panorama() -> PanoramaResult:
     cov = np.diag(np.full(n, 1e-14))
     cov[2, 2] = MOUNT_SHIFT_SIGMA_MM**2
     return PanoramaResult([Pose.identity()] * 12, [], None, None, [], 30.0, True, [], np.zeros(n), cov,
-                          lambda x: _stage_poses(x, angles))
+                          StagePoseModel(angles))
 
 
 @pytest.fixture(scope="module")
@@ -59,7 +58,9 @@ def test_registration_uncertainty_gives_the_verdict_its_guard_band(scene):
         # statistical alone: the fit's uncertainty from 0.01 mm independent noise over thousands of points
         assert alone.pitch_diameter_mm.uncertainty < 0.0015
         assert abs(alone.pitch_diameter_mm.value - d2) < 0.005  # sampling + tessellation, as the gauge tests
-        systematic = registration_systematic(alone, _panorama(), points, quadrant_of, DRAWS, options, seed=3)
+        panorama = _panorama()
+        systematic = registration_systematic(alone, panorama.sample_world_from_stacked(DRAWS, 3),
+                                             panorama.world_from_stacked, points, quadrant_of, options.noise_mm)
         # each diameter moves by twice the mount shift; the spread of 16 draws is good to 1/sqrt(30) = 18 %
         # (1 sigma): within 3 sigma
         for key in ("minor_diameter", "pitch_diameter", "major_diameter"):

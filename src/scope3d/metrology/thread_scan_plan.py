@@ -30,8 +30,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from scope3d.geometry.iso_thread import THREAD_SIZES, basic_pitch_diameter
 from scope3d.geometry.pose import Pose
-from scope3d.metrology.thread_gauge import THREAD_SIZES
 from scope3d.sensor.camera import Camera
 
 
@@ -97,7 +97,7 @@ def pitch_radius_mm(designation: str) -> float:
     if designation not in THREAD_SIZES:
         raise ValueError(f"unknown thread {designation!r} (use one of {', '.join(THREAD_SIZES)})")
     major, pitch = THREAD_SIZES[designation]
-    return (major - 0.649519 * pitch) / 2
+    return basic_pitch_diameter(major, pitch) / 2
 
 
 def matched_frame_gap(step_mm: float, extent_mm: float, options: ScanPlanOptions = ScanPlanOptions()) -> int:

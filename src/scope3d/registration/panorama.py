@@ -19,7 +19,6 @@ approximately known (default), by robust non-linear least squares from the chain
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -118,6 +117,31 @@ class PairRegistration:
     time_s: float
 
 
+@dataclass(frozen=True, eq=False)
+class StagePoseModel:
+    """The rotation-stage model's parameters -> every quadrant's ``world_from_stacked`` (see
+    :class:`PanoramaOptions`), for quadrants at the stage angles ``angles_rad`` (k,). Plain data, so a
+    result holding it pickles (cluster workers)."""
+
+    angles_rad: np.ndarray
+
+    def __call__(self, x: np.ndarray) -> list[Pose]:
+        return _stage_poses(x, self.angles_rad)
+
+
+@dataclass(frozen=True, eq=False)
+class FreePoseModel:
+    """The free model's parameters -> every quadrant's ``world_from_stacked`` (quadrant 0 the identity):
+    a rotation vector and an offset per other quadrant, or the offsets alone under fixed ``rotations``
+    (k, 3, 3)."""
+
+    n_quadrants: int
+    rotations: np.ndarray | None = None
+
+    def __call__(self, x: np.ndarray) -> list[Pose]:
+        return _poses_from_params(x, self.n_quadrants, self.rotations)
+
+
 @dataclass
 class PanoramaResult:
     """world_from_stacked : one Pose per quadrant (quadrant 0 the identity: the gauge).
@@ -136,7 +160,7 @@ class PanoramaResult:
     log: list[str] = field(default_factory=list)
     parameters: np.ndarray | None = None
     parameter_covariance: np.ndarray | None = None
-    pose_model: Callable[[np.ndarray], list[Pose]] | None = field(default=None, repr=False)
+    pose_model: StagePoseModel | FreePoseModel | None = field(default=None, repr=False)
 
     def apply(self, clouds: list[QuadrantCloud]) -> list[np.ndarray]:
         """Each quadrant's points in the registered frame, (N_q, 3) mm each."""
@@ -275,7 +299,7 @@ def solve_panorama(pairs: list[PairRegistration], n_quadrants: int, *, solve_rot
     minimising ``|G_i p_i - G_j p_j|`` over every pair's correspondences, robustly (soft L1). Started from
     the pairs chained from quadrant 0 (the last-to-first pair, if any, then only enters the solve).
     Returns (poses, per-pair residual RMS in mm), and with ``return_covariance`` also the parameters,
-    their covariance (or None) and the function from parameters to poses."""
+    their covariance (or None) and the model from parameters to poses."""
     k = n_quadrants
     chained = [Pose.identity()] + [None] * (k - 1)
     for p in pairs:
@@ -313,7 +337,7 @@ def solve_panorama(pairs: list[PairRegistration], n_quadrants: int, *, solve_rot
     rms = [float(np.sqrt(np.mean(np.sum((poses[p.i].transform(p.points_i) - poses[p.j].transform(p.points_j)) ** 2, 1))))
            for p in pairs]
     if return_covariance:
-        return poses, rms, sol.x, _covariance(sol, loss_scale_mm), lambda x: _poses_from_params(x, k, fixed_rot)
+        return poses, rms, sol.x, _covariance(sol, loss_scale_mm), FreePoseModel(k, fixed_rot)
     return poses, rms
 
 
@@ -355,7 +379,7 @@ def solve_stage_model(pairs: list[PairRegistration], angles_deg: list[float], *,
     """Joint solve under the rotation-stage model (see :class:`PanoramaOptions`): 4 + 2 (k - 1) unknowns
     from every pair's correspondences, started at the stacked guess. Returns (world_from_stacked per
     quadrant, per-pair residual RMS in mm), and with ``return_covariance`` also the parameters, their
-    covariance (or None) and the function from parameters to poses."""
+    covariance (or None) and the model from parameters to poses."""
     angles = np.deg2rad(np.asarray(angles_deg, float))
     k = len(angles)
 
@@ -369,7 +393,7 @@ def solve_stage_model(pairs: list[PairRegistration], angles_deg: list[float], *,
     rms = [float(np.sqrt(np.mean(np.sum((poses[p.i].transform(p.points_i) - poses[p.j].transform(p.points_j)) ** 2, 1))))
            for p in pairs]
     if return_covariance:
-        return poses, rms, sol.x, _covariance(sol, loss_scale_mm), lambda x: _stage_poses(x, angles)
+        return poses, rms, sol.x, _covariance(sol, loss_scale_mm), StagePoseModel(angles)
     return poses, rms
 
 
@@ -386,7 +410,7 @@ def loop_closure(pairs: list[PairRegistration], clouds: list[QuadrantCloud]) -> 
 
 def joint_solve(pairs: list[PairRegistration], angles_deg: list[float], options: PanoramaOptions = PanoramaOptions()):
     """The joint solve of ``options.model`` over the pairs -> (world_from_stacked per quadrant, per-pair
-    residual RMS mm, parameters, their covariance or None, the function from parameters to poses)."""
+    residual RMS mm, parameters, their covariance or None, the model from parameters to poses)."""
     if options.model == "stage":
         return solve_stage_model(pairs, angles_deg, loss_scale_mm=options.loss_scale_mm, return_covariance=True)
     return solve_panorama(pairs, len(angles_deg), solve_rotations=options.solve_rotations,
