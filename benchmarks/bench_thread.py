@@ -28,7 +28,7 @@ import numpy as np
 from scope3d.geometry.pose import Pose
 from scope3d.io.dataset import load_dataset
 from scope3d.phantoms import generate, write
-from scope3d.pipelines.thread_batch import run_batch
+from scope3d.pipelines import thread_batch
 from scope3d.pipelines.thread_scan import ThreadScanOptions, map_quadrants, run, true_world_from_stacked
 from scope3d.registration.panorama import PanoramaOptions, register_quadrants, registration_errors
 from scope3d.utils.figures import new_figure, save_figure
@@ -147,7 +147,7 @@ def throughput_bench(tmp: Path) -> dict:
     for workers in (1, 2):
         dest = tmp / f"line_{workers}"
         t0 = time.perf_counter()
-        b = run_batch(holes * 2 if workers == 2 else holes, dest, n_workers=workers)
+        b = thread_batch.run(ThreadScanOptions(), holes * 2 if workers == 2 else holes, dest, n_workers=workers)
         dt = time.perf_counter() - t0
         out[f"batch_{workers}_workers"] = {"holes": len(b.rows), "wall_s": dt, "holes_per_min": 60 * len(b.rows) / dt}
     return out

@@ -150,7 +150,7 @@ def test_disagreement_is_zero_up_to_a_similarity_and_the_perturbation_otherwise(
 
 
 def test_self_check_warns_when_the_two_maps_disagree_by_more_than_half_the_radius():
-    from scope3d.pipelines.panorama_3d import self_check
+    from scope3d.pipelines.panorama import self_check
     from scope3d.sfm.cavity_mapping import CavityMap, fit_sphere
     points, frame = _wall(seed=9, n=500)
     tracks = _tracks(points, frame)

@@ -12,6 +12,7 @@ Thresholds come from the physics of the set-up, not from tuning:
 from __future__ import annotations
 
 import json
+import pickle
 import time
 from dataclasses import replace
 
@@ -20,6 +21,7 @@ import pytest
 
 from scope3d import phantoms
 from scope3d.cli.main import main
+from scope3d.estimators.icp import IcpOptions
 from scope3d.io.dataset import load_dataset
 from scope3d.metrology.evaluation import EvaluationOptions
 from scope3d.pipelines.surgical_map import MAP_PRESETS, MapOptions, detect_features, match_frames, run
@@ -44,6 +46,14 @@ def dome_run(dome_dir, tmp_path_factory):
     start = time.perf_counter()
     result = run(MapOptions(), ds, tmp_path_factory.mktemp("out") / "map")
     return ds, result, time.perf_counter() - start
+
+
+def test_the_map_result_pickles(dome_run):
+    """A cluster worker sends its result back pickled (tests/test_job_calls.py has the other jobs')."""
+    _, result, _ = dome_run
+    back = pickle.loads(pickle.dumps(result))
+    assert back.summary() == result.summary()
+    assert np.array_equal(back.sparse.tracks.points, result.sparse.tracks.points)
 
 
 @pytest.fixture(scope="module")
@@ -245,7 +255,7 @@ def test_pose_modes_agree_on_exact_poses(dome_map, tmp_path):
     assert all(np.all(m.tolerance.position_mm == MICRO_STAGE_MM) and np.all(m.tolerance.orientation_rad == 0)
                for m in ds.poses)
     # the other modes run as the default map does (its off-surface filter included), minus targets and figures
-    quick = MapOptions(fluorescence=None, figures=False, evaluation=EvaluationOptions(icp_iterations=3))
+    quick = MapOptions(fluorescence=None, figures=False, evaluation=EvaluationOptions(icp=IcpOptions(iterations=3)))
     fixed = run(replace(quick, pose_mode="fixed"), ds, tmp_path / "f").sparse.poses
     free = run(replace(quick, pose_mode="free"), ds, tmp_path / "g").sparse.poses
     bounded = bounded_map.sparse.poses

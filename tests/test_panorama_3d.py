@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import pickle
 import shutil
 from dataclasses import replace
 
@@ -24,7 +25,7 @@ from scope3d.metrology.star_scale import combine_views, pentagram_area_mm2, star
 from scope3d.scene.tracks import Tracks
 from scope3d.sensor.camera import Camera
 from scope3d.phantoms import generate, write
-from scope3d.pipelines.panorama_3d import PanoramaOptions, evaluate, run
+from scope3d.pipelines.panorama import Panorama3dOptions, evaluate, run
 from scope3d.sfm.cavity_mapping import (CavityOptions, _cap_priority, _wall_distance, adjust_cavity, map_cavity,
                                         overlapping_pairs, pair_poses, verified_matches)
 
@@ -147,7 +148,9 @@ def test_planned_poses_place_every_frame_of_an_unseen_cavity(tmp_path):
     assert main(["phantom", "bladder", "--shape-seed", "5", "--cavity-mm", "40,35,30", "--size", "160x160",
                  "--pose-noise", "1", "--seed", "7", "--out", str(data), "--quiet"]) == 0
     ds = load_dataset(data)
-    report, cavity = run(PanoramaOptions(stars=None, figures=False), ds, tmp_path / "pano")
+    result = run(Panorama3dOptions(stars=None, figures=False), ds, tmp_path / "pano")
+    report, cavity = result.report, result.cavity
+    assert pickle.loads(pickle.dumps(result)).summary() == result.summary()  # results travel to cluster workers
     assert report["n_registered"] == report["n_frames"] == 36
     assert report["scale_source"] == "plan"
     # the plan's ±1 mm and ±0.5 deg on 2-4 mm baselines move a two-view point by a large part of its
@@ -360,7 +363,7 @@ def test_cameras_off_centre_separates_a_cavity_seen_from_inside_from_a_cap_seen_
 
 
 def test_self_check_flags_cameras_off_centre_and_a_radius_outside_the_anatomical_shell():
-    from scope3d.pipelines.panorama_3d import self_check
+    from scope3d.pipelines.panorama import self_check
     wall, cap, cameras = _wall_and_cap()
     options = CavityOptions()
     good = self_check(_cavity_map(wall, cameras), options, scaled=True)
@@ -376,16 +379,16 @@ def test_self_check_flags_cameras_off_centre_and_a_radius_outside_the_anatomical
 
 
 def test_a_map_failing_the_self_check_is_refused_unless_kept(bladder, tmp_path, monkeypatch):
-    import scope3d.pipelines.panorama_3d as panorama_3d
+    import scope3d.pipelines.panorama as panorama
     ds = load_dataset(bladder)
     _, cap, cameras = _wall_and_cap()
     broken = _cavity_map(cap, cameras[:len(ds)])
-    monkeypatch.setattr(panorama_3d, "map_cavity", lambda *args, **kwargs: broken)
-    monkeypatch.setattr(panorama_3d, "evaluate", lambda *args: {})  # the fake map has no true positions
-    options = PanoramaOptions(stars=None, use_planned_poses=False, figures=False, texture=None)
+    monkeypatch.setattr(panorama, "map_cavity", lambda *args, **kwargs: broken)
+    monkeypatch.setattr(panorama, "evaluate", lambda *args: {})  # the fake map has no true positions
+    options = Panorama3dOptions(stars=None, use_planned_poses=False, figures=False, texture=None)
     with pytest.raises(InputError, match="no cavity seen from inside"):
         run(options, ds, tmp_path / "refused")
     assert not (tmp_path / "refused").exists()  # nothing half-written
-    report, _ = run(replace(options, refuse_implausible=False), ds, tmp_path / "kept")
+    report = run(replace(options, refuse_implausible=False), ds, tmp_path / "kept").report
     saved = json.loads((tmp_path / "kept" / "report.json").read_text())
     assert not report["self_check"]["passed"] and saved["self_check"]["cameras_off_centre"] > 0.9

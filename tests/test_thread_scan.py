@@ -65,7 +65,8 @@ def test_batch_survives_a_killed_worker_and_resumes(hole, tmp_path):
     from distributed import Client, LocalCluster
 
     from scope3d.cli.commands_thread import hole_page
-    from scope3d.pipelines.thread_batch import run_batch
+    from scope3d.pipelines import thread_batch
+    from scope3d.pipelines.thread_scan import ThreadScanOptions
 
     second = tmp_path / "hole_b"
     shutil.copytree(hole, second)
@@ -88,12 +89,12 @@ def test_batch_survives_a_killed_worker_and_resumes(hole, tmp_path):
         killer = threading.Thread(target=kill_first_busy_worker)
         killer.start()
         # the CLI's page hook travels to the workers and runs before each hole's folder is renamed
-        result = run_batch([hole, second], out, client=client, finish=hole_page)
+        result = thread_batch.run(ThreadScanOptions(), [hole, second], out, client=client, finish=hole_page)
         killer.join()
     assert killed, "no worker was killed"
     assert [r["status"] for r in result.rows] == ["done", "done"]
     for name in ("hole_a", "hole_b"):
         assert (out / name / "report.json").is_file() and (out / name / "report.html").is_file()
     assert "hole_a" in (out / "summary.csv").read_text()
-    again = run_batch([hole, second], out, n_workers=1)
+    again = thread_batch.run(ThreadScanOptions(), [hole, second], out, n_workers=1)
     assert [r["status"] for r in again.rows] == ["skipped", "skipped"]

@@ -77,13 +77,13 @@ def _run_scan(args) -> int:
 
 def _run_batch(args) -> int:
     from scope3d.cli.progress import progress_bar
-    from scope3d.pipelines.thread_batch import run_batch
+    from scope3d.pipelines.thread_batch import run
     from scope3d.report import write_report
     from scope3d.utils.jsonio import write_json
 
     with progress_bar(show_progress(args), "hole") as progress:
-        result = run_batch(args.datasets, args.out, _options(args), scheduler=args.scheduler,
-                           n_workers=args.workers, progress=progress, finish=hole_page)
+        result = run(_options(args), args.datasets, args.out, scheduler=args.scheduler,
+                     n_workers=args.workers, progress=progress, finish=hole_page)
     report = result.report()
     # the batch folder is resumable (holes done before are kept), so it is not built whole: its page follows
     # its report.json, each written atomically

@@ -36,7 +36,7 @@ from scope3d.sensor.camera import Camera
 
 
 @dataclass(frozen=True)
-class ScanPlanOptions:
+class QuadrantScanPlanOptions:
     """views_per_point : frames in which each wall point should appear (default 8: measured on the 90°
         view of 400x320 px, 60° field, rendered holes — see docs/thread_metrology.md — at ~5 views an M6
         hole's neighbour quadrants share too few points to register, at ~7-10 every size registers).
@@ -100,14 +100,14 @@ def pitch_radius_mm(designation: str) -> float:
     return basic_pitch_diameter(major, pitch) / 2
 
 
-def matched_frame_gap(step_mm: float, extent_mm: float, options: ScanPlanOptions = ScanPlanOptions()) -> int:
+def matched_frame_gap(step_mm: float, extent_mm: float, options: QuadrantScanPlanOptions = QuadrantScanPlanOptions()) -> int:
     """The largest frame gap whose matched frames' views still overlap by ``max_baseline_fraction``
     (``gap * step <= fraction * extent``), at least 1."""
     return max(1, int(np.floor(options.max_baseline_fraction * extent_mm / step_mm + 1e-9)))
 
 
 def plan_quadrant_scan(camera: Camera, designation: str, side_view_deg: float = 90.0,
-                       options: ScanPlanOptions = ScanPlanOptions()) -> QuadrantScanPlan:
+                       options: QuadrantScanPlanOptions = QuadrantScanPlanOptions()) -> QuadrantScanPlan:
     """The quadrant scan of a ``designation`` hole (``M6x1``, ``M8x1.25``, ``M10x1.5``) seen by ``camera``
     at ``side_view_deg`` (see the module docstring)."""
     radius = pitch_radius_mm(designation)
@@ -123,7 +123,7 @@ def plan_quadrant_scan(camera: Camera, designation: str, side_view_deg: float = 
 
 
 def measured_quadrant_scan(camera: Camera, poses: list[Pose], designation: str,
-                           options: ScanPlanOptions = ScanPlanOptions()) -> QuadrantScanPlan:
+                           options: QuadrantScanPlanOptions = QuadrantScanPlanOptions()) -> QuadrantScanPlan:
     """The scan one quadrant's frames were taken with, read off their (stage-reported) ``cam_from_world``
     poses in order of advance, and the frame gap the plan's rule gives it: the step is the median advance
     between consecutive camera centres along the direction of advance (first to last centre), the side

@@ -10,7 +10,7 @@ Read top to bottom like the method section::
     files       <- camera.json, intrinsic_bounds.json (pinhole value +- k sigma), report.json,
                    coverage.png, residuals.png
 
-``run(options, image_paths, out_dir) -> CalibrationRun`` is what the CLI (``scope3d calibrate``) calls.
+``run(options, image_paths, out_dir) -> CalibrateResult`` is what the CLI (``scope3d calibrate``) calls.
 camera.json and intrinsic_bounds.json always hold the pinhole model, the one scope3d's datasets and
 bundle adjustment use; with ``model="fisheye"`` report.json's ``intrinsics`` are the fisheye model's and
 ``pinhole`` holds the other fit.
@@ -62,7 +62,7 @@ class CalibrateOptions:
 
 
 @dataclass
-class CalibrationRun:
+class CalibrateResult:
     """pinhole : always. fisheye : with model="fisheye". reported : the one report.json leads with."""
 
     pinhole: Calibration
@@ -83,7 +83,7 @@ class CalibrationRun:
 
 
 def run(options: CalibrateOptions, image_paths: list[str | Path], out_dir: str | Path, *,
-        progress: Progress = None) -> CalibrationRun:
+        progress: Progress | None = None) -> CalibrateResult:
     image_paths = [Path(p) for p in image_paths]
     if not image_paths:
         raise InputError("no images given")
@@ -116,7 +116,7 @@ def run(options: CalibrateOptions, image_paths: list[str | Path], out_dir: str |
     plot_coverage(reported, out / "coverage.png")
     plot_residuals(reported, out / "residuals.png")
     write_json(out / "report.json", report)
-    return CalibrationRun(pinhole, fisheye, report)
+    return CalibrateResult(pinhole, fisheye, report)
 
 
 def _with_model(options: CalibrationOptions, model: str) -> CalibrationOptions:

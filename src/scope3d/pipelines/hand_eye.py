@@ -7,7 +7,7 @@
     files      <- hand_eye.json (flange_from_cam, cam_from_flange, residuals, tolerance; report.json the same),
                   poses.csv (cam_from_base of every robot row with the tolerance: a dataset's poses)
 
-``run(options, image_paths, robot_poses_csv, camera, out_dir) -> HandEyeRun`` is what
+``run(options, image_paths, robot_poses_csv, camera, out_dir, *, progress=None) -> HandEyeRunResult`` is what
 ``scope3d calibrate-hand-eye`` calls.
 """
 from __future__ import annotations
@@ -27,6 +27,7 @@ from scope3d.sensor.hand_eye import HandEyeOptions, HandEyeResult, board_pose, c
 from scope3d.sensor.pose_tolerance import MeasuredPose
 from scope3d.utils.atomic import atomic_file
 from scope3d.utils.jsonio import write_json
+from scope3d.utils.progress import Progress, advance, stage
 
 
 @dataclass(frozen=True)
@@ -37,7 +38,7 @@ class HandEyeRunOptions:
 
 
 @dataclass
-class HandEyeRun:
+class HandEyeRunResult:
     result: HandEyeResult
     views: list[str]
     skipped: dict[str, str]
@@ -57,7 +58,10 @@ def robot_flange_poses(path: str | Path) -> dict[str, Pose]:
 
 
 def run(options: HandEyeRunOptions, image_paths: list[str | Path], robot_poses_csv: str | Path, camera: Camera,
-        out_dir: str | Path) -> HandEyeRun:
+        out_dir: str | Path, *, progress: Progress | None = None) -> HandEyeRunResult:
+    """Hand-eye calibration from board images taken at the robot poses of ``robot_poses_csv``, through the
+    calibrated ``camera``; writes ``hand_eye.json``, ``poses.csv`` and ``report.json`` into ``out_dir``.
+    progress : counts the images searched for the board."""
     robot = robot_flange_poses(robot_poses_csv)
     image_paths = [Path(p) for p in image_paths]
     missing = [p.name for p in image_paths if p.name not in robot]
@@ -65,7 +69,9 @@ def run(options: HandEyeRunOptions, image_paths: list[str | Path], robot_poses_c
         raise InputError(f"{robot_poses_csv}: no robot pose for image(s) {', '.join(missing)}")
     obj_all = options.board.object_points()
     views, flange, boards, objs, pixels, skipped = [], [], [], [], [], {}
+    stage(progress, "detect", len(image_paths))
     for path in image_paths:
+        advance(progress)
         det = detect_board(read_image(path, grey=True), options.board, name=path.name, options=options.detection)
         if not det.found:
             skipped[path.name] = det.reason
@@ -104,7 +110,7 @@ def run(options: HandEyeRunOptions, image_paths: list[str | Path], robot_poses_c
         fh.write(format_poses_csv(names, [MeasuredPose(c, result.tolerance) for c in cameras]))
     write_json(out / "hand_eye.json", report)  # the calibration product other tools read
     write_json(out / "report.json", report)  # the run's report, as every job writes one (report.html)
-    return HandEyeRun(result, views, skipped, report)
+    return HandEyeRunResult(result, views, skipped, report)
 
 
 def _pose_dict(pose: Pose) -> dict:

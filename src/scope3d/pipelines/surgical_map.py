@@ -94,6 +94,7 @@ from scope3d.utils.atomic import atomic_directory
 from scope3d.utils.background import BackgroundCalls
 from scope3d.utils.jsonio import write_json
 from scope3d.utils.progress import Progress, advance, stage
+from scope3d.utils.threads import check_threads, resolve_threads
 
 MATCHERS = ("guided", "exhaustive")
 
@@ -110,7 +111,8 @@ class MapOptions:
         object, like Middlebury's temple, is not a height field). fluorescence : FluorescenceOptions or
         None, the targets stage (None: no targets; it also needs the surface and fluorescence frames).
     figures : bool, write PNG figures (default True).
-    threads : int, threads for per-frame feature detection (default 2, the machine's cores).
+    threads : int, threads for per-frame feature detection (default 0: every available core,
+        :mod:`scope3d.utils.threads`).
     surface_prior : bool, two-pass guided matching with a coarse-surface depth band (default True;
         needs a scene that is a height field seen from one side, false for a ring around an object).
     surface_band_mm : float, added to the band around the coarse surface for the detail it smooths
@@ -144,7 +146,7 @@ class MapOptions:
     fluorescence: FluorescenceOptions | None = field(default_factory=FluorescenceOptions)
     evaluation: EvaluationOptions = field(default_factory=EvaluationOptions)
     figures: bool = True
-    threads: int = 2
+    threads: int = 0
     surface_prior: bool = True
     surface_band_mm: float = 0.5
     use_bounding_box: bool = True
@@ -157,8 +159,7 @@ class MapOptions:
             raise ValueError(f"pose_mode must be one of {POSE_MODES}, got {self.pose_mode!r}")
         if self.matcher not in MATCHERS:
             raise ValueError(f"matcher must be one of {MATCHERS}, got {self.matcher!r}")
-        if self.threads < 1:
-            raise ValueError("threads must be >= 1")
+        check_threads(self.threads)
 
 
 #: Named presets. ``dim_endoscope``: CLAHE and a lower SIFT threshold for dark frames.
@@ -292,7 +293,7 @@ def detect_features(options: MapOptions, dataset: Dataset, frames: list[np.ndarr
         advance(progress)
         return f
 
-    with ThreadPoolExecutor(max_workers=options.threads) as pool:
+    with ThreadPoolExecutor(max_workers=resolve_threads(options.threads)) as pool:
         return list(pool.map(one, range(len(frames))))
 
 

@@ -66,14 +66,16 @@ from scope3d.utils.atomic import atomic_directory
 from scope3d.utils.figures import new_figure, save_figure
 from scope3d.utils.jsonio import write_json
 from scope3d.utils.progress import Progress, advance, stage
+from scope3d.utils.threads import check_threads, resolve_threads
 
 
 @dataclass(frozen=True)
 class ThreadScanOptions:
     """designation : the nominal thread (``M6x1``, ``M8x1.25``, ``M10x1.5``); the gauge's other options
     come from ``gauge`` (its designation is replaced by this one). mapping, panorama, outliers, gauge :
-    the stages' options. dense : the dense clouds' options, or None to gauge the sparse points. threads : quadrants mapped at once (default 2, the machine's cores; OpenCV
-    releases the GIL). registration_draws : draws of the registration from its covariance whose
+    the stages' options. dense : the dense clouds' options, or None to gauge the sparse points. threads :
+    quadrants mapped at once (OpenCV releases the GIL; default 0: every available core,
+    :mod:`scope3d.utils.threads`). registration_draws : draws of the registration from its covariance whose
     re-measured sizes give the systematic uncertainty (default 24: the spread's own relative error is
     1/sqrt(2 (n - 1)), ~15 %; 0 leaves the registration out). point_bias_mm : standard uncertainty of
     the offset of one profile part's points (crest, each flank, root) from the true surface along its
@@ -98,7 +100,7 @@ class ThreadScanOptions:
     # measure D1 to 0.01-0.025 mm but not D2 or D (one flank seen), and cost ~1 min of CPU per hole;
     # see docs/thread_metrology.md.
     dense: DenseQuadrantOptions | None = None
-    threads: int = 2
+    threads: int = 0
     registration_draws: int = 24
     point_bias_mm: float = SPARSE_POINT_BIAS_MM
     match_gap_mm: float = MATCH_GAP_MM
@@ -109,8 +111,9 @@ class ThreadScanOptions:
     def __post_init__(self) -> None:
         if self.designation not in THREAD_SIZES:
             raise InputError(f"unknown thread {self.designation!r} (use one of {', '.join(THREAD_SIZES)})")
-        if self.threads < 1 or self.registration_draws < 0 or self.point_bias_mm < 0 or self.match_gap_mm < 0:
-            raise ValueError("threads must be >= 1, registration_draws, point_bias_mm and match_gap_mm >= 0")
+        check_threads(self.threads)
+        if self.registration_draws < 0 or self.point_bias_mm < 0 or self.match_gap_mm < 0:
+            raise ValueError("registration_draws, point_bias_mm and match_gap_mm must be >= 0")
         if self.frame_gap is not None and self.frame_gap < 1:
             raise InputError(f"the frame gap must be at least 1, got {self.frame_gap}")
 
@@ -214,7 +217,7 @@ def map_quadrants(options: ThreadScanOptions, dataset: Dataset, scans: list[Quad
         advance(progress)
         return m
 
-    with ThreadPoolExecutor(max_workers=options.threads) as pool:
+    with ThreadPoolExecutor(max_workers=resolve_threads(options.threads)) as pool:
         maps = list(pool.map(one, layout, scans, reported))
     mount = None
     if options.mount is not None:
@@ -252,7 +255,7 @@ def dense_clouds(options: ThreadScanOptions, dataset: Dataset, panorama: Panoram
         advance(progress)
         return points
 
-    with ThreadPoolExecutor(max_workers=options.threads) as pool:
+    with ThreadPoolExecutor(max_workers=resolve_threads(options.threads)) as pool:
         return list(pool.map(one, layout))
 
 
