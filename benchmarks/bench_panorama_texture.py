@@ -52,7 +52,7 @@ def true_scene(ds):
 
 def timed_texture(mesh, centre, ds, poses, options):
     c0, t0 = time.process_time(), time.perf_counter()
-    textured = texture_mesh(mesh, centre, ds.camera, poses, ds.frame, options)
+    textured = texture_mesh(mesh, centre, ds.camera, poses, ds.frame, options=options)
     return textured, {"cpu_s": time.process_time() - c0, "wall_s": time.perf_counter() - t0}
 
 
@@ -96,7 +96,7 @@ def main() -> None:
         assert np.array_equal(f, textured.mesh.faces) and np.array_equal(image, textured.image)
     out["texture"]["vs_truth"] = textured_errors(textured, sim, true_wall, np.zeros(3), scene.albedo)
     out["texture_levelled_gains"] = textured_errors(
-        texture_mesh(wall, cavity.centre_mm, ds.camera, poses, ds.frame, TextureOptions(level_gains=True)),
+        texture_mesh(wall, cavity.centre_mm, ds.camera, poses, ds.frame, options=TextureOptions(level_gains=True)),
         sim, true_wall, np.zeros(3), scene.albedo)
     out["vertex_colours"] = vertex_colour_errors(wall, textured.texel_mm, sim, true_wall, np.zeros(3), scene.albedo)
     if args.floor:

@@ -118,7 +118,7 @@ def view_truth(ds, entry: dict, true_points: np.ndarray, view: dict, options: St
     """One star view measured against the truth (module docstring); scales as the view's over the truth's
     minus 1."""
     camera, gt, k = ds.camera, ds.ground_truth, view["frame"]
-    blob = min(star_blobs(ds.fluorescence_frame(k), threshold, inside, options),
+    blob = min(star_blobs(ds.fluorescence_frame(k), threshold, inside, options=options),
                key=lambda b: np.linalg.norm(b.centre_px - view["pixel"]))
     true_area = pentagram_area_mm2(options.outer_diameter_mm)
     depth = gt.depth(k).astype(float)
@@ -152,14 +152,14 @@ def stars_on(ds, entry: dict, options: StarScaleOptions) -> dict:
     fluorescence = [ds.fluorescence_frame(k) for k in range(len(ds))]
     c0 = time.process_time()
     try:
-        stars = star_scale(ds.camera, entry["poses"], entry["tracks"], fluorescence, options)
+        stars = star_scale(ds.camera, entry["poses"], entry["tracks"], fluorescence, options=options)
     except InputError as exc:
         return {"stars_error": str(exc)}
     cpu = time.process_time() - c0
     tr = entry["tracks"]
     true_points = true_track_points(ds.camera, ds.ground_truth.poses, ds.ground_truth.depth, tr.frame, tr.track,
                                     tr.pixels, tr.n_tracks)
-    threshold = auto_threshold(fluorescence, options.fluorescence)
+    threshold = auto_threshold(fluorescence, options=options.fluorescence)
     inside = field_inside(ds.camera, options.border_px)
     error = entry["map_scale"] / stars.scale - 1.0  # report.json's scale_error_fraction
     return {"scale_error_fraction": error, "sigma": stars.uncertainty, "z": error / stars.uncertainty,

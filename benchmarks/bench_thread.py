@@ -91,7 +91,7 @@ def registration_bench(tmp: Path) -> dict:
         for name, opts in (("scope3d_stage_model", PanoramaOptions()), ("scope3d_free", PanoramaOptions(model="free"))):
             t0 = time.perf_counter()
             try:
-                res = register_quadrants(clouds, opts)
+                res = register_quadrants(clouds, options=opts)
             except Exception as exc:  # a failed registration is a result too
                 view_rows[name] = {"error": str(exc)}
                 continue
@@ -126,7 +126,7 @@ def gauge_bench() -> dict:
         pts = pts[pts[:, 2] < -0.05]
         pts = pts + np.random.default_rng(0).normal(0, 0.01, pts.shape)
         t0 = time.process_time()
-        g = gauge_thread(pts, GaugeOptions(designation=size))
+        g = gauge_thread(pts, options=GaugeOptions(designation=size))
         rows[size] = {"verdict": g.verdict, "cpu_s": time.process_time() - t0,
                       "minor_error_mm": g.minor_diameter_mm.value - made["minor_diameter_mm"],
                       "major_error_mm": g.major_diameter_mm.value - made["major_diameter_mm"],

@@ -57,7 +57,7 @@ def _registration():
         pairs.append(PairRegistration(i, j, truth[i].inverse() @ truth[j], points_i, points_j, 40, 0.0, 0.0))
     out = {}
     for model in ("stage", "free"):
-        poses, rms, x, cov, pose_model = joint_solve(pairs, angles, PanoramaOptions(model=model))
+        poses, rms, x, cov, pose_model = joint_solve(pairs, angles, options=PanoramaOptions(model=model))
         out[model] = (poses, rms, x, cov, pose_model, pairs)
     return out
 

@@ -348,7 +348,7 @@ def _scale_information_floor(ds, points) -> float:
     reported = np.stack([m.pose.centre for m in ds.poses])
     seen = truth.nearest(points)[0]
     placed = fit_similarity(true_c, reported).apply(seen)
-    best, _ = icp_from_initial_poses(placed, truth, EvaluationOptions())
+    best, _ = icp_from_initial_poses(placed, truth, options=EvaluationOptions())
     return float(np.mean(truth.distances(best.apply(placed))))
 
 

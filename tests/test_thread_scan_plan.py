@@ -30,7 +30,7 @@ def test_view_extent_matches_the_side_view_cameras_image_rows(side_view):
 @pytest.mark.parametrize("designation", list(THREAD_SIZES))
 def test_plan_keeps_views_per_point_overlap_and_thread_length(designation):
     options = QuadrantScanPlanOptions()
-    plan = plan_quadrant_scan(CAMERA, designation, 90.0, options)
+    plan = plan_quadrant_scan(CAMERA, designation, 90.0, options=options)
     _, pitch = THREAD_SIZES[designation]
     # the step is E / views, rounded down to the stage's hundredths: each point is seen at least that often
     assert plan.view_extent_mm / plan.step_mm >= options.views_per_point

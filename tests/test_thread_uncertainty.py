@@ -54,7 +54,7 @@ def test_registration_uncertainty_gives_the_verdict_its_guard_band(scene):
     for name, d2 in (("mid", made["pitch_diameter_mm"]), ("near", d2_max - 0.004), ("out", d2_max + 0.04)):
         s = (d2 - made["pitch_diameter_mm"]) / 2
         points = surface * np.array([1 + s / np.hypot(*surface[:, :2].T)] * 2 + [np.ones(len(surface))]).T
-        alone = gauge_thread(points, options)
+        alone = gauge_thread(points, options=options)
         # statistical alone: the fit's uncertainty from 0.01 mm independent noise over thousands of points
         assert alone.pitch_diameter_mm.uncertainty < 0.0015
         assert abs(alone.pitch_diameter_mm.value - d2) < 0.005  # sampling + tessellation, as the gauge tests
@@ -66,7 +66,7 @@ def test_registration_uncertainty_gives_the_verdict_its_guard_band(scene):
         for key in ("minor_diameter", "pitch_diameter", "major_diameter"):
             assert abs(systematic[key] / (2 * MOUNT_SHIFT_SIGMA_MM) - 1) < 0.55, (key, systematic)
         assert systematic["pitch"] < 2e-4  # a radial shift does not change the pitch
-        combined = with_systematic(alone, systematic, options)
+        combined = with_systematic(alone, systematic, options=options)
         assert combined.pitch_diameter_mm.systematic == systematic["pitch_diameter"]
         assert abs(combined.pitch_diameter_mm.uncertainty - np.hypot(alone.pitch_diameter_mm.uncertainty,
                                                                       systematic["pitch_diameter"])) < 1e-12
@@ -86,7 +86,7 @@ def test_profile_bias_term_matches_the_closed_form_of_each_part(scene):
     surface = surface[(surface[:, 2] < -1.5) & (surface[:, 2] > -7.5)]
     surface += np.random.default_rng(2).normal(0.0, NOISE_MM, surface.shape)
     options = GaugeOptions(designation="M8x1.25", axis_hint=(0.0, 0.0, 1.0))
-    result = gauge_thread(surface, options)
+    result = gauge_thread(surface, options=options)
     part, normal = profile_parts(result, surface)
     assert set(np.unique(part)) == {0, 1, 2, 3}
     np.testing.assert_allclose(np.linalg.norm(normal, axis=1), 1.0)

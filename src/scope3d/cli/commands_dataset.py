@@ -216,7 +216,7 @@ def run_import_rosbag(args) -> int:
                             tolerance=_tolerance(args) if given else None)
     camera = read_camera_json(args.camera) if args.camera else None
     report, finish = _import_report(args, str(args.bag))
-    out = import_rosbag(args.bag, args.out, options, camera=camera, finish=finish)
+    out = import_rosbag(args.bag, args.out, options=options, camera=camera, finish=finish)
     return _finish_import(args, out, report)
 
 

@@ -300,8 +300,8 @@ def match_guided(
     measured_i: MeasuredPose,
     measured_j: MeasuredPose,
     depth_prior: DepthPrior,
-    options: MatchOptions = MatchOptions(),
     *,
+    options: MatchOptions = MatchOptions(),
     i: int = 0,
     j: int = 1,
 ) -> PairMatches:
@@ -314,7 +314,7 @@ def match_guided(
     See :func:`match_guided_many`, which does the same for many pairs at once (faster).
     """
     return match_guided_many(camera, [features_i, features_j], [measured_i, measured_j], [(0, 1, 1.0)], depth_prior,
-                             options, frame_ids=[i, j])[0]
+                             options=options, frame_ids=[i, j])[0]
 
 
 def match_guided_many(
@@ -323,8 +323,8 @@ def match_guided_many(
     poses: list[MeasuredPose],
     pairs: list[tuple[int, int, float]],
     depth_prior: DepthPrior,
-    options: MatchOptions = MatchOptions(),
     *,
+    options: MatchOptions = MatchOptions(),
     frame_ids: list[int] | None = None,
     progress=None,
 ) -> list[PairMatches]:
@@ -473,8 +473,8 @@ def match_pairs(
     poses: list[MeasuredPose],
     pairs: list[tuple[int, int, float]],
     depth_prior: DepthPrior | None,
-    options: MatchOptions = MatchOptions(),
     *,
+    options: MatchOptions = MatchOptions(),
     method: str = "guided",
     progress=None,
 ) -> list[PairMatches]:
@@ -496,7 +496,7 @@ def match_pairs(
             frames = sorted({f for i, j, _ in batch for f in (i, j)})
             local = {f: n for n, f in enumerate(frames)}
             out += match_guided_many(camera, [features[f] for f in frames], [poses[f] for f in frames],
-                                     [(local[i], local[j], w) for i, j, w in batch], depth_prior, options,
+                                     [(local[i], local[j], w) for i, j, w in batch], depth_prior, options=options,
                                      frame_ids=frames, progress=progress)
         return out
     out = []

@@ -74,7 +74,8 @@ class EvaluationOptions:
             raise ValueError("need sample_step_mm > 0 and icp_max_points >= 10")
 
 
-def surface_distances(points: np.ndarray, truth: Mesh | SampledSurface, options: EvaluationOptions = EvaluationOptions()) -> np.ndarray:
+def surface_distances(points: np.ndarray, truth: Mesh | SampledSurface, *,
+                      options: EvaluationOptions = EvaluationOptions()) -> np.ndarray:
     """points : (N, 3) mm world -> (N,) distance (mm) to the true surface (a Mesh or a SampledSurface)."""
     pts = np.asarray(points, float)
     if pts.ndim != 2 or pts.shape[1] != 3:
@@ -95,7 +96,8 @@ def distance_summary(distances: np.ndarray) -> dict:
     }
 
 
-def icp_from_initial_poses(points: np.ndarray, target: SampledSurface, options: EvaluationOptions = EvaluationOptions()) -> tuple[IcpResult, list[float]]:
+def icp_from_initial_poses(points: np.ndarray, target: SampledSurface, *,
+                           options: EvaluationOptions = EvaluationOptions()) -> tuple[IcpResult, list[float]]:
     """ICP from eight starting poses around the reconstruction (reference sec. 4.5): the configured
     rotation about the eight diagonal axes through the centroid, each with a translation along its
     diagonal; plus the identity. ICP runs on a subsample; each result is then scored by
@@ -184,13 +186,13 @@ def pose_errors(adjusted: list[Pose], measured: list[MeasuredPose], truth: list[
             "measured_position_mm_mean": float(np.mean(dm))}
 
 
-def surface_errors(points: np.ndarray, truth: SampledSurface, options: EvaluationOptions = EvaluationOptions(),
+def surface_errors(points: np.ndarray, truth: SampledSurface, *, options: EvaluationOptions = EvaluationOptions(),
                    ) -> tuple[dict, np.ndarray, np.ndarray]:
     """Distances of ``points`` (N, 3) mm to the true surface, direct and after ICP from eight starts
     (:func:`icp_from_initial_poses`). Returns the summary dict (``direct``, ``after_icp``, the eight
     starts' means, the ICP's rotation (deg) and translation (mm)) and the two (N,) distance arrays."""
     direct = truth.distances(points)
-    best, spread = icp_from_initial_poses(points, truth, options)
+    best, spread = icp_from_initial_poses(points, truth, options=options)
     aligned = truth.distances(best.apply(points))
     summary = {
         "direct": distance_summary(direct), "after_icp": distance_summary(aligned),

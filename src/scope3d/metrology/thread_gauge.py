@@ -369,7 +369,7 @@ def _root_phase(theta, z, r, pitch):
     return float(np.angle(phasor) / (2 * np.pi) * pitch)
 
 
-def gauge_thread(points: np.ndarray, options: GaugeOptions = GaugeOptions()) -> GaugeResult:
+def gauge_thread(points: np.ndarray, *, options: GaugeOptions = GaugeOptions()) -> GaugeResult:
     """Measure an internal thread from a cloud of its surface (see the module docstring).
 
     points : (N, 3) float64 mm, the hole's inner surface (thread; a counterbore, plain bore or drill point

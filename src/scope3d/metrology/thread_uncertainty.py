@@ -106,7 +106,7 @@ def profile_bias_systematic(result: GaugeResult, points: np.ndarray, bias_mm: fl
     return {key: float(np.sqrt(sum(s[key] ** 2 for s in shifts))) for key in base} if shifts else {}
 
 
-def with_systematic(result: GaugeResult, systematic_mm: dict, options: GaugeOptions) -> GaugeResult:
+def with_systematic(result: GaugeResult, systematic_mm: dict, *, options: GaugeOptions) -> GaugeResult:
     """``result`` with a systematic standard uncertainty (mm; keys as :func:`~scope3d.metrology.thread_gauge.remeasure`'s, missing = 0)
     added in quadrature to each size's statistical one, and the verdict judged again on the combined
     uncertainties (:func:`~scope3d.metrology.thread_gauge.judge`)."""

@@ -415,7 +415,7 @@ def _face_scores(mesh: Mesh, faces: np.ndarray, camera: Camera, pose: Pose, opti
 
 
 def texture_mesh(mesh: Mesh, centre: np.ndarray, camera: Camera, poses: Sequence[Pose | None],
-                 frame: Callable[[int], np.ndarray], options: TextureOptions = TextureOptions()) -> TexturedMesh:
+                 frame: Callable[[int], np.ndarray], *, options: TextureOptions = TextureOptions()) -> TexturedMesh:
     """Texture a star-shaped cavity's wall ``mesh`` (mm; faces are turned towards ``centre`` in the result) from the frames:
     ``poses[k]`` is frame k's cam_from_world (None: not registered), ``frame(k)`` its (H, W, 3) uint8 RGB
     image (read once per frame that gives a texel, twice with ``level_gains``, so a long video need not be

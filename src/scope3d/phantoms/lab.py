@@ -213,7 +213,7 @@ def generate(
     poses = traj.poses
     # a live approach auto-exposes every frame (the light at the tip is 6x brighter at the stop than at the
     # start); a survey keeps one setting
-    exposure = None if name == "approach" else sequence_exposure(built, camera, poses, options)
+    exposure = None if name == "approach" else sequence_exposure(built, camera, poses, options=options)
     frames, fluo, depths, tids = [], [], [], []
     stage(progress, f"phantom {scene}/{name}", len(poses))
     for i, pose in enumerate(poses):
@@ -242,7 +242,7 @@ def generate(
                    "mask_radius_px": camera.mask_radius_px,
                    **({"side_view_deg": side_view_deg} if name == "quadrants" else {})},
         "lighting": "point light at the camera centre; Lambert cos/d^2 plus Blinn-Phong specular",
-        "render": {**options.to_dict(), "supersample": supersample_factor(built, options), "exposure_gain": exposure if exposure is not None else "per frame (auto-exposure)", "seed": seed, "texture_seed": texture_seed},
+        "render": {**options.to_dict(), "supersample": supersample_factor(built, options=options), "exposure_gain": exposure if exposure is not None else "per frame (auto-exposure)", "seed": seed, "texture_seed": texture_seed},
         "pose_noise": {
             "position_mm": pose_noise_mm,
             "orientation_deg": pose_noise_mm * ORIENTATION_NOISE_DEG_PER_MM,

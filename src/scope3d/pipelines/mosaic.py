@@ -89,12 +89,12 @@ def run(options: MosaicOptions, datasets: list[Dataset], out_dir: str | Path, *,
     if len(frames) < 2:
         raise InputError("a mosaic needs at least two frames")
     stage(progress, "mosaic: matching pairs", len(frames) * (len(frames) - 1) // 2)
-    links = mos.link_frames(frames, cameras, options, progress=progress)
+    links = mos.link_frames(frames, cameras, options=options, progress=progress)
     try:
-        result = mos.align_globally(len(frames), links, [(c.width, c.height) for c in cameras], options)
+        result = mos.align_globally(len(frames), links, [(c.width, c.height) for c in cameras], options=options)
     except ValueError as exc:
         raise InputError(f"{datasets[0].root}: {exc} (frames without overlap)") from None
-    mos.blend(result, frames, cameras, options)
+    mos.blend(result, frames, cameras, options=options)
     centres = mos.frame_centres(result, cameras)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

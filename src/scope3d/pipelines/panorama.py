@@ -238,7 +238,7 @@ def run(options: Panorama3dOptions, dataset: Dataset, out_dir: str | Path, *,
     if options.stars is not None:
         t1, c1 = time.perf_counter(), time.process_time()
         fluorescence = [dataset.fluorescence_frame(k) for k in range(n)]
-        scale_info = star_scale(dataset.camera, cavity.poses, cavity.tracks, fluorescence, options.stars,
+        scale_info = star_scale(dataset.camera, cavity.poses, cavity.tracks, fluorescence, options=options.stars,
                                 where=str(dataset.root))
         cavity = cavity.scaled(scale_info.scale)
         timings["scale_s"], cpu["scale_s"] = time.perf_counter() - t1, time.process_time() - c1
@@ -282,7 +282,8 @@ def run(options: Panorama3dOptions, dataset: Dataset, out_dir: str | Path, *,
             if options.texture is not None:
                 t1, c1 = time.perf_counter(), time.process_time()
                 poses = [p if ok else None for p, ok in zip(cavity.poses, cavity.registered)]
-                textured = texture_mesh(wall, cavity.centre_mm, dataset.camera, poses, dataset.frame, options.texture)
+                textured = texture_mesh(wall, cavity.centre_mm, dataset.camera, poses, dataset.frame,
+                                        options=options.texture)
                 write_textured_obj(tmp / "wall.obj", textured.mesh.vertices, textured.mesh.faces, textured.uv,
                                    textured.face_uv, textured.image)
                 report.update({"texture_texel_mm": textured.texel_mm, "textured_fraction": textured.textured_fraction,

@@ -58,7 +58,7 @@ def run(options: ScanPlanOptions, surface: str | Path, out_dir: str | Path, *,
     stage(progress, "plan-scan", None)
     mesh, caster, source = load_surface(surface)
     try:
-        plan = plan_spiral_scan(mesh, options, caster=caster)
+        plan = plan_spiral_scan(mesh, options=options, caster=caster)
     except ValueError as exc:
         raise InputError(f"{surface}: {exc}") from None
     out = Path(out_dir)

@@ -213,7 +213,7 @@ def map_quadrants(options: ThreadScanOptions, dataset: Dataset, scans: list[Quad
 
     def one(q, scan, poses):
         m = map_quadrant([dataset.frame(i) for i in q.frames], dataset.camera, poses,
-                         replace(options.mapping, max_frame_gap=scan.frame_gap))
+                         options=replace(options.mapping, max_frame_gap=scan.frame_gap))
         advance(progress)
         return m
 
@@ -222,7 +222,7 @@ def map_quadrants(options: ThreadScanOptions, dataset: Dataset, scans: list[Quad
     mount = None
     if options.mount is not None:
         try:
-            mount = estimate_mount_rotation(dataset.camera, maps, reported, options.mount)
+            mount = estimate_mount_rotation(dataset.camera, maps, reported, options=options.mount)
         except ValueError as exc:
             raise InputError(f"{dataset.root}: {exc}") from None
         maps = [retriangulate(dataset.camera, m, [mount.corrected(p) for p in poses]) for m, poses in zip(maps, reported)]
@@ -251,7 +251,7 @@ def dense_clouds(options: ThreadScanOptions, dataset: Dataset, panorama: Panoram
         g = panorama.world_from_stacked[q.index]
         poses = registered_frame_poses(g, stacked_poses(dataset, q.frames, mount), len(q.frames) // 2)
         points, _ = dense_quadrant([dataset.frame(i) for i in q.frames], dataset.camera, poses,
-                                   g.transform(clouds[q.index].points), options.dense)
+                                   g.transform(clouds[q.index].points), options=options.dense)
         advance(progress)
         return points
 
@@ -284,7 +284,7 @@ def run(options: ThreadScanOptions, dataset: Dataset, out_dir: str | Path, *,
     timings["mapping"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    panorama = register_quadrants(clouds, options.panorama, seed=options.seed, progress=progress)
+    panorama = register_quadrants(clouds, options=options.panorama, seed=options.seed, progress=progress)
     registered = panorama.apply(clouds)
     timings["registration"] = time.perf_counter() - t0
 
@@ -298,7 +298,7 @@ def run(options: ThreadScanOptions, dataset: Dataset, out_dir: str | Path, *,
     t0 = time.perf_counter()
     merged = np.concatenate(registered)
     quadrant_of = np.repeat(np.arange(len(registered)), [len(r) for r in registered])
-    keep = statistical_inliers(merged, options.outliers)
+    keep = statistical_inliers(merged, options=options.outliers)
     points = merged[keep]
     timings["outliers"] = time.perf_counter() - t0
 
@@ -307,7 +307,7 @@ def run(options: ThreadScanOptions, dataset: Dataset, out_dir: str | Path, *,
     gauge_options = replace(options.gauge, designation=options.designation, axis_hint=(0.0, 0.0, 1.0))
     gauge, gauge_message = None, ""
     try:
-        gauge = gauge_thread(points, gauge_options)
+        gauge = gauge_thread(points, options=gauge_options)
     except ValueError as exc:  # no thread in the cloud: a result to report, not a crash
         gauge_message = str(exc)
     timings["gauge"] = time.perf_counter() - t0
@@ -323,12 +323,12 @@ def run(options: ThreadScanOptions, dataset: Dataset, out_dir: str | Path, *,
                                                                gauge_options.noise_mm)
         if options.match_gap_mm:
             drawn_apart = pairs_drawn_apart(panorama.pairs, options.match_gap_mm)
-            placed = joint_solve(drawn_apart, [c.angle_deg for c in clouds], options.panorama)[0]
+            placed = joint_solve(drawn_apart, [c.angle_deg for c in clouds], options=options.panorama)[0]
             systematic["match_gap"] = match_gap_systematic(gauge, placed, panorama.world_from_stacked, points,
                                                            quadrant_of[keep], gauge_options.noise_mm)
         systematic = {k: v for k, v in systematic.items() if v}
         if systematic:
-            gauge = with_systematic(gauge, combined_systematic(systematic), gauge_options)
+            gauge = with_systematic(gauge, combined_systematic(systematic), options=gauge_options)
         timings["systematic"] = time.perf_counter() - t0
 
     errors = None

@@ -264,7 +264,7 @@ def match_quadrants(cloud_i: QuadrantCloud, cloud_j: QuadrantCloud, ratio: float
     return unique[:, 0], unique[:, 1]
 
 
-def register_pair(cloud_i: QuadrantCloud, cloud_j: QuadrantCloud, options: PanoramaOptions = PanoramaOptions(), *,
+def register_pair(cloud_i: QuadrantCloud, cloud_j: QuadrantCloud, *, options: PanoramaOptions = PanoramaOptions(), 
                   seed: int = 0) -> PairRegistration:
     """Feature-based registration of two neighbour quadrants (sec. 8.2.2): descriptor matches give
     3-D-3-D correspondences; RANSAC + SVD the rigid ``i_from_j``. Raises :class:`InputError` naming the
@@ -273,7 +273,7 @@ def register_pair(cloud_i: QuadrantCloud, cloud_j: QuadrantCloud, options: Panor
 
     t0 = time.perf_counter()
     a, b = match_quadrants(cloud_i, cloud_j, options.ratio)
-    fit = ransac_rigid(cloud_j.points[b], cloud_i.points[a], options.ransac, seed=seed) if len(a) >= 3 else None
+    fit = ransac_rigid(cloud_j.points[b], cloud_i.points[a], options=options.ransac, seed=seed) if len(a) >= 3 else None
     n_inl = 0 if fit is None else fit.n_inliers
     if n_inl < options.min_correspondences:
         raise InputError(f"quadrants {cloud_i.index} and {cloud_j.index} (stage {cloud_i.angle_deg:.1f}° and "
@@ -408,7 +408,8 @@ def loop_closure(pairs: list[PairRegistration], clouds: list[QuadrantCloud]) -> 
             float(np.linalg.norm(loop.transform(centroid[None])[0] - centroid)))
 
 
-def joint_solve(pairs: list[PairRegistration], angles_deg: list[float], options: PanoramaOptions = PanoramaOptions()):
+def joint_solve(pairs: list[PairRegistration], angles_deg: list[float], *,
+                options: PanoramaOptions = PanoramaOptions()):
     """The joint solve of ``options.model`` over the pairs -> (world_from_stacked per quadrant, per-pair
     residual RMS mm, parameters, their covariance or None, the model from parameters to poses)."""
     if options.model == "stage":
@@ -433,7 +434,7 @@ def pairs_drawn_apart(pairs: list[PairRegistration], gap_mm: float) -> list[Pair
             for p in pairs]
 
 
-def register_quadrants(clouds: list[QuadrantCloud], options: PanoramaOptions = PanoramaOptions(), *,
+def register_quadrants(clouds: list[QuadrantCloud], *, options: PanoramaOptions = PanoramaOptions(), 
                        seed: int = 0, progress=None) -> PanoramaResult:
     """Pairwise feature-based registration of angular neighbours, then the joint solve with the loop
     closure. clouds : quadrants in stage order (see :class:`QuadrantCloud`). Raises :class:`InputError`
@@ -446,7 +447,7 @@ def register_quadrants(clouds: list[QuadrantCloud], options: PanoramaOptions = P
     stage(progress, "registering quadrant pairs", len(links))
     pairs = []
     for i, j in links:
-        pairs.append(register_pair(clouds[i], clouds[j], options, seed=seed + i))
+        pairs.append(register_pair(clouds[i], clouds[j], options=options, seed=seed + i))
         advance(progress)
     log = [f"pair {p.i}-{p.j}: {len(p.points_i)} of {p.n_matches} matches consistent, rms {p.rms_mm:.4f} mm"
            for p in pairs]
@@ -454,7 +455,7 @@ def register_quadrants(clouds: list[QuadrantCloud], options: PanoramaOptions = P
     if closed and k > 2:
         loop_deg, loop_mm = loop_closure(pairs, clouds)
         log.append(f"loop closure of the chained pairs: {loop_deg:.3f}°, {loop_mm:.4f} mm")
-    poses, rms, x, cov, model = joint_solve(pairs, [c.angle_deg for c in clouds], options)
+    poses, rms, x, cov, model = joint_solve(pairs, [c.angle_deg for c in clouds], options=options)
     return PanoramaResult(poses, pairs, loop_deg, loop_mm, rms, step, closed and k > 2, log, x, cov, model)
 
 

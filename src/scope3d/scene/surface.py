@@ -289,7 +289,8 @@ def off_surface_points(points: np.ndarray, *, towards: np.ndarray | None = None,
     return off
 
 
-def fit_surface(points: np.ndarray, options: SurfaceOptions = SurfaceOptions(), *, towards: np.ndarray | None = None) -> Surface:
+def fit_surface(points: np.ndarray, *, options: SurfaceOptions = SurfaceOptions(),
+                towards: np.ndarray | None = None) -> Surface:
     """Fit the thin-plate-spline height field.
 
     points : (N, 3) mm world, N >= 10 (the triangulated features). towards : (3,) direction the

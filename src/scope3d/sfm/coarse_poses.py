@@ -137,7 +137,8 @@ def _groups(n: int, pairs: list[tuple[int, int]]) -> np.ndarray:
 
 
 def coarse_poses(camera: Camera, features: list[Features], measured: list[MeasuredPose],
-                 match_options: MatchOptions = MatchOptions(), options: CoarseOptions = CoarseOptions(), *,
+                 *,
+                 match_options: MatchOptions = MatchOptions(), options: CoarseOptions = CoarseOptions(), 
                  progress=None) -> CoarseResult:
     """Run the coarse pass (module docstring). progress : tqdm-like or None, advanced by one per pair matched."""
     t0 = time.perf_counter()

@@ -46,8 +46,8 @@ def estimate_depth_prior(
     camera: Camera,
     features: list[Features],
     poses: list[MeasuredPose],
-    options: MatchOptions = MatchOptions(),
     *,
+    options: MatchOptions = MatchOptions(),
     percentiles: tuple[float, float] = (2.0, 98.0),
     margin: float = 0.1,
     n_pairs: int = 5,
@@ -139,7 +139,7 @@ def surface_depth_prior(camera: Camera, features: list[Features], matches: list[
                             max_extrapolation_mm=3.0)
     towards = -np.mean([m.pose.optical_axis for m in poses], axis=0)
     try:
-        surface = fit_surface(tracks.points, coarse, towards=towards)
+        surface = fit_surface(tracks.points, options=coarse, towards=towards)
     except ValueError:
         return None
     stn = surface.to_plane(tracks.points)

@@ -338,11 +338,11 @@ class Localizer:
         """SIFT keypoints (K, 2) and descriptors (K, 128) of the frame (resized by ``scale`` for detection),
         those on usable pixels only."""
         if scale == 1.0:
-            features = detect(grey, self.camera, self.options.features)
+            features = detect(grey, self.camera, options=self.options.features)
             keypoints = features.keypoints
         else:
             small = cv2.resize(grey, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
-            features = detect(small, None, self.options.features)  # the usable mask below drops the rim
+            features = detect(small, None, options=self.options.features)  # the usable mask below drops the rim
             # pixel centres: full-resolution u = (u_small + 0.5) / scale - 0.5
             keypoints = (features.keypoints + 0.5) / scale - 0.5
         keep = usable[np.clip(np.rint(keypoints[:, 1]).astype(int), 0, grey.shape[0] - 1),
