@@ -205,7 +205,9 @@ def _video_frames(video: Path, camera: Camera, options: FramesImportOptions, tab
         advance(progress)
     if table is not None:
         aliases = {**{k: n for k, n in zip(keys, names)}, **{n: n for n in names}}
-        table = {aliases.get(k, k): t for k, t in table.items()}
+        # rows of the frames --every passes over name frames of the video too: not a mistake
+        passed_over = re.compile(r"\d+(\.png)?$")
+        table = {aliases.get(k, k): t for k, t in table.items() if k in aliases or not passed_over.match(k)}
         times = _times_from_table(table, names, names, video)
     return paths, names, np.asarray(times, dtype=float)
 
