@@ -196,9 +196,27 @@ class Surface:
         # counter-clockwise (column, row) winding is counter-clockwise about n
         faces = index.reshape(-1)[grid_faces(*valid.shape, keep=cell)]
         verts = self.vertices()[valid]
-        normals = self.normals()[valid]
+        normals = self._edge_normals()[valid]
         vc = None if colors is None else np.asarray(colors, np.uint8)[valid]
         return Mesh(verts, faces, vc, normals)
+
+    def _edge_normals(self) -> np.ndarray:
+        """:meth:`normals` where they are defined, and at the surveyed region's edge (where a central
+        difference reaches outside it and gives NaN) from the one-sided difference into the region, or the
+        plane's normal where a vertex has no valid neighbour along an axis: a mesh file must hold no NaN."""
+        gradients = []
+        for axis in (1, 0):
+            h = np.moveaxis(self.height, axis, 0)
+            forward = np.full_like(h, np.nan)
+            forward[:-1] = h[1:] - h[:-1]
+            backward = np.full_like(h, np.nan)
+            backward[1:] = h[1:] - h[:-1]
+            central = np.where(np.isnan(forward), backward, np.where(np.isnan(backward), forward,
+                                                                      0.5 * (forward + backward)))
+            gradients.append(np.moveaxis(np.nan_to_num(central) / self.step_mm, 0, axis))
+        hs, ht = gradients
+        n = self.axes[2] - hs[..., None] * self.axes[0] - ht[..., None] * self.axes[1]
+        return n / np.linalg.norm(n, axis=-1, keepdims=True)
 
 
 def _control_points(stn: np.ndarray, cell: float, mad_k: float) -> np.ndarray:
