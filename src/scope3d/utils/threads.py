@@ -1,4 +1,5 @@
-"""Thread count of the OpenBLAS that numpy and scipy bundle, for the dense Cholesky of the reduced system.
+"""Threads: the cores this process may run on (:func:`available_cores`), and the thread count of the OpenBLAS
+that numpy and scipy bundle (:func:`blas_threads`), for dense Cholesky factors such as the reduced system's.
 
 OpenBLAS's threads spin while they wait; on a loaded machine a 600 x 600 Cholesky took 15 ms with its
 default threads and 2 ms with one. ``openblas_set_num_threads_local`` changes the count for the calling
@@ -7,9 +8,17 @@ thread only, so nothing else in the process is affected. Where it is not availab
 from __future__ import annotations
 
 import ctypes
+import os
 from contextlib import contextmanager
 from functools import lru_cache
 from typing import Iterator
+
+
+def available_cores() -> int:
+    """CPUs this process may run on (its affinity mask where the platform has one)."""
+    if hasattr(os, "sched_getaffinity"):
+        return max(1, len(os.sched_getaffinity(0)))
+    return max(1, os.cpu_count() or 1)
 
 
 @lru_cache(maxsize=1)
