@@ -231,7 +231,7 @@ def _synthetic_map(rng, n_frames=6, noise_px=0.3, half_mm=0.3, half_rad=0.005, u
     its box (uniform, or Gaussian of the box's variance), frame ``glitch[0]``'s centre moved ``glitch[1]`` mm
     along x. -> camera, reports, tracks, true poses, the bounded map's poses (adjusted twice, as the map's coarse
     and fine passes: first with a 30 px gate, as a report 0.3 mm off is ~15 px off here, then the map's 2 px)."""
-    from scope3d.estimators.bundle.synthetic import make_scene
+    from scope3d.phantoms.bundle_scene import make_scene
     from scope3d.estimators.triangulation import TrackOptions
     from scope3d.sfm.leave_one_out import LeaveOneOutOptions, linearise
     from scope3d.geometry.rotation import rotvec_to_matrix

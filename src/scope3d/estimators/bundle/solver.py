@@ -324,7 +324,7 @@ def _squared_residuals(problem, pose, intrinsics, points, intr_obs, out, ranges:
 
 def warm_up() -> None:
     """Load the kernels (compile them the first time, on the JIT path) so that timings exclude it."""
-    from scope3d.estimators.bundle.synthetic import make_scene
+    from scope3d.phantoms.bundle_scene import make_scene
 
     scene = make_scene(12, 4000, seed=0)
     problem = BundleProblem(scene.observations_px, scene.camera_index, scene.point_index, scene.rotations,
