@@ -42,7 +42,7 @@ from scope3d.geometry.rotation import rotvec_to_matrix
 from scope3d.scene.tracks import Tracks
 from scope3d.sensor.camera import Camera
 from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance
-from scope3d.utils.threads import blas_threads
+from scope3d.utils.blas import blas_threads
 
 
 @dataclass(frozen=True)

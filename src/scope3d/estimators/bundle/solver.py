@@ -41,7 +41,8 @@ from scope3d.errors import InputError
 from scope3d.estimators.bundle.losses import LOSS_NAMES, loss_rho, loss_weight
 from scope3d.estimators.bundle.problem import BundleParameters, BundleProblem
 from scope3d.utils.aot import is_compiled, load_kernels
-from scope3d.utils.threads import available_cores, blas_threads
+from scope3d.utils.blas import blas_threads
+from scope3d.utils.threads import available_cores
 
 # compiled at install (scope3d.utils.aot) or, failing that, by numba on first use; the same functions
 kernels = load_kernels("scope3d.estimators.bundle.kernels")
@@ -79,7 +80,7 @@ class SolverOptions:
     sparse_max_parameters: int = 30000  # auto: sparse LU up to this many, PCG beyond
     pcg_tolerance: float = 1e-6  # relative residual of the conjugate-gradient solve
     pcg_max_iterations: int = 500
-    blas_threads: int = 1  # OpenBLAS threads for the dense Cholesky (0: library default); see scope3d.utils.threads
+    blas_threads: int = 1  # OpenBLAS threads for the dense Cholesky (0: library default); see scope3d.utils.blas
     num_threads: int = 0  # threads for the Schur assembly: 0 = all cores (as Ceres's -1), 1 = serial
 
     def __post_init__(self) -> None:
