@@ -164,7 +164,7 @@ def _tiny_dataset(root: Path) -> Path:
 
 
 def _tiny_bal_text() -> bytes:
-    from scope3d.estimators.bundle.synthetic import make_scene
+    from scope3d.phantoms.bundle_scene import make_scene
 
     scene = make_scene(3, 4, observations_per_point=2, seed=0)
     lines = [f"3 4 {len(scene.camera_index)}"]

@@ -195,7 +195,7 @@ def kill_trials(job: Job, trials: int, *, seed: int = 0, env: dict | None = None
 def make_inputs(root: Path) -> dict[str, Path]:
     """The small inputs the jobs read: a dome dataset (map), a thread bore (axial), a BAL problem."""
     from scope3d import phantoms
-    from scope3d.estimators.bundle.synthetic import make_scene
+    from scope3d.phantoms.bundle_scene import make_scene
     from scope3d.geometry.rotation import matrix_to_rotvec
     from scope3d.io.bal import BALProblem, write_bal
 
