@@ -30,7 +30,7 @@ from scope3d.estimators.averaging import RelativePose, average_rotations, refine
 from scope3d.feature.detection import Features
 from scope3d.feature.matching import PairMatches
 from scope3d.geometry.pose import Pose
-from scope3d.geometry.rotation import rotvec_to_matrix
+from scope3d.geometry.rotation import rotation_angle, rotvec_to_matrix
 from scope3d.sensor.camera import Camera
 from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance
 from scope3d.utils.robust import huber_weights, robust_norm_sigma
@@ -184,7 +184,7 @@ def consistent_pairs(rotations: np.ndarray, relative: list[RelativePose]) -> np.
     jj = np.array([r.j for r in relative])
     A = R[jj] @ np.swapaxes(R[ii], 1, 2)
     e = np.stack([r.rotation for r in relative]) @ np.swapaxes(A, 1, 2)
-    resid = np.arccos(np.clip((np.trace(e, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0))
+    resid = rotation_angle(e)
     sigma = np.array([r.rotation_sigma_rad for r in relative], float)
     sigma = np.where(np.isfinite(sigma) & (sigma > 0), sigma, np.inf)
     normalised = resid / sigma
