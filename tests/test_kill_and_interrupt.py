@@ -65,6 +65,7 @@ CHILD_MOMENTS = {
     "as the child appears": lambda map, children: bool(children),
     "while the child draws": lambda map, children: "R" in children.values(),
     # the map has computed everything and reads the child's last word while it draws the last figures
+    # (the child has its end-of-calls then and ended by itself before issue 39's fix too)
     "while the map waits for the child": lambda map, children: bool(children) and waits_on_a_pipe(map),
 }
 
