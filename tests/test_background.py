@@ -1,4 +1,5 @@
-"""BackgroundCalls: calls run in a forked child, in order, and a failure comes back to the caller."""
+"""BackgroundCalls: calls run in a forked child, in order, a failure comes back to the caller, and the child
+ends when its parent is killed."""
 from __future__ import annotations
 
 import os

@@ -5,6 +5,9 @@ the moment a kill could tear a result), then run once more: the output location 
 previous complete result or the new complete one, never a mix, and the next run must succeed and leave no
 temporaries behind. The long version kills >= 50 runs per job at moments uniform over a run.
 
+No process left behind: the map SIGKILLed alone (not its process group) at moments of its figures
+child's life leaves no process of its session alive (issue 39).
+
 Determinism: the same job with 1 and with 2 threads (numba, OpenMP, OpenBLAS) writes the same files byte
 for byte (report.json without its timing fields, scope3d.utils.jsonio.without_timings). The 2-thread run is
 the kill test's last, uninterrupted one, so each job runs three times in this file, not four.
