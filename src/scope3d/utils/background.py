@@ -97,7 +97,7 @@ class BackgroundCalls:
     """A child process running submitted calls in order (module docstring).
 
     Calls submitted before :meth:`start` are inherited by the child (their arguments are not pickled:
-    large objects cost nothing); calls submitted after it go through a queue (pickled).
+    large objects cost nothing); calls submitted after it go through a pipe (pickled).
     enabled : False runs every call at once in the caller (as on platforms without ``fork``).
     """
 
