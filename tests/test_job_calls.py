@@ -82,7 +82,8 @@ def test_thread_scan_result_pickles_with_its_registration_model(model):
 def test_panorama_result_pickles():
     from scope3d.pipelines.panorama import Panorama3dResult
     from scope3d.scene.tracks import Tracks
-    from scope3d.sfm.cavity_mapping import CavityMap, fit_sphere
+    from scope3d.geometry.sphere import fit_sphere
+    from scope3d.sfm.cavity_mapping import CavityMap
 
     rng = np.random.default_rng(0)
     directions = rng.normal(size=(200, 3))

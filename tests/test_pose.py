@@ -2,7 +2,13 @@ import numpy as np
 import pytest
 
 from scope3d.geometry.pose import Pose
-from scope3d.geometry.rotation import look_at, matrix_to_rotvec, rotvec_to_matrix, so3_left_jacobian
+from scope3d.geometry.rotation import (
+    look_at,
+    matrix_to_rotvec,
+    rotation_angle_between,
+    rotvec_to_matrix,
+    so3_left_jacobian,
+)
 from scope3d.sensor.pose_tolerance import (
     MeasuredPose,
     PoseTolerance,
@@ -22,6 +28,34 @@ def test_rotvec_matrix_quaternion_round_trips():
         p = Pose(r[i], rng.normal(size=3))
         q = Pose.from_quaternion(p.quaternion, p.translation)
         np.testing.assert_allclose(q.rotation, p.rotation, atol=1e-12)
+
+
+# Each entry of R_a^T (R_a E) carries the rounding of two 3-term products of numbers <= 1 (at most
+# ~6 eps, Higham's gamma_3 twice); the angle reads the skew part (two entries' difference, three of them,
+# halved) and the trace: |error| <= ~sqrt(3) * 12 eps / 2 + rounding of atan2 < 16 eps. 32 eps leaves 2x.
+ANGLE_RESOLUTION_RAD = 32 * np.finfo(float).eps
+
+
+@pytest.mark.parametrize("angle", [0.0, 1e-12, 1e-10, 3e-9, 1e-8, 2e-8, 1e-6, 1e-3, 0.5, 2.0,
+                                   np.pi - 1e-3, np.pi - 1e-8, np.pi - 1e-12, np.pi])
+def test_angle_between_rotations_is_exact_near_zero_and_pi(angle):
+    """arccos((trace - 1) / 2) read every angle below ~2e-8 rad as 0 or 2.1e-8 (issue 30)."""
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        r_a = rotvec_to_matrix(rng.normal(size=3))
+        axis = rng.normal(size=3)
+        r_b = r_a @ rotvec_to_matrix(angle * axis / np.linalg.norm(axis))
+        assert abs(rotation_angle_between(r_a, r_b) - angle) <= ANGLE_RESOLUTION_RAD
+        assert abs(rotation_angle_between(r_b, r_a) - angle) <= ANGLE_RESOLUTION_RAD
+
+
+def test_angle_between_a_rotation_and_itself_computed_two_ways_is_zero_to_rounding():
+    """The same rotation from two association orders of a product differs in the last bits only."""
+    rng = np.random.default_rng(6)
+    a, b, c = rotvec_to_matrix(rng.normal(size=(3, 50, 3)))
+    angles = rotation_angle_between((a @ b) @ c, a @ (b @ c))
+    assert angles.shape == (50,)
+    assert np.all(angles <= ANGLE_RESOLUTION_RAD)
 
 
 def test_left_jacobian_is_derivative_of_exp():

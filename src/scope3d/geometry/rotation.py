@@ -11,7 +11,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-_SMALL_ANGLE_RAD = 1e-8
+#: below this angle (rad) the rotation's series replace sin(t) / t and (1 - cos(t)) / t^2 (their round-off
+#: there exceeds the series' truncation); the compiled pose kernels take the same value
+SMALL_ANGLE_RAD = 1e-8
 
 
 # Rotations and quaternions read from text files carry the file's rounding. An entry |r| <= 1 printed to
@@ -45,7 +47,7 @@ def rotvec_to_matrix(rotvec: np.ndarray) -> np.ndarray:
     rotvec = np.asarray(rotvec, dtype=float)
     theta = np.linalg.norm(rotvec, axis=-1)[..., None, None]
     k = hat(rotvec)
-    small = theta < _SMALL_ANGLE_RAD
+    small = theta < SMALL_ANGLE_RAD
     theta_safe = np.where(small, 1.0, theta)
     a = np.where(small, 1.0 - theta**2 / 6.0, np.sin(theta_safe) / theta_safe)
     b = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(theta_safe)) / theta_safe**2)
@@ -135,11 +137,26 @@ def so3_left_jacobian(rotvec: np.ndarray) -> np.ndarray:
     return eye + b * k + c * (k @ k)
 
 
+def rotation_angle(matrix: np.ndarray) -> np.ndarray:
+    """Angle (rad, in [0, pi]) of rotation matrices, (..., 3, 3) -> (...), accurate over the whole range.
+
+    ``arccos((trace - 1) / 2)`` cannot resolve angles below ~sqrt(2 eps) = 2.1e-8 rad (the cosine of such
+    an angle rounds to 1), so two equal rotations came out 2e-8 rad apart or not depending on the last bit
+    of a matrix product. Here the sine comes from the skew-symmetric part, ``sin(angle) = |vee(R - R^T)| / 2``,
+    and the cosine from the trace: ``atan2`` of the two is accurate to a few eps (absolute) everywhere,
+    near 0 and near pi alike, since each part carries only rounding of order eps in the entries.
+    """
+    m = np.asarray(matrix, dtype=float)
+    skew = np.stack([m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], axis=-1)
+    sin = 0.5 * np.linalg.norm(skew, axis=-1)
+    cos = 0.5 * (np.trace(m, axis1=-2, axis2=-1) - 1.0)
+    return np.arctan2(sin, cos)
+
+
 def rotation_angle_between(r_a: np.ndarray, r_b: np.ndarray) -> np.ndarray:
-    """Geodesic angle (rad) between rotation matrices, (..., 3, 3) each -> (...)."""
-    rel = np.swapaxes(np.asarray(r_a), -1, -2) @ np.asarray(r_b)
-    cos = (np.trace(rel, axis1=-2, axis2=-1) - 1.0) / 2.0
-    return np.arccos(np.clip(cos, -1.0, 1.0))
+    """Geodesic angle (rad, in [0, pi]) between rotation matrices, (..., 3, 3) each -> (...);
+    accurate near 0 and pi (:func:`rotation_angle`)."""
+    return rotation_angle(np.swapaxes(np.asarray(r_a, dtype=float), -1, -2) @ np.asarray(r_b, dtype=float))
 
 
 def look_at(centre: np.ndarray, target: np.ndarray, up: np.ndarray = (0.0, -1.0, 0.0)) -> np.ndarray:
