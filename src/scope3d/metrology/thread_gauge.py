@@ -27,8 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 
-from scope3d.geometry.iso_thread import (ISO_METRIC_FLANK_ANGLE_DEG, THREAD_SIZES, iso_thread_profile,
-                                         tooth_half_width)
+from scope3d.geometry.iso_thread import ISO_METRIC_FLANK_ANGLE_DEG, THREAD_SIZES, basic_thread_depth, tooth_half_width
 from scope3d.utils.robust import robust_sigma
 
 # ISO 965-1 (general purpose metric threads, tolerances) class 6H for internal threads: fundamental
@@ -383,7 +382,7 @@ def gauge_thread(points: np.ndarray, *, options: GaugeOptions = GaugeOptions()) 
     points = points[index]
     limits = thread_limits(options.designation, options.tolerance_class)
     major_nom, pitch_nom = THREAD_SIZES[options.designation]
-    depth_nom = iso_thread_profile(major_nom, pitch_nom)["thread_depth_mm"]  # ISO 68-1 basic depth (5/8 H)
+    depth_nom = basic_thread_depth(pitch_nom)  # ISO 68-1 basic thread depth (5/8 H)
     rng = np.random.default_rng(options.seed)
 
     # (1) axis from the whole cloud
