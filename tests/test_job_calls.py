@@ -2,7 +2,7 @@
 ``summary()``, and every job's result pickles (cluster workers send results back; a result holding a
 closure cannot travel). Small real runs where they are cheap; a result built from real parts where the job
 itself takes minutes (its real run is pickled in its own test file: tests/test_map.py, test_axial_pipeline.py,
-test_panorama_3d.py)."""
+test_panorama_3d.py, test_frames_import.py)."""
 from __future__ import annotations
 
 import dataclasses
