@@ -30,7 +30,7 @@ from scope3d.io.dataset import load_dataset
 from scope3d.metrology.evaluation import errors_after_similarity, true_track_points
 from scope3d.pipelines.panorama_3d import PanoramaOptions, run
 from scope3d.scene.mesh import SampledSurface
-from scope3d.sfm.cavity_mapping import cameras_off_centre
+from scope3d.sfm.cavity_map_choice import cameras_off_centre
 from scope3d.utils.figures import new_figure, save_figure
 
 RESULTS = Path(__file__).parent / "results"

@@ -1,7 +1,7 @@
 """Which image-only cavity map to keep (issue 11 §4): without planned poses ``map_cavity`` adjusts two maps of
 the same frames, the all-pair map (every verified pair's tracks, centres from their rays) and the chain's map
 (the shape-tested pairs alone, from the depth-scaled start), and keeps one by figures that need no truth
-(``scope3d.sfm.cavity_mapping.choose_map``). This benchmark records, per case, both candidates' figures
+(``scope3d.sfm.cavity_map_choice.choose_map``). This benchmark records, per case, both candidates' figures
 (observations of every verified track explained within the gate, wall spread, cameras off centre, frames
 registered), the figure of their disagreement (``map_disagreement``), which one the code keeps and why, and
 each candidate's true mean wall error after similarity (the metric of ``bench_panorama_3d.py``), so that the

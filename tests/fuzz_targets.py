@@ -164,7 +164,7 @@ def _tiny_dataset(root: Path) -> Path:
 
 
 def _tiny_bal_text() -> bytes:
-    from scope3d.estimators.bundle.synthetic import make_scene
+    from scope3d.phantoms.bundle_scene import make_scene
 
     scene = make_scene(3, 4, observations_per_point=2, seed=0)
     lines = [f"3 4 {len(scene.camera_index)}"]
@@ -525,6 +525,34 @@ def _add_later_readers(root: Path, add) -> None:
     add("hand-eye robot poses", robot, (root / "dataset" / "poses.csv").read_bytes(), lambda: robot_flange_poses(robot))
     report = root / "report" / "report.json"
     add("report.json", report, REPORT_SEED, lambda: build_page(report.parent))
+    _add_robot_log_readers(root, add)
+
+
+ROBOT_LOG_SEED = (b"t,x,y,z,qx,qy,qz,qw\n"
+                  + b"".join(b"%.4f,%.6f,0.0125,-0.002,0.0,0.0,%.9f,%.9f\n" % (i / 250, 0.001 * i, np.sin(i / 50),
+                                                                             np.cos(i / 50)) for i in range(12)))
+MATRIX_LOG_SEED = (b"stamp," + b",".join(b"m%d%d" % (i, j) for i in range(4) for j in range(4)) + b"\n"
+                   + b"".join(b"%d,1,0,0,%d,0,1,0,2,0,0,1,3,0,0,0,1\n" % (1000 * i, i) for i in range(6)))
+FRAME_TIMES_SEED = b"image,t\n" + b"".join(b"f%d.png,%.4f\n" % (i, i / 30) for i in range(6))
+HAND_EYE_SEED = (b'{"flange_from_cam": {"rotation": [[0, -1, 0], [1, 0, 0], [0, 0, 1]], "translation_mm": [1.5, -2, 40]},'
+                 b' "rms_px": 0.2}')
+
+
+def _add_robot_log_readers(root: Path, add) -> None:
+    """The readers of ``scope3d import frames``: a robot's pose log in two layouts, a frame-time table and
+    hand_eye.json."""
+    from scope3d.io.hand_eye_json import read_hand_eye_json
+    from scope3d.io.robot_log import PoseLogFormat, read_frame_times, read_pose_log
+
+    log = root / "robot_log" / "log.csv"
+    add("robot log", log, ROBOT_LOG_SEED, lambda: read_pose_log(log, PoseLogFormat(length_unit="m")))
+    matrix = root / "robot_log" / "matrix.csv"
+    add("robot log matrix44", matrix, MATRIX_LOG_SEED, lambda: read_pose_log(
+        matrix, PoseLogFormat("matrix44", columns={"t": "stamp"}, time_unit="ms", drop_bad_rows=True)))
+    times = root / "robot_log" / "frame_times.csv"
+    add("frame times", times, FRAME_TIMES_SEED, lambda: read_frame_times(times))
+    hand_eye = root / "robot_log" / "hand_eye.json"
+    add("hand_eye.json", hand_eye, HAND_EYE_SEED, lambda: read_hand_eye_json(hand_eye))
 
 
 def huge_header(target: Target) -> bytes:
@@ -565,7 +593,8 @@ def huge_header(target: Target) -> bytes:
         return seed[:at] + struct.pack(">I", 10**9) + seed[at + 4:]
     if target.name == "map points":
         return _npz_claiming_a_billion_points(seed)
-    if target.name in ("camera.json", "dataset.json", "scan plan", "intrinsic bounds", "quadrants", "report.json"):
+    if target.name in ("camera.json", "dataset.json", "scan plan", "intrinsic bounds", "quadrants", "report.json",
+                       "hand_eye.json"):
         return seed.replace(b"{", b'{"pad": [' + b"0," * 100000 + b'0], "deep": ' + b"[" * 100000 + b"]" * 100000
                             + b",", 1)
     if target.name.startswith("colmap"):

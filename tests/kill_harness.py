@@ -30,6 +30,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -224,7 +225,7 @@ def kill_trials(job: Job, trials: int, *, seed: int = 0, env: dict | None = None
 def make_inputs(root: Path) -> dict[str, Path]:
     """The small inputs the jobs read: a dome dataset (map), a thread bore (axial), a BAL problem."""
     from scope3d import phantoms
-    from scope3d.estimators.bundle.synthetic import make_scene
+    from scope3d.phantoms.bundle_scene import make_scene
     from scope3d.geometry.rotation import matrix_to_rotvec
     from scope3d.io.bal import BALProblem, write_bal
 
@@ -255,3 +256,67 @@ def jobs(inputs: dict[str, Path], work: Path) -> list[Job]:
                                      "--plot", str(work / "ba" / "curve.png")), work / "ba", files_in_folder=True),
         Job("axial", scope3d("axial", str(inputs["thread"]), "--out", str(work / "axial")), work / "axial"),
     ]
+
+
+def live_processes(session: int) -> dict[int, str]:
+    """pid -> state letter (R running, S sleeping, D...) of every process in ``session`` (a job started
+    with ``start_new_session=True`` has its pid as its session id, and every process it starts inherits
+    it); zombies (dead, not yet reaped) are left out."""
+    found = {}
+    for name in os.listdir("/proc"):
+        if not name.isdigit():
+            continue
+        try:
+            if os.getsid(int(name)) != session:
+                continue
+            with open(f"/proc/{name}/stat") as f:
+                state = f.read().rsplit(")", 1)[1].split()[0]
+        except OSError:  # ended meanwhile
+            continue
+        if state != "Z":
+            found[int(name)] = state
+    return found
+
+
+def waits_on_a_pipe(pid: int) -> bool:
+    """True when the process sleeps in a pipe read (its kernel wait channel: pipe_read, anon_pipe_read)."""
+    try:
+        with open(f"/proc/{pid}/wchan") as f:
+            return "pipe" in f.read()
+    except OSError:
+        return False
+
+
+def kill_the_leader_when(job: Job, env: dict, moment: Callable[[int, dict[int, str]], bool],
+                         attempts: int = 5) -> int | None:
+    """Start the job in a session of its own and SIGKILL its first process alone (as the out-of-memory
+    killer or a time limit would, not its process group) at the first ``moment(pid, others)`` that
+    holds, ``pid`` being that process and ``others`` the session's other live processes (pid -> state);
+    the session id, or None if every attempt finished before such a moment came (a kill before it would
+    prove nothing: retried)."""
+    for _ in range(attempts):
+        proc = subprocess.Popen(job.argv, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=REPO,
+                                start_new_session=True)
+        while proc.poll() is None:
+            others = {p: s for p, s in live_processes(proc.pid).items() if p != proc.pid}
+            if moment(proc.pid, others):
+                os.kill(proc.pid, signal.SIGKILL)
+                proc.wait()
+                return proc.pid
+            time.sleep(0.002)
+    return None
+
+
+def left_alive(session: int, patience_s: float = 20.0) -> dict[int, str]:
+    """The session's processes still alive once they all ended or ``patience_s`` passed (a bound on the
+    poll, not a timing target); those found are SIGKILLed after being listed, so a failing check leaves
+    nothing behind either."""
+    deadline = time.monotonic() + patience_s
+    while (alive := live_processes(session)) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    for pid in alive:
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+    return alive

@@ -21,7 +21,7 @@ import scipy.sparse
 
 from scope3d.estimators.bundle import BundleProblem, SolverOptions, kernels
 from scope3d.estimators.bundle import solver as solver_module
-from scope3d.estimators.bundle.synthetic import make_scene
+from scope3d.phantoms.bundle_scene import make_scene
 from scope3d.utils import aot
 
 BUNDLE = "scope3d.estimators.bundle.kernels"

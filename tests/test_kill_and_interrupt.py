@@ -6,6 +6,9 @@ previous complete result or the new complete one, never a mix, and the next run 
 temporaries behind. A kill that came after the job had ended is no trial: it is made again, earlier
 (kill_harness.ATTEMPTS). The long version kills >= 50 runs per job at moments uniform over a run.
 
+No process left behind: the map SIGKILLed alone (not its process group) at moments of its figures
+child's life leaves no process of its session alive (issue 39).
+
 Determinism: the same job with 1 and with 2 threads (numba, OpenMP, OpenBLAS) writes the same files byte
 for byte (report.json without its timing fields, scope3d.utils.jsonio.without_timings). The 2-thread run is
 the kill test's last, uninterrupted one, so each job runs three times in this file, not four.
@@ -20,7 +23,8 @@ from pathlib import Path
 import pytest
 
 from kill_harness import (
-    ATTEMPTS, REPO, environment, jobs, kill_trials, litter, make_inputs, put_previous, run_to_completion, snapshot,
+    ATTEMPTS, REPO, environment, jobs, kill_the_leader_when, kill_trials, left_alive, litter, make_inputs,
+    put_previous, run_to_completion, snapshot, waits_on_a_pipe,
 )
 
 JOBS = ["phantom", "map", "bundle-adjust", "axial"]
@@ -59,6 +63,30 @@ def test_one_and_two_threads_write_identical_files(inputs, all_jobs, tmp_path, n
     assert len(a) >= 3  # a dataset (phantom) or a result folder with its report
     differing = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
     assert not differing, differing
+
+
+# The moments of a map's run when its figures child (scope3d.utils.background) exists, told from /proc
+# (map: the job's process; children: the others of its session, pid -> state). A kill before the child
+# exists proves nothing about it, so a run that ends without reaching the moment is run again
+# (kill_the_leader_when), never counted as a pass. On these small maps the child draws from its fork to
+# the run's end, so it is never caught idle (the child waiting for calls: test_background.py).
+CHILD_MOMENTS = {
+    "as the child appears": lambda map, children: bool(children),
+    "while the child draws": lambda map, children: "R" in children.values(),
+    # the map has computed everything and reads the child's last word while it draws the last figures
+    # (the child has its end-of-calls then and ended by itself before issue 39's fix too)
+    "while the map waits for the child": lambda map, children: bool(children) and waits_on_a_pipe(map),
+}
+
+
+@pytest.mark.parametrize("moment", list(CHILD_MOMENTS))
+def test_a_killed_map_leaves_no_process_behind(inputs, tmp_path, moment):
+    # issue 39: SIGKILL of the map alone (the out-of-memory killer, a time limit) left its figures child
+    # alive for ever in 4 of 12 kills. Its own output folder: the killed runs' temporaries stay there.
+    job = {j.name: j for j in jobs(inputs, tmp_path)}["map"]
+    session = kill_the_leader_when(job, environment(), CHILD_MOMENTS[moment])
+    assert session is not None, f"5 runs ended before the moment {moment!r}"
+    assert left_alive(session) == {}
 
 
 def test_a_failing_run_keeps_the_previous_result(all_jobs, tmp_path):

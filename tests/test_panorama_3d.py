@@ -257,7 +257,7 @@ def test_planned_pairs_found_at_the_measured_wall_distance(turn_features):
 def test_pairs_disagreeing_with_the_averaged_rotations_are_inconsistent():
     from scope3d.estimators.averaging import RelativePose
     from scope3d.geometry.rotation import rotvec_to_matrix
-    from scope3d.sfm.cavity_mapping import consistent_pairs
+    from scope3d.estimators.cavity_start import consistent_pairs
     rng = np.random.default_rng(3)
     rotations = np.stack([rotvec_to_matrix(rng.normal(0.0, 0.5, 3)) for _ in range(6)])
     sigma = np.deg2rad(0.5)  # a consecutive pair's rotation sigma on the 608 px spiral: 0.1-0.8 deg
@@ -274,7 +274,7 @@ def test_pairs_disagreeing_with_the_averaged_rotations_are_inconsistent():
 
 
 def test_wall_spread_is_small_for_a_wall_at_one_distance_and_grows_when_scattered():
-    from scope3d.sfm.cavity_mapping import wall_spread
+    from scope3d.geometry.sphere import wall_spread
     rng = np.random.default_rng(4)
     d = rng.normal(size=(2000, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
@@ -287,7 +287,8 @@ def test_wall_spread_is_small_for_a_wall_at_one_distance_and_grows_when_scattere
 
 
 def test_the_anatomical_shell_keeps_the_near_wall_of_an_elongated_cavity_despite_far_points():
-    from scope3d.sfm.cavity_mapping import anatomical_shell, fit_sphere, inside_shell
+    from scope3d.geometry.sphere import fit_sphere
+    from scope3d.sfm.cavity_mapping import anatomical_shell, inside_shell
     rng = np.random.default_rng(3)
     semi_axes = np.array([45.0, 38.0, 32.0])  # the bladder phantom's (~90 x 76 x 64 mm)
 
@@ -324,7 +325,8 @@ def _cavity_map(points, centres, radius_scale=1.0):
     """A CavityMap of ``points`` (N, 3) seen by cameras at ``centres`` (n, 3), each observation of a point by
     frame 0 (only the points and poses matter to the self-check)."""
     from scope3d.scene.tracks import Tracks
-    from scope3d.sfm.cavity_mapping import CavityMap, fit_sphere
+    from scope3d.geometry.sphere import fit_sphere
+    from scope3d.sfm.cavity_mapping import CavityMap
     n_points = len(points)
     tracks = Tracks(np.arange(n_points), np.zeros(n_points, int), np.arange(n_points), np.zeros((n_points, 2)),
                     np.zeros((n_points, 3), np.uint8), np.asarray(points, float))
@@ -349,7 +351,8 @@ def _wall_and_cap():
 
 
 def test_cameras_off_centre_separates_a_cavity_seen_from_inside_from_a_cap_seen_from_its_wall():
-    from scope3d.sfm.cavity_mapping import MAX_OFF_CENTRE, cameras_off_centre, wall_spread
+    from scope3d.geometry.sphere import wall_spread
+    from scope3d.sfm.cavity_map_choice import MAX_OFF_CENTRE, cameras_off_centre
     wall, cap, cameras = _wall_and_cap()
     poses = [Pose.from_centre(np.eye(3), c) for c in cameras]
     # the cameras' centroid is the wall's centre: 0 up to the fit of an ellipsoid by a sphere; the cap's

@@ -9,6 +9,7 @@ from scope3d.geometry.grid import grid_faces
 from scope3d.geometry.plane import fit_plane, plane_residuals, plane_rms, principal_axes
 from scope3d.geometry.pose import Pose
 from scope3d.geometry.rotation import look_at
+from scope3d.io.ply import write_ply
 from scope3d.scene.surface import Surface, SurfaceOptions, depth_map, fit_surface, off_surface_points, texture
 from scope3d.sensor.camera import Camera
 
@@ -77,6 +78,28 @@ def test_mesh_faces_wind_towards_the_normal():
     face_n = np.cross(b - a, c - a)
     assert np.all(face_n @ s.axes[2] > 0)
     assert len(m.vertices) == int(s.valid.sum())
+
+
+def test_mesh_normals_are_defined_at_the_edge_and_unchanged_inside(tmp_path):
+    """A central difference at the surveyed disc's edge reaches outside it (NaN): the mesh took 1041 NaN
+    normals into the default demo's mesh.ply, which trimesh warned about on load (issue 33)."""
+    s = fit_surface(_cap_points(), towards=np.array([0, 0, 1.0]))
+    m = s.mesh()
+    inside = np.all(np.isfinite(s.normals()[s.valid]), axis=1)
+    assert (~inside).sum() > 20  # the edge is there to be tested
+    assert np.all(np.isfinite(m.vertex_normals))
+    np.testing.assert_allclose(np.linalg.norm(m.vertex_normals, axis=1), 1.0, atol=1e-12)
+    np.testing.assert_allclose(m.vertex_normals[inside], s.normals()[s.valid][inside], atol=1e-12)
+    # at the edge the one-sided normal agrees with the mesh's own faces as well as the central one does
+    # inside (the faces' area-weighted normals): both differ by the cap's turn over a cell, ~step / R / 2
+    import trimesh
+
+    from_faces = trimesh.Trimesh(m.vertices, m.faces, process=False).vertex_normals
+    angle = np.degrees(np.arccos(np.clip(np.sum(m.vertex_normals * from_faces, axis=1), -1, 1)))
+    assert angle[~inside].max() <= max(angle[inside].max(), np.degrees(s.step_mm / R_DOME))
+    write_ply(tmp_path / "mesh.ply", m)
+    loaded = trimesh.load(tmp_path / "mesh.ply", process=False)
+    assert np.all(np.isfinite(loaded.vertex_normals))
 
 
 def test_plane_residuals_and_rms():

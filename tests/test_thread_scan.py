@@ -12,6 +12,7 @@ import time
 
 import pytest
 
+from kill_harness import Job, environment, kill_the_leader_when, left_alive, scope3d
 from scope3d.cli.main import main
 from scope3d.metrology.thread_scan_plan import matched_frame_gap, plan_quadrant_scan
 from scope3d.phantoms.lab import BORESCOPE_FOV_DEG
@@ -112,3 +113,20 @@ def test_batch_survives_a_killed_worker_and_resumes(hole, tmp_path):
     assert "hole_a" in (out / "summary.csv").read_text()
     again = run_batch([hole, second], out, n_workers=1)
     assert [r["status"] for r in again.rows] == ["skipped", "skipped"]
+
+
+def test_a_killed_batch_leaves_no_worker_behind(hole, tmp_path):
+    # issue 39's question for the other job that starts processes: SIGKILL the batch alone (not its process
+    # group) while a worker of its local Dask cluster scans a hole. Dask's worker processes watch a pipe
+    # from their parent and exit on its end-of-file; this checks they, and multiprocessing's
+    # resource tracker, do not outlive the batch.
+    out = tmp_path / "line"
+    job = Job("batch", scope3d("batch", "thread-scan", str(hole), "--out", str(out), "--workers", "2",
+                               "--no-progress"), out)
+
+    def scanning(batch, others):  # a worker has started the hole: its temporary folder is there
+        return len(others) >= 2 and out.is_dir() and any(p.name.startswith(f".{hole.name}.") for p in out.iterdir())
+
+    session = kill_the_leader_when(job, environment(), scanning)
+    assert session is not None, "5 batches ended before a worker started the hole"
+    assert left_alive(session) == {}

@@ -12,7 +12,14 @@ import math
 import time
 from pathlib import Path
 
-from scope3d.cli.job_output import add_job_arguments, dataset_report_writer, finish_job, show_progress
+from scope3d.cli import commands_import_frames
+from scope3d.cli.job_output import (
+    add_job_arguments,
+    check_dataset_output,
+    dataset_report_writer,
+    finish_import,
+    show_progress,
+)
 from scope3d.cli.lazy import LazyChoices
 from scope3d.errors import InputError
 
@@ -123,6 +130,7 @@ def register(subparsers) -> None:
     vid.add_argument("--no-progress", action="store_true", help="no progress bar (as --quiet)")
     add_job_arguments(vid)
     vid.set_defaults(func=run_import_video)
+    commands_import_frames.register(formats)
 
 
 def _add_output_arguments(parser: argparse.ArgumentParser) -> None:
@@ -151,12 +159,6 @@ def _tolerance(args):
     return PoseTolerance.from_degrees(args.tolerance or 0.0, args.tolerance_deg)
 
 
-def _check_output(out: Path) -> None:
-    """Refuse to replace a folder that is not a scope3d dataset: it may be someone's work."""
-    if out.exists() and not (out.is_dir() and (not any(out.iterdir()) or (out / "dataset.json").is_file())):
-        raise InputError(f"{out}: exists and is not a scope3d dataset; choose another --out")
-
-
 # --- handlers ----------------------------------------------------------------------------------
 
 
@@ -169,14 +171,6 @@ def run_check(args) -> int:
     return 0
 
 
-def _finish_import(args, out: Path, report: dict, notes: tuple[str, ...] = ()) -> int:
-    """The import's summary (or its report as JSON, --json), then ``notes`` (lines of warning); report.json
-    and report.html are in ``out``."""
-    from scope3d.io.dataset import load_dataset
-
-    return finish_job(args, None, report, [load_dataset(out).summary(), *notes, f"wrote {out / 'report.html'}"])
-
-
 def _import_report(args, source: str) -> tuple[dict, object]:
     """The import's report (completed when the dataset is written) and the hook that writes it there."""
     report = {"job": f"import {args.format}", "source": source}
@@ -186,21 +180,21 @@ def _import_report(args, source: str) -> tuple[dict, object]:
 def run_import_middlebury(args) -> int:
     from scope3d.io.middlebury import import_middlebury
 
-    _check_output(args.out)
+    check_dataset_output(args.out)
     report, finish = _import_report(args, str(args.par_file))
     out = import_middlebury(args.par_file, args.out, tolerance=_tolerance(args), finish=finish)
-    return _finish_import(args, out, report)
+    return finish_import(args, out, report)
 
 
 def run_import_colmap(args) -> int:
     from scope3d.io.colmap import import_colmap
     from scope3d.io.dataset import LENGTH_UNITS_TO_MM
 
-    _check_output(args.out)
+    check_dataset_output(args.out)
     report, finish = _import_report(args, str(args.model_dir))
     out = import_colmap(args.model_dir, args.images, args.out, tolerance=_tolerance(args),
                         length_scale_to_mm=LENGTH_UNITS_TO_MM[args.model_unit], finish=finish)
-    return _finish_import(args, out, report)
+    return finish_import(args, out, report)
 
 
 def run_import_rosbag(args) -> int:
@@ -209,7 +203,7 @@ def run_import_rosbag(args) -> int:
 
     if not args.slop_ms > 0:
         raise InputError("--slop-ms must be positive")
-    _check_output(args.out)
+    check_dataset_output(args.out)
     given = args.tolerance is not None or args.tolerance_deg > 0
     options = RosbagOptions(image_topic=args.image_topic, pose_topic=args.pose_topic, camera_frame=args.camera_frame,
                             camera_info_topic=args.camera_info_topic, slop_s=args.slop_ms / 1000.0,
@@ -217,7 +211,7 @@ def run_import_rosbag(args) -> int:
     camera = read_camera_json(args.camera) if args.camera else None
     report, finish = _import_report(args, str(args.bag))
     out = import_rosbag(args.bag, args.out, options, camera=camera, finish=finish)
-    return _finish_import(args, out, report)
+    return finish_import(args, out, report)
 
 
 def run_import_video(args) -> int:
@@ -245,7 +239,7 @@ def run_import_video(args) -> int:
         raise InputError("--plan needs --tolerance MM and --tolerance-deg DEG: how far the scope may be from its plan")
     if args.fov is not None and not 0 < args.fov < 180:
         raise InputError(f"--fov must be between 0 and 180 degrees, got {args.fov}")
-    _check_output(args.out)
+    check_dataset_output(args.out)
     try:
         keyframes = KeyframeOptions(**tuning) if args.keyframes else None
         options = VideoImportOptions(
@@ -271,4 +265,4 @@ def run_import_video(args) -> int:
     with progress_bar(show_progress(args), "frame") as progress:
         out = import_video(args.video, args.out, options, camera=camera, plan=plan, intrinsics=intrinsics,
                            progress=progress, finish=finish_with_damage)
-    return _finish_import(args, out, report, tuple(decode_damage_summary(report["decode_damage"])))
+    return finish_import(args, out, report, tuple(decode_damage_summary(report["decode_damage"])))

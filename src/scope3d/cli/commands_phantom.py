@@ -98,6 +98,13 @@ def register(subparsers) -> None:
     bl.add_argument("--vessel-density", type=float, default=1.0, metavar="F",
                     help="bladder vessels and capillary dots as a fraction of the default (1); 0.25 is pale")
     bl.add_argument("--wet", action="store_true", help="bladder: specular glints of wet mucosa at the tip's light")
+    raw = p.add_argument_group("a lab's raw recording (docs/own_data.md)")
+    raw.add_argument("--raw-recording", action="store_true",
+                     help="dome only: write what a lab would bring instead of a dataset: checkerboard views, "
+                          "hand-eye stills with the robot's log, a scan video with its 250 Hz robot log (metres, "
+                          "x-y-z-w quaternions, the robot's own clock) and the hidden truth (--size, --seed apply)")
+    raw.add_argument("--scan-speed", type=float, default=25.0, metavar="MM_S",
+                     help="with --raw-recording: the scan's speed between raster points (default 25 mm/s)")
     add_job_arguments(p)
     p.set_defaults(func=run)
 
@@ -124,6 +131,8 @@ def run(args) -> int:
         raise InputError("name a scene (dome, sheet, bladder, thread) or use --list")
     if not args.out:
         raise InputError("--out DIR is required")
+    if args.raw_recording:
+        return _run_raw_recording(args)
     if args.blur < 0:
         raise InputError(f"--blur must be non-negative, got {args.blur}")
     if args.supersample is not None and not 1 <= args.supersample <= 8:
@@ -171,3 +180,23 @@ def run(args) -> int:
     return finish_job(args, None, report, [
         f"wrote {len(seq)} frames of {args.scene}/{seq.trajectory.name} ({seq.camera.width}x{seq.camera.height}) "
         f"to {out}", f"wrote {Path(out) / 'report.html'}"])
+
+
+def _run_raw_recording(args) -> int:
+    from scope3d.cli.progress import progress_bar
+    from scope3d.phantoms.recording import RecordingOptions, write_recording
+
+    if args.scene != "dome":
+        raise InputError(f"--raw-recording renders the dome phantom, not {args.scene!r}")
+    if not args.scan_speed > 0:
+        raise InputError(f"--scan-speed must be positive, got {args.scan_speed}")
+    out = Path(args.out)
+    if out.exists() and not (out / "README.txt").is_file() and any(out.iterdir()):
+        raise InputError(f"{out}: exists and is not a recording; choose another --out")
+    started = time.perf_counter()
+    with progress_bar(show_progress(args), "image") as progress:
+        write_recording(RecordingOptions(size=args.size, speed_mm_s=args.scan_speed, seed=args.seed), out,
+                        progress=progress)
+    report = {"job": "phantom", "scene": "dome", "raw_recording": str(out), "seed": args.seed,
+              "time_s": round(time.perf_counter() - started, 3)}
+    return finish_job(args, None, report, [f"wrote a raw recording to {out} (README.txt says what is in it)"])

@@ -96,3 +96,20 @@ def finish_job(args, out_dir: str | Path | None, report: dict, summary_lines: li
         for line in lines:
             print(line)
     return 0
+
+
+def check_dataset_output(out: Path) -> None:
+    """For a job whose output is a dataset (phantom, import): refuse to replace a folder that is not a
+    scope3d dataset, since it may be someone's work."""
+    from scope3d.errors import InputError
+
+    if out.exists() and not (out.is_dir() and (not any(out.iterdir()) or (out / "dataset.json").is_file())):
+        raise InputError(f"{out}: exists and is not a scope3d dataset; choose another --out")
+
+
+def finish_import(args, out: Path, report: dict, notes: tuple[str, ...] = ()) -> int:
+    """An import's summary (or its report as JSON, --json), then ``notes`` (lines of warning); report.json
+    and report.html are in ``out``."""
+    from scope3d.io.dataset import load_dataset
+
+    return finish_job(args, None, report, [load_dataset(out).summary(), *notes, f"wrote {out / 'report.html'}"])

@@ -27,6 +27,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.optimize import least_squares
 
+from scope3d.utils.robust import robust_sigma
+
 # ISO 965-1 (general purpose metric threads, tolerances) class 6H for internal threads: fundamental
 # deviation EI = 0 (H), tolerance grade 6: TD1 (minor diameter) 236 / 265 / 300 um for P = 1 / 1.25 /
 # 1.5 mm; TD2 (pitch diameter, nominal 5.6-11.2 mm) 150 / 160 / 180 um. The limits below are the basic
@@ -655,7 +657,7 @@ def _fit_profile(points, p0, base, x0, lower, upper, free_flank: bool, noise_mm:
     x = x0.copy()
     x[free] = sol.x
     res = sol.fun
-    core = np.abs(res) < 3 * noise_mm + 3 * 1.4826 * np.median(np.abs(res))
+    core = np.abs(res) < 3 * noise_mm + 3 * robust_sigma(res, about=0.0)
     dof = max(int(core.sum()) - int(free.sum()), 1)
     sigma2 = float(np.sum(res[core] ** 2) / dof)
     jac = sol.jac[core]
@@ -673,7 +675,7 @@ def _crest_defects(theta, z, turn, dist, options: GaugeOptions, pitch: float) ->
     """Group angular bins of each crest turn whose median outward distance is too deep."""
     if len(dist) == 0:
         return []
-    sigma = 1.4826 * np.median(np.abs(dist - np.median(dist)))
+    sigma = robust_sigma(dist)
     threshold = max(options.min_defect_depth_mm, 5 * sigma)
     n_bins = int(round(360.0 / options.defect_bin_deg))
     bins = np.floor(np.mod(theta, 2 * np.pi) / (2 * np.pi) * n_bins).astype(int) % n_bins

@@ -41,6 +41,7 @@ import numpy as np
 from scope3d.geometry.pose import Pose
 from scope3d.scene.mesh import Mesh
 from scope3d.sensor.camera import Camera
+from scope3d.utils.robust import robust_sigma
 
 GREY = np.uint8(128)
 
@@ -540,7 +541,7 @@ def _level_gains(samples, n_frames: int, *, rounds: int = 30) -> np.ndarray:
         log_gain[count == 0] = 0.0
         if r == rounds // 3:
             residual = values - per_texel[texel] - log_gain[frames]
-            sigma = 1.4826 * np.median(np.abs(residual)) + 1e-12
+            sigma = robust_sigma(residual, about=0.0) + 1e-12
             keep = np.abs(residual) <= 3 * sigma
     return np.exp(log_gain)
 

@@ -37,7 +37,8 @@ from scope3d.metrology.star_scale import StarScaleOptions, star_scale
 from scope3d.mvs.texturing import TextureOptions, texture_mesh
 from scope3d.pipelines.surgical_map import MapOptions, detect_features
 from scope3d.scene.mesh import Mesh, PointCloud, SampledSurface
-from scope3d.sfm.cavity_mapping import MAX_OFF_CENTRE, CavityMap, CavityOptions, cameras_off_centre, map_cavity
+from scope3d.sfm.cavity_map_choice import MAX_OFF_CENTRE, cameras_off_centre
+from scope3d.sfm.cavity_mapping import CavityMap, CavityOptions, map_cavity
 from scope3d.utils.atomic import atomic_directory
 from scope3d.utils.figures import new_figure, save_figure
 from scope3d.utils.jsonio import write_json
@@ -134,7 +135,7 @@ def self_check(cavity: CavityMap, options: CavityOptions, scaled: bool) -> dict:
 
     The warning: the two image-only candidate maps (:func:`scope3d.sfm.cavity_mapping.map_cavity`) come from
     different starts and pair sets; when 5 % of the points they share lie more than :data:`MAX_OFF_CENTRE` of
-    the wall's radius apart after a similarity (:func:`scope3d.sfm.cavity_mapping.map_disagreement`), they
+    the wall's radius apart after a similarity (:func:`scope3d.sfm.cavity_map_choice.map_disagreement`), they
     cannot both be the cavity, and the kept one is not confirmed. A warning, not a refusal: the kept map may
     be the right one (docs/panorama.md, "Which image-only map")."""
     off = cameras_off_centre(cavity.tracks.points, cavity.poses)

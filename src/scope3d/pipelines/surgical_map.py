@@ -89,7 +89,7 @@ from scope3d.sfm.guided_mapping import (
     refine_poses_for_matching,
 )
 from scope3d.sfm.model_checks import check_model, model_checks_summary
-from scope3d.sfm.pose_checks import PoseCheck, PoseCheckOptions, test_reported_poses
+from scope3d.sfm.pose_checks import PoseCheck, PoseCheckOptions, check_pose_reports
 from scope3d.utils.atomic import atomic_directory
 from scope3d.utils.background import BackgroundCalls
 from scope3d.utils.jsonio import write_json
@@ -437,15 +437,15 @@ def reconstruct(options: MapOptions, dataset: Dataset, features: list[Features],
 def check_reported_poses(options: MapOptions, dataset: Dataset, matching: MatchingResult,
                          sparse: SparseResult) -> PoseCheck | None:
     """Each reported pose tested against the images and the other frames
-    (:func:`scope3d.sfm.pose_checks.test_reported_poses`: every frame's pose estimated again from its
+    (:func:`scope3d.sfm.pose_checks.check_pose_reports`: every frame's pose estimated again from its
     observations of the points the other frames triangulate at the bounded map's poses); None when there
     is nothing to test: not ``bounded``, or reports so tight that they guided matching themselves (no
     coarse pass: a micro-stage's 0.01 mm, which the images cannot improve on; there a false alarm would
     only replace a good report by a worse estimate)."""
     if options.pose_check is None or options.pose_mode != "bounded" or matching.coarse is None:
         return None
-    return test_reported_poses(sparse.camera, dataset.poses, sparse.matched, sparse.poses, options.tracks,
-                               options.pose_check)
+    return check_pose_reports(sparse.camera, dataset.poses, sparse.matched, sparse.poses, options.tracks,
+                              options.pose_check)
 
 
 # --- 4. surface -------------------------------------------------------------------------------

@@ -29,6 +29,7 @@ from scope3d.errors import InputError
 from scope3d.geometry.pose import Pose
 from scope3d.geometry.rotation import matrix_to_rotvec, rotation_angle_between, rotvec_to_matrix
 from scope3d.registration.rigid import RansacOptions, fit_rigid, ransac_rigid
+from scope3d.utils.robust import robust_sigma
 
 
 @dataclass
@@ -323,7 +324,7 @@ def _covariance(sol, loss_scale_mm: float) -> np.ndarray | None:
     the robust loss' outliers), ``s^2`` their mean square per degree of freedom. Assumes independent
     residuals; None when the Jacobian is singular."""
     res = sol.fun
-    core = np.abs(res) < 3 * loss_scale_mm + 3 * 1.4826 * np.median(np.abs(res))
+    core = np.abs(res) < 3 * loss_scale_mm + 3 * robust_sigma(res, about=0.0)
     jac = sol.jac[core]
     jac = jac.toarray() if hasattr(jac, "toarray") else np.asarray(jac)
     dof = int(core.sum()) - len(sol.x)

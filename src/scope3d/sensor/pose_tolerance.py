@@ -71,6 +71,35 @@ OPTICAL_TRACKER = PoseTolerance.from_degrees([0.2, 0.2, 0.5], 0.5)
 
 CABLE_DRIVEN_ARM = PoseTolerance.from_degrees(3.0, 3.0)
 
+# An uncalibrated six-axis industrial arm: absolute pose accuracy (ISO 9283) of about 0.5-1 mm at the flange
+# over its working volume, about ten times its repeatability; the orientation to a few tenths of a degree.
+INDUSTRIAL_ARM = PoseTolerance.from_degrees(1.0, 0.25)
+
+
+@dataclass(frozen=True)
+class RobotClass:
+    """A named kind of positioning device and the tolerance it reports poses to, with where that comes from.
+    A data sheet's figure for the user's own device is always better: give it as numbers instead."""
+
+    name: str
+    tolerance: "PoseTolerance"
+    source: str
+
+
+ROBOT_CLASSES = {
+    c.name: c
+    for c in (
+        RobotClass("micro-stage", MICRO_STAGE, "micro-positioning stage, 0.01 mm (reference sec. 7.3, 8.3)"),
+        RobotClass("optical-tracker", OPTICAL_TRACKER,
+                   "optical tracker, 0.2, 0.2, 0.5 mm along world x, y, z, 0.5 deg (reference ch. 4, 6)"),
+        RobotClass("industrial-arm", INDUSTRIAL_ARM,
+                   "uncalibrated six-axis industrial arm, 1 mm, 0.25 deg: typical ISO 9283 absolute pose accuracy "
+                   "(about ten times the repeatability a data sheet states)"),
+        RobotClass("cable-driven-arm", CABLE_DRIVEN_ARM,
+                   "cable-driven surgical arm without joint encoders (RAVEN II), 3 mm, 3 deg (reference ch. 3-4)"),
+    )
+}
+
 
 @dataclass(frozen=True)
 class MeasuredPose:

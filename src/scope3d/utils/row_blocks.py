@@ -7,9 +7,10 @@ running sums restart at each block gives the same bits on any machine.
 """
 from __future__ import annotations
 
-import os
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable, Sequence
+
+from scope3d.utils.threads import available_cores
 
 BLOCK_ROWS = 128  # rows per block: ~10 blocks for a 608 px axial grid, a tenth of a row-restart's overhead
 
@@ -21,13 +22,6 @@ def row_blocks(height: int, block_rows: int | None = None) -> list[tuple[int, in
     if block_rows < 1:
         raise ValueError(f"block_rows must be positive, got {block_rows}")
     return [(lo, min(lo + block_rows, height)) for lo in range(0, height, block_rows)]
-
-
-def available_cores() -> int:
-    """CPUs this process may run on (its affinity mask where the platform has one)."""
-    if hasattr(os, "sched_getaffinity"):
-        return max(1, len(os.sched_getaffinity(0)))
-    return max(1, os.cpu_count() or 1)
 
 
 def run_by_row_blocks(kernel: Callable, height: int, inputs: Sequence, outputs: Sequence,
