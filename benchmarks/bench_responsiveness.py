@@ -84,7 +84,8 @@ def _run(job, interrupt: bool) -> dict:
     proc.returncode = os.waitstatus_to_exitcode(status)
     return {"status": proc.returncode, "wall_s": round(end_wall - t0, 3),
             "after_first_temporary_wall_s": None if at_wall is None else round(end_wall - at_wall, 3),
-            "after_first_temporary_cpu_s": None if at_cpu is None else round(usage.ru_utime + usage.ru_stime - at_cpu, 3)}
+            "after_first_temporary_cpu_s": None if at_cpu is None
+            else round(usage.ru_utime + usage.ru_stime - at_cpu, 3)}
 
 
 def ctrl_c(folder: Path, repeats: int) -> dict:

@@ -74,7 +74,7 @@ def _drawn(browser) -> None:
     the machine's speed (a fixed 0.5 s pause is a guess that a loaded machine's draw can outlast)."""
     browser.set_script_timeout(HANG_S)
     browser.execute_async_script("var done = arguments[arguments.length - 1];"
-                                 "requestAnimationFrame(function () { requestAnimationFrame(function () { done(); }); });")
+                                 "requestAnimationFrame(function () { requestAnimationFrame(done); });")
 
 
 def _console_errors(browser) -> list[dict]:
