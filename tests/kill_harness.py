@@ -288,7 +288,7 @@ def waits_on_a_pipe(pid: int) -> bool:
 
 
 def kill_the_leader_when(job: Job, env: dict, moment: Callable[[int, dict[int, str]], bool],
-                         attempts: int = 5) -> int | None:
+                         attempts: int = ATTEMPTS) -> int | None:
     """Start the job in a session of its own and SIGKILL its first process alone (as the out-of-memory
     killer or a time limit would, not its process group) at the first ``moment(pid, others)`` that
     holds, ``pid`` being that process and ``others`` the session's other live processes (pid -> state);
