@@ -91,7 +91,7 @@ def dome_run(dome_dir, tmp_path_factory):
 
 def test_the_map_result_pickles(dome_run):
     """A cluster worker sends its result back pickled (tests/test_job_calls.py has the other jobs')."""
-    _, result, _ = dome_run
+    result = dome_run[1]
     back = pickle.loads(pickle.dumps(result))
     assert back.summary() == result.summary()
     assert np.array_equal(back.sparse.tracks.points, result.sparse.tracks.points)
