@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from scope3d.cli.commands_import_frames import add_log_format_arguments, log_format, max_gap
 from scope3d.cli.job_output import add_job_arguments, finish_job, job_folder, show_progress
 
 
@@ -76,9 +77,17 @@ def register_hand_eye(subparsers) -> None:
         "(every robot row turned into a camera pose with that tolerance: a dataset's poses.csv).",
     )
     p.add_argument("images", type=Path, nargs="+", help="board images, named as in the robot poses file")
-    p.add_argument("--robot-poses", type=Path, required=True, metavar="CSV",
-                   help="poses.csv format (docs/datasets.md); each row is the flange pose in the robot base "
-                   "(x_mm, y_mm, z_mm: flange origin; qw..qz: base_from_flange)")
+    robot = p.add_argument_group("the robot's pose at each image: --robot-poses, or --robot-log with --frame-times")
+    which = robot.add_mutually_exclusive_group(required=True)
+    which.add_argument("--robot-poses", type=Path, metavar="CSV",
+                       help="poses.csv format (docs/datasets.md); each row is the flange pose in the robot base "
+                       "(x_mm, y_mm, z_mm: flange origin; qw..qz: base_from_flange)")
+    which.add_argument("--robot-log", type=Path, metavar="LOG_CSV",
+                       help="the robot's log of the session, read as `scope3d import frames --poses` reads it; "
+                            "each image's pose interpolated at its time (--frame-times)")
+    robot.add_argument("--frame-times", type=Path, metavar="CSV",
+                       help="with --robot-log: a table image,t giving each image's time on the log's clock")
+    add_log_format_arguments(robot)
     p.add_argument("--camera", type=Path, required=True, help="camera.json of the calibrated scope")
     p.add_argument("--board", required=True, metavar="COLSxROWS", help="inner corners (use one odd, one even "
                    "side: an even x even board's orientation is ambiguous)")
@@ -94,7 +103,8 @@ def register_hand_eye(subparsers) -> None:
 def _run_hand_eye(args) -> int:
     from scope3d.errors import InputError
     from scope3d.io.camera_json import read_camera_json
-    from scope3d.pipelines.hand_eye import HandEyeRunOptions, run
+    from scope3d.io.robot_log import read_frame_times
+    from scope3d.pipelines.hand_eye import HandEyeRunOptions, robot_poses_from_log, run
     from scope3d.sensor.calibration import BoardSpec
     from scope3d.sensor.hand_eye import HandEyeOptions
 
@@ -104,6 +114,14 @@ def _run_hand_eye(args) -> int:
     options = HandEyeRunOptions(board, hand_eye=HandEyeOptions(refine=not args.no_refine,
                                                                tolerance_sigmas=args.tolerance_sigmas))
     camera = read_camera_json(args.camera)
+    robot = args.robot_poses
+    if args.robot_log is not None:
+        if args.frame_times is None:
+            raise InputError("--robot-log needs --frame-times: when each image was taken, on the log's clock")
+        robot = robot_poses_from_log(args.robot_log, log_format(args), read_frame_times(args.frame_times, args.time_unit),
+                                     max_gap_s=max_gap(args))
+    elif args.frame_times is not None:
+        raise InputError("--frame-times goes with --robot-log")
     with job_folder(args.out) as staged:
-        result = run(options, args.images, args.robot_poses, camera, staged)
+        result = run(options, args.images, robot, camera, staged)
     return finish_job(args, args.out, result.report, [result.summary(), f"wrote {args.out}/ (hand_eye.json, poses.csv)"])
