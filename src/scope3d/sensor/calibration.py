@@ -419,13 +419,22 @@ def _fit(usable, obj_all, size, model):
             values = np.array([k[0, 0], k[1, 1], k[0, 2], k[1, 2], *dist.ravel()[:p - 4]])
             opencv_std = np.asarray(std_intr, dtype=float).ravel()[:p]
         else:
-            flags = cv2.CALIB_RECOMPUTE_EXTRINSIC | cv2.CALIB_FIX_SKEW
-            # OpenCV 5's fisheye functions want (1, N, C) point arrays.
-            _, k, dist, rvecs, tvecs = cv2.fisheye.calibrate(
-                [o.reshape(1, -1, 3) for o in obj], [i.reshape(1, -1, 2) for i in img], size, None, None,
-                flags=flags, criteria=criteria)
-            values = np.array([k[0, 0], k[1, 1], k[0, 2], k[1, 2], *np.asarray(dist).ravel()[:4]])
             opencv_std = None
+            try:
+                flags = cv2.CALIB_RECOMPUTE_EXTRINSIC | cv2.CALIB_FIX_SKEW
+                # OpenCV 5's fisheye functions want (1, N, C) point arrays.
+                _, k, dist, rvecs, tvecs = cv2.fisheye.calibrate(
+                    [o.reshape(1, -1, 3) for o in obj], [i.reshape(1, -1, 2) for i in img], size, None, None,
+                    flags=flags, criteria=criteria)
+                values = np.array([k[0, 0], k[1, 1], k[0, 2], k[1, 2], *np.asarray(dist).ravel()[:4]])
+            except cv2.error:
+                # cv2.fisheye's per-view initialisation can fail outright on a very wide lens (an assertion
+                # in InitExtrinsics: 1 of 20 rendered 165 deg sets). Start instead from the radial pinhole
+                # fit's focal length and principal point, no distortion, and let _polish find every pose from
+                # the rays and fit the fisheye.
+                radial = _fit(usable, obj_all, size, "pinhole_radial_k1k2")["values"]
+                values = np.concatenate([radial[:4], np.zeros(4)])
+                rvecs, tvecs = [np.zeros(3)] * len(usable), [np.array([0.0, 0.0, 1.0])] * len(usable)
     except cv2.error as exc:
         first = str(exc).strip().splitlines()[-1] if str(exc).strip() else "failed"
         raise InputError(f"calibration of {len(usable)} views failed in OpenCV ({first})") from None
@@ -461,7 +470,7 @@ def _polish(fit: dict, usable, obj_all, model: str) -> dict:
         candidate = Pose.from_rotvec(np.ravel(rvec), np.ravel(tvec))
         now = _sum_sq([d.pixels - project(model, values, poses[i], obj_all[d.corner_ids])])
         new = _sum_sq([d.pixels - project(model, values, candidate, obj_all[d.corner_ids])])
-        if np.isfinite(new) and new < now:
+        if np.isfinite(new) and not new >= now:  # also where the current pose puts corners out of view (NaN)
             poses[i] = candidate
     p, n_views = len(values), len(usable)
     x0 = np.concatenate([values] + [np.concatenate([q.rotvec, q.translation]) for q in poses])
@@ -487,7 +496,7 @@ def _polish(fit: dict, usable, obj_all, model: str) -> dict:
         return fit
     vals, ps = unpack(sol.x)
     res = [d.pixels - project(model, vals, q, obj_all[d.corner_ids]) for d, q in zip(usable, ps)]
-    if not np.isfinite(_sum_sq(res)) or _sum_sq(res) >= _sum_sq(fit["residuals"]):
+    if not np.isfinite(_sum_sq(res)) or _sum_sq(res) >= _sum_sq(fit["residuals"]):  # NaN before: not >=
         return fit
     try:
         Camera.from_params(1, 1, model, vals)  # positive focal lengths, finite parameters
