@@ -117,3 +117,24 @@ def test_cli_calibrate_fisheye_writes_a_fisheye_camera_and_its_bounds(tmp_path):
     # the jobs' bundle adjustment takes the radial model's bounds only, so far: refused, not misread
     with pytest.raises(InputError, match="OPENCV_FISHEYE"):
         read_intrinsic_bounds(out / "intrinsic_bounds.json")
+
+
+def test_fisheye_calibration_where_cv2_fisheye_fails_outright():
+    """On these exact corners (+0.1 px noise) of a 165 deg lens cv2.fisheye.calibrate stops on an assertion
+    in its per-view initialisation; scope3d starts from the radial fit and the poses from the rays."""
+    board = BoardSpec(9, 6, 2.0)
+    poses = random_board_poses(FISHEYE, board, 10, seed=512)
+    rng = np.random.default_rng(12)
+    dets = [BoardDetection(f"v{i}", FISHEYE.project(p.transform(board.object_points()))
+                           + 0.1 * rng.standard_normal((board.num_corners, 2)), np.arange(board.num_corners))
+            for i, p in enumerate(poses)]
+    with pytest.raises(cv2.error, match="InitExtrinsics"):
+        cv2.fisheye.calibrate([board.object_points().reshape(1, -1, 3)] * len(dets),
+                              [d.pixels.reshape(1, -1, 2) for d in dets], (320, 240), None, None,
+                              flags=cv2.CALIB_RECOMPUTE_EXTRINSIC | cv2.CALIB_FIX_SKEW)
+    cal = calibrate(dets, board, (320, 240), options=CalibrationOptions(model="fisheye"))
+    assert len(cal.views) == 10
+    # the corner noise sets the RMS: 0.1 px per coordinate is 0.14 px per corner
+    assert cal.rms_px < 0.15
+    # every parameter within 4 of its sigmas (a 1-in-16000 event per parameter for an honest sigma)
+    assert np.all(np.abs(cal.values - FISHEYE.params) < 4 * cal.std), (cal.values - FISHEYE.params) / cal.std
