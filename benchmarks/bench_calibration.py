@@ -145,7 +145,8 @@ def real_images() -> dict:
     images = [read_image(p, grey=True) for p in paths]
     size = (images[0].shape[1], images[0].shape[0])
     out: dict = {"images": [p.name for p in paths]}
-    refined = [detect_board(im, board, name=p.name, options=DetectionOptions(refine_corners=True)) for p, im in zip(paths, images)]
+    refined = [detect_board(im, board, name=p.name, options=DetectionOptions(refine_corners=True))
+               for p, im in zip(paths, images)]
     # The sector detector's corners without the cornerSubPix step, for the ablation.
     raw = [detect_board(im, board, name=p.name, options=DetectionOptions(refine_corners=False))
            for p, im in zip(paths, images)]
