@@ -111,7 +111,7 @@ def misalignment(seq_scene, camera, surface: SampledSurface) -> list[dict]:
             row = {"offset_mm": offset, "tilt_deg": tilt}
             for label, aligned in (("true_poses", False), ("aligned_model", True)):
                 opts = replace(AxialOptions().two_view, assume_aligned=aligned)
-                res = reconstruct_pair(camera, imgs[0], imgs[1], poses[0], poses[1], opts)
+                res = reconstruct_pair(camera, imgs[0], imgs[1], poses[0], poses[1], options=opts)
                 depth = to_image(res.pair, res.range_mm)
                 pts = depth.points_world[depth.valid]
                 d = surface.distances(pts) if len(pts) else np.array([])
@@ -130,8 +130,8 @@ def middlebury() -> dict:
     xr = np.clip(np.round(np.arange(w)[None] - gt).astype(int), 0, w - 1)
     nonocc = (gt > 0) & (np.abs(g6[np.arange(h)[:, None], xr] - gt) <= 1)
     out = {}
-    for name, fn in (("sgm", lambda: sgm_disparity(left, right, SgmOptions(num_disparities=64))),
-                     ("sad", lambda: sad_disparity(left, right, SadOptions(num_disparities=64)))):
+    for name, fn in (("sgm", lambda: sgm_disparity(left, right, options=SgmOptions(num_disparities=64))),
+                     ("sad", lambda: sad_disparity(left, right, options=SadOptions(num_disparities=64)))):
         t = time.perf_counter()
         d = fn().disparity
         dt = time.perf_counter() - t
@@ -160,7 +160,7 @@ def speed(label: str, repeats: int = 7) -> dict:
         rows = {"pair": [], "run": []}
         for _ in range(repeats):
             c, w = time.process_time(), time.perf_counter()
-            pair_fn(ds.camera, imgs[0], imgs[1], poses[1], poses[2], opts.two_view)
+            pair_fn(ds.camera, imgs[0], imgs[1], poses[1], poses[2], options=opts.two_view)
             rows["pair"].append((time.process_time() - c, time.perf_counter() - w))
             c, w = time.process_time(), time.perf_counter()
             res = run(opts, ds, None)

@@ -136,7 +136,7 @@ def render_survey(*, size_px: int = 608, rows: int = GRID_ROWS, cols: int = GRID
               for i, p in enumerate(true_poses)]
     timings["render_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    features = [detect(f, camera, feature_options) for f in frames]
+    features = [detect(f, camera, options=feature_options) for f in frames]
     timings["sift_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     m = len(frames)
@@ -241,7 +241,7 @@ def evaluate(survey: Survey, problem: BundleProblem, result, measured: list[Meas
     }
     aligned = direct
     if icp:
-        best, spread = icp_from_initial_poses(pts, survey.truth, EvaluationOptions())
+        best, spread = icp_from_initial_poses(pts, survey.truth, options=EvaluationOptions())
         aligned = survey.truth.distances(best.apply(pts))
         # the identity is a rigid alignment too: an ICP result whose mean distance over *all* points is
         # worse than no alignment (a slide along the dome's symmetry that sheds points) is not used

@@ -33,7 +33,7 @@ ITERATIONS = 5
 
 def run_single(name: str) -> dict:
     from scope3d.estimators.bundle import BundleProblem, SolverOptions, solve, warm_up
-    from scope3d.estimators.bundle.synthetic import make_scene
+    from scope3d.phantoms.bundle_scene import make_scene
 
     warm_up()
     m, n = SIZES[name]

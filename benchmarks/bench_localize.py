@@ -123,7 +123,7 @@ def _medians(runs: list[dict]) -> dict:
 def correspondences(points, ds, k, blocked, features_options) -> tuple[np.ndarray, np.ndarray]:
     """Frame k's global SIFT matches against the map (ratio 0.8, one-to-one): (N, 3) mm, (N, 2) px."""
     loc = Localizer(points, ds.camera, LocalizerOptions(features=features_options))
-    f = detect(ds.frame(k), ds.camera, features_options)
+    f = detect(ds.frame(k), ds.camera, options=features_options)
     keep = np.ones(len(f), bool) if blocked is None else ~blocked[np.rint(f.keypoints[:, 1]).astype(int),
                                                                    np.rint(f.keypoints[:, 0]).astype(int)]
     ids, fi = loc._match_global(f.descriptors[keep])
@@ -220,7 +220,7 @@ def dome(work: Path) -> dict:
     ds, run = datasets[0], tracking["reported"][0]
     target = np.array(json.loads((approaches[0] / "ground_truth" / "scene.json").read_text())["trajectory"]["target_mm"])
     centres = np.array([f["centre_mm"] for f in run["frames"] if "centre_mm" in f])
-    plans = [plan_approach(points.xyz_mm, target, c, ApproachOptions()) for c in centres[::10]]
+    plans = [plan_approach(points.xyz_mm, target, c, options=ApproachOptions()) for c in centres[::10]]
     save_approach_png(OUT / "localize_approach_path.png", points.xyz_mm, plans, travelled_mm=centres,
                       title="dome, target 1: plan from the first localized pose, re-planned every 10 frames")
     result["approach_plans"] = [{"start_mm": p.waypoints_mm[0].tolist(), "length_mm": p.length_mm,

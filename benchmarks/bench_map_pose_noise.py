@@ -288,7 +288,7 @@ def _sim_summary(sim) -> dict:
 
 def surface_errors(points: np.ndarray, truth: SampledSurface, ev: EvaluationOptions) -> dict:
     """The pipeline's evaluation: distances direct and after ICP from eight starts (mm)."""
-    best, _ = icp_from_initial_poses(points, truth, ev)
+    best, _ = icp_from_initial_poses(points, truth, options=ev)
     return {"direct": _short(distance_summary(truth.distances(points))),
             "after_icp": _short(distance_summary(truth.distances(best.apply(points))))}
 
@@ -491,7 +491,7 @@ def own_floor(scene: Scene, measured: list[MeasuredPose], points: np.ndarray | N
     if scene.truth is None or points is None or len(points) < 10:
         return None
     ev = scene.options.evaluation
-    best, _ = icp_from_initial_poses(points, scene.truth, ev)
+    best, _ = icp_from_initial_poses(points, scene.truth, options=ev)
     shadow = scene.truth.nearest(best.apply(points))[0]
     true_c = np.stack([p.centre for p in scene.true_poses])
     sim = similarity(true_c, np.stack([m.pose.centre for m in measured]))

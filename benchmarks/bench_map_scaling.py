@@ -98,7 +98,7 @@ def render_survey(n_frames: int, cache: Path, work: Path) -> tuple[Path, float]:
     options = RenderOptions()
     if missing:
         # one exposure for the whole sheet (a flat print under the same light: every view's gain is alike)
-        exposure = sequence_exposure(scene, camera, [poses[c] for c in survey_cells(30)], options)
+        exposure = sequence_exposure(scene, camera, [poses[c] for c in survey_cells(30)], options=options)
         for (r, c), path in missing:
             frame = render_frame(scene, camera, poses[(r, c)], seed=SEED, frame_index=r * FULL_GRID[1] + c,
                                  exposure=exposure, options=options)

@@ -28,7 +28,8 @@ import numpy as np
 
 from scope3d import phantoms
 from scope3d.io.dataset import load_dataset
-from scope3d.pipelines.panorama import make_mosaic, plan_scan
+from scope3d.pipelines import mosaic as mosaic_job
+from scope3d.pipelines import scan_plan as scan_plan_job
 from scope3d.registration import mosaic as mos
 from scope3d.sfm.scan_planning import ScanPlanOptions
 
@@ -45,8 +46,8 @@ def plans(tmp: Path) -> list[dict]:
         for fov in (50.0, 70.0):
             c0 = time.process_time()
             folder = tmp / f"plan_{standoff:g}_{fov:g}"
-            plan = plan_scan(ScanPlanOptions(standoff_mm=standoff, overlap=0.5, fov_deg=fov, bend_limit_deg=125.0),
-                             "bladder", folder)
+            plan = scan_plan_job.run(ScanPlanOptions(standoff_mm=standoff, overlap=0.5, fov_deg=fov,
+                                                     bend_limit_deg=125.0), "bladder", folder).plan
             rows.append({"standoff_mm": standoff, "fov_deg": fov, "n_views_no_limit": plan.n_planned,
                          "coverage_no_limit": plan.coverage_unlimited.fraction, "bend_limit_deg": 125.0,
                          "n_views_bend_limit": plan.n_views, "coverage_bend_limit": plan.coverage.fraction,
@@ -93,7 +94,8 @@ def mosaic_vs_stitcher(tmp: Path) -> dict:
     cams = [ds.camera] * len(ds)
     truth = mos.true_plane_homographies(cams, list(ds.ground_truth.poses), np.zeros(3), [0.0, 0.0, 1.0])
     c0, t0 = time.process_time(), time.perf_counter()
-    ours, res = make_mosaic(mos.MosaicOptions(), [ds], tmp / "sheet_mosaic")
+    job = mosaic_job.run(mos.MosaicOptions(), [ds], tmp / "sheet_mosaic")
+    ours, res = job.report, job.mosaic
     ours_cpu, ours_wall = time.process_time() - c0, time.perf_counter() - t0
     shutil.copy(tmp / "sheet_mosaic" / "mosaic_path.png", OUT / "panorama_mosaic_sheet.png")
 
@@ -123,12 +125,12 @@ def mosaic_vs_stitcher(tmp: Path) -> dict:
 def bladder_mosaic(tmp: Path) -> dict:
     from scope3d.io.scan_plan import read_scan_plan
 
-    plan_scan(ScanPlanOptions(standoff_mm=30.0, overlap=0.5, fov_deg=70.0), "bladder", tmp / "plan_30_free")
+    scan_plan_job.run(ScanPlanOptions(standoff_mm=30.0, overlap=0.5, fov_deg=70.0), "bladder", tmp / "plan_30_free")
     seq = phantoms.generate("bladder", plan=read_scan_plan(tmp / "plan_30_free" / "plan.json"), size=(304, 304))
     phantoms.write(seq, tmp / "bladder30")
     ds = load_dataset(tmp / "bladder30")
     c0 = time.process_time()
-    report, _ = make_mosaic(mos.MosaicOptions(), [ds], tmp / "bladder_mosaic")
+    report = mosaic_job.run(mos.MosaicOptions(), [ds], tmp / "bladder_mosaic").report
     shutil.copy(tmp / "bladder_mosaic" / "mosaic_path.png", OUT / "panorama_mosaic_bladder.png")
     return {"plan": "bladder, 30 mm stand-off, FOV 70°, 50 % overlap", **{k: report[k] for k in (
         "n_frames", "n_registered", "n_linked_pairs", "coverage_fraction", "residual_px", "time_s")},

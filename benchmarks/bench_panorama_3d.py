@@ -28,9 +28,9 @@ from scope3d.errors import InputError
 from scope3d.geometry.pose import Pose
 from scope3d.io.dataset import load_dataset
 from scope3d.metrology.evaluation import errors_after_similarity, true_track_points
-from scope3d.pipelines.panorama_3d import PanoramaOptions, run
+from scope3d.pipelines.panorama import Panorama3dOptions, run
 from scope3d.scene.mesh import SampledSurface
-from scope3d.sfm.cavity_mapping import cameras_off_centre
+from scope3d.sfm.cavity_map_choice import cameras_off_centre
 from scope3d.utils.figures import new_figure, save_figure
 
 RESULTS = Path(__file__).parent / "results"
@@ -44,15 +44,15 @@ def ours(ds, work: Path, use_planned: bool, stars: bool = False) -> dict:
     """Our map; with ``stars`` its scale from the star targets (``scale_error_fraction`` against the truth),
     or, when no star is seen whole, the unscaled map and the reason (``stars_error``)."""
     c0, t0 = time.process_time(), time.perf_counter()
-    options = PanoramaOptions(use_planned_poses=use_planned, figures=False)
+    options = Panorama3dOptions(use_planned_poses=use_planned, figures=False)
     stars_error = None
     try:
-        report, _ = run(options if stars else replace(options, stars=None), ds, work / "ours")
+        report = run(options if stars else replace(options, stars=None), ds, work / "ours").report
     except InputError as exc:  # no star seen whole: the map without a scale, and why
         if not stars:
             raise
         stars_error = str(exc)
-        report, _ = run(replace(options, stars=None), ds, work / "ours")
+        report = run(replace(options, stars=None), ds, work / "ours").report
     return {"method": "scope3d panorama" + (" (planned poses)" if use_planned else " (images only)"),
             "n_registered": report["n_registered"], "n_points": report["n_points"],
             "surface_error_mm": report.get("surface_error_mm", {}).get("after_similarity"),

@@ -1,7 +1,7 @@
 """Which image-only cavity map to keep (issue 11 §4): without planned poses ``map_cavity`` adjusts two maps of
 the same frames, the all-pair map (every verified pair's tracks, centres from their rays) and the chain's map
 (the shape-tested pairs alone, from the depth-scaled start), and keeps one by figures that need no truth
-(``scope3d.sfm.cavity_mapping.choose_map``). This benchmark records, per case, both candidates' figures
+(``scope3d.sfm.cavity_map_choice.choose_map``). This benchmark records, per case, both candidates' figures
 (observations of every verified track explained within the gate, wall spread, cameras off centre, frames
 registered), the figure of their disagreement (``map_disagreement``), which one the code keeps and why, and
 each candidate's true mean wall error after similarity (the metric of ``bench_panorama_3d.py``), so that the
@@ -27,7 +27,7 @@ from bench_panorama_3d import load
 from bench_panorama_3d_sweep import CLI, SWEEPS, dataset_for
 from scope3d.errors import InputError
 from scope3d.io.dataset import load_dataset
-from scope3d.pipelines.panorama_3d import PanoramaOptions, evaluate, panorama_features
+from scope3d.pipelines.panorama import Panorama3dOptions, evaluate, panorama_features
 from scope3d.sfm.cavity_mapping import map_cavity
 from scope3d.utils.atomic import atomic_file
 
@@ -70,7 +70,7 @@ def dataset(cache: Path, tag: str) -> tuple[Path, dict]:
 
 def wall_error(ds, cavity, tracks) -> float | None:
     """Mean distance of ``tracks``' points to the true wall after similarity (mm)."""
-    found = evaluate(ds, replace(cavity, tracks=tracks), PanoramaOptions().evaluation_step_mm)
+    found = evaluate(ds, replace(cavity, tracks=tracks), Panorama3dOptions().evaluation_step_mm)
     return (found.get("surface_error_mm") or {}).get("after_similarity", {}).get("mean")
 
 
@@ -78,7 +78,7 @@ def run_case(path: Path) -> dict:
     """Both candidate maps of the images-only panorama of the dataset at ``path``: figures, choice, truth."""
     ds = load_dataset(path)
     c0, t0 = time.process_time(), time.perf_counter()
-    options = PanoramaOptions(use_planned_poses=False)
+    options = Panorama3dOptions(use_planned_poses=False)
     features = panorama_features(options, ds)
     try:
         cavity = map_cavity(ds.camera, features, None, options.cavity, options.matching, where=str(path))

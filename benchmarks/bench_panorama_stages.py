@@ -1,5 +1,5 @@
 """Where the time of a whole ``scope3d panorama`` run goes (issue 11, "the whole 3D panorama of a spiral in
-under 2 minutes"): :func:`scope3d.pipelines.panorama_3d.run` as the command runs it (stars, textured wall,
+under 2 minutes"): :func:`scope3d.pipelines.panorama.run` as the command runs it (stars, textured wall,
 files), with planned poses and images only, per stage in wall and CPU seconds (CPU: every thread of the
 process, so CPU above wall means both cores worked), with the load average around each run and what the
 map is worth against the truth (frames registered, wall error after similarity, the stars' scale error),
@@ -26,7 +26,7 @@ from pathlib import Path
 from bench_panorama_3d import load
 from bench_panorama_3d_sweep import SWEEPS, dataset_for
 from scope3d.io.dataset import load_dataset
-from scope3d.pipelines.panorama_3d import PanoramaOptions, run
+from scope3d.pipelines.panorama import Panorama3dOptions, run
 from scope3d.utils.atomic import atomic_file
 
 RESULTS = Path(__file__).parent / "results"
@@ -38,7 +38,7 @@ def one_run(path: Path, use_planned: bool) -> dict:
     before = load()
     c0, t0 = time.process_time(), time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
-        report, _ = run(PanoramaOptions(use_planned_poses=use_planned), ds, Path(tmp) / "out")
+        report = run(Panorama3dOptions(use_planned_poses=use_planned), ds, Path(tmp) / "out").report
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     timings = report["timings_s"]
     return {"poses": "planned" if use_planned else "images only", "n_frames": report["n_frames"],
@@ -70,7 +70,7 @@ def main() -> None:
             # read again just before writing: rows of other cases run meanwhile are kept
             result = json.loads(out.read_text()) if out.exists() else {"rows": []}
             result.update(cpu_count=os.cpu_count(),
-                          note="wall and CPU seconds per stage of scope3d.pipelines.panorama_3d.run (stars, "
+                          note="wall and CPU seconds per stage of scope3d.pipelines.panorama.run (stars, "
                                "textured wall, files included); CPU counts every thread of the process")
             result["rows"] = [r for r in result["rows"] if (r["case"], r["poses"]) != (tag, row["poses"])] + [row]
             RESULTS.mkdir(exist_ok=True)

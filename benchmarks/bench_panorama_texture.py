@@ -30,7 +30,7 @@ from scope3d.metrology.evaluation import errors_after_similarity, true_track_poi
 from scope3d.metrology.texture_evaluation import textured_errors, vertex_colour_errors
 from scope3d.mvs.texturing import TextureOptions, texture_mesh
 from scope3d.phantoms.scenes import build_scene
-from scope3d.pipelines.panorama_3d import PanoramaOptions, cavity_mesh, run
+from scope3d.pipelines.panorama import Panorama3dOptions, cavity_mesh, run
 from scope3d.scene.mesh import SampledSurface
 from scope3d.utils.figures import new_figure, save_figure
 
@@ -52,7 +52,7 @@ def true_scene(ds):
 
 def timed_texture(mesh, centre, ds, poses, options):
     c0, t0 = time.process_time(), time.perf_counter()
-    textured = texture_mesh(mesh, centre, ds.camera, poses, ds.frame, options)
+    textured = texture_mesh(mesh, centre, ds.camera, poses, ds.frame, options=options)
     return textured, {"cpu_s": time.process_time() - c0, "wall_s": time.perf_counter() - t0}
 
 
@@ -71,8 +71,9 @@ def main() -> None:
 
     with tempfile.TemporaryDirectory() as tmp:
         c0, t0 = time.process_time(), time.perf_counter()
-        report, cavity = run(PanoramaOptions(use_planned_poses=not args.ignore_poses, figures=False, texture=None),
-                             ds, Path(tmp) / "run")
+        result = run(Panorama3dOptions(use_planned_poses=not args.ignore_poses, figures=False, texture=None),
+                     ds, Path(tmp) / "run")
+        report, cavity = result.report, result.cavity
         out["map"] = {"poses": report["poses"], "n_registered": report["n_registered"], "n_points": report["n_points"],
                       "surface_error_mm": report.get("surface_error_mm"), "cpu_s": time.process_time() - c0,
                       "wall_s": time.perf_counter() - t0}
@@ -95,7 +96,7 @@ def main() -> None:
         assert np.array_equal(f, textured.mesh.faces) and np.array_equal(image, textured.image)
     out["texture"]["vs_truth"] = textured_errors(textured, sim, true_wall, np.zeros(3), scene.albedo)
     out["texture_levelled_gains"] = textured_errors(
-        texture_mesh(wall, cavity.centre_mm, ds.camera, poses, ds.frame, TextureOptions(level_gains=True)),
+        texture_mesh(wall, cavity.centre_mm, ds.camera, poses, ds.frame, options=TextureOptions(level_gains=True)),
         sim, true_wall, np.zeros(3), scene.albedo)
     out["vertex_colours"] = vertex_colour_errors(wall, textured.texel_mm, sim, true_wall, np.zeros(3), scene.albedo)
     if args.floor:

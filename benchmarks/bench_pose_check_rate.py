@@ -51,8 +51,10 @@ from scope3d.geometry.rotation import matrix_to_rotvec, rotvec_to_matrix  # noqa
 from scope3d.io.dataset import Dataset, load_dataset  # noqa: E402
 from scope3d.pipelines import surgical_map as sm  # noqa: E402
 from scope3d.sensor.pose_tolerance import MeasuredPose  # noqa: E402
-from scope3d.sfm.pose_checks import (PoseCheckOptions, _linearise, _scale_of_images, box_mahalanobis,  # noqa: E402
-                                     screen_reported_poses, test_reported_poses)
+from scope3d.sfm.leave_one_out import (LeaveOneOutOptions, box_mahalanobis, linearise,  # noqa: E402
+                                       screen_reported_poses)
+from scope3d.sfm.pose_checks import PoseCheckOptions, check_pose_reports  # noqa: E402
+from scope3d.sfm.variance_factor import scale_of_images  # noqa: E402
 from scope3d.utils.jsonio import write_json  # noqa: E402
 
 SURVEYS = {"dome12": ("grid5x6", 12), "dome30": ("grid5x6", 30), "dome56": ("grid7x8", 56)}
@@ -110,10 +112,10 @@ def one_case(survey: str, seed: int, shift_mm: float, tmp: Path, turn_deg: float
     stages_cpu = time.process_time() - t0
     args = (sparse.camera, dataset.poses, tracks, sparse.poses, options.tracks)
     t0 = time.process_time()
-    screened_check = test_reported_poses(*args, PoseCheckOptions())  # the default: the screen, then local exact tests
+    screened_check = check_pose_reports(*args, PoseCheckOptions())  # the default: the screen, then local exact tests
     screened_cpu = time.process_time() - t0
     t0 = time.process_time()
-    check = test_reported_poses(*args, options.pose_check) if reference else screened_check  # every frame's full one
+    check = check_pose_reports(*args, options.pose_check) if reference else screened_check  # every frame's full one
     cpu = time.process_time() - t0 if reference else float("nan")
     screen = screen_statistics(*args, check.false_alarm_rate)
     truth = dataset.ground_truth.poses
@@ -173,15 +175,15 @@ def screen_statistics(camera, measured, tracks, poses, track_options, rate: floa
     from scipy.stats import f as f_dist
 
     testable = [k for k in range(len(measured)) if not measured[k].tolerance.is_exact]
-    model = _linearise(camera, measured, tracks, poses, track_options, PoseCheckOptions())
-    screened = screen_reported_poses(model, measured, testable, tracks, PoseCheckOptions())
+    model = linearise(camera, measured, tracks, poses, track_options, LeaveOneOutOptions())
+    screened = screen_reported_poses(model, measured, testable, tracks, LeaveOneOutOptions())
     alpha = rate / max(len(testable), 1)
     out = {}
     for k, t in screened.items():
         if t.status != "ok":
             out[k] = {"screen_status": t.status}
             continue
-        factor, dof, _ = _scale_of_images([s for j, s in screened.items() if j != k and s.status == "ok"], measured, alpha)
+        factor, dof, _ = scale_of_images([s for j, s in screened.items() if j != k and s.status == "ok"], measured, alpha)
         half = np.r_[measured[k].tolerance.orientation_rad, measured[k].tolerance.position_mm]
         out[k] = {"screen_status": "ok", "screen_d2": round(box_mahalanobis(t.offset, factor * t.covariance, half)[0], 3),
                   "screen_critical": round(6.0 * float(f_dist.isf(alpha, 6, dof)), 2),

@@ -1,5 +1,5 @@
 """Which frames does the pose check's screen send to the exact test for losing observations to the map's
-gate? (scope3d.sfm.pose_checks._lost_to_the_gate, issue 16 section 5)
+gate? (scope3d.sfm.gate_loss.lost_to_the_gate, issue 16 section 5)
 
 For each case (survey, seed, glitch; the same phantoms and glitches as bench_pose_check_rate.py) the map's
 stages run up to the bounded adjustment, then the screen (one bounded adjustment of every matched
@@ -38,8 +38,9 @@ from bench_pose_check_rate import glitched_dataset  # noqa: E402
 
 from scope3d.feature.tracks import build_tracks  # noqa: E402
 from scope3d.pipelines import surgical_map as sm  # noqa: E402
-from scope3d.sfm.pose_checks import (PoseCheckOptions, _linearise, _lost_to_the_gate,  # noqa: E402
-                                     screen_reported_poses)
+from scope3d.sfm.gate_loss import lost_to_the_gate  # noqa: E402
+from scope3d.sfm.leave_one_out import linearise, screen_reported_poses  # noqa: E402
+from scope3d.sfm.pose_checks import PoseCheckOptions  # noqa: E402
 from scope3d.utils.jsonio import write_json  # noqa: E402
 
 
@@ -88,10 +89,11 @@ def main(argv=None) -> int:
     for case in args.cases.split(","):
         d = bounded_map(case, tmp, Path(args.cache) if args.cache else None)
         testable = [k for k in range(len(d["measured"])) if not d["measured"][k].tolerance.is_exact]
-        model = _linearise(d["camera"], d["measured"], d["tracks"], d["poses"], d["track_options"], options)
-        screened = screen_reported_poses(model, d["measured"], testable, d["tracks"], options)
+        model = linearise(d["camera"], d["measured"], d["tracks"], d["poses"], d["track_options"],
+                          options.leave_one_out)
+        screened = screen_reported_poses(model, d["measured"], testable, d["tracks"], options.leave_one_out)
         t0 = time.process_time()
-        sent = _lost_to_the_gate(screened, level)
+        sent = lost_to_the_gate(screened, level)
         cpu = time.process_time() - t0
         before = median_binomial(screened, level)
         runs.append({"case": case, "glitched": d["glitched"], "sent_on": sorted(sent),

@@ -6,7 +6,7 @@ the cavity, ``--pose-noise 1``), shape seeds 100-109 with semi-axes drawn once f
 (uniform 36-46 mm, sorted), two of them wet with half the vessels, one at 256 px, one blurred by 1 px (the
 phantom's frames are otherwise sharp); and seed 23 (42,37,30),
 the cavity on which the stars were +1.16 % (diagnosed on, so not counted as unseen). Each case's map is
-made by ``scope3d.pipelines.panorama_3d.run`` without the stars (planned poses, and images only with
+made by ``scope3d.pipelines.panorama.run`` without the stars (planned poses, and images only with
 ``--images``), cached, and the stars' scale is measured on it by ``metrology.star_scale`` exactly as the
 pipeline does (the same poses and tracks).
 
@@ -51,7 +51,7 @@ from scope3d.metrology.evaluation import true_track_points
 from scope3d.metrology.fluorescence import auto_threshold
 from scope3d.metrology.star_scale import (StarScaleOptions, covered_area, field_inside, fit_local_wall,
                                           pentagram_area_mm2, star_blobs, star_scale)
-from scope3d.pipelines.panorama_3d import PanoramaOptions, evaluate, run
+from scope3d.pipelines.panorama import Panorama3dOptions, evaluate, run
 from scope3d.utils.atomic import atomic_file
 from scope3d.utils.figures import new_figure, save_figure
 
@@ -87,10 +87,11 @@ def map_for(cache: Path, tag: str, ds, planned: bool) -> dict:
     if path.exists():
         return pickle.loads(path.read_bytes())
     c0 = time.process_time()
-    options = PanoramaOptions(use_planned_poses=planned, stars=None, figures=False, texture=None)
+    options = Panorama3dOptions(use_planned_poses=planned, stars=None, figures=False, texture=None)
     with tempfile.TemporaryDirectory() as tmp:
         try:
-            report, cavity = run(options, ds, Path(tmp) / "out")
+            result = run(options, ds, Path(tmp) / "out")
+            report, cavity = result.report, result.cavity
         except InputError as exc:  # a refused map (self-check) has no stars to measure
             entry = {"refused": str(exc)}
             path.write_bytes(pickle.dumps(entry))
@@ -117,7 +118,7 @@ def view_truth(ds, entry: dict, true_points: np.ndarray, view: dict, options: St
     """One star view measured against the truth (module docstring); scales as the view's over the truth's
     minus 1."""
     camera, gt, k = ds.camera, ds.ground_truth, view["frame"]
-    blob = min(star_blobs(ds.fluorescence_frame(k), threshold, inside, options),
+    blob = min(star_blobs(ds.fluorescence_frame(k), threshold, inside, options=options),
                key=lambda b: np.linalg.norm(b.centre_px - view["pixel"]))
     true_area = pentagram_area_mm2(options.outer_diameter_mm)
     depth = gt.depth(k).astype(float)
@@ -151,14 +152,14 @@ def stars_on(ds, entry: dict, options: StarScaleOptions) -> dict:
     fluorescence = [ds.fluorescence_frame(k) for k in range(len(ds))]
     c0 = time.process_time()
     try:
-        stars = star_scale(ds.camera, entry["poses"], entry["tracks"], fluorescence, options)
+        stars = star_scale(ds.camera, entry["poses"], entry["tracks"], fluorescence, options=options)
     except InputError as exc:
         return {"stars_error": str(exc)}
     cpu = time.process_time() - c0
     tr = entry["tracks"]
     true_points = true_track_points(ds.camera, ds.ground_truth.poses, ds.ground_truth.depth, tr.frame, tr.track,
                                     tr.pixels, tr.n_tracks)
-    threshold = auto_threshold(fluorescence, options.fluorescence)
+    threshold = auto_threshold(fluorescence, options=options.fluorescence)
     inside = field_inside(ds.camera, options.border_px)
     error = entry["map_scale"] / stars.scale - 1.0  # report.json's scale_error_fraction
     return {"scale_error_fraction": error, "sigma": stars.uncertainty, "z": error / stars.uncertainty,

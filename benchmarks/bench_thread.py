@@ -28,7 +28,7 @@ import numpy as np
 from scope3d.geometry.pose import Pose
 from scope3d.io.dataset import load_dataset
 from scope3d.phantoms import generate, write
-from scope3d.pipelines.thread_batch import run_batch
+from scope3d.pipelines import thread_batch
 from scope3d.pipelines.thread_scan import ThreadScanOptions, map_quadrants, run, true_world_from_stacked
 from scope3d.registration.panorama import PanoramaOptions, register_quadrants, registration_errors
 from scope3d.utils.figures import new_figure, save_figure
@@ -91,7 +91,7 @@ def registration_bench(tmp: Path) -> dict:
         for name, opts in (("scope3d_stage_model", PanoramaOptions()), ("scope3d_free", PanoramaOptions(model="free"))):
             t0 = time.perf_counter()
             try:
-                res = register_quadrants(clouds, opts)
+                res = register_quadrants(clouds, options=opts)
             except Exception as exc:  # a failed registration is a result too
                 view_rows[name] = {"error": str(exc)}
                 continue
@@ -126,7 +126,7 @@ def gauge_bench() -> dict:
         pts = pts[pts[:, 2] < -0.05]
         pts = pts + np.random.default_rng(0).normal(0, 0.01, pts.shape)
         t0 = time.process_time()
-        g = gauge_thread(pts, GaugeOptions(designation=size))
+        g = gauge_thread(pts, options=GaugeOptions(designation=size))
         rows[size] = {"verdict": g.verdict, "cpu_s": time.process_time() - t0,
                       "minor_error_mm": g.minor_diameter_mm.value - made["minor_diameter_mm"],
                       "major_error_mm": g.major_diameter_mm.value - made["major_diameter_mm"],
@@ -147,7 +147,7 @@ def throughput_bench(tmp: Path) -> dict:
     for workers in (1, 2):
         dest = tmp / f"line_{workers}"
         t0 = time.perf_counter()
-        b = run_batch(holes * 2 if workers == 2 else holes, dest, n_workers=workers)
+        b = thread_batch.run(ThreadScanOptions(), holes * 2 if workers == 2 else holes, dest, n_workers=workers)
         dt = time.perf_counter() - t0
         out[f"batch_{workers}_workers"] = {"holes": len(b.rows), "wall_s": dt, "holes_per_min": 60 * len(b.rows) / dt}
     return out

@@ -189,7 +189,7 @@ def main() -> None:
     scratch = Path(tempfile.mkdtemp(prefix="bench_thread_gauge_"))
     data = args.data or scratch
     data.mkdir(parents=True, exist_ok=True)
-    results = {"setup": {"plan": "metrology.thread_scan_plan.plan_quadrant_scan, default ScanPlanOptions",
+    results = {"setup": {"plan": "metrology.thread_scan_plan.plan_quadrant_scan, default QuadrantScanPlanOptions",
                          "size": list(SIZE), "side_view_deg": SIDE_VIEW_DEG, "mount": MOUNT}, "holes": {}}
     if (OUT / "thread_gauge.json").is_file():  # a run of some holes keeps the other holes' rows
         results["holes"] = json.loads((OUT / "thread_gauge.json").read_text()).get("holes", {})

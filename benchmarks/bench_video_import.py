@@ -12,7 +12,7 @@ Written as MPEG-4 with cv2.VideoWriter, then timed in this process, one stage af
 
 1. decode only (``read_video``), the floor any import pays;
 2. decode + key-frame choice (``KeyframeSelector.offer`` on every frame);
-3. the whole ``import_video --keyframes`` (also PNG-encodes the key frames and writes the dataset);
+3. the whole ``video_import.run`` with key frames (also PNG-encodes the key frames and writes the dataset);
 4. ``scope3d import video --keyframes`` as a user runs it, in its own process (start-up included), whose
    peak memory is recorded: the import streams, so it should not grow with the video.
 
@@ -47,7 +47,8 @@ import numpy as np
 from scope3d.feature.keyframes import KeyframeOptions, KeyframeSelector
 from scope3d.io.video import probe_video, read_video, write_video
 from scope3d.phantoms.textures import tissue_texture
-from scope3d.pipelines.video_import import VideoImportOptions, import_video
+from scope3d.pipelines import video_import
+from scope3d.pipelines.video_import import VideoImportOptions
 from scope3d.sensor.camera import Camera
 from scope3d.sensor.pose_tolerance import PoseTolerance
 from scope3d.utils.figures import new_figure, save_figure
@@ -144,12 +145,12 @@ def bladder_video(n_frames: int) -> dict:
     written as MP4 and imported with --keyframes and the plan: key frames against the true motion."""
     from scope3d.io.scan_plan import read_scan_plan
     from scope3d.phantoms import generate
-    from scope3d.pipelines.panorama import plan_scan
+    from scope3d.pipelines import scan_plan
     from scope3d.sfm.scan_planning import ScanPlanOptions
 
     with tempfile.TemporaryDirectory(prefix="bench-bladder-") as tmp:
         tmp = Path(tmp)
-        plan_scan(ScanPlanOptions(standoff_mm=30.0, overlap=0.5, fov_deg=70.0), "bladder", tmp / "plan")
+        scan_plan.run(ScanPlanOptions(standoff_mm=30.0, overlap=0.5, fov_deg=70.0), "bladder", tmp / "plan")
         plan = read_scan_plan(tmp / "plan" / "plan.json")
         t0 = time.perf_counter()
         seq = generate("bladder", plan=plan, video_fps=FPS, seconds_per_view=1.0, size=(200, 200), n_frames=n_frames)
@@ -157,7 +158,7 @@ def bladder_video(n_frames: int) -> dict:
         write_video(tmp / "video.mp4", seq.frames, FPS)
         options = VideoImportOptions(keyframes=KeyframeOptions(), seconds_per_view=1.0,
                                      plan_tolerance=PoseTolerance.from_degrees(5.0, 10.0))
-        out = import_video(tmp / "video.mp4", tmp / "dataset", options, camera=seq.camera, plan=plan)
+        out = video_import.run(options, tmp / "video.mp4", seq.camera, tmp / "dataset", plan=plan).dataset_dir
         source = json.loads((out / "dataset.json").read_text())["source"]
         from scope3d.io.dataset import load_dataset
 
@@ -272,7 +273,7 @@ def main() -> None:
         out_dir = Path(tmp) / "dataset"
 
         def whole():
-            import_video(video, out_dir, VideoImportOptions(keyframes=KeyframeOptions()), camera=camera)
+            video_import.run(VideoImportOptions(keyframes=KeyframeOptions()), video, camera, out_dir)
             return {"key_frames": len(list((out_dir / "frames").iterdir()))}
 
         stages.append(timed("import_video --keyframes (dataset)", n, whole))

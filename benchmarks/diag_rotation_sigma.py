@@ -37,7 +37,7 @@ def main(path: str) -> None:
     ds = load_dataset(path)
     options = MAP_PRESETS["default"]
     features = detect_features(options, ds, [ds.frame(k) for k in range(len(ds))])
-    coarse = coarse_poses(ds.camera, features, ds.poses, options.matching, options.coarse)
+    coarse = coarse_poses(ds.camera, features, ds.poses, match_options=options.matching, options=options.coarse)
     true = ds.ground_truth.poses
     rel = coarse.relative
     err = np.array([rotation_angle_between(r.rotation, true[r.j].rotation @ true[r.i].rotation.T) for r in rel])

@@ -86,7 +86,7 @@ def main() -> int:
         poses = [m.pose for m in ds.poses]
 
         def pair():
-            return two_view.reconstruct_pair(ds.camera, images[0], images[1], poses[1], poses[2], options)
+            return two_view.reconstruct_pair(ds.camera, images[0], images[1], poses[1], poses[2], options=options)
 
         pair()  # warm
         totals = collections.defaultdict(lambda: [0.0, 0.0, 0])

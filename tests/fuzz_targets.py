@@ -164,7 +164,7 @@ def _tiny_dataset(root: Path) -> Path:
 
 
 def _tiny_bal_text() -> bytes:
-    from scope3d.estimators.bundle.synthetic import make_scene
+    from scope3d.phantoms.bundle_scene import make_scene
 
     scene = make_scene(3, 4, observations_per_point=2, seed=0)
     lines = [f"3 4 {len(scene.camera_index)}"]
@@ -499,11 +499,12 @@ def _add_later_readers(root: Path, add) -> None:
     options = RosbagOptions(image_topic="/image", pose_topic="/pose", camera_info_topic="/info", slop_s=0.005)
     (root / "rosbag").mkdir(parents=True, exist_ok=True)
     bag1 = _rosbag_seed(root / "rosbag" / "seed.bag", ros1=True)
-    add("rosbag ros1", bag1, bag1.read_bytes(), lambda: import_rosbag(bag1, root / "rosbag" / "out1", options))
+    add("rosbag ros1", bag1, bag1.read_bytes(), lambda: import_rosbag(bag1, root / "rosbag" / "out1", options=options))
     bag2 = _rosbag_seed(root / "rosbag" / "seed2", ros1=False)
     storage = next(p for p in bag2.iterdir() if p.name != "metadata.yaml")
     for name, file in (("rosbag2 metadata.yaml", bag2 / "metadata.yaml"), ("rosbag2 storage", storage)):
-        add(name, file, file.read_bytes(), lambda: import_rosbag(bag2, root / "rosbag" / "out2", options), names=bag2)
+        add(name, file, file.read_bytes(), lambda: import_rosbag(bag2, root / "rosbag" / "out2", options=options),
+            names=bag2)
 
     video = root / "video" / "v.mp4"
     (root / "video").mkdir(parents=True, exist_ok=True)

@@ -10,6 +10,11 @@ random moment within the run's duration, and classify the output location:
   timing fields, :func:`scope3d.utils.jsonio.without_timings`);
 * ``mix``: anything else: a failure.
 
+A kill lands when the job dies of it. One that does not (the job ended first: a fast run, or a machine so
+loaded or so idle that the moment came late) tests nothing and is not a trial: it is tried again at an
+earlier moment, up to :data:`ATTEMPTS` times, and a trial whose kills never landed is counted in
+``trials_not_killed`` (a failure for the tests), never as an outcome.
+
 Temporaries a killed job leaves beside (or, for files, inside) the output location are counted as
 litter; a final uninterrupted run must succeed, give the new result again, and remove every stale one.
 """
@@ -25,6 +30,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -110,12 +116,17 @@ def run_to_completion(job: Job, env: dict, timeout: float = 900) -> float:
     return time.perf_counter() - t0
 
 
+ATTEMPTS = 5  # kills per trial at ever earlier moments before the trial counts as not killed
+
+
 @dataclass
 class KillReport:
     job: str
     run_time_s: float
     trials: int = 0
     outcomes: dict = field(default_factory=lambda: {"previous": 0, "new": 0, "mix": 0})
+    kills_missed: int = 0  # kills that came after the job had ended, each retried earlier (not outcomes)
+    trials_not_killed: int = 0  # trials none of whose ATTEMPTS kills landed (not outcomes)
     mixes: list = field(default_factory=list)
     litter_after_kills: int = 0  # temporaries found right after a kill (the next run removes them)
     litter_after_final_run: int = -1
@@ -126,7 +137,8 @@ class KillReport:
         return dict(self.__dict__)
 
 
-def _kill_at_random_moment(job: Job, env: dict, delay: float) -> float:
+def _kill_at_random_moment(job: Job, env: dict, delay: float) -> tuple[float, bool]:
+    """Kill ``delay`` s after the start; (delay, whether the kill landed)."""
     proc = subprocess.Popen(job.argv, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=REPO,
                             start_new_session=True)
     try:
@@ -134,22 +146,23 @@ def _kill_at_random_moment(job: Job, env: dict, delay: float) -> float:
     except subprocess.TimeoutExpired:
         os.killpg(proc.pid, signal.SIGKILL)
         proc.wait()
-    return delay
+    return delay, proc.returncode == -signal.SIGKILL
 
 
-def _kill_while_writing(job: Job, env: dict, rng: random.Random) -> float:
-    """Kill within 0.3 s of the moment the job's first temporary output appears (it is writing)."""
+def _kill_while_writing(job: Job, env: dict, rng: random.Random, latest: float) -> tuple[float, bool]:
+    """Kill within ``latest`` s of the moment the job's first temporary output appears (it is writing);
+    (seconds from the start to the kill, whether the kill landed)."""
     before = set(litter(job))
     t0 = time.perf_counter()
     proc = subprocess.Popen(job.argv, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=REPO,
                             start_new_session=True)
     while proc.poll() is None and not (set(litter(job)) - before):
-        time.sleep(0.002)
+        time.sleep(0.001)
     if proc.poll() is None:
-        time.sleep(rng.uniform(0.0, 0.3))
+        time.sleep(rng.uniform(0.0, latest))
         os.killpg(proc.pid, signal.SIGKILL)
     proc.wait()
-    return time.perf_counter() - t0
+    return time.perf_counter() - t0, proc.returncode == -signal.SIGKILL
 
 
 def kill_trials(job: Job, trials: int, *, seed: int = 0, env: dict | None = None,
@@ -169,16 +182,33 @@ def kill_trials(job: Job, trials: int, *, seed: int = 0, env: dict | None = None
         first = snapshot(job.out)
     states = []
     kill_times = []
+    missed = not_killed = 0
     for _ in range(trials):
-        previous = put_previous(job)
-        if while_writing:
-            kill_times.append(_kill_while_writing(job, env, rng))
-        else:  # from the start (imports, reading) to past the usual end (a run can be slower under load)
-            kill_times.append(_kill_at_random_moment(job, env, rng.uniform(0.0, 1.1 * duration)))
-        states.append((previous, snapshot(job.out), len(litter(job))))
+        # while writing: within 0.3 s of the first temporary, then 0.1, 0.03, 0.01 s, then at once; at a
+        # random moment: from the start (imports, reading) to past the usual end (a run can be slower under
+        # load), then uniform before the moment that came too late
+        latest = 0.3 if while_writing else 1.1 * duration
+        for _ in range(ATTEMPTS):
+            previous = put_previous(job)
+            if while_writing:
+                at, landed = _kill_while_writing(job, env, rng, latest)
+            else:
+                at, landed = _kill_at_random_moment(job, env, rng.uniform(0.0, latest))
+            if landed:
+                kill_times.append(at)
+                states.append((previous, snapshot(job.out), len(litter(job))))
+                break
+            missed += 1
+            if while_writing:
+                latest = latest / 3 if latest > 0.02 else 0.0
+            else:
+                latest = at
+        else:
+            not_killed += 1
     final_duration = run_to_completion(job, env)  # must succeed whatever the kills left behind
     new = first or snapshot(job.out)
-    report = KillReport(job.name, round(duration or final_duration, 2), trials=trials,
+    report = KillReport(job.name, round(duration or final_duration, 2), trials=len(states),
+                        kills_missed=missed, trials_not_killed=not_killed,
                         kill_times_s=[round(t, 2) for t in kill_times])
     for (previous, state, left), at in zip(states, kill_times):
         outcome = "previous" if state == previous else "new" if state == new else "mix"
@@ -195,7 +225,7 @@ def kill_trials(job: Job, trials: int, *, seed: int = 0, env: dict | None = None
 def make_inputs(root: Path) -> dict[str, Path]:
     """The small inputs the jobs read: a dome dataset (map), a thread bore (axial), a BAL problem."""
     from scope3d import phantoms
-    from scope3d.estimators.bundle.synthetic import make_scene
+    from scope3d.phantoms.bundle_scene import make_scene
     from scope3d.geometry.rotation import matrix_to_rotvec
     from scope3d.io.bal import BALProblem, write_bal
 
@@ -226,3 +256,67 @@ def jobs(inputs: dict[str, Path], work: Path) -> list[Job]:
                                      "--plot", str(work / "ba" / "curve.png")), work / "ba", files_in_folder=True),
         Job("axial", scope3d("axial", str(inputs["thread"]), "--out", str(work / "axial")), work / "axial"),
     ]
+
+
+def live_processes(session: int) -> dict[int, str]:
+    """pid -> state letter (R running, S sleeping, D...) of every process in ``session`` (a job started
+    with ``start_new_session=True`` has its pid as its session id, and every process it starts inherits
+    it); zombies (dead, not yet reaped) are left out."""
+    found = {}
+    for name in os.listdir("/proc"):
+        if not name.isdigit():
+            continue
+        try:
+            if os.getsid(int(name)) != session:
+                continue
+            with open(f"/proc/{name}/stat") as f:
+                state = f.read().rsplit(")", 1)[1].split()[0]
+        except OSError:  # ended meanwhile
+            continue
+        if state != "Z":
+            found[int(name)] = state
+    return found
+
+
+def waits_on_a_pipe(pid: int) -> bool:
+    """True when the process sleeps in a pipe read (its kernel wait channel: pipe_read, anon_pipe_read)."""
+    try:
+        with open(f"/proc/{pid}/wchan") as f:
+            return "pipe" in f.read()
+    except OSError:
+        return False
+
+
+def kill_the_leader_when(job: Job, env: dict, moment: Callable[[int, dict[int, str]], bool],
+                         attempts: int = ATTEMPTS) -> int | None:
+    """Start the job in a session of its own and SIGKILL its first process alone (as the out-of-memory
+    killer or a time limit would, not its process group) at the first ``moment(pid, others)`` that
+    holds, ``pid`` being that process and ``others`` the session's other live processes (pid -> state);
+    the session id, or None if every attempt finished before such a moment came (a kill before it would
+    prove nothing: retried)."""
+    for _ in range(attempts):
+        proc = subprocess.Popen(job.argv, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=REPO,
+                                start_new_session=True)
+        while proc.poll() is None:
+            others = {p: s for p, s in live_processes(proc.pid).items() if p != proc.pid}
+            if moment(proc.pid, others):
+                os.kill(proc.pid, signal.SIGKILL)
+                proc.wait()
+                return proc.pid
+            time.sleep(0.002)
+    return None
+
+
+def left_alive(session: int, patience_s: float = 20.0) -> dict[int, str]:
+    """The session's processes still alive once they all ended or ``patience_s`` passed (a bound on the
+    poll, not a timing target); those found are SIGKILLed after being listed, so a failing check leaves
+    nothing behind either."""
+    deadline = time.monotonic() + patience_s
+    while (alive := live_processes(session)) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    for pid in alive:
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+    return alive

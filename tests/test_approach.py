@@ -29,7 +29,7 @@ def test_the_path_keeps_the_safety_distance_where_the_straight_line_would_not(tm
     opts = ApproachOptions(safety_distance_mm=1.5, normal_radius_mm=1.5)
     straight = np.linspace(start, target, 200)
     assert _distance_to(dense, straight).min() < 0.1  # the straight line goes through the ridge
-    plan = plan_approach(sparse, target, start, opts)
+    plan = plan_approach(sparse, target, start, options=opts)
     assert plan.feasible
     # the floor's normal at the target, tilted by the ridge's foot (0.26 mm high at x = 3.5 mm): ~3 deg
     assert np.rad2deg(np.arccos(plan.normal[2])) < 5.0
@@ -44,7 +44,7 @@ def test_the_path_keeps_the_safety_distance_where_the_straight_line_would_not(tm
     off_axis = np.linalg.norm(np.cross(last - target, plan.normal), axis=1)
     assert off_axis.max() < 1e-9
     # re-planning from a point part-way along reaches the same goal and stays clear
-    again = replan(plan, sparse, plan.waypoints_mm[len(plan.waypoints_mm) // 3], opts)
+    again = replan(plan, sparse, plan.waypoints_mm[len(plan.waypoints_mm) // 3], options=opts)
     assert again.feasible and again.length_mm < plan.length_mm
     np.testing.assert_allclose(again.goal_mm, plan.goal_mm)
     save_approach_png(tmp_path / "a.png", sparse, [plan, again])

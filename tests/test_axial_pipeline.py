@@ -1,5 +1,6 @@
 """End to end on a small rendered threaded hole: depth against ground truth, CLI files, CLI errors."""
 import json
+import pickle
 
 import numpy as np
 import pytest
@@ -20,6 +21,7 @@ def thread_dataset(tmp_path_factory):
 def test_two_view_depth_against_ground_truth(thread_dataset):
     ds = load_dataset(thread_dataset)
     result = run(AxialOptions(method="sgm", frames=(2, 3)), ds, None)
+    assert pickle.loads(pickle.dumps(result)).summary() == result.summary()  # results travel to cluster workers
     depth = result.depths[0]
     truth = ds.ground_truth.depth(3)
     ok = depth.valid & np.isfinite(truth)

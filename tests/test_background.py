@@ -1,13 +1,17 @@
-"""BackgroundCalls: calls run in a forked child, in order, and a failure comes back to the caller."""
+"""BackgroundCalls: calls run in a forked child, in order, a failure comes back to the caller, and the child
+ends when its parent is killed."""
 from __future__ import annotations
 
 import os
+import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from kill_harness import REPO, environment, left_alive, waits_on_a_pipe
 from scope3d.utils.background import BackgroundCalls
 
 FORKS = sys.platform.startswith("linux")
@@ -66,3 +70,62 @@ def test_disabled_runs_at_once_and_an_error_in_the_block_cancels(tmp_path):
             background.start()
             raise KeyError("the caller failed")
     background.wait()  # cancelled: nothing left to wait for
+
+
+# A parent that forks a BackgroundCalls child and then computes for ever; its one call reports the
+# child's pid, then returns (the child waits for the next call) or never returns (a drawing under way).
+_PARENT = """
+import os, sys, time
+from scope3d.utils.background import BackgroundCalls
+
+def report_pid(path, then_never_return):
+    with open(path + ".tmp", "w") as f:
+        f.write(str(os.getpid()))
+    os.replace(path + ".tmp", path)
+    if then_never_return:
+        time.sleep(3600)
+
+background = BackgroundCalls()
+background.submit(report_pid, sys.argv[1], sys.argv[2] == "in a call")
+background.start()
+time.sleep(3600)
+"""
+
+
+def _pipe_ends(pid: int) -> dict[str, set[str]]:
+    """pipe -> the ends ('r', 'w') the process holds of it."""
+    ends: dict[str, set[str]] = {}
+    for fd in os.listdir(f"/proc/{pid}/fd"):
+        target = os.readlink(f"/proc/{pid}/fd/{fd}")
+        if target.startswith("pipe:"):
+            with open(f"/proc/{pid}/fdinfo/{fd}") as f:
+                flags = int(f.read().split("flags:")[1].split()[0], 8)
+            ends.setdefault(target, set()).add("w" if flags & os.O_ACCMODE == os.O_WRONLY else "r")
+    return ends
+
+
+@pytest.mark.parametrize("child", ["waiting for calls", "in a call"])
+def test_the_child_ends_when_its_parent_is_killed(tmp_path, child):
+    # issue 39: a SIGKILLed map left its figures child alive for ever, blocked reading a pipe whose write
+    # end it held itself. The parent runs in a session of its own: every process it started shares it.
+    pid_file = tmp_path / "child.pid"
+    parent = subprocess.Popen([sys.executable, "-c", _PARENT, str(pid_file), child], env=environment(), cwd=REPO,
+                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+    deadline = time.monotonic() + 120  # bounds the polls below, should the child never get there
+    try:
+        while not pid_file.exists():
+            assert parent.poll() is None and time.monotonic() < deadline, parent.stderr.read()
+            time.sleep(0.01)
+        pid = int(pid_file.read_text())
+        assert pid != parent.pid if FORKS else pid == parent.pid
+        if FORKS and child == "waiting for calls":
+            while not waits_on_a_pipe(pid):  # back from the call, reading the next one
+                assert time.monotonic() < deadline
+                time.sleep(0.01)
+            # the pipe it reads from must not be held open by the child itself: no pipe with both ends here
+            assert [p for p, ends in _pipe_ends(pid).items() if ends == {"r", "w"}] == []
+    finally:  # whatever failed above, nothing of this test may stay alive
+        parent.kill()
+        parent.wait()
+        alive = left_alive(parent.pid)
+    assert alive == {}

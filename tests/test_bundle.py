@@ -14,9 +14,9 @@ from scope3d.estimators.bundle import (
     kernels,
     solve,
 )
-from scope3d.estimators.bundle.synthetic import make_scene
 from scope3d.geometry.pose import Pose
 from scope3d.geometry.rotation import matrix_to_rotvec, rotvec_to_matrix, so3_left_jacobian
+from scope3d.phantoms.bundle_scene import make_scene
 from scope3d.sensor.camera import Camera, project_with_jacobians
 from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance
 

@@ -21,7 +21,7 @@ import scipy.sparse
 
 from scope3d.estimators.bundle import BundleProblem, SolverOptions, kernels
 from scope3d.estimators.bundle import solver as solver_module
-from scope3d.estimators.bundle.synthetic import make_scene
+from scope3d.phantoms.bundle_scene import make_scene
 from scope3d.utils import aot
 
 BUNDLE = "scope3d.estimators.bundle.kernels"
@@ -214,43 +214,71 @@ def test_parallel_assembly_matches_one_thread():
     assert two.final_cost == pytest.approx(one.final_cost, rel=1e-10)
 
 
-def _interleaved_stamps(kernel, args, calls: int = 6) -> int:
-    """How many times the main thread ran Python while another thread was inside ``kernel``: zero when
-    the kernel holds the GIL (the switch interval is raised so that the GIL only changes hands when
-    someone releases it), many when it releases it."""
-    spans: list[tuple[float, float]] = []
-    done = threading.Event()
+def _step_norm_args(k: int = 400_000) -> tuple:
+    """Arguments of ``jacobian_step_norm2`` for ``k`` observations (~20 ms per call at 400 000)."""
+    rng = np.random.default_rng(0)
+    jc, jp = rng.normal(size=(k, 2, 12)), rng.normal(size=(k, 2, 3))
+    cam_blocks = np.ascontiguousarray(rng.integers(0, 10, size=(k, 2)))
+    point_index = np.ascontiguousarray(rng.integers(0, 1000, size=k))
+    return jc, jp, cam_blocks, point_index, rng.normal(size=60), rng.normal(size=(1000, 3))
+
+
+def _python_ran_inside(kernel, args, max_calls: int = 200) -> int:
+    """Call ``kernel`` on another thread until the main thread has run Python while that thread was inside
+    it, or ``max_calls`` times; returns how many times the main thread saw it inside.
+
+    The switch interval is raised far above the whole loop, so that the GIL changes hands only when a thread
+    releases it: a kernel that holds the GIL keeps the main thread out for every call (0, however many
+    calls), one that releases it lets the main thread in as soon as the OS schedules it. Nothing is timed:
+    on a loaded machine the main thread may miss a call or many, and the worker simply calls again (the
+    main thread's short naps only hand the GIL back, so that the worker can return from each call).
+    """
+    state = {"inside": False, "seen": 0, "done": False}
 
     def worker():
-        for _ in range(calls):
-            start = time.perf_counter()
+        for _ in range(max_calls):
+            state["inside"] = True
             kernel(*args)
-            spans.append((start, time.perf_counter()))
-        done.set()
+            state["inside"] = False
+            if state["seen"]:
+                break
+        state["done"] = True
 
-    stamps = []
     previous = sys.getswitchinterval()
-    sys.setswitchinterval(5.0)
+    sys.setswitchinterval(1000.0)  # far above any loop here (200 calls of ~20 ms: 4 s, ~20 s at load 4)
     try:
         thread = threading.Thread(target=worker)
         thread.start()
-        while not done.is_set():
-            stamps.append(time.perf_counter())
-            time.sleep(0.0005)  # gives the GIL back so the worker can return from the kernel
+        while not state["done"]:
+            state["seen"] += state["inside"]
+            time.sleep(0.0005)
         thread.join()
     finally:
         sys.setswitchinterval(previous)
-    return sum(any(s < t < e for s, e in spans) for t in stamps)
+    return state["seen"]
+
+
+def test_kernels_are_declared_nogil():
+    # the JIT path releases the GIL only where the source says so (the AOT build sets the flag for all)
+    for name in aot.KERNEL_MODULES:
+        module = importlib.import_module(name)
+        held = [f for f in module.AOT_SIGNATURES if not getattr(module, f).targetoptions.get("nogil")]
+        assert not held, (name, held)
 
 
 @pytest.mark.parametrize("backend", ["jit", "aot"])
 def test_kernels_release_the_gil(aot_kernels, backend):
     module = kernels if backend == "jit" else aot_kernels
-    k = 400_000  # ~20 ms per call: long against the main thread's 0.5 ms naps
-    rng = np.random.default_rng(0)
-    jc, jp = rng.normal(size=(k, 2, 12)), rng.normal(size=(k, 2, 3))
-    cam_blocks = np.ascontiguousarray(rng.integers(0, 10, size=(k, 2)))
-    point_index = np.ascontiguousarray(rng.integers(0, 1000, size=k))
-    args = (jc, jp, cam_blocks, point_index, rng.normal(size=60), rng.normal(size=(1000, 3)))
+    args = _step_norm_args()
     module.jacobian_step_norm2(*args)  # compiled (JIT) before the measurement
-    assert _interleaved_stamps(module.jacobian_step_norm2, args) > 0
+    assert _python_ran_inside(module.jacobian_step_norm2, args) > 0
+
+
+def test_the_check_sees_a_kernel_that_holds_the_gil():
+    # the same check on a kernel compiled without nogil: the main thread never gets in
+    import numba
+
+    args = _step_norm_args()
+    holding = numba.njit(nogil=False)(kernels.jacobian_step_norm2.py_func)
+    holding(*args)
+    assert _python_ran_inside(holding, args, max_calls=20) == 0

@@ -5,8 +5,8 @@ import numpy as np
 
 from scope3d.estimators.bundle import BundleProblem
 from scope3d.estimators.bundle.covariance import pairwise_pose_covariances
-from scope3d.estimators.bundle.synthetic import make_scene
 from scope3d.geometry.pose import Pose
+from scope3d.phantoms.bundle_scene import make_scene
 from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance
 
 TOL_MM, TOL_RAD = 0.5, 0.01

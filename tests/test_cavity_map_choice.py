@@ -1,4 +1,4 @@
-"""Which image-only cavity map to keep (sfm.cavity_mapping.choose_map) and how far two maps disagree
+"""Which image-only cavity map to keep (sfm.cavity_map_choice.choose_map) and how far two maps disagree
 (map_disagreement), on constructed maps of the bladder phantom's wall."""
 from __future__ import annotations
 
@@ -8,8 +8,9 @@ from scope3d.geometry.rotation import rotvec_to_matrix
 from scope3d.scene.tracks import Tracks
 from scope3d.geometry.pose import Pose
 from scope3d.sensor.camera import Camera
-from scope3d.sfm.cavity_mapping import (SIGNIFICANT_SIGMAS, CavityOptions, choose_map, explained_difference,
-                                        map_disagreement, map_figures, spread_difference)
+from scope3d.sfm.cavity_map_choice import (SIGNIFICANT_SIGMAS, choose_map, explained_difference, map_disagreement,
+                                           map_figures, spread_difference)
+from scope3d.sfm.cavity_mapping import CavityOptions
 
 SEMI_AXES = np.array([45.0, 38.0, 32.0])  # the bladder phantom's (~90 x 76 x 64 mm)
 N_FRAMES = 36
@@ -80,7 +81,8 @@ def test_a_map_with_a_block_of_frames_turned_off_loses_to_one_that_explains_more
               for p in truth]
     mapped = Tracks(np.arange(len(points)), np.zeros(len(points), int), np.arange(len(points)),
                     np.zeros((len(points), 2)), np.zeros((len(points), 3), np.uint8), points)
-    all_pairs, chain, right = (map_figures(camera, every, mapped, poses, options) for poses in (block, wobbly, truth))
+    all_pairs, chain, right = (map_figures(camera, every, mapped, poses, options.tracks, options.min_observations)
+                              for poses in (block, wobbly, truth))
     # the turned block loses the observations of the tracks across it (frames 10-19 and 27-35 see the same
     # wall), more than the wobble loses
     assert all_pairs["explained_observations"] < chain["explained_observations"] < right["explained_observations"]
@@ -150,8 +152,9 @@ def test_disagreement_is_zero_up_to_a_similarity_and_the_perturbation_otherwise(
 
 
 def test_self_check_warns_when_the_two_maps_disagree_by_more_than_half_the_radius():
-    from scope3d.pipelines.panorama_3d import self_check
-    from scope3d.sfm.cavity_mapping import CavityMap, fit_sphere
+    from scope3d.geometry.sphere import fit_sphere
+    from scope3d.pipelines.panorama import self_check
+    from scope3d.sfm.cavity_mapping import CavityMap
     points, frame = _wall(seed=9, n=500)
     tracks = _tracks(points, frame)
     poses = [Pose.from_centre(np.eye(3), c) for c in np.random.default_rng(10).normal(scale=5.0, size=(N_FRAMES, 3))]

@@ -118,10 +118,10 @@ def test_batch_writes_the_batch_report_and_each_hole_page(capsys, tmp_path, monk
             {"hole": "hole_b", "status": "error", "verdict": "", "message": "no quadrants.json"}]
     def run_batch(*args, finish, **kwargs):  # a worker calls finish on the hole's folder before its rename
         finish(out / "hole_a", "hole_a")
-        return thread_batch.BatchResult(rows, [], 1.5, 2)
+        return thread_batch.ThreadBatchResult(rows, [], 1.5, 2)
 
-    monkeypatch.setattr(thread_batch, "run_batch", run_batch)
-    monkeypatch.setattr(thread_batch.BatchResult, "summary", lambda self: "2 holes")
+    monkeypatch.setattr(thread_batch, "run", run_batch)
+    monkeypatch.setattr(thread_batch.ThreadBatchResult, "summary", lambda self: "2 holes")
     assert main(["batch", "thread-scan", "hole_a", "hole_b", "--out", str(out), "--json", "--quiet"]) == 1
     report = json.loads(capsys.readouterr().out)
     assert report == json.loads((out / "report.json").read_text())

@@ -315,7 +315,7 @@ def test_cli_check_bad_dataset_is_one_line(good, capsys):
 def test_cli_check_corrupt_image_in_subprocess(good):
     (good / "frames" / "0000.png").write_bytes(b"\x89PNG\r\n\x1a\n broken")
     result = subprocess.run([sys.executable, "-m", "scope3d.cli.main", "check", str(good)],
-                            capture_output=True, text=True, cwd=REPO, timeout=60)
+                            capture_output=True, text=True, cwd=REPO, timeout=600)
     assert result.returncode == 2
     assert result.stderr.count("\n") == 1 and "Traceback" not in result.stderr, result.stderr
     assert "0000.png: not a readable image" in result.stderr

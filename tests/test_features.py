@@ -18,7 +18,7 @@ def _textured(size=320, seed=0, gain=1.0):
 
 def test_keypoints_stay_inside_the_circular_field_shrunk_by_the_margin():
     cam = Camera.from_fov(320, 320, 60.0, mask_radius_px=150.0)
-    f = detect(_textured(), cam, FeatureOptions(mask_margin_px=8.0))
+    f = detect(_textured(), cam, options=FeatureOptions(mask_margin_px=8.0))
     assert len(f) > 100
     r = np.linalg.norm(f.keypoints - [(cam.width - 1) / 2, (cam.height - 1) / 2], axis=1)
     assert r.max() <= 150.0 - 8.0 + 1.0  # + 1 px: keypoints are refined to sub-pixel positions
@@ -31,20 +31,20 @@ def test_without_mask_the_rim_of_the_field_produces_features():
     cam = Camera.from_fov(320, 320, 60.0, mask_radius_px=150.0)
     img = _textured(gain=0.6)
     img[~cam.mask()] = 0
-    unmasked = detect(img, None, FeatureOptions())
+    unmasked = detect(img, None, options=FeatureOptions())
     r = np.linalg.norm(unmasked.keypoints - [159.5, 159.5], axis=1)
     assert np.any(np.abs(r - 150.0) < 4.0)
 
 
 def test_clahe_preset_finds_more_features_on_a_dim_frame():
     dim = _textured(gain=0.08)
-    plain = detect(dim, None, FEATURE_PRESETS["default"])
-    boosted = detect(dim, None, FEATURE_PRESETS["dim_endoscope"])
+    plain = detect(dim, None, options=FEATURE_PRESETS["default"])
+    boosted = detect(dim, None, options=FEATURE_PRESETS["dim_endoscope"])
     assert len(boosted) > 2 * max(len(plain), 1)
 
 
 def test_max_features_keeps_the_strongest():
-    f = detect(_textured(), None, FeatureOptions(max_features=50))
+    f = detect(_textured(), None, options=FeatureOptions(max_features=50))
     assert len(f) == 50
 
 

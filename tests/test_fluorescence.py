@@ -86,7 +86,7 @@ def test_segment_removes_speckle_and_fills_pinholes():
     img = (rng.random((120, 120)) < 0.01).astype(np.uint8) * 200  # isolated hot pixels
     cv2.circle(img, (60, 60), 20, 200, -1)
     img[60, 60] = 0  # a pin-hole
-    m = segment(img, 100, FluorescenceOptions())
+    m = segment(img, 100, options=FluorescenceOptions())
     n, _ = cv2.connectedComponents(m.astype(np.uint8))
     assert n == 2 and m[60, 60]
 
@@ -99,7 +99,7 @@ def test_auto_threshold_separates_and_is_floored():
     t = auto_threshold([dark, bright])
     assert 10 <= t < 120
     assert auto_threshold([dark]) == FluorescenceOptions().min_threshold
-    assert auto_threshold([bright], FluorescenceOptions(threshold=77)) == 77
+    assert auto_threshold([bright], options=FluorescenceOptions(threshold=77)) == 77
 
 
 def test_carry_to_surface_and_refine_through_cameras():
@@ -117,7 +117,7 @@ def test_carry_to_surface_and_refine_through_cameras():
         masks.append(m.astype(bool))
     on = carry_to_surface(s, cam, poses, masks)
     assert on.sum() > 0
-    targets, _, labels = targets_on_surface(s, cam, poses, masks, FluorescenceOptions(refine_factor=4))
+    targets, _, labels = targets_on_surface(s, cam, poses, masks, options=FluorescenceOptions(refine_factor=4))
     assert len(targets) == 1 and labels.max() == 1
     assert targets[0].size_mm == pytest.approx(3.0, rel=0.05)
     np.testing.assert_allclose(targets[0].centroid_mm, 0.0, atol=0.05)

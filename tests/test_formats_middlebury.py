@@ -248,9 +248,9 @@ def test_cli_import_refuses_to_replace_a_foreign_folder(tmp_path, capsys):
 def test_cli_import_then_check_in_subprocess(tmp_path):
     run = [sys.executable, "-m", "scope3d.cli.main"]
     imported = subprocess.run(run + ["import", "middlebury", str(PAR), "--out", str(tmp_path / "t"),
-                                     "--tolerance", "0.5"], capture_output=True, text=True, cwd=REPO, timeout=60)
+                                     "--tolerance", "0.5"], capture_output=True, text=True, cwd=REPO, timeout=600)
     assert imported.returncode == 0, imported.stderr
     checked = subprocess.run(run + ["check", str(tmp_path / "t")], capture_output=True, text=True, cwd=REPO,
-                             timeout=60)
+                             timeout=600)
     assert checked.returncode == 0, checked.stderr
     assert "16 images of 640x480 px" in checked.stdout and "position +-0.5 mm" in checked.stdout

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import pickle
 
 import cv2
 import numpy as np
@@ -149,6 +150,7 @@ def test_without_the_hand_eye_or_the_clock_offset_the_poses_are_measurably_wrong
     centre, angle = _pose_errors(load_dataset(root / "offset"), times_log)
     assert centre.max() <= interpolation_bound_mm_rad(1.0 / LOG_HZ)[0]
     assert "30 frames" in result.summary()
+    assert pickle.loads(pickle.dumps(result)).summary() == result.summary()  # results travel to cluster workers
 
 
 @pytest.mark.parametrize("fmt", ["xyz-qwxyz", "xyz-euler-ZYX", "matrix44"])

@@ -16,10 +16,12 @@ from fuzz_targets import MUTATIONS, build_targets, huge_header, mutate
 from scope3d.errors import InputError
 
 REPO = Path(__file__).resolve().parents[1]
+HANG_S = 600  # a CLI run here takes seconds: this only stops one that hangs
 
-# 14 targets x 60 examples take ~10-20 s on the loaded 2-core machine; each example is a few ms, the
-# deadline only catches a reader that loops or parses something enormous.
-SHORT_RUN = settings(max_examples=60, deadline=2000, derandomize=True, database=None,
+# 14 targets x 60 examples take ~10-20 s on the loaded 2-core machine; each example is a few ms. The
+# deadline only catches a reader that parses something enormous: 60 s, far above any example's time on a
+# loaded machine (2 s was a speed limit that load could reach, issue 31); speed is bench_fuzz.py's.
+SHORT_RUN = settings(max_examples=60, deadline=60_000, derandomize=True, database=None,
                      suppress_health_check=[HealthCheck.too_slow])
 
 mutation_lists = st.lists(
@@ -123,7 +125,7 @@ def test_bal_with_a_stray_non_utf8_byte_is_a_one_line_refusal_in_the_cli(tmp_pat
     path.write_bytes(data[:20] + b"\xe9" + data[20:])
     proc = subprocess.run([sys.executable, "-m", "scope3d.cli.main", "bundle-adjust", str(path), "--report",
                            str(tmp_path / "r.json")], capture_output=True, text=True, cwd=REPO,
-                          env={"PYTHONPATH": str(REPO / "src"), "PATH": "/usr/bin:/bin"}, timeout=120)
+                          env={"PYTHONPATH": str(REPO / "src"), "PATH": "/usr/bin:/bin"}, timeout=HANG_S)
     assert proc.returncode == 2, proc.stderr
     assert proc.stderr.count("\n") == 1 and str(path) in proc.stderr and "0xe9" in proc.stderr, proc.stderr
     assert not (tmp_path / "r.json").exists()
@@ -458,7 +460,7 @@ def test_a_corrupt_frame_is_one_line_on_stderr_without_the_decoders_own(tmp_path
     frame.write_bytes(bytes(data))
     proc = subprocess.run([sys.executable, "-m", "scope3d.cli.main", "check", str(root)], capture_output=True,
                           text=True, cwd=REPO, env={"PYTHONPATH": str(REPO / "src"), "PATH": "/usr/bin:/bin"},
-                          timeout=120)
+                          timeout=HANG_S)
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and str(frame) in proc.stderr, proc.stderr
 
 
@@ -470,7 +472,7 @@ def test_a_truncated_video_is_one_line_on_stderr(targets, tmp_path):
     video.write_bytes(seed[: len(seed) // 2])
     proc = subprocess.run([sys.executable, "-m", "scope3d.cli.main", "import", "video", str(video), "--fov", "60",
                            "--out", str(tmp_path / "out")], capture_output=True, text=True, cwd=REPO,
-                          env={"PYTHONPATH": str(REPO / "src"), "PATH": "/usr/bin:/bin"}, timeout=120)
+                          env={"PYTHONPATH": str(REPO / "src"), "PATH": "/usr/bin:/bin"}, timeout=HANG_S)
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and str(video) in proc.stderr, proc.stderr
     assert not (tmp_path / "out").exists()
 

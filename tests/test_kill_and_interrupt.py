@@ -3,20 +3,28 @@
 Each job is SIGKILLed while it writes its outputs (within 0.3 s of its first temporary output appearing,
 the moment a kill could tear a result), then run once more: the output location must have held the
 previous complete result or the new complete one, never a mix, and the next run must succeed and leave no
-temporaries behind. The long version kills >= 50 runs per job at moments uniform over a run.
+temporaries behind. A kill that came after the job had ended is no trial: it is made again, earlier
+(kill_harness.ATTEMPTS). The long version kills >= 50 runs per job at moments uniform over a run.
+
+No process left behind: the map SIGKILLed alone (not its process group) at moments of its figures
+child's life leaves no process of its session alive (issue 39).
 
 Determinism: the same job with 1 and with 2 threads (numba, OpenMP, OpenBLAS) writes the same files byte
 for byte (report.json without its timing fields, scope3d.utils.jsonio.without_timings). The 2-thread run is
 the kill test's last, uninterrupted one, so each job runs three times in this file, not four.
 """
+import os
 import signal
 import subprocess
+import tempfile
 import time
+from pathlib import Path
 
 import pytest
 
 from kill_harness import (
-    REPO, environment, jobs, kill_trials, litter, make_inputs, put_previous, run_to_completion, snapshot,
+    ATTEMPTS, REPO, environment, jobs, kill_the_leader_when, kill_trials, left_alive, litter, make_inputs,
+    put_previous, run_to_completion, snapshot, waits_on_a_pipe,
 )
 
 JOBS = ["phantom", "map", "bundle-adjust", "axial"]
@@ -36,6 +44,8 @@ def all_jobs(inputs, tmp_path_factory):
 @pytest.mark.parametrize("name", JOBS)
 def test_a_kill_while_writing_leaves_the_previous_or_the_new_result(all_jobs, name):
     report = kill_trials(all_jobs[name], 1, seed=0, while_writing=True, env=environment(threads=2))
+    # the kill landed (a job that ended before it is killed again, earlier: kill_harness.ATTEMPTS)
+    assert report.trials == 1 and report.trials_not_killed == 0, report
     assert report.outcomes["mix"] == 0, report.mixes
     assert report.litter_after_final_run == 0  # the next run removed what the killed one left
     TWO_THREADS[name] = snapshot(all_jobs[name].out)
@@ -55,6 +65,30 @@ def test_one_and_two_threads_write_identical_files(inputs, all_jobs, tmp_path, n
     assert not differing, differing
 
 
+# The moments of a map's run when its figures child (scope3d.utils.background) exists, told from /proc
+# (map: the job's process; children: the others of its session, pid -> state). A kill before the child
+# exists proves nothing about it, so a run that ends without reaching the moment is run again
+# (kill_the_leader_when), never counted as a pass. On these small maps the child draws from its fork to
+# the run's end, so it is never caught idle (the child waiting for calls: test_background.py).
+CHILD_MOMENTS = {
+    "as the child appears": lambda map, children: bool(children),
+    "while the child draws": lambda map, children: "R" in children.values(),
+    # the map has computed everything and reads the child's last word while it draws the last figures
+    # (the child has its end-of-calls then and ended by itself before issue 39's fix too)
+    "while the map waits for the child": lambda map, children: bool(children) and waits_on_a_pipe(map),
+}
+
+
+@pytest.mark.parametrize("moment", list(CHILD_MOMENTS))
+def test_a_killed_map_leaves_no_process_behind(inputs, tmp_path, moment):
+    # issue 39: SIGKILL of the map alone (the out-of-memory killer, a time limit) left its figures child
+    # alive for ever in 4 of 12 kills. Its own output folder: the killed runs' temporaries stay there.
+    job = {j.name: j for j in jobs(inputs, tmp_path)}["map"]
+    session = kill_the_leader_when(job, environment(), CHILD_MOMENTS[moment])
+    assert session is not None, f"5 runs ended before the moment {moment!r}"
+    assert left_alive(session) == {}
+
+
 def test_a_failing_run_keeps_the_previous_result(all_jobs, tmp_path):
     """A run that fails after the output location was chosen (an unreadable problem file) changes nothing."""
     job = all_jobs["bundle-adjust"]
@@ -67,34 +101,60 @@ def test_a_failing_run_keeps_the_previous_result(all_jobs, tmp_path):
     assert snapshot(job.out) == previous and not litter(job)
 
 
-def _interrupt_when_writing(job, timeout=600):
-    """Start the job, send SIGINT as soon as its first temporary output appears; (status, stderr, seconds
-    from the signal to the exit)."""
+def _cpu_s(pid: int) -> float:
+    """CPU seconds (user + system, all threads) the process has used so far."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _run_watching_writes(job, interrupt: bool, hang_s: float = 900.0) -> tuple[int, str, float | None, float]:
+    """Run the job; the moment its first temporary output appears, note the CPU seconds it has used (and send
+    SIGINT if ``interrupt``). Returns (exit status, stderr, CPU s at that moment or None if no temporary was
+    seen, CPU s at the exit with its waited-for children). ``hang_s`` only stops a job that hangs."""
     before = set(litter(job))
-    proc = subprocess.Popen(job.argv, env=environment(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, cwd=REPO)
-    deadline = time.monotonic() + timeout
-    while proc.poll() is None and not (set(litter(job)) - before) and time.monotonic() < deadline:
-        time.sleep(0.002)
-    sent = time.monotonic()
-    proc.send_signal(signal.SIGINT)
-    _, err = proc.communicate(timeout=120)
-    return proc.returncode, err, time.monotonic() - sent
+    with tempfile.TemporaryFile("w+") as err:
+        proc = subprocess.Popen(job.argv, env=environment(), stdout=subprocess.DEVNULL, stderr=err, text=True,
+                                cwd=REPO)
+        at, deadline = None, time.monotonic() + hang_s
+        while True:
+            pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
+            if pid:
+                break
+            if at is None and set(litter(job)) - before:
+                at = _cpu_s(proc.pid)
+                if interrupt:
+                    proc.send_signal(signal.SIGINT)
+            if time.monotonic() > deadline:
+                proc.kill()
+                pytest.fail(f"{job.name} still running after {hang_s} s")
+            time.sleep(0.001)
+        proc.returncode = os.waitstatus_to_exitcode(status)  # reaped here: Popen must not wait for it again
+        err.seek(0)
+        return proc.returncode, err.read(), at, usage.ru_utime + usage.ru_stime
 
 
 @pytest.mark.parametrize("name", ["map", "bundle-adjust"])
 def test_ctrl_c_exits_promptly_with_one_line_and_status_130(all_jobs, name):
+    """Ctrl-C the moment the job starts writing its outputs: one line, status 130, the previous result kept,
+    no litter, and promptly. "Promptly" as a property that the machine's load does not decide (a 10 s wall
+    limit did, issue 31): the CPU the job spends after the signal, against what an uninterrupted run spends
+    from that same moment to its end (measured here, in CPU seconds of the job and its children, which load
+    barely changes): a job that finished its work before obeying spends all of it, a prompt one about the
+    interpreter's exit (0.12-0.15 s against 0.9-2.4 s, measured at load 8)."""
     job = all_jobs[name]
-    previous = put_previous(job)
-    status, err, seconds = _interrupt_when_writing(job)
-    if status == 0:
-        pytest.fail(f"{name} finished before the signal arrived; the job is too small to interrupt")
+    put_previous(job)
+    status, err, at, end = _run_watching_writes(job, interrupt=False)
+    assert status == 0 and at is not None, err
+    remainder = end - at
+    for _ in range(ATTEMPTS):  # a job that ended before the signal arrived is run again, not passed
+        previous = put_previous(job)
+        status, err, at, end = _run_watching_writes(job, interrupt=True)
+        if at is not None and status != 0:
+            break
     assert status == 130, err
     lines = err.strip().splitlines()
     assert lines[-1] == f"scope3d {name}: interrupted" and "Traceback" not in err, err
-    # prompt: Python runs the handler between two bytecodes; the slowest single native call in these
-    # jobs (one figure's PNG encoding, one linear solve) takes well under a second even on a loaded machine
-    assert seconds < 10.0, seconds
+    assert end - at < remainder / 3, (end - at, remainder)
     assert snapshot(job.out) == previous and not litter(job)  # interrupted: nothing half-written, no litter
 
 

@@ -75,3 +75,51 @@ def test_no_import_cycle_between_modules():
     cycles = [sorted(names[k] for k in range(len(names)) if labels[k] == c) for c in range(n)
               if (labels == c).sum() > 1]
     assert not cycles, cycles
+
+
+def _package(module: str) -> str:
+    """The top-level package (``scope3d.estimators``) that a module belongs to: where its private names may go."""
+    return ".".join(module.split(".")[:2])
+
+
+def _private(name: str) -> bool:
+    return name.startswith("_") and not name.startswith("__")
+
+
+def test_no_private_name_crosses_a_package():
+    """A private name is its own package's: ``from scope3d.a.b import _x``, ``b._x`` (``b`` a module of another
+    package) and importing a private module (``scope3d.a._m``) are refused outside ``scope3d.a``; what two
+    packages share is public."""
+    known = _modules()
+    bad = []
+    for module, path in known.items():
+        own = _package(module)
+        package = module if path.name == "__init__.py" else module.rsplit(".", 1)[0]
+        tree = ast.parse(path.read_text())
+        aliases = {}  # names bound to scope3d modules
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:
+                    base = ".".join(package.split(".")[: len(package.split(".")) - node.level + 1] + ([base] if base else []))
+                if not base.startswith("scope3d") or _package(base) == own:
+                    continue
+                if any(_private(part) for part in base.split(".")):
+                    bad.append(f"{module} imports the private module {base}")
+                for a in node.names:
+                    if _private(a.name):
+                        bad.append(f"{module} imports {base}.{a.name}")
+                    elif f"{base}.{a.name}" in known:
+                        aliases[a.asname or a.name] = f"{base}.{a.name}"
+            elif isinstance(node, ast.Import):
+                for a in node.names:
+                    if a.name.startswith("scope3d") and _package(a.name) != own:
+                        if any(_private(part) for part in a.name.split(".")):
+                            bad.append(f"{module} imports the private module {a.name}")
+                        if a.asname:
+                            aliases[a.asname] = a.name
+        for node in ast.walk(tree):
+            if (isinstance(node, ast.Attribute) and _private(node.attr) and isinstance(node.value, ast.Name)
+                    and node.value.id in aliases):
+                bad.append(f"{module} uses {aliases[node.value.id]}.{node.attr}")
+    assert not bad, "\n".join(sorted(set(bad)))

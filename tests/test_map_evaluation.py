@@ -144,6 +144,6 @@ def test_bad_inputs(bowl):
     with pytest.raises(ValueError):
         SampledSurface(Mesh(np.zeros((3, 3)), np.zeros((0, 3), int)))
     with pytest.raises(ValueError):
-        EvaluationOptions(icp_trim_fraction=0.7)
+        EvaluationOptions(icp=IcpOptions(trim_fraction=0.7))
     with pytest.raises(ValueError):
-        EvaluationOptions(icp_min_decrease_sigma2=-1.0)
+        EvaluationOptions(icp=IcpOptions(min_decrease_sigma2=-1.0))

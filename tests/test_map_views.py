@@ -47,7 +47,7 @@ def test_one_partner_per_direction_pairs_ring_neighbours(n):
     camera = Camera.from_fov(640, 480, 24.0)
     poses = ring_poses(n, tilt_deg=90.0, distance_mm=560.0)
     depth = DepthPrior(500.0, 620.0)
-    pairs = select_pairs(camera, poses, depth, MAP_PRESETS["photograph"].pairs)
+    pairs = select_pairs(camera, poses, depth, options=MAP_PRESETS["photograph"].pairs)
     assert _pair_set(pairs) == {tuple(sorted((k, (k + 1) % n))) for k in range(n)}
 
 
@@ -55,7 +55,7 @@ def test_one_partner_per_direction_pairs_grid_neighbours():
     traj = phantoms.grid_trajectory(5, 6)  # 5 mm apart, 15 mm above the plate, serpentine order
     camera = Camera.from_fov(608, 608, 53.0)
     options = PairOptions(max_pairs_per_frame=0, max_pairs_per_direction=1)
-    pairs = select_pairs(camera, traj.poses, DepthPrior(10.0, 25.0), options)
+    pairs = select_pairs(camera, traj.poses, DepthPrior(10.0, 25.0), options=options)
     centres = np.stack([p.centre for p in traj.poses])
     d = np.linalg.norm(centres[:, None] - centres[None], axis=2)
     neighbours = {(i, j) for i in range(len(d)) for j in range(i + 1, len(d)) if abs(d[i, j] - 5.0) < 1e-6}
@@ -69,7 +69,7 @@ def test_a_second_view_from_the_same_place_is_paired_without_displacing_the_neig
     # two are paired (the same-place class), and each keeps its neighbours on either side
     turned = rotvec_to_matrix(np.array([0.0, 0.0, np.pi])) @ poses[0].rotation
     poses.append(Pose.from_centre(turned, poses[0].centre))
-    pairs = _pair_set(select_pairs(camera, poses, DepthPrior(500.0, 620.0), MAP_PRESETS["photograph"].pairs))
+    pairs = _pair_set(select_pairs(camera, poses, DepthPrior(500.0, 620.0), options=MAP_PRESETS["photograph"].pairs))
     ring = {tuple(sorted((k, (k + 1) % 12))) for k in range(12)}
     assert pairs == ring | {(0, 12), (1, 12), (11, 12)}
 

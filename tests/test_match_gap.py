@@ -27,8 +27,8 @@ def test_a_gap_between_matched_points_shrinks_every_quadrant_radially():
     pairs, gap = _exact_pairs(), 0.003
     angles = [30.0 * q for q in range(12)]
     options = PanoramaOptions()  # the stage model: one mount error for every quadrant
-    exact = joint_solve(pairs, angles, options)[0]
-    drawn = joint_solve(pairs_drawn_apart(pairs, gap), angles, options)[0]
+    exact = joint_solve(pairs, angles, options=options)[0]
+    drawn = joint_solve(pairs_drawn_apart(pairs, gap), angles, options=options)[0]
     for q in range(12):  # each quadrant's centre of view on the wall, moved by the re-solved placement
         centre = 3.6 * np.array([np.cos(np.deg2rad(30.0 * q)), np.sin(np.deg2rad(30.0 * q)), -4.0 / 3.6])
         move = drawn[q].transform(centre[None])[0] - exact[q].transform(centre[None])[0]

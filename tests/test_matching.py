@@ -49,7 +49,8 @@ def test_guided_finds_at_least_as_many_correct_matches_as_exhaustive(pair):
         # the wide pair (0, 2) sits at the 15-match gate at 400 px (a few renders more or less texture
         # drop it whole either way): compare the matchers there before the gate
         options = MatchOptions(min_matches=0) if (i, j) == (0, 2) else MatchOptions()
-        g = match_guided(seq.camera, feats[i], feats[j], seq.measured_poses[i], seq.measured_poses[j], depth, options,
+        g = match_guided(seq.camera, feats[i], feats[j], seq.measured_poses[i], seq.measured_poses[j], depth,
+                         options=options,
                          i=i, j=j)
         e = match_exhaustive(seq.camera, feats[i], feats[j], options, i=i, j=j)
         good_g, err_g = _correct(seq, feats, g)
@@ -110,7 +111,7 @@ def test_overlap_and_pair_selection(pair):
     assert np.allclose(np.diag(ov), 1.0) and np.allclose(ov, ov.T)
     # neighbours 5 mm apart overlap more than frames 10 mm apart
     assert ov[0, 1] > ov[0, 2] > 0
-    pairs = select_pairs(seq.camera, seq.true_poses, depth, PairOptions(min_overlap=0.0, max_pairs_per_frame=1))
+    pairs = select_pairs(seq.camera, seq.true_poses, depth, options=PairOptions(min_overlap=0.0, max_pairs_per_frame=1))
     assert {(i, j) for i, j, _ in pairs} == {(0, 1), (1, 2)}
 
 
@@ -268,7 +269,7 @@ def test_depth_prior_is_data_that_pickles_and_keeps_its_ray_ranges():
     assert np.isnan(near[2]) and np.isnan(far[2])
     rng = np.random.default_rng(0)
     xy = rng.uniform(-6, 6, (600, 2))
-    surface = fit_surface(np.column_stack([xy, 0.02 * (xy ** 2).sum(axis=1)]), SurfaceOptions(grid_step_mm=0.5),
+    surface = fit_surface(np.column_stack([xy, 0.02 * (xy ** 2).sum(axis=1)]), options=SurfaceOptions(grid_step_mm=0.5),
                           towards=np.array([0.0, 0.0, -1.0]))
     band = DepthPrior(10.0, 30.0).with_band(surface, 0.5)
     for prior in (box, band):

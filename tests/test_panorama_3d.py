@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import pickle
 import shutil
 from dataclasses import replace
 
@@ -24,7 +25,7 @@ from scope3d.metrology.star_scale import combine_views, pentagram_area_mm2, star
 from scope3d.scene.tracks import Tracks
 from scope3d.sensor.camera import Camera
 from scope3d.phantoms import generate, write
-from scope3d.pipelines.panorama_3d import PanoramaOptions, evaluate, run
+from scope3d.pipelines.panorama import Panorama3dOptions, evaluate, run
 from scope3d.sfm.cavity_mapping import (CavityOptions, _cap_priority, _wall_distance, adjust_cavity, map_cavity,
                                         overlapping_pairs, pair_poses, verified_matches)
 
@@ -147,7 +148,9 @@ def test_planned_poses_place_every_frame_of_an_unseen_cavity(tmp_path):
     assert main(["phantom", "bladder", "--shape-seed", "5", "--cavity-mm", "40,35,30", "--size", "160x160",
                  "--pose-noise", "1", "--seed", "7", "--out", str(data), "--quiet"]) == 0
     ds = load_dataset(data)
-    report, cavity = run(PanoramaOptions(stars=None, figures=False), ds, tmp_path / "pano")
+    result = run(Panorama3dOptions(stars=None, figures=False), ds, tmp_path / "pano")
+    report, cavity = result.report, result.cavity
+    assert pickle.loads(pickle.dumps(result)).summary() == result.summary()  # results travel to cluster workers
     assert report["n_registered"] == report["n_frames"] == 36
     assert report["scale_source"] == "plan"
     # the plan's ±1 mm and ±0.5 deg on 2-4 mm baselines move a two-view point by a large part of its
@@ -257,7 +260,7 @@ def test_planned_pairs_found_at_the_measured_wall_distance(turn_features):
 def test_pairs_disagreeing_with_the_averaged_rotations_are_inconsistent():
     from scope3d.estimators.averaging import RelativePose
     from scope3d.geometry.rotation import rotvec_to_matrix
-    from scope3d.sfm.cavity_mapping import consistent_pairs
+    from scope3d.estimators.cavity_start import consistent_pairs
     rng = np.random.default_rng(3)
     rotations = np.stack([rotvec_to_matrix(rng.normal(0.0, 0.5, 3)) for _ in range(6)])
     sigma = np.deg2rad(0.5)  # a consecutive pair's rotation sigma on the 608 px spiral: 0.1-0.8 deg
@@ -274,7 +277,7 @@ def test_pairs_disagreeing_with_the_averaged_rotations_are_inconsistent():
 
 
 def test_wall_spread_is_small_for_a_wall_at_one_distance_and_grows_when_scattered():
-    from scope3d.sfm.cavity_mapping import wall_spread
+    from scope3d.geometry.sphere import wall_spread
     rng = np.random.default_rng(4)
     d = rng.normal(size=(2000, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
@@ -287,7 +290,8 @@ def test_wall_spread_is_small_for_a_wall_at_one_distance_and_grows_when_scattere
 
 
 def test_the_anatomical_shell_keeps_the_near_wall_of_an_elongated_cavity_despite_far_points():
-    from scope3d.sfm.cavity_mapping import anatomical_shell, fit_sphere, inside_shell
+    from scope3d.geometry.sphere import fit_sphere
+    from scope3d.sfm.cavity_mapping import anatomical_shell, inside_shell
     rng = np.random.default_rng(3)
     semi_axes = np.array([45.0, 38.0, 32.0])  # the bladder phantom's (~90 x 76 x 64 mm)
 
@@ -324,7 +328,8 @@ def _cavity_map(points, centres, radius_scale=1.0):
     """A CavityMap of ``points`` (N, 3) seen by cameras at ``centres`` (n, 3), each observation of a point by
     frame 0 (only the points and poses matter to the self-check)."""
     from scope3d.scene.tracks import Tracks
-    from scope3d.sfm.cavity_mapping import CavityMap, fit_sphere
+    from scope3d.geometry.sphere import fit_sphere
+    from scope3d.sfm.cavity_mapping import CavityMap
     n_points = len(points)
     tracks = Tracks(np.arange(n_points), np.zeros(n_points, int), np.arange(n_points), np.zeros((n_points, 2)),
                     np.zeros((n_points, 3), np.uint8), np.asarray(points, float))
@@ -349,7 +354,8 @@ def _wall_and_cap():
 
 
 def test_cameras_off_centre_separates_a_cavity_seen_from_inside_from_a_cap_seen_from_its_wall():
-    from scope3d.sfm.cavity_mapping import MAX_OFF_CENTRE, cameras_off_centre, wall_spread
+    from scope3d.geometry.sphere import wall_spread
+    from scope3d.sfm.cavity_map_choice import MAX_OFF_CENTRE, cameras_off_centre
     wall, cap, cameras = _wall_and_cap()
     poses = [Pose.from_centre(np.eye(3), c) for c in cameras]
     # the cameras' centroid is the wall's centre: 0 up to the fit of an ellipsoid by a sphere; the cap's
@@ -360,7 +366,7 @@ def test_cameras_off_centre_separates_a_cavity_seen_from_inside_from_a_cap_seen_
 
 
 def test_self_check_flags_cameras_off_centre_and_a_radius_outside_the_anatomical_shell():
-    from scope3d.pipelines.panorama_3d import self_check
+    from scope3d.pipelines.panorama import self_check
     wall, cap, cameras = _wall_and_cap()
     options = CavityOptions()
     good = self_check(_cavity_map(wall, cameras), options, scaled=True)
@@ -376,16 +382,16 @@ def test_self_check_flags_cameras_off_centre_and_a_radius_outside_the_anatomical
 
 
 def test_a_map_failing_the_self_check_is_refused_unless_kept(bladder, tmp_path, monkeypatch):
-    import scope3d.pipelines.panorama_3d as panorama_3d
+    import scope3d.pipelines.panorama as panorama
     ds = load_dataset(bladder)
     _, cap, cameras = _wall_and_cap()
     broken = _cavity_map(cap, cameras[:len(ds)])
-    monkeypatch.setattr(panorama_3d, "map_cavity", lambda *args, **kwargs: broken)
-    monkeypatch.setattr(panorama_3d, "evaluate", lambda *args: {})  # the fake map has no true positions
-    options = PanoramaOptions(stars=None, use_planned_poses=False, figures=False, texture=None)
+    monkeypatch.setattr(panorama, "map_cavity", lambda *args, **kwargs: broken)
+    monkeypatch.setattr(panorama, "evaluate", lambda *args: {})  # the fake map has no true positions
+    options = Panorama3dOptions(stars=None, use_planned_poses=False, figures=False, texture=None)
     with pytest.raises(InputError, match="no cavity seen from inside"):
         run(options, ds, tmp_path / "refused")
     assert not (tmp_path / "refused").exists()  # nothing half-written
-    report, _ = run(replace(options, refuse_implausible=False), ds, tmp_path / "kept")
+    report = run(replace(options, refuse_implausible=False), ds, tmp_path / "kept").report
     saved = json.loads((tmp_path / "kept" / "report.json").read_text())
     assert not report["self_check"]["passed"] and saved["self_check"]["cameras_off_centre"] > 0.9

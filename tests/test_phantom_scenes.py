@@ -3,7 +3,8 @@ import numpy as np
 import pytest
 
 from scope3d.errors import InputError
-from scope3d.phantoms import build_scene, iso_thread_profile
+from scope3d.geometry.iso_thread import iso_thread_profile
+from scope3d.phantoms import build_scene
 from scope3d.phantoms.scenes import star_outline, target_outline
 
 ISO_MINOR_MM = {"M8x1.25": 6.647, "M6x1": 4.917, "M10x1.5": 8.376}
@@ -38,9 +39,16 @@ def test_thread_mesh_has_iso_minor_major_diameters_and_pitch(size):
         assert len(full) >= 5
         np.testing.assert_allclose(widths, width, atol=1e-6)
         np.testing.assert_allclose(np.diff(centres), pitch, atol=1e-6)
-    # Flanks at 60°: between the end of a crest flat and the start of the next root flat.
-    depth = major / 2 - r.min()
-    assert np.degrees(np.arctan((pitch / 2 - pitch / 8 / 2 - pitch / 4 / 2) / depth)) * 2 == pytest.approx(60.0)
+    # Flanks at 60° (ISO 68-1: by definition), measured on the mesh: every edge of the axial section between
+    # two radii (the flanks; the flats keep their radius) runs at 30° to the radial direction, rising and
+    # falling, so the two flanks of a tooth meet at 60°. The vertices are exact to rounding (a few eps of the
+    # ~10 mm coordinates), so an edge's angle is good to 32 eps times the coordinates over the shortest edge.
+    dz, dr = np.diff(line[:, 2]), np.diff(rl)
+    flank = np.abs(dr) > 1e-9
+    half_angle = np.arctan2(np.abs(dz[flank]), np.abs(dr[flank]))
+    rounding = 32 * np.finfo(float).eps * np.abs(line).max() / np.hypot(dz, dr)[flank].min()
+    assert np.abs(half_angle - np.deg2rad(30.0)).max() < rounding, np.degrees(half_angle)
+    assert flank.sum() >= 4 * len(full) and np.any(dz[flank] * dr[flank] > 0) and np.any(dz[flank] * dr[flank] < 0)
     # Mesh rows are closer than P/8 so that every flat has vertices on it.
     assert np.diff(np.unique(np.round(line[:, 2], 9))).max() < pitch / 8 + 1e-9
 

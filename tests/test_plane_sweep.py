@@ -28,7 +28,7 @@ def test_sweep_matches_the_true_depth_within_its_noise_model(quadrant):
     truth = frames[0].depth_mm
     near, far = np.nanpercentile(truth, [2, 98]) * np.array([0.9, 1.1])
     result = sweep(camera, frames[0].image, poses[0], [f.image for f in frames[1:]], poses[1:], (near, far),
-                   PlaneSweepOptions(stride_px=1))
+                   options=PlaneSweepOptions(stride_px=1))
     kept = np.isfinite(result.depth_mm) & np.isfinite(truth)
     assert kept.sum() >= 0.4 * np.isfinite(truth).sum()  # the gates keep most of the textured wall
     error = result.depth_mm[kept] - truth[kept]

@@ -30,7 +30,7 @@ def test_fused_box_stays_inside_the_robots():
     robot = MeasuredPose(truth, PoseTolerance(np.full(3, 1.0), np.full(3, np.deg2rad(0.5))))
     sd = np.r_[np.full(3, np.deg2rad(0.5)), 0.2, 0.2, 0.5]
     tracker = PoseEstimate(truth, np.diag(sd**2))
-    loose = fuse_poses([robot], [[tracker]], FusionOptions(within_reported_box=False))[0]
+    loose = fuse_poses([robot], [[tracker]], options=FusionOptions(within_reported_box=False))[0]
     cut = fuse_poses([robot], [[tracker]])[0]
     assert np.all(loose.tolerance.orientation_rad > robot.tolerance.orientation_rad)
     assert np.all(cut.tolerance.orientation_rad <= robot.tolerance.orientation_rad + 1e-12)

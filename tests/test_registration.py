@@ -89,12 +89,12 @@ def test_panorama_recovers_known_transforms_on_a_thread():
 
 def test_free_pose_graph_and_translation_only_solves():
     clouds, truth = _quadrants(stage_errors=False)
-    result = register_quadrants(clouds, PanoramaOptions(model="free"), seed=0)
+    result = register_quadrants(clouds, options=PanoramaOptions(model="free"), seed=0)
     rot, off = registration_errors(result.world_from_stacked, truth, clouds)
     # six free unknowns per quadrant from ~300 correspondences per pair: within the 0.5°, 0.02 mm
     assert rot.max() < 0.5 and off.max() < 0.02, (rot, off)
     clouds, truth = _quadrants(tilt_deg=0.0, offset_mm=(0.25, 0.1), stage_errors=False)
-    result = register_quadrants(clouds, PanoramaOptions(model="free", solve_rotations=False), seed=0)
+    result = register_quadrants(clouds, options=PanoramaOptions(model="free", solve_rotations=False), seed=0)
     rot, off = registration_errors(result.world_from_stacked, truth, clouds)
     assert off.max() < 0.02  # offsets only: the 0.05° re-positioning twists remain (~0.005 mm at 6 mm)
 
@@ -123,7 +123,7 @@ def test_statistical_outlier_filter():
     u, v = rng.uniform(0, 10, (2, 5000))
     plane = np.stack([u, v, rng.normal(0, 0.01, 5000)], 1)
     far = rng.uniform(0, 10, (100, 3)) + [0, 0, 1.0]  # 2 % stray points 1-11 mm off the surface
-    keep = statistical_inliers(np.concatenate([plane, far]), OutlierOptions(neighbours=30, n_sigmas=3.0))
+    keep = statistical_inliers(np.concatenate([plane, far]), options=OutlierOptions(neighbours=30, n_sigmas=3.0))
     assert keep[:5000].mean() > 0.98 and keep[5000:].mean() < 0.05
     assert statistical_inliers(plane[:10]).all()
 

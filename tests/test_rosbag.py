@@ -137,7 +137,7 @@ def _assert_same_as_phantom(out, seq):
 @pytest.mark.parametrize("ros1, compressed", [(False, False), (True, True)])
 def test_images_and_poses_round_trip(sequence, tmp_path, ros1, compressed):
     bag = _write_bag(tmp_path / ("scope.bag" if ros1 else "scope_bag"), sequence, ros1=ros1, compressed=compressed)
-    ds = _assert_same_as_phantom(import_rosbag(bag, tmp_path / "ds", _options()), sequence)
+    ds = _assert_same_as_phantom(import_rosbag(bag, tmp_path / "ds", options=_options()), sequence)
     # the nearest 100 Hz sample is 3 ms before each frame; no covariance, no --tolerance: exact poses
     np.testing.assert_allclose(ds.metadata["source"]["pose_gaps_s"], 0.003, atol=1e-9)
     assert all(m.tolerance.is_exact for m in ds.poses)
@@ -145,16 +145,16 @@ def test_images_and_poses_round_trip(sequence, tmp_path, ros1, compressed):
 
 def test_tf_stream_picks_the_camera_frame(sequence, tmp_path):
     bag = _write_bag(tmp_path / "tf_bag", sequence, ros1=False, compressed=False, pose_kind="tf")
-    _assert_same_as_phantom(import_rosbag(bag, tmp_path / "ds", _options(pose_topic="/tf",
+    _assert_same_as_phantom(import_rosbag(bag, tmp_path / "ds", options=_options(pose_topic="/tf",
                                                                          camera_frame="scope_optical")), sequence)
     with pytest.raises(InputError, match="--camera-frame"):
-        import_rosbag(bag, tmp_path / "ds2", _options(pose_topic="/tf"))
+        import_rosbag(bag, tmp_path / "ds2", options=_options(pose_topic="/tf"))
 
 
 def test_tolerance_from_covariance_or_from_the_parameter(sequence, tmp_path):
     bag = _write_bag(tmp_path / "cov_bag", sequence, ros1=False, compressed=False, pose_kind="covariance",
                      sigma_m=0.0005)
-    ds = load_dataset(import_rosbag(bag, tmp_path / "ds", _options()))
+    ds = load_dataset(import_rosbag(bag, tmp_path / "ds", options=_options()))
     for m in ds.poses:
         # 3 sigma of 0.5 mm per axis; 3 sigma of 1 mrad (variance 1e-6 rad²) = 0.172 deg
         np.testing.assert_allclose(m.tolerance.position_mm, 1.5, rtol=1e-6)
@@ -181,7 +181,7 @@ def test_missing_topic_and_unsynchronisable_streams_are_one_line_errors(sequence
     assert not (tmp_path / "o").exists()
     # a slop below the 3 ms camera lag pairs nothing either
     with pytest.raises(InputError, match="closest 0.003 s"):
-        import_rosbag(bag, tmp_path / "o", _options(slop_s=0.002))
+        import_rosbag(bag, tmp_path / "o", options=_options(slop_s=0.002))
 
 
 def test_pairing_is_one_to_one_smallest_gap_first():

@@ -60,7 +60,7 @@ def test_coverage_counts_only_what_is_in_range_and_in_front():
 def test_spiral_plan_on_a_sphere_covers_it_with_the_expected_number_of_views():
     mesh = _sphere()
     options = ScanPlanOptions(standoff_mm=15.0, overlap=0.5, fov_deg=70.0)
-    plan = plan_spiral_scan(mesh, options, centre_mm=np.zeros(3))
+    plan = plan_spiral_scan(mesh, options=options, centre_mm=np.zeros(3))
     # Every view looks along the inward normal (radially outwards) from 15 mm off the wall.
     for pose, wall in zip(plan.poses, plan.wall_points_mm):
         assert np.linalg.norm(pose.centre) == pytest.approx(RADIUS_MM - 15.0, abs=0.05)  # facets: sagitta < 0.05
@@ -81,8 +81,8 @@ def test_spiral_plan_on_a_sphere_covers_it_with_the_expected_number_of_views():
 
 def test_bend_limit_drops_views_and_reports_the_coverage_lost():
     mesh = _sphere(4)
-    free = plan_spiral_scan(mesh, ScanPlanOptions(standoff_mm=20.0, fov_deg=70.0), centre_mm=np.zeros(3))
-    limited = plan_spiral_scan(mesh, ScanPlanOptions(standoff_mm=20.0, fov_deg=70.0, bend_limit_deg=120.0),
+    free = plan_spiral_scan(mesh, options=ScanPlanOptions(standoff_mm=20.0, fov_deg=70.0), centre_mm=np.zeros(3))
+    limited = plan_spiral_scan(mesh, options=ScanPlanOptions(standoff_mm=20.0, fov_deg=70.0, bend_limit_deg=120.0),
                                centre_mm=np.zeros(3))
     assert limited.n_planned == free.n_views
     assert limited.n_views < free.n_views

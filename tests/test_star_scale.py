@@ -56,7 +56,7 @@ def test_star_area_from_blurred_noisy_pixels(outer_radius_px, blur_px):
     if blur_px > 0:
         # the level measured 2 px inside the edge (the old 3 x 3 erosion's) is dimmed by the blur: the area
         # comes out too large by more than that tolerance
-        (shallow,) = star_blobs(image, 100, inside, StarScaleOptions(core_px=2.0))
+        (shallow,) = star_blobs(image, 100, inside, options=StarScaleOptions(core_px=2.0))
         assert shallow.weights.sum() / true_px - 1.0 > tolerance
 
 

@@ -175,7 +175,7 @@ def test_polar_sgm_has_no_disparity_bias_on_a_radial_zoom(z_mm):
     pair = make_axial_pair(CAM, rear, front, grid_options=PolarGridOptions(min_radius_px=20.0))
     d_true = np.log(s) / pair.grid.log_rho_step
     fp, rp = pair.to_polar(front_img, front), pair.to_polar(rear_img, rear)
-    d = sgm_disparity(fp, rp, SgmOptions(num_disparities=32, wrap_rows=True)).disparity
+    d = sgm_disparity(fp, rp, options=SgmOptions(num_disparities=32, wrap_rows=True)).disparity
     # Cells seen by both views, away from the disc's edge, whose rear partner is on the grid, and where a
     # column spans at least half a pixel (nearer the epipole the window covers under 3 px of image: the
     # estimate is ill-conditioned there and the confidence mask drops it anyway).

@@ -162,7 +162,7 @@ def test_compiled_reliability_is_the_opencv_numpy_computation(monkeypatch, block
     sigma[rng.uniform(size=shape) < 0.01] = np.inf
     valid = rng.uniform(size=shape) > 0.01
     options = ConfidenceOptions(max_normalised_cost=0.8, disparity_sigma_floor_px=0.02, max_range_sigma_mm=0.3)
-    got = reliability(front, rear, disparity, cost, sigma, pair, valid, options)
+    got = reliability(front, rear, disparity, cost, sigma, pair, valid, options=options)
     mask, confidence, range_sigma, reasons = _reference_reliability(front, rear, disparity, cost, sigma, pair, valid,
                                                                     options)
     assert 0.02 < mask.mean() < 0.9  # kept and rejected cells both compared

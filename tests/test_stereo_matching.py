@@ -38,9 +38,9 @@ def _shifted_pair(shift_px, shape=(120, 240), seed=0):
 def test_recovers_known_subpixel_shift(method, shift):
     left, right = _shifted_pair(shift)
     if method == "sgm":
-        result = sgm_disparity(left, right, SgmOptions(num_disparities=32))
+        result = sgm_disparity(left, right, options=SgmOptions(num_disparities=32))
     else:
-        result = sad_disparity(left, right, SadOptions(num_disparities=32))
+        result = sad_disparity(left, right, options=SadOptions(num_disparities=32))
     d = result.disparity[10:-10, 45:-10]  # columns < num_disparities have no partner in ``right``
     assert np.isfinite(d).mean() > 0.95
     err = d[np.isfinite(d)] - shift
@@ -84,9 +84,9 @@ def _cones():
 def test_middlebury_cones_bad_pixel_rate(method):
     left, right, gt, nonocc = _cones()
     if method == "sgm":
-        d = sgm_disparity(left, right, SgmOptions(num_disparities=64)).disparity
+        d = sgm_disparity(left, right, options=SgmOptions(num_disparities=64)).disparity
     else:
-        d = sad_disparity(left, right, SadOptions(num_disparities=64)).disparity
+        d = sad_disparity(left, right, options=SadOptions(num_disparities=64)).disparity
     matched = nonocc & np.isfinite(d)
     bad = np.abs(d - gt) > 1.0
     coverage = matched.sum() / nonocc.sum()
@@ -103,12 +103,12 @@ def test_middlebury_cones_bad_pixel_rate(method):
 def test_fusion_rejects_an_outlier_and_shrinks_sigma():
     ranges = np.array([10.0, 10.02, 9.99, 11.0]).reshape(4, 1, 1)
     sigmas = np.array([0.05, 0.05, 0.05, 0.05]).reshape(4, 1, 1)
-    fused, sigma, count = fuse_ranges(ranges, sigmas, MultiViewOptions())
+    fused, sigma, count = fuse_ranges(ranges, sigmas, options=MultiViewOptions())
     assert count[0, 0] == 3
     assert abs(fused[0, 0] - np.mean([10.0, 10.02, 9.99])) < 1e-12
     assert abs(sigma[0, 0] - 0.05 / np.sqrt(3)) < 1e-12
     lonely = fuse_ranges(np.array([10.0, np.nan]).reshape(2, 1, 1), np.full((2, 1, 1), 0.05),
-                         MultiViewOptions(min_consistent=2, baseline_offsets=(1, 2)))[0]
+                         options=MultiViewOptions(min_consistent=2, baseline_offsets=(1, 2)))[0]
     assert np.isnan(lonely[0, 0])
 
 

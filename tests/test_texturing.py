@@ -26,7 +26,8 @@ def true_texture(tmp_path_factory):
     write(generate("bladder", size=(128, 128), n_frames=12), root)
     ds = load_dataset(root)
     wall = ds.ground_truth.surface()
-    return ds, wall, texture_mesh(wall, np.zeros(3), ds.camera, ds.ground_truth.poses, ds.frame, TextureOptions())
+    return ds, wall, texture_mesh(wall, np.zeros(3), ds.camera, ds.ground_truth.poses, ds.frame,
+                                  options=TextureOptions())
 
 
 def test_texture_matches_the_true_albedo_where_the_frames_saw_the_wall(true_texture):
@@ -35,7 +36,7 @@ def test_texture_matches_the_true_albedo_where_the_frames_saw_the_wall(true_text
     assert 0.5 < textured.textured_fraction < 1.0
     # the default texel is the frames' own footprint: ~30 mm / 91 px focal
     assert 0.2 < textured.texel_mm < 0.6
-    result = textured_errors(textured, IDENTITY, wall, np.zeros(3), build_scene("bladder").albedo, EVALUATION)
+    result = textured_errors(textured, IDENTITY, wall, np.zeros(3), build_scene("bladder").albedo, options=EVALUATION)
     colour, shift = result["colour_error"], result["misregistration_mm"]
     # the sensor's noise (2 grey levels read noise + 2 % shot noise at full scale) and the specular glint the
     # Lambertian correction leaves (6 % of white at normal incidence) bound the mean error at ~8 %
@@ -52,7 +53,7 @@ def test_the_misregistration_measure_sees_a_shifted_texture(true_texture):
     ds, wall, textured = true_texture
     moved = TexturedMesh(textured.mesh, textured.uv, textured.face_uv, np.roll(textured.image, 3, axis=1),
                          textured.texel_mm, textured.face_frame, textured.textured_fraction, textured.gains)
-    result = textured_errors(moved, IDENTITY, wall, np.zeros(3), build_scene("bladder").albedo, EVALUATION)
+    result = textured_errors(moved, IDENTITY, wall, np.zeros(3), build_scene("bladder").albedo, options=EVALUATION)
     # texel_mm is a texel's size at a cell's centre on a wall at the median distance; off the centre (the
     # tangent-adjusted cube map) and on nearer walls texels are smaller, down to ~0.5 of it: 3 texels are
     # 1.5-3 texel_mm on the wall

@@ -27,7 +27,7 @@ def _cloud(size, offsets=(0.0, 0.0, 0.0), defect=None, n=60000, seed=0):
 @pytest.mark.parametrize("size", list(MID_CLASS))
 def test_conforming_hole_passes_with_accurate_sizes(size):
     points, truth = _cloud(size, MID_CLASS[size])
-    result = gauge_thread(points, GaugeOptions(designation=size, max_points=10000))
+    result = gauge_thread(points, options=GaugeOptions(designation=size, max_points=10000))
     assert result.verdict == "pass", result.summary()
     # the accuracy targets: diameters within 0.02 mm, pitch within 0.005 mm
     assert abs(result.minor_diameter_mm.value - truth["minor_diameter_mm"]) < 0.02
@@ -48,7 +48,7 @@ def test_conforming_hole_passes_with_accurate_sizes(size):
 ])
 def test_hole_outside_the_class_fails_on_the_right_limit(offsets, failing):
     points, _ = _cloud("M8x1.25", offsets)
-    result = gauge_thread(points, GaugeOptions(max_points=10000))
+    result = gauge_thread(points, options=GaugeOptions(max_points=10000))
     assert result.verdict == "fail"
     failed = [c["check"] for c in result.checks if not c["ok"]]
     assert len(failed) == 1 and failing in failed[0], failed
@@ -56,7 +56,7 @@ def test_hole_outside_the_class_fails_on_the_right_limit(offsets, failing):
 
 def test_chipped_crest_is_found_at_its_angle():
     points, _ = _cloud("M8x1.25", MID_CLASS["M8x1.25"], defect=(200.0, 20.0, 0.15))
-    result = gauge_thread(points, GaugeOptions(max_points=10000))
+    result = gauge_thread(points, options=GaugeOptions(max_points=10000))
     assert result.verdict == "fail"
     assert len(result.defects) == 1, result.defects
     d = result.defects[0]
@@ -87,7 +87,7 @@ def test_flank_angle_held_at_60_when_one_flank_is_seen():
     seen = (points[:, 2] < -0.05) & (mesh.face_normals[faces][:, 2] > -0.3)
     points = points[seen] + np.random.default_rng(1).normal(0.0, noise, (int(seen.sum()), 3))
     truth = scene.info["thread"]["as_made"]
-    result = gauge_thread(points, GaugeOptions(max_points=10000, noise_mm=noise))
+    result = gauge_thread(points, options=GaugeOptions(max_points=10000, noise_mm=noise))
     assert result.profile["flank_angle_held"], result.summary()
     assert result.verdict == "pass", result.summary()
     for name in ("minor_diameter_mm", "pitch_diameter_mm", "major_diameter_mm"):  # the 0.02 mm
@@ -102,7 +102,7 @@ def test_flank_angle_off_the_standard_is_measured_and_used():
     # the sizes (a profile held at 60° would bias them).
     points, truth = _cloud("M8x1.25", MID_CLASS["M8x1.25"])
     points[:, 2] *= 1.02
-    result = gauge_thread(points, GaugeOptions(max_points=10000))
+    result = gauge_thread(points, options=GaugeOptions(max_points=10000))
     assert not result.profile["flank_angle_held"]
     expected = np.rad2deg(2 * np.arctan(1.02 * np.tan(np.deg2rad(30.0))))
     assert abs(result.flank_angle_deg.value - expected) < 0.3  # ~0.2° of tessellation bias, as at 60°

@@ -12,6 +12,7 @@ import time
 
 import pytest
 
+from kill_harness import Job, environment, kill_the_leader_when, left_alive, scope3d
 from scope3d.cli.main import main
 from scope3d.metrology.thread_scan_plan import matched_frame_gap, plan_quadrant_scan
 from scope3d.phantoms.lab import BORESCOPE_FOV_DEG
@@ -62,38 +63,71 @@ def test_thread_scan_names_the_missing_layout(hole, tmp_path, capsys):
 
 
 def test_batch_survives_a_killed_worker_and_resumes(hole, tmp_path):
+    """A worker SIGKILLed mid-hole: the scheduler runs the hole again on a worker alive, finished holes are kept,
+    and a rerun skips both. The kill lands mid-hole by construction, not by a sleep (which could end after the
+    hole did, issue 31): hole_a's first attempt holds in the page hook, its folder complete but still
+    temporary, until the test kills its worker; only another attempt can put hole_a's result in place."""
     from distributed import Client, LocalCluster
 
     from scope3d.cli.commands_thread import hole_page
-    from scope3d.pipelines.thread_batch import run_batch
+    from scope3d.pipelines import thread_batch
+    from scope3d.pipelines.thread_scan import ThreadScanOptions
 
     second = tmp_path / "hole_b"
     shutil.copytree(hole, second)
     out = tmp_path / "line"
-    killed = []
+    held = tmp_path / "held"  # the process id of the worker holding hole_a's first attempt
+
+    def finish(folder, name):  # the CLI's page hook, holding hole_a's first attempt (pickled by value)
+        if name == "hole_a" and not held.exists():
+            (tmp_path / "held.tmp").write_text(str(os.getpid()))
+            (tmp_path / "held.tmp").rename(held)
+            for _ in range(9000):  # until killed; 900 s only ends a test that never kills
+                time.sleep(0.1)
+            raise RuntimeError("the held worker was never killed")
+        hole_page(folder, name)
+
+    killed, batch_done = [], threading.Event()
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
             Client(cluster) as client:
-        pids = client.run(os.getpid)
+        pids = set(client.run(os.getpid).values())
 
-        def kill_first_busy_worker():
-            deadline = time.time() + 120
-            while time.time() < deadline and not killed:
-                busy = [w for w, tasks in client.processing().items() if tasks]
-                if busy:
-                    time.sleep(1.0)  # mid-hole
-                    os.kill(pids[busy[0]], signal.SIGKILL)  # a worker process this test started
-                    killed.append(busy[0])
-                time.sleep(0.2)
+        def kill_the_held_worker():
+            while not held.exists() and not batch_done.wait(0.05):
+                pass
+            if held.exists() and int(held.read_text()) in pids:  # a worker process this test started
+                os.kill(int(held.read_text()), signal.SIGKILL)
+                killed.append(int(held.read_text()))
 
-        killer = threading.Thread(target=kill_first_busy_worker)
+        killer = threading.Thread(target=kill_the_held_worker)
         killer.start()
-        # the CLI's page hook travels to the workers and runs before each hole's folder is renamed
-        result = run_batch([hole, second], out, client=client, finish=hole_page)
-        killer.join()
-    assert killed, "no worker was killed"
+        try:
+            result = thread_batch.run(ThreadScanOptions(), [hole, second], out, client=client, finish=finish)
+        finally:
+            batch_done.set()
+            killer.join()
+    assert killed == [int(held.read_text())], "the held worker was not killed"
     assert [r["status"] for r in result.rows] == ["done", "done"]
+    assert not [p.name for p in out.iterdir() if p.name.startswith(".")]  # the killed attempt's folder removed
     for name in ("hole_a", "hole_b"):
         assert (out / name / "report.json").is_file() and (out / name / "report.html").is_file()
     assert "hole_a" in (out / "summary.csv").read_text()
-    again = run_batch([hole, second], out, n_workers=1)
+    again = thread_batch.run(ThreadScanOptions(), [hole, second], out, n_workers=1)
     assert [r["status"] for r in again.rows] == ["skipped", "skipped"]
+
+
+def test_a_killed_batch_leaves_no_worker_behind(hole, tmp_path):
+    # issue 39's question for the other job that starts processes: SIGKILL the batch alone (not its process
+    # group) while a worker of its local Dask cluster scans a hole. Dask's worker processes watch a pipe
+    # from their parent and exit on its end-of-file; this checks they, and multiprocessing's
+    # resource tracker, do not outlive the batch.
+    out = tmp_path / "line"
+    job = Job("batch", scope3d("batch", "thread-scan", str(hole), "--out", str(out), "--workers", "2",
+                               "--no-progress"), out)
+
+    def scanning(batch, others):  # a worker has started the hole: its temporary folder is there
+        return len(others) >= 2 and out.is_dir() and any(p.name.startswith(f".{hole.name}.") for p in out.iterdir())
+
+    session = kill_the_leader_when(job, environment(), scanning)
+    assert session is not None, "5 batches ended before a worker started the hole"
+    assert left_alive(session) == {}

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from scope3d.metrology.thread_gauge import THREAD_SIZES
-from scope3d.metrology.thread_scan_plan import (ScanPlanOptions, measured_quadrant_scan, plan_quadrant_scan,
-                                                view_extent_mm)
+from scope3d.geometry.iso_thread import THREAD_SIZES
+from scope3d.metrology.thread_scan_plan import (QuadrantScanPlanOptions, measured_quadrant_scan,
+                                                plan_quadrant_scan, view_extent_mm)
 from scope3d.phantoms.trajectories import quadrant_trajectory
 from scope3d.sensor.camera import Camera
 
@@ -29,8 +29,8 @@ def test_view_extent_matches_the_side_view_cameras_image_rows(side_view):
 
 @pytest.mark.parametrize("designation", list(THREAD_SIZES))
 def test_plan_keeps_views_per_point_overlap_and_thread_length(designation):
-    options = ScanPlanOptions()
-    plan = plan_quadrant_scan(CAMERA, designation, 90.0, options)
+    options = QuadrantScanPlanOptions()
+    plan = plan_quadrant_scan(CAMERA, designation, 90.0, options=options)
     _, pitch = THREAD_SIZES[designation]
     # the step is E / views, rounded down to the stage's hundredths: each point is seen at least that often
     assert plan.view_extent_mm / plan.step_mm >= options.views_per_point

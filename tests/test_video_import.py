@@ -16,7 +16,7 @@ from scope3d.geometry.pose import Pose
 from scope3d.io.dataset import load_dataset
 from scope3d.io.scan_plan import read_scan_plan, write_scan_plan
 from scope3d.io.video import probe_video, read_video, write_video
-from scope3d.pipelines.video_import import VideoImportOptions, import_video, planned_pose
+from scope3d.pipelines.video_import import VideoImportOptions, planned_pose, run
 from scope3d.sensor.camera import Camera
 from scope3d.sensor.pose_tolerance import PoseTolerance
 
@@ -136,18 +136,20 @@ def test_keyframes_follow_motion_and_skip_static_repeats(video, texture):
 
 def test_import_every_and_keyframes_write_datasets_with_unknown_poses(video, camera, tmp_path):
     path, centres, _, labels = video
-    every = import_video(path, tmp_path / "every", VideoImportOptions(every=7), camera=camera)
+    imported = run(VideoImportOptions(every=7), path, camera, tmp_path / "every")
+    every = imported.dataset_dir
     ds = load_dataset(every, check_images=True)
     assert ds.names == [f"{i:06d}.png" for i in range(0, len(centres), 7)]
     assert all(np.all(np.isinf(m.tolerance.position_mm)) and np.all(np.isinf(m.tolerance.orientation_rad))
                for m in ds.poses)
     source = json.loads((every / "dataset.json").read_text())["source"]
+    assert source == imported.source
     assert source["frame_indices"] == list(range(0, len(centres), 7))
     # a clean video (sensor noise, motion, a roll) has no frame flagged as damaged
     assert source["decode_damage"]["checked"] and source["decode_damage"]["frames"] == []
     assert source["decode_damage"]["frames_decoded"] == source["decode_damage"]["frames_in_container"] == len(centres)
 
-    keys = import_video(path, tmp_path / "keys", VideoImportOptions(keyframes=KeyframeOptions()), camera=camera)
+    keys = run(VideoImportOptions(keyframes=KeyframeOptions()), path, camera, tmp_path / "keys").dataset_dir
     selector = KeyframeSelector()
     expected = [f.index for f in read_video(path) if selector.offer(f.image).keep]
     assert load_dataset(keys).names == [f"{i:06d}.png" for i in expected]
@@ -177,9 +179,8 @@ def test_planned_poses_by_time(tmp_path, video, camera):
 
     path = video[0]
     tolerance = PoseTolerance.from_degrees(5.0, 10.0)
-    out = import_video(path, tmp_path / "planned", VideoImportOptions(every=5, seconds_per_view=2.0, plan_start_s=1.0,
-                                                                      plan_tolerance=tolerance),
-                       camera=camera, plan=plan)
+    out = run(VideoImportOptions(every=5, seconds_per_view=2.0, plan_start_s=1.0, plan_tolerance=tolerance), path,
+              camera, tmp_path / "planned", plan=plan).dataset_dir
     ds = load_dataset(out)
     for name, measured in zip(ds.names, ds.poses):
         time_s = int(name[:6]) / FPS
@@ -253,7 +254,7 @@ def test_bad_options_are_one_line_errors(video, tmp_path, capsys, args, words):
 
 def test_camera_of_another_size_is_refused(video, tmp_path):
     with pytest.raises(InputError, match=r"128x96 px, the camera 64x48"):
-        import_video(video[0], tmp_path / "out", VideoImportOptions(), camera=Camera.from_fov(64, 48, 60.0))
+        run(VideoImportOptions(), video[0], Camera.from_fov(64, 48, 60.0), tmp_path / "out")
     assert not (tmp_path / "out").exists()
 
 

@@ -210,7 +210,7 @@ def run_import_rosbag(args) -> int:
                             tolerance=_tolerance(args) if given else None)
     camera = read_camera_json(args.camera) if args.camera else None
     report, finish = _import_report(args, str(args.bag))
-    out = import_rosbag(args.bag, args.out, options, camera=camera, finish=finish)
+    out = import_rosbag(args.bag, args.out, options=options, camera=camera, finish=finish)
     return finish_import(args, out, report)
 
 
@@ -221,7 +221,7 @@ def run_import_video(args) -> int:
     from scope3d.io.scan_plan import read_scan_plan
     from scope3d.io.video import probe_video
     from scope3d.io.json_object import read_json_object
-    from scope3d.pipelines.video_import import VideoImportOptions, decode_damage_summary, import_video
+    from scope3d.pipelines.video_import import VideoImportOptions, decode_damage_summary, run
     from scope3d.sensor.camera import Camera
     from scope3d.sensor.pose_tolerance import PoseTolerance
 
@@ -263,6 +263,6 @@ def run_import_video(args) -> int:
         finish(folder)
 
     with progress_bar(show_progress(args), "frame") as progress:
-        out = import_video(args.video, args.out, options, camera=camera, plan=plan, intrinsics=intrinsics,
-                           progress=progress, finish=finish_with_damage)
-    return finish_import(args, out, report, tuple(decode_damage_summary(report["decode_damage"])))
+        result = run(options, args.video, camera, args.out, plan=plan, intrinsics=intrinsics, progress=progress,
+                     finish=finish_with_damage)
+    return finish_import(args, result.dataset_dir, report, tuple(decode_damage_summary(report["decode_damage"])))

@@ -34,8 +34,7 @@ def register(subparsers) -> None:
 
 def _run_plan(args) -> int:
     from scope3d.errors import InputError
-    from scope3d.io.json_object import read_json_object
-    from scope3d.pipelines.panorama import plan_scan
+    from scope3d.pipelines.scan_plan import run
     from scope3d.sfm.scan_planning import ScanPlanOptions
 
     try:
@@ -44,10 +43,9 @@ def _run_plan(args) -> int:
     except ValueError as exc:
         raise InputError(str(exc)) from None
     with job_folder(args.out) as staged:
-        plan = plan_scan(options, args.surface, staged)
-        report = read_json_object(staged / "report.json")
-    return finish_job(args, args.out, report,
-                      [plan.summary(), f"wrote {args.out}/plan.json, plan.png, report.json"])
+        result = run(options, args.surface, staged)
+    return finish_job(args, args.out, result.report,
+                      [result.summary(), f"wrote {args.out}/plan.json, plan.png, report.json"])
 
 
 def register_mosaic(subparsers) -> None:
@@ -70,18 +68,14 @@ def register_mosaic(subparsers) -> None:
 def _run_mosaic(args) -> int:
     from scope3d.cli.progress import progress_bar
     from scope3d.io.dataset import load_dataset
-    from scope3d.pipelines.panorama import make_mosaic
+    from scope3d.pipelines.mosaic import run
     from scope3d.registration.mosaic import MosaicOptions
 
     datasets = [load_dataset(d) for d in args.datasets]
     with job_folder(args.out) as staged, progress_bar(show_progress(args), "pair") as progress:
-        report, _ = make_mosaic(MosaicOptions(), datasets, staged, progress=progress)
-    err = report["alignment_error_px"]
-    summary = (f"{report['n_registered']}/{report['n_frames']} frames in the mosaic, coverage "
-               f"{report['coverage_fraction']:.1%}"
-               + (f", alignment error {err['mean']:.2f} px mean, {err['p95']:.2f} px p95" if err else ""))
-    return finish_job(args, args.out, report,
-                      [summary, f"wrote {args.out}/ (mosaic.png, mosaic_path.png, coverage.png, report.json)"])
+        result = run(MosaicOptions(), datasets, staged, progress=progress)
+    return finish_job(args, args.out, result.report, [
+        result.summary(), f"wrote {args.out}/ (mosaic.png, mosaic_path.png, coverage.png, report.json)"])
 
 
 def register_panorama(subparsers) -> None:
@@ -126,38 +120,18 @@ def _run_panorama(args) -> int:
     from scope3d.io.dataset import load_dataset
     from scope3d.metrology.star_scale import StarScaleOptions
     from scope3d.mvs.texturing import TextureOptions
-    from scope3d.pipelines.panorama_3d import PanoramaOptions, run
+    from scope3d.pipelines.panorama import Panorama3dOptions, run
 
     try:
         stars = None if args.no_scale else StarScaleOptions(outer_diameter_mm=args.star_mm)
         texture = TextureOptions(texel_mm=args.texel_mm, max_atlas_px=args.atlas_px)
     except ValueError as exc:
         raise InputError(str(exc)) from None
-    options = PanoramaOptions(stars=stars, use_planned_poses=not args.ignore_poses, texture=texture,
-                              refuse_implausible=not args.keep_implausible)
+    options = Panorama3dOptions(stars=stars, use_planned_poses=not args.ignore_poses, texture=texture,
+                                refuse_implausible=not args.keep_implausible)
     dataset = load_dataset(args.dataset)
     with job_folder(args.out) as staged, progress_bar(show_progress(args), "frame") as progress:
-        report, _ = run(options, dataset, staged, progress=progress)
-    summary = (f"{report['n_registered']}/{report['n_frames']} frames registered, {report['n_points']} points, "
-               f"scale from {report['scale_source']}"
-               + (f" (± {report['scale_uncertainty_fraction']:.2%})" if report.get("scale_uncertainty_fraction") else "")
-               + f", {report['time_s']:.1f} s")
-    disagreement = (report["self_check"]["map_choice"] or {}).get("disagreement")
-    if disagreement:  # image-only: how far the two candidate maps are apart (both right: ~0.003 of the radius)
-        summary += (f"; the two image-only maps disagree by {disagreement['median']:.1%} of the wall's radius "
-                    f"(p95 {disagreement['p95']:.1%})")
-    lines = [summary]
-    err = report.get("surface_error_mm", {}).get("after_similarity")
-    if err:
-        lines.append(f"wall error after similarity: mean {err['mean']:.3f}, median {err['median']:.3f}, "
-                     f"p95 {err['p95']:.3f} mm" + (f"; scale error {report['scale_error_fraction']:+.2%}"
-                                                  if "scale_error_fraction" in report else ""))
-    if "texture_texel_mm" in report:
-        lines.append(f"textured wall: {report['texture_texel_mm']:.3f} mm per texel, atlas "
-                     f"{report['texture_atlas_px'][0]} x {report['texture_atlas_px'][1]} px, "
-                     f"{report['textured_fraction']:.0%} of the wall seen")
-    lines += [f"self-check WARNING: {w}" for w in report["self_check"]["warnings"]]
-    if not report["self_check"]["passed"]:
-        lines.append("self-check FAILED, the map is kept as asked: " + "; ".join(report["self_check"]["problems"]))
+        result = run(options, dataset, staged, progress=progress)
+    lines = [result.summary()]
     lines.append(f"wrote {args.out}/ (report.json, sparse/, points.ply, mesh.ply, wall.obj, panorama_3d.png)")
-    return finish_job(args, args.out, report, lines)
+    return finish_job(args, args.out, result.report, lines)

@@ -19,7 +19,7 @@ def register(subparsers) -> None:
     p.add_argument("dataset", type=Path, help="dataset folder with quadrants.json (see docs/thread_metrology.md)")
     p.add_argument("--out", type=Path, required=True, help="output folder (replaced when complete)")
     p.add_argument("--thread", default="M8x1.25", metavar="SIZE",
-                   choices=LazyChoices("scope3d.metrology.thread_gauge", "THREAD_SIZES"),
+                   choices=LazyChoices("scope3d.geometry.iso_thread", "THREAD_SIZES"),
                    help="nominal thread: %(choices)s (default M8x1.25)")
     p.add_argument("--frame-gap", type=int, metavar="N",
                    help="match frames up to N steps apart within a quadrant (default: from the scan itself, "
@@ -41,7 +41,7 @@ def register(subparsers) -> None:
     t.add_argument("datasets", type=Path, nargs="+", metavar="DATASET", help="hole dataset folders")
     t.add_argument("--out", type=Path, required=True, help="folder of the per-hole results and the summary")
     t.add_argument("--thread", default="M8x1.25", metavar="SIZE",
-                   choices=LazyChoices("scope3d.metrology.thread_gauge", "THREAD_SIZES"),
+                   choices=LazyChoices("scope3d.geometry.iso_thread", "THREAD_SIZES"),
                    help="nominal thread: %(choices)s (default M8x1.25)")
     t.add_argument("--frame-gap", type=int, metavar="N",
                    help="match frames up to N steps apart within a quadrant (default: from the scan itself, "
@@ -77,13 +77,13 @@ def _run_scan(args) -> int:
 
 def _run_batch(args) -> int:
     from scope3d.cli.progress import progress_bar
-    from scope3d.pipelines.thread_batch import run_batch
+    from scope3d.pipelines.thread_batch import run
     from scope3d.report import write_report
     from scope3d.utils.jsonio import write_json
 
     with progress_bar(show_progress(args), "hole") as progress:
-        result = run_batch(args.datasets, args.out, _options(args), scheduler=args.scheduler,
-                           n_workers=args.workers, progress=progress, finish=hole_page)
+        result = run(_options(args), args.datasets, args.out, scheduler=args.scheduler,
+                     n_workers=args.workers, progress=progress, finish=hole_page)
     report = result.report()
     # the batch folder is resumable (holes done before are kept), so it is not built whole: its page follows
     # its report.json, each written atomically

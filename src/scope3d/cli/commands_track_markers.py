@@ -29,10 +29,10 @@ def register(subparsers) -> None:
 
 def _run(args) -> int:
     from scope3d.errors import InputError
-    from scope3d.pipelines.track_markers import TrackOptions, run
+    from scope3d.pipelines.track_markers import TrackMarkersOptions, run
 
     try:
-        options = TrackOptions(rate_hz=args.rate, marker_sigma_mm=args.marker_sigma, filter=not args.no_filter)
+        options = TrackMarkersOptions(rate_hz=args.rate, marker_sigma_mm=args.marker_sigma, filter=not args.no_filter)
     except ValueError as exc:
         raise InputError(str(exc)) from None
     with job_folder(args.out) as staged:

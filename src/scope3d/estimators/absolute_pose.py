@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 
 from scope3d.geometry.pose import Pose
-from scope3d.geometry.rotation import _SMALL_ANGLE_RAD, matrix_to_rotvec, rotvec_to_matrix
+from scope3d.geometry.rotation import SMALL_ANGLE_RAD, matrix_to_rotvec, rotvec_to_matrix
 from scope3d.sensor.camera import Camera
 from scope3d.sensor.pose_tolerance import MeasuredPose
 from scope3d.utils.aot import load_kernels
@@ -212,7 +212,7 @@ def refine_pose(camera: Camera, points_world: np.ndarray, pixels: np.ndarray, st
     def normal_equations(x: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
         """Huber cost, Gauss-Newton matrix (6, 6), gradient (6,) of ``(w, C)`` and residual norms (N,) px."""
         return _kernels.huber_normal_equations(points_world, pixels, x, ref_rotation, intrinsics,
-                                               float(options.loss_scale_px), _SMALL_ANGLE_RAD)
+                                               float(options.loss_scale_px), SMALL_ANGLE_RAD)
 
     cost, hessian, gradient, norm = normal_equations(x)
     damping = 1e-4

@@ -34,6 +34,7 @@ from scope3d.geometry.rotation import hat, matrix_to_rotvec, rotvec_to_matrix
 from scope3d.scene.tracks import Tracks
 from scope3d.sensor.camera import Camera
 from scope3d.sensor.pose_tolerance import MeasuredPose
+from scope3d.utils.robust import huber_weights, robust_norm_sigma
 
 # A prior with an infinite tolerance still holds the gauge: its sigma is this many times the scene's size.
 _LOOSE_PRIOR_FACTOR = 1e3
@@ -253,17 +254,6 @@ def _in_front_fraction(xi, xj, R, t) -> float:
     return float(np.mean((zi > 0) & (zj > 0))) if len(xi) else 0.0
 
 
-def _huber_weights(r: np.ndarray, scale: float) -> np.ndarray:
-    """IRLS weights of the Huber loss for residual norms ``r`` at ``scale`` (1 inside, scale / r beyond)."""
-    return np.where(r <= scale, 1.0, scale / np.maximum(r, 1e-300))
-
-
-def _robust_sigma(r: np.ndarray, floor: float) -> float:
-    """Robust scale of residual norms (median / 1.1774: the median of a 2-D Gaussian's norm; close for
-    3-D too), at least ``floor``."""
-    return max(float(np.median(r)) / 1.1774, floor) if len(r) else floor
-
-
 def average_rotations(measured: list[MeasuredPose], pairs: list[RelativePose], *,
                       iterations: int = 20) -> tuple[np.ndarray, np.ndarray]:
     """Rotations (n, 3, 3) ``cam_from_world`` that best agree with the pairs and the measurements.
@@ -291,8 +281,8 @@ def average_rotations(measured: list[MeasuredPose], pairs: list[RelativePose], *
         A = Q[jj] @ np.swapaxes(Q[ii], 1, 2)  # current R_j R_i^T
         e = matrix_to_rotvec(R_rel @ np.swapaxes(A, 1, 2)) if k else np.zeros((0, 3))
         resid = np.linalg.norm(e, axis=1)
-        sigma = sigma_own * (_robust_sigma(resid / sigma_own, 1.0) if k >= 3 else 1.0)
-        w_pair = _huber_weights(resid / sigma, 2.0) / sigma**2
+        sigma = sigma_own * (robust_norm_sigma(resid / sigma_own, 1.0) if k >= 3 else 1.0)
+        w_pair = huber_weights(resid / sigma, 2.0) / sigma**2
         # unknowns: delta_i (3n), R_i <- exp(delta_i) R_i. Pair rows: delta_j - A delta_i = e (first order of
         # R_ji = exp(delta_j) A exp(-delta_i)); prior rows: deviation from the measurement + delta_i = 0
         rows = np.concatenate([pair_rows, np.repeat(pair_rows, 3), 3 * k + np.arange(3 * n)])
@@ -347,7 +337,7 @@ def average_positions(measured: list[MeasuredPose], rotations: np.ndarray, pairs
     for _ in range(iterations):
         baseline = np.maximum(np.linalg.norm(C[ii] - C[jj], axis=1), 1e-3 * size)
         sigma = baseline * sigma_own * factor
-        w_pair = np.where(used, _huber_weights(normalised, 2.0) / sigma**2, 0.0)
+        w_pair = np.where(used, huber_weights(normalised, 2.0) / sigma**2, 0.0)
         wts = np.concatenate([np.repeat(w_pair, 3), 1.0 / sigma_prior.ravel() ** 2])
         JtW = J.T.multiply(wts).tocsr()
         # a dropped pair's length is unobserved: a unit ridge keeps the system regular
@@ -356,7 +346,7 @@ def average_positions(measured: list[MeasuredPose], rotations: np.ndarray, pairs
         C_new, s = x[:3 * n].reshape(n, 3), x[3 * n:]
         resid = np.linalg.norm(C_new[ii] - C_new[jj] - s[:, None] * d, axis=1)
         normalised = resid / (baseline * sigma_own)
-        factor = _robust_sigma(normalised[used], 1.0) if used.sum() >= 3 else factor
+        factor = robust_norm_sigma(normalised[used], 1.0) if used.sum() >= 3 else factor
         normalised = normalised / factor
         used_new = (s > 0) & (normalised <= 3.0)
         moved = np.abs(C_new - C).max()
@@ -434,8 +424,8 @@ def _positions_from_points(camera, measured, rotations, C, tracks, noise_px, min
         X = _points_on_rays(P, weight, obs_frame, obs_track, C, n_points)
         depth = np.maximum(np.linalg.norm(X[obs_track] - C[obs_frame], axis=1), 1e-9)
         resid = np.linalg.norm(np.einsum("kij,kj->ki", P, X[obs_track] - C[obs_frame]), axis=1) / depth
-        factor = _robust_sigma(resid / sigma_angle, 1.0)
-        weight = _huber_weights(resid / (factor * sigma_angle), 2.0) / depth**2
+        factor = robust_norm_sigma(resid / sigma_angle, 1.0)
+        weight = huber_weights(resid / (factor * sigma_angle), 2.0) / depth**2
         C_new = C.copy()
         for g in np.unique(group[:n][np.bincount(obs_frame, minlength=n) > 0]):
             frames = np.flatnonzero(group[:n] == g)

@@ -11,6 +11,7 @@ import numpy as np
 
 from scope3d.geometry.rotation import rotvec_to_matrix
 from scope3d.scene.mesh import SampledSurface
+from scope3d.utils.robust import robust_sigma
 
 
 @dataclass(frozen=True)
@@ -101,7 +102,7 @@ def icp_point_to_plane(
         # Huber weights (scale: 2 robust sigmas of the residuals) rather than dropping the worst: a point
         # sliding off the surface's edge keeps a bounded pull, so ICP cannot slide along a symmetry (a
         # dome's axis) by shedding the points that would resist it
-        sigma = max(1.4826 * float(np.median(abs_r)), 1e-6)
+        sigma = max(robust_sigma(abs_r, about=0.0), 1e-6)
         w = np.minimum(1.0, options.huber_sigmas * sigma / np.maximum(abs_r, 1e-12))
         c = yk.mean(axis=0)
         A = np.empty((len(yk), 6))

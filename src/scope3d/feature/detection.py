@@ -126,7 +126,7 @@ def to_grey(image: np.ndarray) -> np.ndarray:
     raise ValueError(f"image must be (H, W) or (H, W, 3), got shape {img.shape}")
 
 
-def detect(image: np.ndarray, camera: Camera | None = None, options: FeatureOptions = FeatureOptions()) -> Features:
+def detect(image: np.ndarray, camera: Camera | None = None, *, options: FeatureOptions = FeatureOptions()) -> Features:
     """Detect and describe SIFT features in one frame.
 
     Parameters

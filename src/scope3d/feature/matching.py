@@ -37,6 +37,7 @@ from scope3d.utils.aot import load_kernels
 # compiled at install (scope3d.utils.aot) or, failing that, by numba on first use
 _kernels = load_kernels("scope3d.feature.descriptor_kernels")
 from scope3d.utils.progress import advance
+from scope3d.utils.threads import check_threads, resolve_threads
 
 _GEOMETRIC_MODELS = ("fundamental", "homography", "none")
 
@@ -67,7 +68,8 @@ class MatchOptions:
         more as candidates, so the windowed search holds ~N^2/16 candidates per pair in memory (on a
         30-frame survey with 1 mm-wide windows, 271 million) for what brute force does in place.
     mutual : bool, keep a match only if it is also the best for the feature in the other frame.
-    threads : int, threads for the per-pair RANSAC of the guided matcher (default 2, the machine's cores).
+    threads : int, threads for the per-pair RANSAC of the guided matcher (default 0: every available core,
+        :mod:`scope3d.utils.threads`).
     """
 
     ratio: float = 0.8
@@ -78,7 +80,7 @@ class MatchOptions:
     base_radius_px: float = 4.0
     max_radius_px: float = 250.0
     mutual: bool = True
-    threads: int = 2
+    threads: int = 0
 
     def __post_init__(self) -> None:
         if not 0 < self.ratio <= 1:
@@ -91,8 +93,7 @@ class MatchOptions:
             raise ValueError("min_matches must be >= 0")
         if self.base_radius_px <= 0 or self.max_radius_px < self.base_radius_px:
             raise ValueError("need 0 < base_radius_px <= max_radius_px")
-        if self.threads < 1:
-            raise ValueError("threads must be >= 1")
+        check_threads(self.threads)
 
 
 @dataclass
@@ -299,8 +300,8 @@ def match_guided(
     measured_i: MeasuredPose,
     measured_j: MeasuredPose,
     depth_prior: DepthPrior,
-    options: MatchOptions = MatchOptions(),
     *,
+    options: MatchOptions = MatchOptions(),
     i: int = 0,
     j: int = 1,
 ) -> PairMatches:
@@ -313,7 +314,7 @@ def match_guided(
     See :func:`match_guided_many`, which does the same for many pairs at once (faster).
     """
     return match_guided_many(camera, [features_i, features_j], [measured_i, measured_j], [(0, 1, 1.0)], depth_prior,
-                             options, frame_ids=[i, j])[0]
+                             options=options, frame_ids=[i, j])[0]
 
 
 def match_guided_many(
@@ -322,8 +323,8 @@ def match_guided_many(
     poses: list[MeasuredPose],
     pairs: list[tuple[int, int, float]],
     depth_prior: DepthPrior,
-    options: MatchOptions = MatchOptions(),
     *,
+    options: MatchOptions = MatchOptions(),
     frame_ids: list[int] | None = None,
     progress=None,
 ) -> list[PairMatches]:
@@ -456,7 +457,7 @@ def match_guided_many(
             return PairMatches(ids[i], ids[j], a, b, int(n_put[k]), int(n_cand[k]),
                                t_share + time.perf_counter() - t1, "guided")
 
-        with ThreadPoolExecutor(max_workers=options.threads) as pool:
+        with ThreadPoolExecutor(max_workers=resolve_threads(options.threads)) as pool:
             for k, m in zip(todo, pool.map(verify, todo)):
                 results[k] = m
                 advance(progress)
@@ -472,8 +473,8 @@ def match_pairs(
     poses: list[MeasuredPose],
     pairs: list[tuple[int, int, float]],
     depth_prior: DepthPrior | None,
-    options: MatchOptions = MatchOptions(),
     *,
+    options: MatchOptions = MatchOptions(),
     method: str = "guided",
     progress=None,
 ) -> list[PairMatches]:
@@ -495,7 +496,7 @@ def match_pairs(
             frames = sorted({f for i, j, _ in batch for f in (i, j)})
             local = {f: n for n, f in enumerate(frames)}
             out += match_guided_many(camera, [features[f] for f in frames], [poses[f] for f in frames],
-                                     [(local[i], local[j], w) for i, j, w in batch], depth_prior, options,
+                                     [(local[i], local[j], w) for i, j, w in batch], depth_prior, options=options,
                                      frame_ids=frames, progress=progress)
         return out
     out = []

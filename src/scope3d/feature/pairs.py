@@ -94,7 +94,7 @@ def frame_overlap(camera: Camera, poses: list[Pose], depth_prior: DepthPrior, *,
 
 
 def select_pairs(
-    camera: Camera, poses: list[Pose], depth_prior: DepthPrior, options: PairOptions = PairOptions()
+    camera: Camera, poses: list[Pose], depth_prior: DepthPrior, *, options: PairOptions = PairOptions()
 ) -> list[tuple[int, int, float]]:
     """Frame pairs worth matching, as (i, j, overlap) with i < j, best overlap first.
 

@@ -11,7 +11,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-_SMALL_ANGLE_RAD = 1e-8
+#: below this angle (rad) the rotation's series replace sin(t) / t and (1 - cos(t)) / t^2 (their round-off
+#: there exceeds the series' truncation); the compiled pose kernels take the same value
+SMALL_ANGLE_RAD = 1e-8
 
 
 # Rotations and quaternions read from text files carry the file's rounding. An entry |r| <= 1 printed to
@@ -45,7 +47,7 @@ def rotvec_to_matrix(rotvec: np.ndarray) -> np.ndarray:
     rotvec = np.asarray(rotvec, dtype=float)
     theta = np.linalg.norm(rotvec, axis=-1)[..., None, None]
     k = hat(rotvec)
-    small = theta < _SMALL_ANGLE_RAD
+    small = theta < SMALL_ANGLE_RAD
     theta_safe = np.where(small, 1.0, theta)
     a = np.where(small, 1.0 - theta**2 / 6.0, np.sin(theta_safe) / theta_safe)
     b = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(theta_safe)) / theta_safe**2)

@@ -2,7 +2,7 @@
 
 Each importer turns a foreign format into a scope3d dataset folder (see :mod:`scope3d.io.dataset`); the
 COLMAP writer lets any pipeline hand its sparse reconstruction to COLMAP, pycolmap or their viewers.
-(The BAL bundle-adjustment format lives with bundle adjustment, in ``scope3d.estimators.bundle``.)
+(Bundle Adjustment in the Large problems and their bounds files: :mod:`.bal`, :mod:`.bal_bounds`.)
 """
 from scope3d.io.colmap import SparseModel, import_colmap, read_colmap_text, write_colmap_text
 from scope3d.io.middlebury import import_middlebury, read_middlebury_par

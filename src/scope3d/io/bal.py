@@ -1,4 +1,5 @@
-"""Bundle Adjustment in the Large (BAL) problem files: read and write."""
+"""Bundle Adjustment in the Large (BAL) problem files: read and write (their bounds files:
+:mod:`scope3d.io.bal_bounds`)."""
 from __future__ import annotations
 
 import os
@@ -114,31 +115,3 @@ def write_bal(path: str | os.PathLike, bal: BALProblem) -> None:
         np.savetxt(handle, obs, fmt=["%d", "%d", "%.6e", "%.6e"])
         np.savetxt(handle, bal.cameras.reshape(-1, 1), fmt="%.16e")
         np.savetxt(handle, bal.points.reshape(-1, 1), fmt="%.16e")
-
-
-def _parse_indices(token: str, count: int, where: str) -> np.ndarray:
-    if token == "*":
-        return np.arange(count)
-    ranges = []
-    for part in token.split(","):
-        try:
-            a, b = (int(v) for v in part.split("-", 1)) if "-" in part else (int(part),) * 2
-        except ValueError:
-            raise InputError(f"{where}: bad index list {token!r} (use *, 7, 0-9 or 1,4,10-12)") from None
-        # checked before expanding: '0-999999999999' must not allocate a trillion indices
-        if a < 0 or b >= count or a > b:
-            raise InputError(f"{where}: index out of range [0, {count}) in {token!r}")
-        ranges.append(np.arange(a, b + 1, dtype=np.int64))
-    return np.concatenate(ranges)
-
-
-def _parse_floats(tokens: list[str], count: int, where: str) -> list[float]:
-    if len(tokens) != count:
-        raise InputError(f"{where}: expected {count} numbers, got {len(tokens)}")
-    try:
-        values = [float(t) for t in tokens]
-    except ValueError:
-        raise InputError(f"{where}: expected numbers, got {' '.join(tokens)!r}") from None
-    if any(np.isnan(values)):
-        raise InputError(f"{where}: NaN is not a bound")
-    return values

@@ -285,7 +285,7 @@ def _messages(reader, connections: list, bag: Path, topic: str) -> Iterator[tupl
         index += 1
 
 
-def import_rosbag(bag: str | Path, out_dir: str | Path, options: RosbagOptions, *,
+def import_rosbag(bag: str | Path, out_dir: str | Path, *, options: RosbagOptions, 
                   camera: Camera | None = None, finish=None) -> Path:
     """Write the bag's synchronised images and poses as a scope3d dataset folder (see
     :func:`scope3d.io.dataset.write_dataset`); returns ``out_dir``. camera : the intrinsics when the

@@ -18,7 +18,7 @@ Distances are reported both **direct** (the map is metric because the poses are)
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -29,6 +29,7 @@ from scope3d.geometry.similarity import Similarity, fit_similarity
 from scope3d.scene.mesh import Mesh, SampledSurface
 from scope3d.sensor.camera import Camera
 from scope3d.sensor.pose_tolerance import MeasuredPose
+from scope3d.utils.threads import check_threads, resolve_threads
 
 
 def true_match_error_px(
@@ -48,52 +49,33 @@ def true_match_error_px(
 class EvaluationOptions:
     """sample_step_mm : float, spacing of the dense sampling of the true mesh (default 0.25 mm; with
         point-to-plane distances the sampling error is below step² / (8 R), 0.5 µm on the dome).
-    icp_iterations : int (default 100); icp_tolerance_mm : float, stop when the step < this (1e-3 mm).
+    icp : :class:`~scope3d.estimators.icp.IcpOptions`, each ICP run's (default: 100 iterations, stop at a
+        step under 1e-3 mm or one within the pose's standard error, correspondences beyond 5 mm ignored —
+        more than the initial perturbations, so farther points are outliers, not misalignment — none
+        trimmed, Huber weights beyond 2 robust sigmas).
     icp_max_points : int, ICP runs on at most this many points (a seeded subsample; default 1000), the
         transform is then applied to all.
-    icp_max_distance_mm : float, correspondences farther than this are ignored by ICP (default 5 mm,
-        more than the initial perturbations; farther points are outliers, not misalignment).
-    icp_trim_fraction : float, ICP ignores this worst fraction of correspondences each iteration
-        (default 0: trimming lets ICP slide along a symmetry by dropping the points that resist).
-    icp_huber_sigmas : float, correspondences are Huber-weighted beyond this many robust sigmas of
-        the residuals (default 2: wrong tracks pull with a bounded force, not quadratically).
-    icp_min_decrease_sigma2 : float, ICP also stops when a step would lower its weighted sum of squares by
-        less than this many squared robust sigmas (default 1: the step is within the pose's standard error;
-        see :class:`scope3d.estimators.icp.IcpOptions`).
     initial_rotation_deg, initial_translation_mm : size of the eight ICP starting perturbations
         (default 5 deg, 2 mm).
-    threads : int, ICP starts run at once (default 2; the results do not depend on it).
+    threads : int, ICP starts run at once (default 0: every available core, :mod:`scope3d.utils.threads`;
+        the results do not depend on it).
     """
 
     sample_step_mm: float = 0.25
-    icp_iterations: int = 100
-    icp_tolerance_mm: float = 1e-3
+    icp: IcpOptions = field(default_factory=IcpOptions)
     icp_max_points: int = 1000
-    icp_max_distance_mm: float = 5.0
-    icp_trim_fraction: float = 0.0
-    icp_huber_sigmas: float = 2.0
-    icp_min_decrease_sigma2: float = 1.0
     initial_rotation_deg: float = 5.0
     initial_translation_mm: float = 2.0
-    threads: int = 2
+    threads: int = 0
 
     def __post_init__(self) -> None:
-        if self.threads < 1:
-            raise ValueError(f"need threads >= 1, got {self.threads}")
-        if self.sample_step_mm <= 0 or self.icp_iterations < 1 or not 0 <= self.icp_trim_fraction < 0.5:
-            raise ValueError("need sample_step_mm > 0, icp_iterations >= 1, icp_trim_fraction in [0, 0.5)")
-        if self.icp_max_points < 10 or not self.icp_huber_sigmas > 0 or not self.icp_max_distance_mm > 0:
-            raise ValueError("need icp_max_points >= 10, icp_huber_sigmas > 0 and icp_max_distance_mm > 0")
-        self.icp_options()  # the ICP's own checks
-
-    def icp_options(self) -> IcpOptions:
-        """The options of the ICP runs this evaluation makes."""
-        return IcpOptions(iterations=self.icp_iterations, tolerance_mm=self.icp_tolerance_mm,
-                          max_distance_mm=self.icp_max_distance_mm, trim_fraction=self.icp_trim_fraction,
-                          huber_sigmas=self.icp_huber_sigmas, min_decrease_sigma2=self.icp_min_decrease_sigma2)
+        check_threads(self.threads)
+        if self.sample_step_mm <= 0 or self.icp_max_points < 10:
+            raise ValueError("need sample_step_mm > 0 and icp_max_points >= 10")
 
 
-def surface_distances(points: np.ndarray, truth: Mesh | SampledSurface, options: EvaluationOptions = EvaluationOptions()) -> np.ndarray:
+def surface_distances(points: np.ndarray, truth: Mesh | SampledSurface, *,
+                      options: EvaluationOptions = EvaluationOptions()) -> np.ndarray:
     """points : (N, 3) mm world -> (N,) distance (mm) to the true surface (a Mesh or a SampledSurface)."""
     pts = np.asarray(points, float)
     if pts.ndim != 2 or pts.shape[1] != 3:
@@ -114,7 +96,8 @@ def distance_summary(distances: np.ndarray) -> dict:
     }
 
 
-def icp_from_initial_poses(points: np.ndarray, target: SampledSurface, options: EvaluationOptions = EvaluationOptions()) -> tuple[IcpResult, list[float]]:
+def icp_from_initial_poses(points: np.ndarray, target: SampledSurface, *,
+                           options: EvaluationOptions = EvaluationOptions()) -> tuple[IcpResult, list[float]]:
     """ICP from eight starting poses around the reconstruction (reference sec. 4.5): the configured
     rotation about the eight diagonal axes through the centroid, each with a translation along its
     diagonal; plus the identity. ICP runs on a subsample; each result is then scored by
@@ -137,10 +120,10 @@ def icp_from_initial_poses(points: np.ndarray, target: SampledSurface, options: 
                 t0 = c - R0 @ c + np.array([sx * d, sy * d, sz * d]) / np.sqrt(3)
                 starts.append((R0, t0))
     starts.append((np.eye(3), np.zeros(3)))
-    icp = options.icp_options()
+    icp = options.icp
     # the starts are independent and deterministic; threads overlap their KD-tree searches (which release
     # the GIL), so the results are the same as one after another
-    with ThreadPoolExecutor(max_workers=options.threads) as pool:
+    with ThreadPoolExecutor(max_workers=resolve_threads(options.threads)) as pool:
         results = list(pool.map(lambda s: icp_point_to_plane(x, target, icp, rotation=s[0], translation=s[1]), starts))
     scores = [float(np.mean(target.distances(r.apply(x_all)))) for r in results]
     for r, sc in zip(results, scores):
@@ -203,13 +186,13 @@ def pose_errors(adjusted: list[Pose], measured: list[MeasuredPose], truth: list[
             "measured_position_mm_mean": float(np.mean(dm))}
 
 
-def surface_errors(points: np.ndarray, truth: SampledSurface, options: EvaluationOptions = EvaluationOptions(),
+def surface_errors(points: np.ndarray, truth: SampledSurface, *, options: EvaluationOptions = EvaluationOptions(),
                    ) -> tuple[dict, np.ndarray, np.ndarray]:
     """Distances of ``points`` (N, 3) mm to the true surface, direct and after ICP from eight starts
     (:func:`icp_from_initial_poses`). Returns the summary dict (``direct``, ``after_icp``, the eight
     starts' means, the ICP's rotation (deg) and translation (mm)) and the two (N,) distance arrays."""
     direct = truth.distances(points)
-    best, spread = icp_from_initial_poses(points, truth, options)
+    best, spread = icp_from_initial_poses(points, truth, options=options)
     aligned = truth.distances(best.apply(points))
     summary = {
         "direct": distance_summary(direct), "after_icp": distance_summary(aligned),

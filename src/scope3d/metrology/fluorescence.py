@@ -124,7 +124,7 @@ def _disc(radius: int) -> np.ndarray:
     return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
 
 
-def auto_threshold(images, options: FluorescenceOptions = FluorescenceOptions()) -> int:
+def auto_threshold(images, *, options: FluorescenceOptions = FluorescenceOptions()) -> int:
     """Otsu's threshold on the pooled histogram of all frames (uint8), floored at ``min_threshold``."""
     if options.threshold is not None:
         return int(options.threshold)
@@ -140,7 +140,8 @@ def auto_threshold(images, options: FluorescenceOptions = FluorescenceOptions())
     return max(t, options.min_threshold)
 
 
-def segment(image: np.ndarray, threshold: int, options: FluorescenceOptions = FluorescenceOptions(), *, mask: np.ndarray | None = None) -> np.ndarray:
+def segment(image: np.ndarray, threshold: int, *, options: FluorescenceOptions = FluorescenceOptions(),
+            mask: np.ndarray | None = None) -> np.ndarray:
     """One fluorescence frame (H, W) uint8 -> (H, W) bool target mask: threshold, opening, closing.
     mask : optional (H, W) bool valid-image mask (outside is never a target)."""
     img = np.asarray(image)
@@ -158,7 +159,7 @@ def segment(image: np.ndarray, threshold: int, options: FluorescenceOptions = Fl
 
 
 def carry_to_surface(
-    surface: Surface, camera: Camera, poses: list[Pose], masks, options: FluorescenceOptions = FluorescenceOptions()
+    surface: Surface, camera: Camera, poses: list[Pose], masks, *, options: FluorescenceOptions = FluorescenceOptions()
 ) -> np.ndarray:
     """Vote the frames' 2-D target masks onto the surface grid.
 
@@ -287,7 +288,8 @@ def _shape_and_size(surface: Surface, sel: np.ndarray, area: float, options: Flu
     return "disc", float(2.0 * np.sqrt(area / np.pi)), _grid_to_world(surface, poly[:, ::-1].astype(float))
 
 
-def measure_targets(surface: Surface, on: np.ndarray, options: FluorescenceOptions = FluorescenceOptions()) -> tuple[list[Target], np.ndarray]:
+def measure_targets(surface: Surface, on: np.ndarray, *,
+                    options: FluorescenceOptions = FluorescenceOptions()) -> tuple[list[Target], np.ndarray]:
     """Label the fluorescent grid and measure each target in 3-D.
 
     on : (GH, GW) bool from :func:`carry_to_surface`. Returns the targets (largest first, labels
@@ -317,7 +319,7 @@ def measure_targets(surface: Surface, on: np.ndarray, options: FluorescenceOptio
 
 
 def targets_on_surface(
-    surface: Surface, camera: Camera, poses: list[Pose], masks, options: FluorescenceOptions = FluorescenceOptions()
+    surface: Surface, camera: Camera, poses: list[Pose], masks, *, options: FluorescenceOptions = FluorescenceOptions()
 ) -> tuple[list[Target], np.ndarray, np.ndarray]:
     """Targets on the surface: vote the masks onto the surface grid, label, then re-measure each
     target on a ``refine_factor`` times finer grid around it (votes recast there).
@@ -327,8 +329,8 @@ def targets_on_surface(
     """
     from dataclasses import replace
 
-    on = carry_to_surface(surface, camera, poses, masks, options)
-    coarse, labels = measure_targets(surface, on, options)
+    on = carry_to_surface(surface, camera, poses, masks, options=options)
+    coarse, labels = measure_targets(surface, on, options=options)
     if options.refine_factor == 1:
         return coarse, on, labels
     m = int(np.ceil(options.refine_margin_mm / surface.step_mm))
@@ -339,7 +341,8 @@ def targets_on_surface(
         cols = slice(max(int(cc.min()) - m, 0), int(cc.max()) + m + 1)
         patch = surface.refined(rows, cols, options.refine_factor)
         fine_opts = replace(options, min_area_mm2=options.min_area_mm2)
-        found, _ = measure_targets(patch, carry_to_surface(patch, camera, poses, masks, fine_opts), fine_opts)
+        found, _ = measure_targets(patch, carry_to_surface(patch, camera, poses, masks, options=fine_opts),
+                                   options=fine_opts)
         if not found:
             out.append(t)
             continue
@@ -348,7 +351,8 @@ def targets_on_surface(
     return out, on, labels
 
 
-def overlay(reflectance: np.ndarray, on: np.ndarray, labels: np.ndarray | None = None, options: FluorescenceOptions = FluorescenceOptions(), *, draw_outlines: bool = True) -> np.ndarray:
+def overlay(reflectance: np.ndarray, on: np.ndarray, labels: np.ndarray | None = None, *,
+            options: FluorescenceOptions = FluorescenceOptions(), draw_outlines: bool = True) -> np.ndarray:
     """Multimodal image: reflectance (H, W, 3) uint8 with fluorescence (H, W) bool in green, target
     outlines in blue and their labels (reference Fig. 4.4(f), 4.6(d)). Returns (H, W, 3) uint8."""
     rgb = np.asarray(reflectance, np.uint8).copy()

@@ -207,10 +207,11 @@ class StarBlob:
 
 
 def star_blobs(image: np.ndarray, threshold: int, inside: np.ndarray,
+               *,
                options: StarScaleOptions = StarScaleOptions()) -> list[StarBlob]:
     """The stars seen whole in one fluorescence frame (H, W) uint8: segmented at ``threshold``, at least
     ``min_area_px``, grown region within ``inside`` (the field less its border)."""
-    on = segment(image, threshold, options.fluorescence)
+    on = segment(image, threshold, options=options.fluorescence)
     n_labels, labels, stats, centroids = cv2.connectedComponentsWithStats(on.astype(np.uint8), connectivity=8)
     level = image.astype(float)
     blobs = []
@@ -262,11 +263,12 @@ def field_inside(camera: Camera, border_px: float) -> np.ndarray:
 
 
 def star_scale(camera: Camera, poses: list[Pose], tracks: Tracks, fluorescence: list[np.ndarray],
-               options: StarScaleOptions = StarScaleOptions(), *, where: str = "dataset") -> StarScale:
+               *,
+               options: StarScaleOptions = StarScaleOptions(), where: str = "dataset") -> StarScale:
     """The map's scale from the stars (module docstring). poses, tracks : the map (points in map units);
     fluorescence : (H, W) uint8 per frame. Raises InputError when no star is seen whole with enough map
     points around it (no scale is invented)."""
-    threshold = auto_threshold(fluorescence, options.fluorescence)
+    threshold = auto_threshold(fluorescence, options=options.fluorescence)
     inside = field_inside(camera, options.border_px)
     true_area = pentagram_area_mm2(options.outer_diameter_mm)
     views = []
@@ -275,7 +277,7 @@ def star_scale(camera: Camera, poses: list[Pose], tracks: Tracks, fluorescence: 
         if sel.sum() < options.min_points:
             continue
         seen_px, seen_points = tracks.pixels[sel], tracks.points[tracks.track[sel]]
-        for blob in star_blobs(image, threshold, inside, options):
+        for blob in star_blobs(image, threshold, inside, options=options):
             near = np.linalg.norm(seen_px - blob.centre_px, axis=1) <= options.neighbourhood * blob.radius_px
             if near.sum() < options.min_points or not surrounds(seen_px[near], blob.centre_px):
                 continue

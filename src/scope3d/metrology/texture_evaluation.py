@@ -103,27 +103,28 @@ class _Reader:
 
 
 def textured_errors(textured, truth_from_map: Similarity, true_mesh: Mesh, true_centre: np.ndarray, albedo: Callable,
+                    *,
                     options: TextureEvaluationOptions = TextureEvaluationOptions()) -> dict:
     """:func:`colour_errors` of a textured mesh (:class:`scope3d.mvs.texturing.TexturedMesh`, passed as is:
     metrology does not import mvs): its atlas where a frame saw the face, its texel as the grid step."""
     return colour_errors(textured.mesh, textured.colour_at, textured.face_frame >= 0, textured.texel_mm,
-                         truth_from_map, true_mesh, true_centre, albedo, options)
+                         truth_from_map, true_mesh, true_centre, albedo, options=options)
 
 
 def vertex_colour_errors(mesh: Mesh, step_mm: float, truth_from_map: Similarity, true_mesh: Mesh,
-                         true_centre: np.ndarray, albedo: Callable, options: TextureEvaluationOptions =
+                         true_centre: np.ndarray, albedo: Callable, *, options: TextureEvaluationOptions =
                          TextureEvaluationOptions()) -> dict:
     """The same measures for a mesh coloured per vertex (colours interpolated over each face), read on a
     grid of ``step_mm`` (map units) for the misregistration."""
     colours = mesh.vertex_colors.astype(float)
     return colour_errors(mesh, lambda f, b: np.einsum("ij,ijk->ik", b, colours[mesh.faces[f]]),
                          np.ones(len(mesh.faces), bool), step_mm, truth_from_map, true_mesh, true_centre, albedo,
-                         options)
+                         options=options)
 
 
 def colour_errors(wall: Mesh, colour_at: Callable[[np.ndarray, np.ndarray], np.ndarray], coloured: np.ndarray,
                   step_mm: float, truth_from_map: Similarity, true_mesh: Mesh, true_centre: np.ndarray,
-                  albedo: Callable, options: TextureEvaluationOptions = TextureEvaluationOptions()) -> dict:
+                  albedo: Callable, *, options: TextureEvaluationOptions = TextureEvaluationOptions()) -> dict:
     """Colour error and misregistration of a coloured wall (map frame): ``colour_at(faces (N,), barycentric
     (N, 3)) -> (N, 3)`` grey levels on the faces where ``coloured`` (F,) is true; ``step_mm`` (map units) the
     patches' grid step (and the albedo's low-pass footprint)."""

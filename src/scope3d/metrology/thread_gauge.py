@@ -22,10 +22,13 @@ the axis, counter-clockwise seen from the axis' tip (the axis points the way of 
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import least_squares
+
+from scope3d.geometry.iso_thread import ISO_METRIC_FLANK_ANGLE_DEG, THREAD_SIZES, basic_thread_depth, tooth_half_width
+from scope3d.utils.robust import robust_sigma
 
 # ISO 965-1 (general purpose metric threads, tolerances) class 6H for internal threads: fundamental
 # deviation EI = 0 (H), tolerance grade 6: TD1 (minor diameter) 236 / 265 / 300 um for P = 1 / 1.25 /
@@ -40,9 +43,6 @@ ISO_965_6H = {
     "M8x1.25": (6.647, 6.912, 7.188, 7.348, 8.000),
     "M10x1.5": (8.376, 8.676, 9.026, 9.206, 10.000),
 }
-THREAD_SIZES = {"M6x1": (6.0, 1.0), "M8x1.25": (8.0, 1.25), "M10x1.5": (10.0, 1.5)}
-# ISO 68-1: every ISO metric (M) thread has a symmetric profile with a 60° included flank angle.
-ISO_METRIC_FLANK_ANGLE_DEG = 60.0
 TOLERANCE_CLASSES = ("6H",)
 
 
@@ -295,9 +295,8 @@ def _profile_distance(w, r, r1, r2, rp, half_angle, pitch):
     symmetric profile: w (N,) axial offset from the crest centre in [-P/2, P/2), r (N,) radius.
     The tooth (material inwards of the surface) is half a pitch wide at rp, its flanks at ``half_angle``
     from the radial direction: crest flat at r1, root flat at r2."""
-    tan_a = np.tan(half_angle)
-    hc = 0.25 * pitch + (r1 - rp) * tan_a  # tooth half-width at the crest
-    hr = 0.25 * pitch + (r2 - rp) * tan_a  # at the root
+    hc = tooth_half_width(r1, pitch, rp, half_angle)  # at the crest
+    hr = tooth_half_width(r2, pitch, rp, half_angle)  # at the root
     aw = np.abs(w)
     # polyline (0, r1) -> (hc, r1) -> (hr, r2) -> (P/2, r2) in (|w|, r)
     xs = np.array([0.0, hc, hr, 0.5 * pitch])
@@ -370,7 +369,7 @@ def _root_phase(theta, z, r, pitch):
     return float(np.angle(phasor) / (2 * np.pi) * pitch)
 
 
-def gauge_thread(points: np.ndarray, options: GaugeOptions = GaugeOptions()) -> GaugeResult:
+def gauge_thread(points: np.ndarray, *, options: GaugeOptions = GaugeOptions()) -> GaugeResult:
     """Measure an internal thread from a cloud of its surface (see the module docstring).
 
     points : (N, 3) float64 mm, the hole's inner surface (thread; a counterbore, plain bore or drill point
@@ -383,7 +382,7 @@ def gauge_thread(points: np.ndarray, options: GaugeOptions = GaugeOptions()) -> 
     points = points[index]
     limits = thread_limits(options.designation, options.tolerance_class)
     major_nom, pitch_nom = THREAD_SIZES[options.designation]
-    depth_nom = 0.625 * np.sqrt(3) / 2 * pitch_nom  # ISO 68-1 basic thread depth (5/8 H)
+    depth_nom = basic_thread_depth(pitch_nom)  # ISO 68-1 basic thread depth (5/8 H)
     rng = np.random.default_rng(options.seed)
 
     # (1) axis from the whole cloud
@@ -460,14 +459,14 @@ def gauge_thread(points: np.ndarray, options: GaugeOptions = GaugeOptions()) -> 
     s = z_all - pitch * t_all / (2 * np.pi) - x[5]
     w = np.mod(s + pitch / 2, pitch) - pitch / 2
     dist = _profile_distance(w, r_all, r1, r2, rp, half, pitch)
-    hc = 0.25 * pitch + (r1 - rp) * np.tan(half)
+    hc = tooth_half_width(r1, pitch, rp, half)
     on_crest = np.abs(w) <= max(hc, 0.05 * pitch)
     defects = _crest_defects(t_all[on_crest], z_all[on_crest], np.round((s[on_crest] - w[on_crest]) / pitch).astype(int),
                              dist[on_crest], options, pitch)
 
     # the pitch's share of the virtual D2 moves with the pitch: u(D2v)^2 = u(D2)^2 + (1.732 n u(P))^2
     u_d2v = float(np.hypot(2 * std[8], 1.732 * turns * std[4]))
-    verdict, checks = _judge(limits, options, 2 * r1, 2 * std[6], d2, 2 * std[8], float(d2_virtual), u_d2v, 2 * r2,
+    verdict, checks = judge(limits, options, 2 * r1, 2 * std[6], d2, 2 * std[8], float(d2_virtual), u_d2v, 2 * r2,
                              2 * std[7], defects, fit.profile_at_bound)
     return GaugeResult(
         minor_diameter_mm=Measured(2 * r1, 2 * std[6]), major_diameter_mm=Measured(2 * r2, 2 * std[7]),
@@ -486,7 +485,7 @@ def gauge_thread(points: np.ndarray, options: GaugeOptions = GaugeOptions()) -> 
     )
 
 
-def _judge(limits: ThreadLimits, options: GaugeOptions, d1: float, u_d1: float, d2: float, u_d2: float,
+def judge(limits: ThreadLimits, options: GaugeOptions, d1: float, u_d1: float, d2: float, u_d2: float,
            d2_virtual: float, u_d2v: float, d: float, u_d: float, defects: list, at_bound: bool) -> tuple[str, list[dict]]:
     """The verdict and its checks from the sizes and their standard uncertainties (mm).
 
@@ -561,7 +560,7 @@ def profile_parts(result: GaugeResult, points: np.ndarray) -> tuple[np.ndarray, 
     local = (np.asarray(points, float)[st["index"]] - axis_point) @ frame.T
     t = np.arctan2(local[:, 1], local[:, 0])
     w = np.mod(local[:, 2] - pitch * t / (2 * np.pi) - phase + pitch / 2, pitch) - pitch / 2
-    hc, hr = 0.25 * pitch + (r1 - rp) * np.tan(half), 0.25 * pitch + (r2 - rp) * np.tan(half)
+    hc, hr = tooth_half_width(r1, pitch, rp, half), tooth_half_width(r2, pitch, rp, half)
     aw = np.abs(w)
     part = np.where(aw <= hc, 0, np.where(aw >= hr, 3, np.where(w > 0, 1, 2)))
     # flank line from (hc, r1) to (hr, r2) in (|w|, r): into the material is towards the tooth and outwards
@@ -571,50 +570,6 @@ def profile_parts(result: GaugeResult, points: np.ndarray) -> tuple[np.ndarray, 
     radial_part = np.where((part == 1) | (part == 2), n_r, 1.0)
     radial = np.cos(t)[:, None] * frame[0] + np.sin(t)[:, None] * frame[1]
     return part, radial_part[:, None] * radial + axial[:, None] * frame[2]
-
-
-def profile_bias_systematic(result: GaugeResult, points: np.ndarray, bias_mm: float, noise_mm: float = 0.01) -> dict:
-    """The sizes' systematic standard uncertainty (mm; keys as :func:`remeasure`'s) from a bias of the
-    cloud's points along the surface normal that differs between the parts of the profile (crest, each
-    flank, root): a reconstruction places its points on a flank seen obliquely, or on a root seen past a
-    crest, a little off the surface, each part by its own amount, and the fit turns that into a size
-    error no point residual shows. Each part's points are moved by ``bias_mm`` (a standard uncertainty of
-    a part's offset) into the material and the profile re-fitted (:func:`remeasure`); the four size
-    changes, taken as independent, add in quadrature."""
-    base = remeasure(result, points, noise_mm)
-    part, normal = profile_parts(result, points)
-    index = result.fit_state["index"]
-    shifts = []
-    for k in range(len(PROFILE_PARTS)):
-        sel = part == k
-        if not sel.any():
-            continue
-        moved = np.array(points, float, copy=True)
-        moved[index[sel]] += bias_mm * normal[sel]
-        sizes = remeasure(result, moved, noise_mm)
-        shifts.append({key: sizes[key] - base[key] for key in base})
-    return {key: float(np.sqrt(sum(s[key] ** 2 for s in shifts))) for key in base} if shifts else {}
-
-
-def with_systematic(result: GaugeResult, systematic_mm: dict, options: GaugeOptions) -> GaugeResult:
-    """``result`` with a systematic standard uncertainty (mm; keys as :func:`remeasure`'s, missing = 0)
-    added in quadrature to each size's statistical one, and the verdict judged again on the combined
-    uncertainties (:func:`_judge`)."""
-    def comb(m: Measured, key: str) -> Measured:
-        stat = m.statistical if m.statistical is not None else m.uncertainty
-        sys_ = float(systematic_mm.get(key, 0.0))
-        return Measured(m.value, float(np.hypot(stat, sys_)), stat, sys_)
-
-    d1, d2 = comb(result.minor_diameter_mm, "minor_diameter"), comb(result.pitch_diameter_mm, "pitch_diameter")
-    d, p = comb(result.major_diameter_mm, "major_diameter"), comb(result.pitch_mm, "pitch")
-    u_d2v_stat = result.fit_state.get("u_d2v_statistical", result.virtual_pitch_diameter_uncertainty_mm)
-    u_d2v = float(np.hypot(u_d2v_stat, systematic_mm.get("virtual_pitch_diameter", 0.0)))
-    verdict, checks = _judge(result.limits, options, d1.value, d1.uncertainty, d2.value, d2.uncertainty,
-                             result.virtual_pitch_diameter_mm, u_d2v, d.value, d.uncertainty, result.defects,
-                             bool(result.fit_state.get("at_bound", False)))
-    state = dict(result.fit_state, u_d2v_statistical=u_d2v_stat)
-    return replace(result, minor_diameter_mm=d1, pitch_diameter_mm=d2, major_diameter_mm=d, pitch_mm=p,
-                    virtual_pitch_diameter_uncertainty_mm=u_d2v, verdict=verdict, checks=checks, fit_state=state)
 
 
 @dataclass
@@ -655,7 +610,7 @@ def _fit_profile(points, p0, base, x0, lower, upper, free_flank: bool, noise_mm:
     x = x0.copy()
     x[free] = sol.x
     res = sol.fun
-    core = np.abs(res) < 3 * noise_mm + 3 * 1.4826 * np.median(np.abs(res))
+    core = np.abs(res) < 3 * noise_mm + 3 * robust_sigma(res, about=0.0)
     dof = max(int(core.sum()) - int(free.sum()), 1)
     sigma2 = float(np.sum(res[core] ** 2) / dof)
     jac = sol.jac[core]
@@ -673,7 +628,7 @@ def _crest_defects(theta, z, turn, dist, options: GaugeOptions, pitch: float) ->
     """Group angular bins of each crest turn whose median outward distance is too deep."""
     if len(dist) == 0:
         return []
-    sigma = 1.4826 * np.median(np.abs(dist - np.median(dist)))
+    sigma = robust_sigma(dist)
     threshold = max(options.min_defect_depth_mm, 5 * sigma)
     n_bins = int(round(360.0 / options.defect_bin_deg))
     bins = np.floor(np.mod(theta, 2 * np.pi) / (2 * np.pi) * n_bins).astype(int) % n_bins

@@ -30,13 +30,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from scope3d.geometry.iso_thread import THREAD_SIZES, basic_pitch_diameter
 from scope3d.geometry.pose import Pose
-from scope3d.metrology.thread_gauge import THREAD_SIZES
 from scope3d.sensor.camera import Camera
 
 
 @dataclass(frozen=True)
-class ScanPlanOptions:
+class QuadrantScanPlanOptions:
     """views_per_point : frames in which each wall point should appear (default 8: measured on the 90°
         view of 400x320 px, 60° field, rendered holes — see docs/thread_metrology.md — at ~5 views an M6
         hole's neighbour quadrants share too few points to register, at ~7-10 every size registers).
@@ -97,17 +97,19 @@ def pitch_radius_mm(designation: str) -> float:
     if designation not in THREAD_SIZES:
         raise ValueError(f"unknown thread {designation!r} (use one of {', '.join(THREAD_SIZES)})")
     major, pitch = THREAD_SIZES[designation]
-    return (major - 0.649519 * pitch) / 2
+    return basic_pitch_diameter(major, pitch) / 2
 
 
-def matched_frame_gap(step_mm: float, extent_mm: float, options: ScanPlanOptions = ScanPlanOptions()) -> int:
+def matched_frame_gap(step_mm: float, extent_mm: float, *,
+                      options: QuadrantScanPlanOptions = QuadrantScanPlanOptions()) -> int:
     """The largest frame gap whose matched frames' views still overlap by ``max_baseline_fraction``
     (``gap * step <= fraction * extent``), at least 1."""
     return max(1, int(np.floor(options.max_baseline_fraction * extent_mm / step_mm + 1e-9)))
 
 
 def plan_quadrant_scan(camera: Camera, designation: str, side_view_deg: float = 90.0,
-                       options: ScanPlanOptions = ScanPlanOptions()) -> QuadrantScanPlan:
+                       *,
+                       options: QuadrantScanPlanOptions = QuadrantScanPlanOptions()) -> QuadrantScanPlan:
     """The quadrant scan of a ``designation`` hole (``M6x1``, ``M8x1.25``, ``M10x1.5``) seen by ``camera``
     at ``side_view_deg`` (see the module docstring)."""
     radius = pitch_radius_mm(designation)
@@ -115,7 +117,7 @@ def plan_quadrant_scan(camera: Camera, designation: str, side_view_deg: float = 
     above, below = view_extent_mm(camera, side_view_deg, radius)
     extent = above + below
     step = np.floor(extent / options.views_per_point * 100) / 100  # a stage steps in hundredths of a mm
-    gap = matched_frame_gap(step, extent, options)
+    gap = matched_frame_gap(step, extent, options=options)
     # thread shown = start offset + advance + the view below the last frame
     advance = max(0.0, options.thread_pitches * pitch - options.start_below_thread_mm - below)
     frames = int(np.ceil(advance / step - 1e-9)) + 1
@@ -123,7 +125,8 @@ def plan_quadrant_scan(camera: Camera, designation: str, side_view_deg: float = 
 
 
 def measured_quadrant_scan(camera: Camera, poses: list[Pose], designation: str,
-                           options: ScanPlanOptions = ScanPlanOptions()) -> QuadrantScanPlan:
+                           *,
+                           options: QuadrantScanPlanOptions = QuadrantScanPlanOptions()) -> QuadrantScanPlan:
     """The scan one quadrant's frames were taken with, read off their (stage-reported) ``cam_from_world``
     poses in order of advance, and the frame gap the plan's rule gives it: the step is the median advance
     between consecutive camera centres along the direction of advance (first to last centre), the side
@@ -149,4 +152,4 @@ def measured_quadrant_scan(camera: Camera, poses: list[Pose], designation: str,
     side_view_deg = round(side_view_deg, 9)  # a 90° view read off float poses comes out at 90 + 1e-14
     radius = pitch_radius_mm(designation)
     extent = float(sum(view_extent_mm(camera, side_view_deg, radius)))
-    return QuadrantScanPlan(step, len(poses), matched_frame_gap(step, extent, options), extent, float(radius))
+    return QuadrantScanPlan(step, len(poses), matched_frame_gap(step, extent, options=options), extent, float(radius))

@@ -93,6 +93,7 @@ def reliability(
     disparity_sigma: np.ndarray,
     pair: AxialPair,
     valid: np.ndarray,
+    *,
     options: ConfidenceOptions = ConfidenceOptions(),
 ) -> Reliability:
     """Combine the tests of the module docstring into one mask and a confidence.

@@ -130,7 +130,7 @@ def _check_pair(left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.nda
     return left, right
 
 
-def sgm_disparity(left: np.ndarray, right: np.ndarray, options: SgmOptions = SgmOptions()) -> Disparity:
+def sgm_disparity(left: np.ndarray, right: np.ndarray, *, options: SgmOptions = SgmOptions()) -> Disparity:
     """Semi-global matching with sub-pixel refinement.
 
     left, right : (H, W) uint8 rectified pair (see module docstring). Returns :class:`Disparity`.
@@ -248,7 +248,7 @@ def _lanczos_weights() -> np.ndarray:
     return np.ascontiguousarray(weights.reshape(steps, taps))
 
 
-def sad_disparity(left: np.ndarray, right: np.ndarray, options: SadOptions = SadOptions()) -> Disparity:
+def sad_disparity(left: np.ndarray, right: np.ndarray, *, options: SadOptions = SadOptions()) -> Disparity:
     """The reference's 7x7 SAD block matcher with a parabola sub-pixel fit, vectorised over pixels.
 
     For each candidate disparity the absolute difference image is box-filtered once; a running minimum

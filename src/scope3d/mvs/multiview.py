@@ -69,7 +69,8 @@ class FusedDepth:
     reference: int
 
 
-def fuse_ranges(ranges_mm: np.ndarray, sigmas_mm: np.ndarray, options: MultiViewOptions) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def fuse_ranges(ranges_mm: np.ndarray, sigmas_mm: np.ndarray, *,
+                options: MultiViewOptions) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Robust per-pixel fusion (module docstring).
 
     ranges_mm, sigmas_mm : (K, H, W) float, NaN = no estimate. Returns fused range (H, W) mm (NaN where
@@ -94,7 +95,7 @@ def fuse_ranges(ranges_mm: np.ndarray, sigmas_mm: np.ndarray, options: MultiView
     return np.where(keep, fused, np.nan), np.where(keep, sigma, np.nan), count
 
 
-def reference_frames(n_frames: int, options: MultiViewOptions) -> list[int]:
+def reference_frames(n_frames: int, *, options: MultiViewOptions) -> list[int]:
     """Frames that get a fused depth map: from the first with all its rear frames, every stride."""
     first = max(options.baseline_offsets)
     return list(range(first, n_frames, options.reference_stride))
@@ -105,6 +106,7 @@ def reconstruct_reference(
     frames: Callable[[int], np.ndarray],
     poses: Sequence[Pose],
     reference: int,
+    *,
     options: MultiViewOptions = MultiViewOptions(),
 ) -> FusedDepth:
     """Fuse the pairs ``(reference - s, reference)`` for every baseline offset ``s``.
@@ -118,7 +120,7 @@ def reconstruct_reference(
         if reference - s < 0:
             continue
         res = reconstruct_pair(camera, frames(reference - s), front, poses[reference - s], poses[reference],
-                               options.two_view)
+                               options=options.two_view)
         pair = res.pair
         rng = to_image(res.pair, res.range_mm).range_mm
         sig = res.pair.from_polar(np.where(np.isfinite(res.range_mm), res.reliability.range_sigma_mm, np.nan),
@@ -127,7 +129,7 @@ def reconstruct_reference(
         sigmas.append(sig)
     if pair is None:
         raise ValueError(f"reference frame {reference} has no frame behind it at the requested offsets")
-    fused, sigma, count = fuse_ranges(np.stack(ranges), np.stack(sigmas), options)
+    fused, sigma, count = fuse_ranges(np.stack(ranges), np.stack(sigmas), options=options)
     max_sigma = options.two_view.confidence.max_range_sigma_mm
     confidence = np.where(np.isfinite(fused), 1.0 / (1.0 + (sigma / max_sigma) ** 2), 0.0)
     depth = _image_depth(camera, poses[reference], fused, confidence)

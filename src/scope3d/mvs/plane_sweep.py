@@ -96,6 +96,7 @@ def _box(img: np.ndarray, w: int) -> np.ndarray:
 
 
 def depth_hypotheses(camera: Camera, reference: Pose, sources: list[Pose], depth_range_mm: tuple[float, float],
+                     *,
                      options: PlaneSweepOptions) -> np.ndarray:
     """Depths (mm) uniform in inverse depth, so fine that the image centre's point moves by at most
     ``step_px`` per step in every source."""
@@ -110,6 +111,7 @@ def depth_hypotheses(camera: Camera, reference: Pose, sources: list[Pose], depth
 
 def sweep(camera: Camera, reference_image: np.ndarray, reference_pose: Pose, source_images: list[np.ndarray],
           source_poses: list[Pose], depth_range_mm: tuple[float, float],
+          *,
           options: PlaneSweepOptions = PlaneSweepOptions()) -> SweepDepth:
     """Dense depth of ``reference_image`` (poses ``cam_from_world``) between ``depth_range_mm`` (near, far
     z-depths, mm) from ``source_images``; see the module docstring."""
@@ -123,7 +125,7 @@ def sweep(camera: Camera, reference_image: np.ndarray, reference_pose: Pose, sou
     h, wd = ref.shape
     ref_mean = _box(ref, w)
     ref_std = np.sqrt(np.maximum(_box(ref * ref, w) - ref_mean ** 2, 1e-6))
-    depths = depth_hypotheses(camera, reference_pose, source_poses, depth_range_mm, options)
+    depths = depth_hypotheses(camera, reference_pose, source_poses, depth_range_mm, options=options)
     pixels = camera.pixel_grid().reshape(-1, 2)
     rays_cam = camera.unproject(pixels, 1.0)  # z = 1: the point at depth z is z * ray
     srcs = [_gray(s) for s in source_images]
@@ -223,6 +225,7 @@ class DenseQuadrantOptions:
 
 
 def dense_quadrant(images: list[np.ndarray], camera: Camera, poses: list[Pose], sparse_points: np.ndarray,
+                   *,
                    options: DenseQuadrantOptions = DenseQuadrantOptions()) -> tuple[np.ndarray, np.ndarray]:
     """Plane-sweep clouds of the quadrant's first and last frames, each against the frames within
     ``max_frame_gap``, merged. poses : ``cam_from_world`` of each frame; sparse_points : (N, 3) mm in the
@@ -237,7 +240,7 @@ def dense_quadrant(images: list[np.ndarray], camera: Camera, poses: list[Pose], 
         lo, mid, hi = np.percentile(z, [2, 50, 98])
         near, far = max(lo - options.depth_margin * mid, 0.1 * mid), hi + options.depth_margin * mid
         depth = sweep(camera, images[ref], poses[ref], [images[k] for k in others], [poses[k] for k in others],
-                      (near, far), options.sweep)
+                      (near, far), options=options.sweep)
         points.append(poses[ref].inverse().transform(depth.points_cam))
         img = images[ref] if images[ref].ndim == 3 else np.repeat(images[ref][..., None], 3, axis=2)
         colors.append(img[depth.pixels[:, 1].astype(int), depth.pixels[:, 0].astype(int)])

@@ -41,6 +41,7 @@ import numpy as np
 from scope3d.geometry.pose import Pose
 from scope3d.scene.mesh import Mesh
 from scope3d.sensor.camera import Camera
+from scope3d.utils.robust import robust_sigma
 
 GREY = np.uint8(128)
 
@@ -415,7 +416,7 @@ def _face_scores(mesh: Mesh, faces: np.ndarray, camera: Camera, pose: Pose, opti
 
 
 def texture_mesh(mesh: Mesh, centre: np.ndarray, camera: Camera, poses: Sequence[Pose | None],
-                 frame: Callable[[int], np.ndarray], options: TextureOptions = TextureOptions()) -> TexturedMesh:
+                 frame: Callable[[int], np.ndarray], *, options: TextureOptions = TextureOptions()) -> TexturedMesh:
     """Texture a star-shaped cavity's wall ``mesh`` (mm; faces are turned towards ``centre`` in the result) from the frames:
     ``poses[k]`` is frame k's cam_from_world (None: not registered), ``frame(k)`` its (H, W, 3) uint8 RGB
     image (read once per frame that gives a texel, twice with ``level_gains``, so a long video need not be
@@ -540,7 +541,7 @@ def _level_gains(samples, n_frames: int, *, rounds: int = 30) -> np.ndarray:
         log_gain[count == 0] = 0.0
         if r == rounds // 3:
             residual = values - per_texel[texel] - log_gain[frames]
-            sigma = 1.4826 * np.median(np.abs(residual)) + 1e-12
+            sigma = robust_sigma(residual, about=0.0) + 1e-12
             keep = np.abs(residual) <= 3 * sigma
     return np.exp(log_gain)
 

@@ -85,6 +85,7 @@ def reconstruct_pair(
     image_b: np.ndarray,
     pose_a: Pose,
     pose_b: Pose,
+    *,
     options: TwoViewOptions = TwoViewOptions(),
 ) -> PairResult:
     """Axial-stereo depth of one pair of grey frames.
@@ -116,12 +117,13 @@ def reconstruct_pair(
     max_disparity = np.log1p(pair.baseline_mm / options.min_depth_mm) / pair.grid.log_rho_step
     num = int(np.ceil((max_disparity + 2) / 16.0) * 16)
     if options.method == "sgm":
-        disparity = sgm_disparity(front_polar, rear_polar, replace(options.sgm, num_disparities=num, wrap_rows=True))
+        disparity = sgm_disparity(front_polar, rear_polar, options=replace(options.sgm, num_disparities=num,
+                                                                           wrap_rows=True))
     else:
-        disparity = sad_disparity(front_polar, rear_polar, replace(options.sad, num_disparities=num))
+        disparity = sad_disparity(front_polar, rear_polar, options=replace(options.sad, num_disparities=num))
     t2 = time.perf_counter()
     rel = reliability(front_polar, rear_polar, disparity.disparity, disparity.cost, disparity.sigma, pair, valid,
-                      options.confidence)
+                      options=options.confidence)
     range_mm = pair.range_from_disparity(disparity.disparity, where=rel.mask)
     t3 = time.perf_counter()
     times = {"resample": t1 - t0, "match": t2 - t1, "triangulate": t3 - t2, "total": t3 - t0}

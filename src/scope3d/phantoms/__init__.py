@@ -22,12 +22,10 @@ from scope3d.phantoms.render import RenderedFrame, RenderOptions, render_frame, 
 from scope3d.phantoms.scenes import (
     SCENE_TRAJECTORIES,
     SCENES,
-    THREADS,
     Material,
     Scene,
     Target,
     build_scene,
-    iso_thread_profile,
 )
 from scope3d.phantoms.trajectories import (
     TRAJECTORIES,
@@ -41,8 +39,8 @@ from scope3d.phantoms.trajectories import (
 
 __all__ = [
     "Hits", "Material", "PhantomSequence", "RayCaster", "RenderOptions", "RenderedFrame", "SCENES",
-    "SCENE_TRAJECTORIES", "Scene", "THREADS", "TRAJECTORIES", "Target", "Trajectory", "axial_trajectory",
+    "SCENE_TRAJECTORIES", "Scene", "TRAJECTORIES", "Target", "Trajectory", "axial_trajectory",
     "build_scene", "build_trajectory", "catalogue", "contact_sheet", "default_camera", "generate",
-    "grid_trajectory", "iso_thread_profile", "measure_poses", "quadrant_trajectory", "render_frame",
+    "grid_trajectory", "measure_poses", "quadrant_trajectory", "render_frame",
     "sequence_exposure", "spiral_trajectory", "true_targets", "write",
 ]

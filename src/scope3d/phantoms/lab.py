@@ -21,11 +21,12 @@ from pathlib import Path
 import numpy as np
 
 from scope3d.errors import InputError
+from scope3d.geometry.iso_thread import THREAD_SIZES
 from scope3d.geometry.pose import Pose
 from scope3d.io.dataset import write_dataset
 from scope3d.io.scan_plan import PlanFile
 from scope3d.phantoms.render import RenderOptions, render_frame, sequence_exposure, supersample_factor
-from scope3d.phantoms.scenes import SCENE_TRAJECTORIES, SCENES, THREADS, Scene, build_scene
+from scope3d.phantoms.scenes import SCENE_TRAJECTORIES, SCENES, Scene, build_scene
 from scope3d.phantoms.tool import paint_tool, tool_mask
 from scope3d.phantoms.trajectories import TRAJECTORIES, Trajectory, build_trajectory
 from scope3d.scene.mesh import Mesh
@@ -166,8 +167,8 @@ def generate(
         plan's views at this frame rate, ``seconds_per_view`` apart (poses interpolated; the reference's
         scan took about 10 min for 529 views, 1.1 s each), instead of one frame per view.
     """
-    if thread not in THREADS:
-        raise InputError(f"unknown thread size {thread!r} (use one of {', '.join(THREADS)})")
+    if thread not in THREAD_SIZES:
+        raise InputError(f"unknown thread size {thread!r} (use one of {', '.join(THREAD_SIZES)})")
     if scene not in SCENES:
         raise InputError(f"unknown scene {scene!r} (use one of {', '.join(SCENES)})")
     if bladder and scene != "bladder":
@@ -212,7 +213,7 @@ def generate(
     poses = traj.poses
     # a live approach auto-exposes every frame (the light at the tip is 6x brighter at the stop than at the
     # start); a survey keeps one setting
-    exposure = None if name == "approach" else sequence_exposure(built, camera, poses, options)
+    exposure = None if name == "approach" else sequence_exposure(built, camera, poses, options=options)
     frames, fluo, depths, tids = [], [], [], []
     stage(progress, f"phantom {scene}/{name}", len(poses))
     for i, pose in enumerate(poses):
@@ -241,7 +242,7 @@ def generate(
                    "mask_radius_px": camera.mask_radius_px,
                    **({"side_view_deg": side_view_deg} if name == "quadrants" else {})},
         "lighting": "point light at the camera centre; Lambert cos/d^2 plus Blinn-Phong specular",
-        "render": {**options.to_dict(), "supersample": supersample_factor(built, options), "exposure_gain": exposure if exposure is not None else "per frame (auto-exposure)", "seed": seed, "texture_seed": texture_seed},
+        "render": {**options.to_dict(), "supersample": supersample_factor(built, options=options), "exposure_gain": exposure if exposure is not None else "per frame (auto-exposure)", "seed": seed, "texture_seed": texture_seed},
         "pose_noise": {
             "position_mm": pose_noise_mm,
             "orientation_deg": pose_noise_mm * ORIENTATION_NOISE_DEG_PER_MM,
@@ -382,7 +383,7 @@ def catalogue() -> str:
     for name, text in SCENES.items():
         lines.append(f"  {name:8s} {text}")
         lines.append(f"  {'':8s} trajectories: {', '.join(SCENE_TRAJECTORIES[name])}")
-    lines.append(f"  thread sizes: {', '.join(THREADS)} (ISO 68-1 basic profile)")
+    lines.append(f"  thread sizes: {', '.join(THREAD_SIZES)} (ISO 68-1 basic profile)")
     lines.append("trajectories:")
     for name, (text, _) in TRAJECTORIES.items():
         lines.append(f"  {name:9s} {text}")

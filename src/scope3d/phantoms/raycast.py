@@ -7,7 +7,6 @@ is intersected again in double precision (Möller–Trumbore), which puts every 
 """
 from __future__ import annotations
 
-import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -15,6 +14,7 @@ import numpy as np
 
 from scope3d.scene.mesh import Mesh
 from scope3d.utils.aot import load_kernels
+from scope3d.utils.threads import check_threads, resolve_threads
 
 # compiled at install (scope3d.utils.aot) or, failing that, by numba on first use
 _kernels = load_kernels("scope3d.phantoms.raycast_kernels")
@@ -52,17 +52,17 @@ class RayCaster:
     mesh : :class:`~scope3d.scene.mesh.Mesh` in mm; its ``vertex_normals`` (if any) are used for shading.
     backend : ``"auto"`` (Embree when available), ``"embree"`` or ``"numpy"``.
     threads : Embree queries of a large cast (>= 50,000 rays) split over this many threads (Embree releases
-        the GIL; every ray is independent, so the hits are the same); None: the machine's cores, at most 4.
+        the GIL; every ray is independent, so the hits are the same); 0 (default): every available core
+        (:mod:`scope3d.utils.threads`).
     """
 
-    def __init__(self, mesh: Mesh, *, backend: str = "auto", threads: int | None = None) -> None:
+    def __init__(self, mesh: Mesh, *, backend: str = "auto", threads: int = 0) -> None:
         import trimesh
 
         if backend not in ("auto", "embree", "numpy"):
             raise ValueError(f"unknown ray-casting backend {backend!r}")
-        if threads is not None and threads < 1:
-            raise ValueError(f"threads must be None or at least 1, got {threads}")
-        self.threads = threads if threads is not None else max(1, min(4, os.cpu_count() or 1))
+        check_threads(threads)
+        self.threads = resolve_threads(threads)
         if backend == "embree" and not trimesh.ray.has_embree:
             raise ValueError("Embree is not available (install embreex)")
         self.mesh = mesh

@@ -112,7 +112,7 @@ def write_recording(options: RecordingOptions, out_dir: str | Path, *, progress:
         _write_frame_times(tmp / "hand_eye" / "frame_times.csv",
                            [f"board_{i:02d}.png" for i in range(len(cam_from_board))], still_times, options)
 
-        exposure = sequence_exposure(scene, camera, scan_poses, options.render)
+        exposure = sequence_exposure(scene, camera, scan_poses, options=options.render)
         stage(progress, "recording: scan video", len(scan_poses))
         frames = []
         for i, pose in enumerate(scan_poses):

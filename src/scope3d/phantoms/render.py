@@ -176,7 +176,7 @@ def _shade(scene: Scene, camera: Camera, pose: Pose, origins: np.ndarray, dirs: 
     return hits, reflect, fluor, target
 
 
-def supersample_factor(scene: Scene, options: RenderOptions) -> int:
+def supersample_factor(scene: Scene, *, options: RenderOptions) -> int:
     """Rays per pixel side actually used: ``options.supersample``, or the scene's default when None."""
     return int(options.supersample if options.supersample is not None else getattr(scene, "render_supersample", 1))
 
@@ -208,7 +208,7 @@ def _radiance(scene: Scene, camera: Camera, pose: Pose, options: RenderOptions) 
     valid, pixels, rays = _camera_rays(camera)
     dirs = _rows_times(rays, pose.rotation)
     origins = np.broadcast_to(pose.centre, dirs.shape)
-    k = supersample_factor(scene, options)
+    k = supersample_factor(scene, options=options)
     # The centre ray gives the geometric truth (depth, target id) and, with one ray per pixel, the shading.
     hits, reflect, fluor, target = _shade(scene, camera, pose, origins, dirs, options, geometry_only=k > 1)
     if k > 1:
@@ -234,7 +234,7 @@ def _radiance(scene: Scene, camera: Camera, pose: Pose, options: RenderOptions) 
     return _Radiance(valid.copy(), hit, reflect, fluor, depth, target)
 
 
-def auto_exposure(radiance: np.ndarray, options: RenderOptions) -> float:
+def auto_exposure(radiance: np.ndarray, *, options: RenderOptions) -> float:
     """Gain putting the ``exposure_percentile`` of the (M, 3) radiance's brightest channel at ``exposure_level``."""
     peak = radiance.max(axis=1) if radiance.ndim == 2 else radiance
     peak = peak[peak > 0]
@@ -278,7 +278,7 @@ def render_frame(
     exposure : gain from radiance to intensity; None picks it from this frame (auto-exposure).
     """
     rad = _radiance(scene, camera, pose, options)
-    gain = auto_exposure(rad.reflect[rad.hit], options) if exposure is None else float(exposure)
+    gain = auto_exposure(rad.reflect[rad.hit], options=options) if exposure is None else float(exposure)
     rng = np.random.default_rng([seed, frame_index])
     image = _to_image(rad.reflect, rad.valid, gain, (options.read_noise, options.shot_noise),
                       options.blur_sigma_px, rng)
@@ -296,8 +296,8 @@ def render_frame(
     return RenderedFrame(image, fluorescence, depth, target_id, gain)
 
 
-def sequence_exposure(scene: Scene, camera: Camera, poses: list[Pose], options: RenderOptions = RenderOptions(),
-                      *, probe_px: int = 96) -> float:
+def sequence_exposure(scene: Scene, camera: Camera, poses: list[Pose], *, options: RenderOptions = RenderOptions(),
+                      probe_px: int = 96) -> float:
     """One gain for a whole sequence (a fixed, auto-exposed setting): the median over frames of each frame's
     auto-exposure, measured on a ``probe_px``-wide copy of the camera so that it costs little."""
     scale = min(1.0, probe_px / camera.width)
@@ -310,5 +310,5 @@ def sequence_exposure(scene: Scene, camera: Camera, poses: list[Pose], options: 
     for pose in poses:
         rad = _radiance(scene, probe, pose, options)
         if np.any(rad.hit):
-            gains.append(auto_exposure(rad.reflect[rad.hit], options))
+            gains.append(auto_exposure(rad.reflect[rad.hit], options=options))
     return float(np.median(gains)) if gains else 1.0

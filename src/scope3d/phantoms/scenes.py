@@ -26,6 +26,7 @@ import numpy as np
 
 from scope3d.errors import InputError
 from scope3d.geometry.grid import grid_faces
+from scope3d.geometry.iso_thread import THREAD_SIZES, basic_pitch_diameter, iso_thread_profile, profile_segments
 from scope3d.phantoms.raycast import RayCaster
 from scope3d.phantoms.textures import TextureMap, machined_texture, printed_texture, tissue_texture
 from scope3d.scene.mesh import Mesh
@@ -44,9 +45,6 @@ SCENE_TRAJECTORIES = {
     "bladder": ("spiral",),
     "thread": ("axial", "quadrants"),
 }
-
-# Nominal diameter D (mm) and pitch P (mm) of the ISO metric coarse threads the lab can build.
-THREADS = {"M6x1": (6.0, 1.0), "M8x1.25": (8.0, 1.25), "M10x1.5": (10.0, 1.5)}
 
 # Mesh resolution. Chord errors of the tessellation stay below 1 µm (sagitta = edge² / 8R).
 _DOME_EDGE_MM = 0.15
@@ -504,51 +502,6 @@ def build_bladder(*, texture_seed: int = 0, mm_per_texel: float = 0.05, semi_axe
 # --- threaded hole ------------------------------------------------------------------------------
 
 
-def iso_thread_profile(major_mm: float, pitch_mm: float) -> dict:
-    """ISO 68-1 basic profile of an internal thread. Returns the named dimensions (mm).
-
-    H = sqrt(3)/2 P; the minor diameter D1 = D - 2 (5/8) H; the crest flat (at D1) is P/4 wide, the
-    root flat (at D) P/8; each 60° flank spans 5P/16 axially.
-    """
-    h = np.sqrt(3.0) / 2.0 * pitch_mm
-    return {
-        "major_diameter_mm": major_mm,
-        "minor_diameter_mm": major_mm - 1.25 * h,
-        "pitch_mm": pitch_mm,
-        "fundamental_triangle_height_mm": h,
-        "thread_depth_mm": 0.625 * h,
-        "crest_flat_mm": pitch_mm / 4,
-        "root_flat_mm": pitch_mm / 8,
-        "flank_angle_deg": 60.0,
-    }
-
-
-def _thread_segments(pitch: float, r_minor: float, r_major: float, r_pitch: float | None = None):
-    """One pitch of the profile as straight segments in s (axial phase), each (s0, s1, r0, r1, n_rows).
-    Crest (minor) flat centred at s = P/8, falling 60° flank, root (major) flat, rising flank. The tooth is
-    half a pitch wide at the pitch radius ``r_pitch`` (None: the basic one, which gives the ISO 68-1 crest
-    P/4 and root P/8 at the basic diameters)."""
-    p = pitch
-    tan30 = np.tan(np.pi / 6)
-    if r_pitch is None:
-        r_pitch = r_minor + 0.25 * p / (2 * tan30)
-    crest = p / 2 - 2 * (r_pitch - r_minor) * tan30
-    root = p / 2 - 2 * (r_major - r_pitch) * tan30
-    if crest <= 0 or root <= 0:
-        raise InputError(f"thread profile impossible: crest flat {crest:.3f} mm, root flat {root:.3f} mm "
-                         "(pitch diameter offset too large)")
-    a0 = p / 8 - crest / 2
-    a1 = a0 + crest
-    a2 = a1 + (r_major - r_minor) * tan30
-    a3 = a2 + root
-    return [
-        (a0, a1, r_minor, r_minor, 4),
-        (a1, a2, r_minor, r_major, 10),
-        (a2, a3, r_major, r_major, 2),
-        (a3, a0 + p, r_major, r_minor, 10),
-    ]
-
-
 def build_thread(size: str = "M8x1.25", *, texture_seed: int = 0, mm_per_texel: float = 0.006,
                  minor_diameter_offset_mm: float = 0.0, pitch_diameter_offset_mm: float = 0.0,
                  major_diameter_offset_mm: float = 0.0, defect: tuple | None = None) -> Scene:
@@ -568,13 +521,13 @@ def build_thread(size: str = "M8x1.25", *, texture_seed: int = 0, mm_per_texel: 
         (about +z from +x), ``width_deg`` wide, its crest cut back outwards by ``depth_mm`` (less than
         the thread depth).
     """
-    if size not in THREADS:
-        raise InputError(f"unknown thread size {size!r} (use one of {', '.join(THREADS)})")
-    major, pitch = THREADS[size]
+    if size not in THREAD_SIZES:
+        raise InputError(f"unknown thread size {size!r} (use one of {', '.join(THREAD_SIZES)})")
+    major, pitch = THREAD_SIZES[size]
     prof = iso_thread_profile(major, pitch)
     r_major = (major + major_diameter_offset_mm) / 2
     r_minor = (prof["minor_diameter_mm"] + minor_diameter_offset_mm) / 2
-    r_pitch = (major - 0.649519 * pitch + pitch_diameter_offset_mm) / 2  # ISO 724: D2 = D - 0.6495 P
+    r_pitch = (basic_pitch_diameter(major, pitch) + pitch_diameter_offset_mm) / 2
     if not r_minor < r_pitch < r_major:
         raise InputError(f"thread diameters out of order: D1 {2 * r_minor:.3f}, D2 {2 * r_pitch:.3f}, "
                          f"D {2 * r_major:.3f} mm")
@@ -608,7 +561,7 @@ def build_thread(size: str = "M8x1.25", *, texture_seed: int = 0, mm_per_texel: 
         defect_turn = int(round((d_z - pitch / 8 - lead * np.deg2rad(d_angle % 360)) / pitch))
     defect_info = None
     for k in range(k_lo, k_hi):
-        for s0, s1, r0, r1, n_rows in _thread_segments(pitch, r_minor, r_major, r_pitch):
+        for s0, s1, r0, r1, n_rows in profile_segments(pitch, r_minor, r_major, r_pitch):
             s = k * pitch + np.linspace(s0, s1, n_rows + 1)
             r = np.linspace(r0, r1, n_rows + 1)
             slope = (r1 - r0) / (s1 - s0)  # dr/ds, constant on a segment

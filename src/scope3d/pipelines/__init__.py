@@ -1,5 +1,12 @@
-"""Pipelines: short scripts of stage calls, each stage a ``run``-style function (options, inputs, out_dir).
+"""Pipelines: the jobs, each a short script of stage calls, all called one way::
 
-* :mod:`scope3d.pipelines.surgical_map` — the multimodal metric map of a surgical field from a
-  robot-held scope of known-but-inaccurate poses (reference chapters 3, 4 and 6).
+    result = run(options, inputs..., out_dir, *, progress=None)   # a <Job>Result dataclass
+    print(result.summary())
+
+* :mod:`.surgical_map` (``scope3d map``), :mod:`.axial`, :mod:`.localize`, :mod:`.track_markers`,
+  :mod:`.calibrate`, :mod:`.hand_eye` (``calibrate-hand-eye``), :mod:`.thread_scan`, :mod:`.thread_batch`
+  (``batch thread-scan``, on Dask), :mod:`.scan_plan` (``plan-scan``), :mod:`.mosaic`, :mod:`.panorama`
+  (the 3-D panorama), :mod:`.video_import` and :mod:`.frames_import` (``import video``, ``import frames``).
+
+Every result pickles (cluster workers send them back); ``tests/test_job_calls.py`` holds every job to this.
 """

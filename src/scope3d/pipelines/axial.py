@@ -132,7 +132,8 @@ def reconstruct(options: AxialOptions, dataset: Dataset, *, progress: Progress |
         i, j = _check_frame(dataset, i), _check_frame(dataset, j)
         tv = TwoViewOptions(**{**{k: getattr(options.two_view, k) for k in options.two_view.__dataclass_fields__},
                                "method": options.method})
-        res = reconstruct_pair(cam, dataset.frame(i, grey=True), dataset.frame(j, grey=True), poses[i], poses[j], tv)
+        res = reconstruct_pair(cam, dataset.frame(i, grey=True), dataset.frame(j, grey=True), poses[i], poses[j],
+                               options=tv)
         depth = to_image(res.pair, res.range_mm, res.reliability.confidence)
         front = j if not res.pair.swapped else i
         timing = {"pairs": 1, "timings_s": {"per_pair": res.time_s["total"], "stages": res.time_s},
@@ -141,13 +142,13 @@ def reconstruct(options: AxialOptions, dataset: Dataset, *, progress: Progress |
         return [depth], [dataset.frame(front)], timing
     mv = MultiViewOptions(**{**{k: getattr(options.multiview, k) for k in options.multiview.__dataclass_fields__},
                              "two_view": options.two_view})
-    refs = reference_frames(len(dataset), mv)
+    refs = reference_frames(len(dataset), options=mv)
     if not refs:
         raise InputError(f"{dataset.root}: {len(dataset)} frames are too few for multi-view with offsets {mv.baseline_offsets}")
     stage(progress, "axial multiview", len(refs))
     depths, colours = [], []
     for ref in refs:
-        fused = reconstruct_reference(cam, lambda k: dataset.frame(k, grey=True), poses, ref, mv)
+        fused = reconstruct_reference(cam, lambda k: dataset.frame(k, grey=True), poses, ref, options=mv)
         depths.append(fused.depth)
         colours.append(dataset.frame(ref))
         advance(progress)

@@ -10,7 +10,7 @@ Read top to bottom like the method section::
     files       <- camera.json (that model), intrinsic_bounds.json (its parameters, value +- k sigma),
                    report.json, coverage.png, residuals.png
 
-``run(options, image_paths, out_dir) -> CalibrationRun`` is what the CLI (``scope3d calibrate``) calls.
+``run(options, image_paths, out_dir) -> CalibrateResult`` is what the CLI (``scope3d calibrate``) calls.
 camera.json records the calibrated model by name (:mod:`scope3d.io.camera_json`); scope3d's datasets and
 jobs take the radial model (``pinhole_radial_k1k2``) until they take every model (issue 32).
 """
@@ -63,7 +63,7 @@ class CalibrateOptions:
 
 
 @dataclass
-class CalibrationRun:
+class CalibrateResult:
     """calibration : the fitted model. report : what report.json holds."""
 
     calibration: Calibration
@@ -77,7 +77,7 @@ class CalibrationRun:
 
 
 def run(options: CalibrateOptions, image_paths: list[str | Path], out_dir: str | Path, *,
-        progress: Progress = None) -> CalibrationRun:
+        progress: Progress | None = None) -> CalibrateResult:
     image_paths = [Path(p) for p in image_paths]
     if not image_paths:
         raise InputError("no images given")
@@ -106,7 +106,7 @@ def run(options: CalibrateOptions, image_paths: list[str | Path], out_dir: str |
     plot_coverage(cal, out / "coverage.png")
     plot_residuals(cal, out / "residuals.png")
     write_json(out / "report.json", report)
-    return CalibrationRun(cal, report)
+    return CalibrateResult(cal, report)
 
 
 def _intrinsics_dict(cal: Calibration) -> dict:

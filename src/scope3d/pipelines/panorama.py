@@ -1,192 +1,301 @@
-"""Organ panorama jobs (reference ch. 2): plan a scan of a cavity.
+"""Image-only 3-D organ panorama (reference sec. 2.4), ``scope3d panorama``. :func:`run` reads as the method::
 
-``plan_scan(options, surface, out_dir)`` reads as the method of sec. 2.3.2::
-
-    wall      <- a phantom's mesh or a PLY mesh
-    plan      <- spiral of perpendicular views at the stand-off, lateral overlap F (sfm.scan_planning)
-    coverage  <- ray casting every view onto the wall (with and without the bending limit)
-    files     <- plan.json (n_views, coverage_fraction, poses), plan.png
-
-The CLI (``scope3d plan-scan``) calls the same function.
+    features  <- SIFT in every frame's circular field (a pale wall: every frame equalised, a lower threshold)
+    map       <- pairs by capture order and retrieval, relative poses chosen by the wall's shape, rotation
+                 averaging, centres from baselines scaled by the wall's distance; the pairs this start says
+                 overlap matched too, tracks from every geometrically verified pair, centres from their
+                 rays; bundle adjustment, points outside the anatomical shell dropped (sfm.cavity_mapping;
+                 planned poses with finite tolerances add the pairs they say overlap, and start and bound
+                 the poses)
+    scale     <- the 6 mm star targets in the fluorescence frames (metrology.star_scale), unless not asked
+    wall      <- a star-shaped cavity mesh: the convex hull of the points' directions from the cavity's centre,
+                 textured from the registered frames (mvs.texturing: a cube-map atlas, each texel from the
+                 frames that see it best, seams blended, the tip light divided out)
+    truth     <- where the dataset has it: the wall error after a 7-DoF similarity fitted to the tracks'
+                 true positions, and the scale error of the stars
+    files     <- report.json, sparse/ (COLMAP text), points.ply, mesh.ply, wall.obj/.mtl/.png (the textured
+                 wall), panorama_3d.png (atomic folder)
 """
 from __future__ import annotations
 
-from dataclasses import asdict
+import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import ConvexHull
 
 from scope3d.errors import InputError
-from scope3d.io.ply import read_ply
-from scope3d.io.scan_plan import write_scan_plan
-from scope3d.phantoms.raycast import RayCaster
-from scope3d.phantoms.scenes import SCENES, build_scene
-from scope3d.scene.mesh import Mesh
-from scope3d.sfm.scan_planning import ScanPlan, ScanPlanOptions, plan_spiral_scan
+from scope3d.feature.detection import FeatureOptions, Features
+from scope3d.feature.matching import MatchOptions
+from scope3d.io.colmap import SparseModel, write_colmap_text
+from scope3d.io.dataset import Dataset
+from scope3d.io.obj import write_textured_obj
+from scope3d.io.ply import write_ply
+from scope3d.metrology.evaluation import errors_after_similarity, true_track_points
+from scope3d.metrology.star_scale import StarScaleOptions, star_scale
+from scope3d.mvs.texturing import TextureOptions, texture_mesh
+from scope3d.pipelines.surgical_map import MapOptions, detect_features
+from scope3d.scene.mesh import Mesh, PointCloud, SampledSurface
+from scope3d.sfm.cavity_map_choice import MAX_OFF_CENTRE, cameras_off_centre
+from scope3d.sfm.cavity_mapping import CavityMap, CavityOptions, map_cavity
+from scope3d.utils.atomic import atomic_directory
 from scope3d.utils.figures import new_figure, save_figure
 from scope3d.utils.jsonio import write_json
-from scope3d.utils.progress import stage
+from scope3d.utils.progress import Progress, stage
 
 
-def load_surface(surface: str | Path) -> tuple[Mesh, RayCaster, str]:
-    """A phantom name (``bladder``...) or a PLY mesh file -> (mesh, ray caster, description)."""
-    if str(surface) in SCENES:
-        scene = build_scene(str(surface))
-        return scene.mesh, scene.caster, f"phantom {surface}"
-    path = Path(surface)
-    if not path.is_file():
-        raise InputError(f"{surface}: neither a phantom ({', '.join(SCENES)}) nor a PLY file")
-    mesh = read_ply(path)
-    if not isinstance(mesh, Mesh) or len(mesh.faces) == 0:
-        raise InputError(f"{path}: the PLY file has no faces; the scan planner needs a surface mesh")
-    return mesh, RayCaster(mesh), str(path)
+@dataclass(frozen=True)
+class Panorama3dOptions:
+    """features, matching, cavity : the stages' options. pale_features, min_median_features : when
+    the frames give fewer than ``min_median_features`` SIFT features (median over frames) with
+    ``features``, every frame is detected again with ``pale_features`` (None: never), see
+    :func:`panorama_features`. stars : the scale targets, or None for an unscaled
+    model (``scale_source: none``; or the plan's scale when the poses are planned). use_planned_poses :
+    planned poses with finite tolerances start and bound the adjustment (default True); False ignores them
+    (image-only). evaluation_step_mm : sample spacing of the true surface for the wall error (default 0.25).
+    figures : write panorama_3d.png (default True). texture : the textured wall's options, or None for no
+    wall.obj. refuse_implausible : a map failing :func:`self_check` raises InputError instead of being
+    written (default True); False writes it with the check's problems in report.json."""
+
+    features: FeatureOptions = field(default_factory=FeatureOptions)
+    pale_features: FeatureOptions | None = field(
+        default_factory=lambda: FeatureOptions(contrast_threshold=0.01, clahe_clip_limit=2.0))
+    min_median_features: int = 1000
+    matching: MatchOptions = field(default_factory=MatchOptions)
+    cavity: CavityOptions = field(default_factory=CavityOptions)
+    stars: StarScaleOptions | None = field(default_factory=StarScaleOptions)
+    use_planned_poses: bool = True
+    evaluation_step_mm: float = 0.25
+    figures: bool = True
+    texture: TextureOptions | None = field(default_factory=TextureOptions)
+    refuse_implausible: bool = True
+
+    def __post_init__(self) -> None:
+        if self.evaluation_step_mm <= 0 or self.min_median_features < 0:
+            raise ValueError("evaluation_step_mm must be > 0 and min_median_features >= 0")
 
 
-def plan_scan(options: ScanPlanOptions, surface: str | Path, out_dir: str | Path) -> ScanPlan:
-    """Plan a spiral scan of ``surface`` and write ``plan.json``, ``plan.png`` and ``report.json`` (the plan's
-    figures: views, coverage, options) into ``out_dir``."""
-    mesh, caster, source = load_surface(surface)
-    try:
-        plan = plan_spiral_scan(mesh, options, caster=caster)
-    except ValueError as exc:
-        raise InputError(f"{surface}: {exc}") from None
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    info = {
-        "surface": source,
-        "coverage_fraction": plan.coverage.fraction,
-        "coverage_fraction_without_bend_limit": plan.coverage_unlimited.fraction,
-        "coverage_lost_to_bend_limit": plan.coverage_unlimited.fraction - plan.coverage.fraction,
-        "n_planned_views": plan.n_planned,
-        "n_sections": int(len(np.unique(plan.sections))),
-        "coverage_method": "face centroids inside some view's circular field, within max_range_mm, not occluded "
-                           "(ray cast on the mesh); area-weighted",
-        "options": asdict(plan.options),
-        "camera": {"width": plan.camera.width, "height": plan.camera.height, "fx": plan.camera.fx,
-                   "mask_radius_px": plan.camera.mask_radius_px},
-    }
-    write_scan_plan(out / "plan.json", plan.poses, plan.sections, options.fov_deg,
-                    wall_points_mm=plan.wall_points_mm, bend_deg=plan.bend_deg, info=info)
-    plot_plan(plan, mesh, out / "plan.png")
-    # the plan's figures without its views (those are plan.json's): what the job's report shows
-    write_json(out / "report.json", {"job": "plan-scan", **info, "n_views": len(plan.poses),
-                                     "fov_deg": options.fov_deg})
-    return plan
+@dataclass
+class Panorama3dResult:
+    """report : report.json as written; cavity : the map (poses, points, tracks, the wall's sphere)."""
+
+    report: dict
+    cavity: CavityMap
+
+    def summary(self) -> str:
+        r = self.report
+        line = (f"{r['n_registered']}/{r['n_frames']} frames registered, {r['n_points']} points, "
+                f"scale from {r['scale_source']}"
+                + (f" (± {r['scale_uncertainty_fraction']:.2%})" if r.get("scale_uncertainty_fraction") else "")
+                + f", {r['time_s']:.1f} s")
+        disagreement = (r["self_check"]["map_choice"] or {}).get("disagreement")
+        if disagreement:  # image-only: how far the two candidate maps are apart (both right: ~0.003 of the radius)
+            line += (f"; the two image-only maps disagree by {disagreement['median']:.1%} of the wall's radius "
+                     f"(p95 {disagreement['p95']:.1%})")
+        lines = [line]
+        err = r.get("surface_error_mm", {}).get("after_similarity")
+        if err:
+            lines.append(f"wall error after similarity: mean {err['mean']:.3f}, median {err['median']:.3f}, "
+                         f"p95 {err['p95']:.3f} mm" + (f"; scale error {r['scale_error_fraction']:+.2%}"
+                                                      if "scale_error_fraction" in r else ""))
+        if "texture_texel_mm" in r:
+            lines.append(f"textured wall: {r['texture_texel_mm']:.3f} mm per texel, atlas "
+                         f"{r['texture_atlas_px'][0]} x {r['texture_atlas_px'][1]} px, "
+                         f"{r['textured_fraction']:.0%} of the wall seen")
+        lines += [f"self-check WARNING: {w}" for w in r["self_check"]["warnings"]]
+        if not r["self_check"]["passed"]:
+            lines.append("self-check FAILED, the map is kept as asked: " + "; ".join(r["self_check"]["problems"]))
+        return "\n".join(lines)
 
 
-def plot_plan(plan: ScanPlan, mesh: Mesh, path: str | Path) -> None:
-    """The wall's face centroids (grey: unseen, blue: seen) and the views' wall points joined in scan order."""
-    fig = new_figure((6.0, 5.5), dpi=110)
-    ax = fig.add_subplot(projection="3d")
-    centroids = mesh.vertices[mesh.faces].mean(axis=1)
-    stride = max(1, len(centroids) // 6000)
-    sub = np.arange(0, len(centroids), stride)
-    seen = plan.coverage.seen_faces[sub]
-    ax.scatter(*centroids[sub][~seen].T, s=1, c="0.75", alpha=0.4, label="not seen")
-    ax.scatter(*centroids[sub][seen].T, s=1, c="tab:blue", alpha=0.15, label="seen")
-    for k in np.unique(plan.sections):
-        w = plan.wall_points_mm[plan.sections == k]
-        ax.plot(*w.T, "-o", ms=2, lw=1)
-    ax.set_xlabel("x (mm)")
-    ax.set_ylabel("y (mm)")
-    ax.set_zlabel("z (mm)")
-    ax.set_title(f"{plan.n_views} views, coverage {plan.coverage.fraction:.1%}", fontsize=10)
-    ax.set_box_aspect(np.ptp(mesh.vertices, axis=0))
+def panorama_features(options: Panorama3dOptions, dataset: Dataset, *, progress: Progress | None = None) -> list[Features]:
+    """SIFT in every frame; on a pale wall (median features per frame below ``options.min_median_features``)
+    every frame again with ``options.pale_features`` (CLAHE, which flattens the tip light's falloff and
+    the wet glint, and a contrast threshold of 0.01, half of COLMAP's SIFT peak threshold).
+
+    Why all frames or none: a frame equalised and its neighbour not describe the same wall differently (on
+    the dry spiral, equalising only the frames under 1000 features took the image-only map from 0.175 to
+    2.59 mm). Why 1000: consecutive key frames share 35-65 % of their field, so 1000 features leave ~350
+    in common, several times the 15 matches a pair needs. Measured on the pale wet wall (vessels at 0.25 of
+    the default density, 608 px): 9-280 features per frame and no match between most consecutive frames
+    at the default threshold; 1370-1780 features and 15-182 matches per pair (3-9 % wrong but one pair)
+    with CLAHE at 0.01; at 0.01 without CLAHE 126-805 features, up to 26 % wrong."""
+    frames = [dataset.frame(k) for k in range(len(dataset))]
+    features = detect_features(MapOptions(features=options.features), dataset, frames, progress=progress)
+    if options.pale_features is not None and np.median([len(f) for f in features]) < options.min_median_features:
+        stage(progress, "panorama: features (pale wall)", len(frames))
+        features = detect_features(MapOptions(features=options.pale_features), dataset, frames, progress=progress)
+    return features
+
+
+def cavity_mesh(points: np.ndarray, centre: np.ndarray, colors: np.ndarray | None = None) -> Mesh:
+    """A closed mesh through the points (N, 3) of a cavity seen from inside: the convex hull of their unit
+    directions from ``centre`` (a star-shaped cavity's triangulation), faces turned to face the centre."""
+    rel = np.asarray(points, float) - centre
+    hull = ConvexHull(rel / np.linalg.norm(rel, axis=1, keepdims=True))
+    faces = hull.simplices.copy()
+    v = rel[faces]
+    outward = np.einsum("ij,ij->i", np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), v.mean(axis=1)) > 0
+    faces[outward] = faces[outward][:, ::-1]  # normals towards the centre: the wall seen from inside
+    return Mesh(np.asarray(points, float), faces, colors)
+
+
+def evaluate(dataset: Dataset, cavity: CavityMap, step_mm: float) -> dict:
+    """Wall error after a 7-DoF similarity fitted to the tracks' true positions (true depth maps and poses),
+    in mm of the truth; {} without ground truth."""
+    gt = dataset.ground_truth
+    if gt is None or gt.poses is None or gt.surface_path is None or not gt.depth_paths:
+        return {}
+    tr = cavity.tracks
+    true_points = true_track_points(dataset.camera, gt.poses, gt.depth, tr.frame, tr.track, tr.pixels, tr.n_tracks)
+    summary, distances, sim = errors_after_similarity(tr.points, true_points, SampledSurface(gt.surface(), step_mm))
+    return {"surface_error_mm": {"after_similarity": summary}, "scale_error_fraction": summary["scale"] - 1.0,
+            "_distances": distances}
+
+
+def self_check(cavity: CavityMap, options: CavityOptions, scaled: bool) -> dict:
+    """Whether the map can be a cavity seen from inside, from the map alone (no truth): the cameras' centroid
+    within :data:`MAX_OFF_CENTRE` of the wall's radius from its centre (:func:`cameras_off_centre`), and,
+    when the map has a physical scale (stars or plan), the wall's fitted radius within the anatomical shell
+    (``options.min_radius_mm``-``max_radius_mm``, the prior's own range). Returns the measures, the
+    ``problems`` found (sentences), ``passed``, the image-only map's choice (``map_choice``: both candidates'
+    figures, why one was kept, their disagreement) and ``warnings``.
+
+    Measured (docs/panorama.md, "A wrong map reported as a map"): the unseen wet cavity's broken map had
+    its cameras 0.97 radii off centre and, from the stars, a 107 mm wall radius (the truth: 29-38 mm
+    semi-axes); the maps kept on the phantoms (dry, wet, unseen shapes), 0.02-0.07 and 34-41 mm.
+
+    The warning: the two image-only candidate maps (:func:`scope3d.sfm.cavity_mapping.map_cavity`) come from
+    different starts and pair sets; when 5 % of the points they share lie more than :data:`MAX_OFF_CENTRE` of
+    the wall's radius apart after a similarity (:func:`scope3d.sfm.cavity_map_choice.map_disagreement`), they
+    cannot both be the cavity, and the kept one is not confirmed. A warning, not a refusal: the kept map may
+    be the right one (docs/panorama.md, "Which image-only map")."""
+    off = cameras_off_centre(cavity.tracks.points, cavity.poses)
+    problems = []
+    if not off <= MAX_OFF_CENTRE:
+        problems.append(f"the cameras' centroid is {off:.2f} of the wall's radius from its centre "
+                        f"(a scope inside a cavity: at most {MAX_OFF_CENTRE:g})")
+    radius = float(cavity.radius_mm) if scaled else None
+    if radius is not None and not options.min_radius_mm <= radius <= options.max_radius_mm:
+        problems.append(f"the wall's radius is {radius:.1f} mm, outside the anatomical "
+                        f"{options.min_radius_mm:g}-{options.max_radius_mm:g} mm")
+    warnings = []
+    disagreement = cavity.choice.get("disagreement", {})
+    if disagreement.get("p95", 0.0) > MAX_OFF_CENTRE:  # NaN (no common points) does not warn
+        kept = "all-pair" if cavity.choice["kept"] == "all pairs" else "chain's"
+        warnings.append(f"the two image-only maps disagree: 5 % of their common points are "
+                        f"{disagreement['p95']:.2f} of the wall's radius apart or more (median "
+                        f"{disagreement['median']:.2f}), so at least one is wrong; kept the "
+                        f"{kept} map: {cavity.choice['reason']}")
+    return {"cameras_off_centre": off, "max_off_centre": MAX_OFF_CENTRE, "wall_radius_mm": radius,
+            "anatomical_radius_mm": [options.min_radius_mm, options.max_radius_mm], "problems": problems,
+            "passed": not problems, "map_choice": cavity.choice or None, "warnings": warnings}
+
+
+def save_panorama_png(path: Path, cavity: CavityMap, distances: np.ndarray | None) -> None:
+    """Three orthogonal views of the points (coloured by their wall error when known, else their colour)
+    with the camera centres."""
+    pts = cavity.tracks.points
+    centres = np.stack([p.centre for p in cavity.poses])
+    fig = new_figure(figsize=(12, 4.2))
+    for k, (a, b, name) in enumerate([(0, 1, "x-y"), (0, 2, "x-z"), (1, 2, "y-z")]):
+        ax = fig.add_subplot(1, 3, k + 1)
+        if distances is not None:
+            sc = ax.scatter(pts[:, a], pts[:, b], c=distances, s=2, cmap="viridis", vmin=0,
+                            vmax=max(float(np.percentile(distances, 95)), 1e-3))
+        else:
+            ax.scatter(pts[:, a], pts[:, b], c=cavity.tracks.colors / 255.0, s=2)
+        ax.plot(centres[:, a], centres[:, b], "r.-", lw=0.8, ms=3)
+        ax.set_aspect("equal")
+        ax.set_title(f"{name} (mm)")
+    if distances is not None:
+        fig.colorbar(sc, ax=fig.axes, label="distance to the true wall after similarity, mm", shrink=0.8)
     save_figure(fig, path)
 
 
-# --- 2-D mosaic ----------------------------------------------------------------------------------
-
-
-def _sections(dataset) -> np.ndarray:
-    """Scan section (spiral turn) per frame from the phantom's trajectory, else one section."""
-    gt = dataset.ground_truth
-    traj = (gt.scene.get("trajectory") or {}) if gt is not None else {}
-    sections = traj.get("sections")
-    if isinstance(sections, list) and len(sections) == len(dataset):
-        return np.asarray(sections, dtype=int)
-    return np.zeros(len(dataset), dtype=int)
-
-
-def _planar_truth(datasets) -> tuple[np.ndarray, np.ndarray] | None:
-    """(origin, normal) of the true surface when every dataset has true poses and the same flat surface."""
-    planes = []
-    for ds in datasets:
-        gt = ds.ground_truth
-        if gt is None or gt.poses is None or gt.surface_path is None:
-            return None
-        v = gt.surface().vertices
-        centre = v.mean(axis=0)
-        _, s, vt = np.linalg.svd(v - centre, full_matrices=False)
-        if s[2] > 1e-9 * max(s[0], 1.0):
-            return None
-        planes.append((centre, vt[2]))
-    o, n = planes[0]
-    if any(abs(np.dot(n2, o2 - o)) > 1e-6 or abs(abs(np.dot(n2, n)) - 1) > 1e-9 for o2, n2 in planes[1:]):
-        return None
-    return o, n
-
-
-def make_mosaic(options, datasets: list, out_dir: str | Path, *, progress=None):
-    """2-D mosaic of one or more datasets (reference sec. 2.3.3) into ``out_dir``: ``mosaic.png`` (with the
-    scope's path per scan section), ``coverage.png``, ``report.json``. Returns the report.
-
-    options : :class:`~scope3d.registration.mosaic.MosaicOptions`. Frames of all datasets are matched
-    together (a 15 mm and a 30 mm scan fill each other's gaps, sec. 2.4.2); frame 0 of the first dataset
-    is the mosaic's frame. ``alignment_error_px`` is measured where the truth is a plane.
-    Returns (report dict, :class:`~scope3d.registration.mosaic.Mosaic`).
-    """
-    import time
-
-    from scope3d.io.images import write_image
-    from scope3d.registration import mosaic as mos
-
+def run(options: Panorama3dOptions, dataset: Dataset, out_dir: str | Path, *,
+        progress: Progress | None = None) -> Panorama3dResult:
+    """The 3-D panorama of ``dataset`` into ``out_dir`` (written atomically)."""
     t0, c0 = time.perf_counter(), time.process_time()
-    frames, cameras, sections, owner, true_poses = [], [], [], [], []
-    for k, ds in enumerate(datasets):
-        frames += [ds.frame(i) for i in range(len(ds))]
-        cameras += [ds.camera] * len(ds)
-        sections += list(_sections(ds) + 1000 * k)
-        owner += [k] * len(ds)
-        if ds.ground_truth is not None and ds.ground_truth.poses is not None:
-            true_poses += list(ds.ground_truth.poses)
-    if len(frames) < 2:
-        raise InputError("a mosaic needs at least two frames")
-    stage(progress, "mosaic: matching pairs", len(frames) * (len(frames) - 1) // 2)
-    links = mos.link_frames(frames, cameras, options, progress=progress)
-    try:
-        result = mos.align_globally(len(frames), links, [(c.width, c.height) for c in cameras], options)
-    except ValueError as exc:
-        raise InputError(f"{datasets[0].root}: {exc} (frames without overlap)") from None
-    mos.blend(result, frames, cameras, options)
-    centres = mos.frame_centres(result, cameras)
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    write_image(out / "mosaic.png", result.image)
-    write_image(out / "mosaic_path.png", mos.draw_path(result.image, centres, np.asarray(sections)))
-    write_image(out / "coverage.png", (result.coverage * 255).astype(np.uint8))
+    n = len(dataset)
+    if n < 2:
+        raise InputError(f"{dataset.root}: need at least 2 frames for a panorama, found {n}")
+    if options.stars is not None and dataset.fluorescence_paths is None:
+        raise InputError(f"{dataset.root}: no fluorescence frames, so no star targets to set the scale "
+                         "(use --no-scale for an unscaled model)")
+    timings, cpu = {}, {}  # wall and CPU seconds per stage (CPU: every thread of the process)
+    stage(progress, "panorama: features", n)
+    features = panorama_features(options, dataset, progress=progress)
+    timings["features_s"] = time.perf_counter() - t0
+    cpu["features_s"] = time.process_time() - c0
+    stage(progress, "panorama: pairs", None)
+    measured = dataset.poses if options.use_planned_poses else None
+    cavity = map_cavity(dataset.camera, features, measured, options.cavity, options.matching,
+                        where=str(dataset.root), progress=progress)
+    timings.update(cavity.time_s)
+    cpu["map_s"] = time.process_time() - c0 - sum(cpu.values())
+    scale_info = None
+    if options.stars is not None:
+        t1, c1 = time.perf_counter(), time.process_time()
+        fluorescence = [dataset.fluorescence_frame(k) for k in range(n)]
+        scale_info = star_scale(dataset.camera, cavity.poses, cavity.tracks, fluorescence, options=options.stars,
+                                where=str(dataset.root))
+        cavity = cavity.scaled(scale_info.scale)
+        timings["scale_s"], cpu["scale_s"] = time.perf_counter() - t1, time.process_time() - c1
+    scale_source = "stars" if scale_info is not None else ("plan" if cavity.scale_known else "none")
+    check = self_check(cavity, options.cavity, scale_source != "none")
+    if options.refuse_implausible and not check["passed"]:
+        raise InputError(f"{dataset.root}: the map is no cavity seen from inside, so it is not written: "
+                         + "; ".join(check["problems"]) + " (keep it anyway with --keep-implausible)")
+    evaluation = evaluate(dataset, cavity, options.evaluation_step_mm)
+    distances = evaluation.pop("_distances", None)
+    if scale_source == "none":
+        evaluation.pop("scale_error_fraction", None)
+    tr = cavity.tracks
     report = {
-        "n_frames": len(frames),
-        "n_registered": int(result.registered.sum()),
-        "n_linked_pairs": len(result.links),
-        "datasets": [str(ds.root) for ds in datasets],
-        "frames_per_dataset": [len(ds) for ds in datasets],
-        "registered_per_dataset": [int(result.registered[np.asarray(owner) == k].sum()) for k in range(len(datasets))],
-        "coverage_fraction": mos.coverage_fraction(result.coverage),
-        "coverage_definition": "mosaic pixels seen by some frame over the convex hull of them (holes = missed areas)",
-        "residual_px": {"mean": float(result.residual_px.mean()), "p95": float(np.percentile(result.residual_px, 95))},
-        "canvas_px": list(result.image.shape[1::-1]),
+        "job": "panorama", "dataset": str(dataset.root),  # the report page reads the frames and truth from it
+        "n_frames": n,
+        "n_registered": int(cavity.registered.sum()),
+        "n_points": int(tr.n_tracks),
+        "n_observations": int(tr.n_observations),
+        "n_pairs": len(cavity.matches),
+        "n_pairs_tried": cavity.n_pairs_tried,
+        "poses": "planned (bounded)" if cavity.scale_known else "images only",
+        "scale_source": scale_source,
+        "stars": None if scale_info is None else scale_info.to_dict(),
+        "scale_uncertainty_fraction": None if scale_info is None else scale_info.uncertainty,
+        "cavity_radius": cavity.radius_mm,
+        "length_unit": "mm" if scale_source != "none" else "map units (no physical scale)",
+        "stages": cavity.stages,
+        "self_check": check,
+        **evaluation,
+        "timings_s": timings,
+        "cpu_by_stage_s": cpu,
         "time_s": time.perf_counter() - t0,
         "cpu_s": time.process_time() - c0,
     }
-    plane = _planar_truth(datasets) if len(true_poses) == len(frames) else None
-    if plane is not None:
-        truth = mos.true_plane_homographies(cameras, true_poses, *plane)
-        err = mos.alignment_errors_px(result, truth, cameras)
-        report["alignment_error_px"] = {"mean": float(err.mean()), "p95": float(np.percentile(err, 95)),
-                                        "unit": "pixels of the first frame (the mosaic's frame)"}
-    else:
-        report["alignment_error_px"] = None
-        report["alignment_error_note"] = "no planar ground truth (a curved wall has no exact 2-D mosaic)"
-    write_json(out / "report.json", report)
-    return report, result
+    with atomic_directory(out_dir) as tmp:
+        write_ply(tmp / "points.ply", PointCloud(tr.points, tr.colors))
+        if tr.n_tracks >= 4:
+            wall = cavity_mesh(tr.points, cavity.centre_mm, tr.colors)
+            write_ply(tmp / "mesh.ply", wall)
+            if options.texture is not None:
+                t1, c1 = time.perf_counter(), time.process_time()
+                poses = [p if ok else None for p, ok in zip(cavity.poses, cavity.registered)]
+                textured = texture_mesh(wall, cavity.centre_mm, dataset.camera, poses, dataset.frame,
+                                        options=options.texture)
+                write_textured_obj(tmp / "wall.obj", textured.mesh.vertices, textured.mesh.faces, textured.uv,
+                                   textured.face_uv, textured.image)
+                report.update({"texture_texel_mm": textured.texel_mm, "textured_fraction": textured.textured_fraction,
+                               "texture_atlas_px": list(textured.image.shape[1::-1])})
+                timings["texture_s"], cpu["texture_s"] = time.perf_counter() - t1, time.process_time() - c1
+        model = SparseModel.from_observations(dataset.camera, dataset.names, cavity.poses, tr.points, tr.frame,
+                                              tr.track, tr.pixels, colors=tr.colors)
+        write_colmap_text(model, tmp / "sparse")
+        if options.figures:
+            save_panorama_png(tmp / "panorama_3d.png", cavity, distances)
+        report["time_s"], report["cpu_s"] = time.perf_counter() - t0, time.process_time() - c0
+        cpu["rest_s"] = report["cpu_s"] - sum(cpu.values())  # evaluation, mesh, files
+        write_json(tmp / "report.json", report)
+    return Panorama3dResult(report, cavity)

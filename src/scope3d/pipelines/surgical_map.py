@@ -89,11 +89,12 @@ from scope3d.sfm.guided_mapping import (
     refine_poses_for_matching,
 )
 from scope3d.sfm.model_checks import check_model, model_checks_summary
-from scope3d.sfm.pose_checks import PoseCheck, PoseCheckOptions, test_reported_poses
+from scope3d.sfm.pose_checks import PoseCheck, PoseCheckOptions, check_pose_reports
 from scope3d.utils.atomic import atomic_directory
 from scope3d.utils.background import BackgroundCalls
 from scope3d.utils.jsonio import write_json
 from scope3d.utils.progress import Progress, advance, stage
+from scope3d.utils.threads import check_threads, resolve_threads
 
 MATCHERS = ("guided", "exhaustive")
 
@@ -110,7 +111,8 @@ class MapOptions:
         object, like Middlebury's temple, is not a height field). fluorescence : FluorescenceOptions or
         None, the targets stage (None: no targets; it also needs the surface and fluorescence frames).
     figures : bool, write PNG figures (default True).
-    threads : int, threads for per-frame feature detection (default 2, the machine's cores).
+    threads : int, threads for per-frame feature detection (default 0: every available core,
+        :mod:`scope3d.utils.threads`).
     surface_prior : bool, two-pass guided matching with a coarse-surface depth band (default True;
         needs a scene that is a height field seen from one side, false for a ring around an object).
     surface_band_mm : float, added to the band around the coarse surface for the detail it smooths
@@ -144,7 +146,7 @@ class MapOptions:
     fluorescence: FluorescenceOptions | None = field(default_factory=FluorescenceOptions)
     evaluation: EvaluationOptions = field(default_factory=EvaluationOptions)
     figures: bool = True
-    threads: int = 2
+    threads: int = 0
     surface_prior: bool = True
     surface_band_mm: float = 0.5
     use_bounding_box: bool = True
@@ -157,8 +159,7 @@ class MapOptions:
             raise ValueError(f"pose_mode must be one of {POSE_MODES}, got {self.pose_mode!r}")
         if self.matcher not in MATCHERS:
             raise ValueError(f"matcher must be one of {MATCHERS}, got {self.matcher!r}")
-        if self.threads < 1:
-            raise ValueError("threads must be >= 1")
+        check_threads(self.threads)
 
 
 #: Named presets. ``dim_endoscope``: CLAHE and a lower SIFT threshold for dark frames.
@@ -288,11 +289,11 @@ def detect_features(options: MapOptions, dataset: Dataset, frames: list[np.ndarr
                     progress: Progress | None = None) -> list[Features]:
     """SIFT per frame (threads: OpenCV releases the GIL)."""
     def one(k):
-        f = detect(frames[k], dataset.camera, options.features)
+        f = detect(frames[k], dataset.camera, options=options.features)
         advance(progress)
         return f
 
-    with ThreadPoolExecutor(max_workers=options.threads) as pool:
+    with ThreadPoolExecutor(max_workers=resolve_threads(options.threads)) as pool:
         return list(pool.map(one, range(len(frames))))
 
 
@@ -326,24 +327,24 @@ def match_frames(options: MapOptions, dataset: Dataset, features: list[Features]
             return match_with_image_poses(options, dataset, features, depth_prior, progress=progress, t0=t0)
         depth_prior = estimate
     if depth_prior is None:
-        depth_prior = estimate_depth_prior(camera, features, measured, options.matching)
+        depth_prior = estimate_depth_prior(camera, features, measured, options=options.matching)
     t_depth = time.perf_counter() - t0
     # the depth prior also places the frusta for pair selection, so both matchers see the same pairs
-    pairs = select_pairs(camera, [m.pose for m in measured], depth_prior, options.pairs)
+    pairs = select_pairs(camera, [m.pose for m in measured], depth_prior, options=options.pairs)
     if options.matcher != "guided" or len(pairs) < 4 or not options.surface_prior:
-        matches = match_pairs(camera, features, measured, pairs, depth_prior, options.matching,
+        matches = match_pairs(camera, features, measured, pairs, depth_prior, options=options.matching,
                               method=options.matcher, progress=progress)
         return MatchingResult(pairs, matches, depth_prior, time.perf_counter() - t0, t_depth)
     first = spanning_pairs(pairs, len(dataset))
     rest = sorted(set(range(len(pairs))) - set(first))
     matches: list = [None] * len(pairs)
     for k, m in zip(first, match_pairs(camera, features, measured, [pairs[k] for k in first], depth_prior,
-                                       options.matching, progress=progress)):
+                                       options=options.matching, progress=progress)):
         matches[k] = m
     band = surface_depth_prior(camera, features, [matches[k] for k in first], depth_prior, measured, options.tracks,
                                options.surface or SurfaceOptions(), options.surface_band_mm)
     for k, m in zip(rest, match_pairs(camera, features, measured, [pairs[k] for k in rest], band or depth_prior,
-                                      options.matching, progress=progress)):
+                                      options=options.matching, progress=progress)):
         matches[k] = m
     return MatchingResult(pairs, matches, band or depth_prior, time.perf_counter() - t0, t_depth)
 
@@ -352,7 +353,7 @@ def _estimate_depth_prior_or_none(options: MapOptions, dataset: Dataset, feature
     """The data's depth prior, or None when the measured poses are too far off to triangulate the
     closest pairs at all (then they certainly cannot predict matches)."""
     try:
-        return estimate_depth_prior(dataset.camera, features, dataset.poses, options.matching)
+        return estimate_depth_prior(dataset.camera, features, dataset.poses, options=options.matching)
     except ValueError:
         return None
 
@@ -382,20 +383,23 @@ def match_with_image_poses(options: MapOptions, dataset: Dataset, features: list
     """
     t0 = time.perf_counter() if t0 is None else t0
     camera = dataset.camera
-    coarse = coarse_poses(camera, features, dataset.poses, options.matching, options.coarse, progress=progress)
+    coarse = coarse_poses(camera, features, dataset.poses, match_options=options.matching, options=options.coarse,
+                          progress=progress)
     guide, points_prior = refine_poses_for_matching(camera, dataset.poses, features, coarse.matches, coarse.poses,
-                                                    options.tracks, options.bundle, where=str(dataset.root))
+                                                    track_options=options.tracks, options=options.bundle,
+                                                    where=str(dataset.root))
     depth_prior = depth_prior or points_prior
     t_depth = time.perf_counter() - t0
-    pairs = select_pairs(camera, [m.pose for m in guide], depth_prior, options.pairs)
+    pairs = select_pairs(camera, [m.pose for m in guide], depth_prior, options=options.pairs)
     band = None
     if options.surface_prior:
         band = surface_depth_prior(camera, features, coarse.matches, depth_prior, guide, options.tracks,
                                    options.surface or SurfaceOptions(), options.surface_band_mm)
-    matches = match_pairs(camera, features, guide, pairs, band or depth_prior, options.matching, progress=progress)
+    matches = match_pairs(camera, features, guide, pairs, band or depth_prior, options=options.matching,
+                          progress=progress)
     lost = [k for k, m in enumerate(matches) if len(m) == 0]
     if lost:
-        again = match_pairs(camera, features, guide, [pairs[k] for k in lost], depth_prior, options.matching,
+        again = match_pairs(camera, features, guide, [pairs[k] for k in lost], depth_prior, options=options.matching,
                             method="exhaustive")
         for k, m in zip(lost, again):
             matches[k] = m
@@ -427,8 +431,8 @@ def reconstruct(options: MapOptions, dataset: Dataset, features: list[Features],
     start = matching.guide_poses if movable and matching.coarse is not None else dataset.poses
     # the surface stage's assumption, a height field seen from one side, lets wrong matches be dropped
     adjusted = adjust_map(options.pose_mode, dataset.poses, dataset.camera, tracks, start, matching.depth_prior,
-                          options.tracks, options.bundle, height_field=options.surface is not None,
-                          where=str(dataset.root))
+                          track_options=options.tracks, options=options.bundle,
+                          height_field=options.surface is not None, where=str(dataset.root))
     err = reprojection_errors(adjusted.camera, adjusted.poses, adjusted.tracks)
     return SparseResult(adjusted.tracks, adjusted.poses, adjusted.camera, adjusted.bundle_results, float(np.mean(err)),
                         time.perf_counter() - t0, adjusted.off_surface_points, tracks)
@@ -437,15 +441,15 @@ def reconstruct(options: MapOptions, dataset: Dataset, features: list[Features],
 def check_reported_poses(options: MapOptions, dataset: Dataset, matching: MatchingResult,
                          sparse: SparseResult) -> PoseCheck | None:
     """Each reported pose tested against the images and the other frames
-    (:func:`scope3d.sfm.pose_checks.test_reported_poses`: every frame's pose estimated again from its
+    (:func:`scope3d.sfm.pose_checks.check_pose_reports`: every frame's pose estimated again from its
     observations of the points the other frames triangulate at the bounded map's poses); None when there
     is nothing to test: not ``bounded``, or reports so tight that they guided matching themselves (no
     coarse pass: a micro-stage's 0.01 mm, which the images cannot improve on; there a false alarm would
     only replace a good report by a worse estimate)."""
     if options.pose_check is None or options.pose_mode != "bounded" or matching.coarse is None:
         return None
-    return test_reported_poses(sparse.camera, dataset.poses, sparse.matched, sparse.poses, options.tracks,
-                               options.pose_check)
+    return check_pose_reports(sparse.camera, dataset.poses, sparse.matched, sparse.poses, options.tracks,
+                              options.pose_check)
 
 
 # --- 4. surface -------------------------------------------------------------------------------
@@ -455,7 +459,7 @@ def build_surface(options: MapOptions, dataset: Dataset, sparse: SparseResult, f
     """Thin-plate-spline surface through the points, textured from each vertex's best view."""
     t0 = time.perf_counter()
     towards = -np.mean([p.optical_axis for p in sparse.poses], axis=0)
-    surface = fit_surface(sparse.tracks.points, options.surface or SurfaceOptions(), towards=towards)
+    surface = fit_surface(sparse.tracks.points, options=options.surface or SurfaceOptions(), towards=towards)
     colors, view_map = texture(surface, sparse.camera, sparse.poses, frames)
     return SurfaceResult(surface, colors, view_map, time.perf_counter() - t0)
 
@@ -468,10 +472,10 @@ def locate_targets(options: MapOptions, dataset: Dataset, sparse: SparseResult, 
     t0 = time.perf_counter()
     fl = options.fluorescence or FluorescenceOptions()
     images = [dataset.fluorescence_frame(k) for k in range(len(dataset))]
-    threshold = auto_threshold(images, fl)
+    threshold = auto_threshold(images, options=fl)
     valid = sparse.camera.mask()
-    masks = [segment(img, threshold, fl, mask=valid) for img in images]
-    targets, on, labels = targets_on_surface(surface.surface, sparse.camera, sparse.poses, masks, fl)
+    masks = [segment(img, threshold, options=fl, mask=valid) for img in images]
+    targets, on, labels = targets_on_surface(surface.surface, sparse.camera, sparse.poses, masks, options=fl)
     return TargetResult(targets, on, labels, threshold, time.perf_counter() - t0)
 
 
@@ -489,7 +493,7 @@ def evaluate_map(options: MapOptions, dataset: Dataset, sparse: SparseResult, ta
         out["pose_error"] = pose_errors(sparse.poses, dataset.poses, gt.poses)
     if gt.surface_path is not None:
         truth = SampledSurface(gt.surface(), options.evaluation.sample_step_mm)
-        summary, direct, aligned = surface_errors(sparse.tracks.points, truth, options.evaluation)
+        summary, direct, aligned = surface_errors(sparse.tracks.points, truth, options=options.evaluation)
         out["surface_error_mm"] = summary
         out["_distances"] = (direct, aligned)
     if targets is not None and true_targets(gt.scene):
@@ -547,7 +551,7 @@ def write_outputs(
         s = surface.surface
         colors = surface.colors
         if targets is not None:
-            colors = overlay(colors, targets.fluorescent, None, fl, draw_outlines=False)
+            colors = overlay(colors, targets.fluorescent, None, options=fl, draw_outlines=False)
         write_ply(out_dir / "mesh.ply", s.mesh(colors))
         write_ply(out_dir / "mesh_reflectance.ply", s.mesh(surface.colors))
         d = s.height[s.valid]
@@ -565,7 +569,7 @@ def write_outputs(
         if options.figures and surface is not None:
             write_image(out_dir / "multimodal_mosaic.png",
                         overlay(enlarge_raster(surface.colors), enlarge_raster(targets.fluorescent),
-                                enlarge_raster(targets.labels), fl))
+                                enlarge_raster(targets.labels), options=fl))
     if evaluation:
         report.update({k: v for k, v in evaluation.items() if not k.startswith("_") and k != "time_s"})
         if options.figures and "_distances" in evaluation:
@@ -622,7 +626,7 @@ def _matches_figure(options, dataset, frames, features, matching, path, backgrou
     exh = match_exhaustive(dataset.camera, features[i], features[j], options.matching, i=i, j=j)
     guided = best if options.matcher == "guided" else match_guided(
         dataset.camera, features[i], features[j], dataset.poses[i], dataset.poses[j], matching.depth_prior,
-        options.matching, i=i, j=j)
+        options=options.matching, i=i, j=j)
     background.submit(save_matches_png, path, frames[i], frames[j], features[i], features[j], [exh, guided],
                       [f"without prediction: {len(exh)} matches", f"with prediction: {len(guided)} matches"])
     return {"frames": [i, j], "matches_with_prediction": len(guided), "matches_without_prediction": len(exh)}

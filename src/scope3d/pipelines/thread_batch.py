@@ -29,7 +29,7 @@ SUMMARY_FIELDS = ("hole", "status", "verdict", "minor_diameter_mm", "major_diame
 
 
 @dataclass
-class BatchResult:
+class ThreadBatchResult:
     """rows : one dict per hole (SUMMARY_FIELDS); skipped : holes already done; time_s : wall time."""
 
     rows: list[dict]
@@ -85,11 +85,11 @@ def scan_hole(dataset_dir: str, out_dir: str, options: ThreadScanOptions, hole: 
     hole's folder, still temporary, and the hole's name before the folder is renamed into place (the CLI
     writes the hole's report.html there; it must be picklable for the cluster)."""
     from scope3d.io.dataset import load_dataset
-    from scope3d.pipelines.thread_scan import run
+    from scope3d.pipelines import thread_scan
 
     try:
         with atomic_directory(Path(out_dir)) as staged:
-            result = run(options, load_dataset(dataset_dir), staged)
+            result = thread_scan.run(options, load_dataset(dataset_dir), staged)
             if finish is not None:
                 finish(staged, hole)
     except InputError as exc:
@@ -97,9 +97,9 @@ def scan_hole(dataset_dir: str, out_dir: str, options: ThreadScanOptions, hole: 
     return _row_from_report(hole, result.report(), "done")
 
 
-def run_batch(datasets: list[str | Path], out_dir: str | Path, options: ThreadScanOptions = ThreadScanOptions(), *,
-              scheduler: str | None = None, n_workers: int = 2, progress: Progress | None = None,
-              client=None, finish: Callable[[Path, str], None] | None = None) -> BatchResult:
+def run(options: ThreadScanOptions, datasets: list[str | Path], out_dir: str | Path, *,
+        scheduler: str | None = None, n_workers: int = 2, progress: Progress | None = None,
+        client=None, finish: Callable[[Path, str], None] | None = None) -> ThreadBatchResult:
     """Scan every hole in ``datasets`` on a Dask cluster into ``out_dir/<hole>/``, skipping holes done
     before; write ``out_dir/summary.csv`` and ``summary.json``. scheduler : a Dask scheduler's address
     (``tcp://host:8786``) or None for a LocalCluster of ``n_workers`` single-threaded processes.
@@ -158,12 +158,12 @@ def run_batch(datasets: list[str | Path], out_dir: str | Path, options: ThreadSc
         if cluster is not None:
             cluster.close()
     ordered = [rows[n] for n in names]
-    result = BatchResult(ordered, skipped, time.perf_counter() - t0, workers)
+    result = ThreadBatchResult(ordered, skipped, time.perf_counter() - t0, workers)
     write_summary(result, out_dir)
     return result
 
 
-def write_summary(result: BatchResult, out_dir: Path) -> None:
+def write_summary(result: ThreadBatchResult, out_dir: Path) -> None:
     """summary.csv (one row per hole) and summary.json, each written atomically."""
     with atomic_file(out_dir / "summary.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=SUMMARY_FIELDS, extrasaction="ignore")

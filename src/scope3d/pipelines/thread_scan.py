@@ -18,10 +18,10 @@ Read top to bottom like the method section::
     cloud      <- registration.statistical_inliers    (30 neighbours, 3 sigma) of the dense clouds (the
                                                        registered sparse ones without dense mapping)
     gauge      <- metrology.gauge_thread              (axis, D1, D, D2, P, flank angle, 6H verdict, defects)
-    systematic <- registration_systematic             (the cloud re-placed by draws of the registration
+    systematic <- metrology.registration_systematic   (the cloud re-placed by draws of the registration
                                                        from its covariance, re-measured: the spread is
                                                        the sizes' systematic uncertainty)
-                  match_gap_systematic                (neighbours' matched points drawn apart along the
+                  metrology.match_gap_systematic      (neighbours' matched points drawn apart along the
                                                        circle by their measured gap, the joint solve run
                                                        again, re-measured)
                   metrology.profile_bias_systematic   (each profile part's points offset by the sparse
@@ -44,13 +44,16 @@ from pathlib import Path
 import numpy as np
 
 from scope3d.errors import InputError
+from scope3d.geometry.iso_thread import THREAD_SIZES
 from scope3d.geometry.pose import Pose
 from scope3d.io.dataset import Dataset
 from scope3d.io.ply import write_ply
 from scope3d.io.quadrants import read_quadrants
+from scope3d.metrology.thread_gauge import GaugeOptions, GaugeResult, gauge_thread
 from scope3d.metrology.thread_scan_plan import QuadrantScanPlan, measured_quadrant_scan
-from scope3d.metrology.thread_gauge import (THREAD_SIZES, GaugeOptions, GaugeResult, gauge_thread,
-                                           profile_bias_systematic, remeasure, with_systematic)
+from scope3d.metrology.thread_uncertainty import (MATCH_GAP_MM, SPARSE_POINT_BIAS_MM, combined_systematic,
+                                                  match_gap_systematic, profile_bias_systematic,
+                                                  registration_systematic, with_systematic)
 from scope3d.registration.outliers import OutlierOptions, statistical_inliers
 from scope3d.registration.panorama import (PanoramaOptions, PanoramaResult, QuadrantCloud, joint_solve,
                                            pairs_drawn_apart, register_quadrants, registered_frame_poses,
@@ -63,38 +66,23 @@ from scope3d.utils.atomic import atomic_directory
 from scope3d.utils.figures import new_figure, save_figure
 from scope3d.utils.jsonio import write_json
 from scope3d.utils.progress import Progress, advance, stage
-
-
-# The sparse points' per-part offsets from the true surface, mapped with the TRUE poses (no registration)
-# on the 90° scans of docs/thread_metrology.md (400x320 px): medians per part (crest, flank towards +z,
-# flank towards -z, root) -0.0005 / +0.0010 / -0.0032 / -0.0014 mm on an M8 (0.5 mm steps) and -0.0005 /
-# +0.0007 / -0.0022 / -0.0030 mm on an M6 (0.25 mm steps); their RMS over the parts, 0.0018 and 0.0019 mm,
-# rounded up, is the standard uncertainty of one part's offset. Measured against the truth, not fitted to
-# the sizes' errors.
-SPARSE_POINT_BIAS_MM = 0.002
-
-# Matched keypoints of neighbour quadrants are not quite the same point of the wall. Each quadrant's map and
-# its neighbour's triangulated with the TRUE poses (docs/thread_metrology.md, "The negative diameter
-# bias"), the first quadrant's point of an inlier correspondence lies, on average, short of its match
-# along the circle by 0.0034 / 0.0030 / 0.0025 mm (standard error 0.0013-0.0015 mm; 1,457 / 1,196 / 1,141
-# correspondences; M8 / M10 / M6 mid-class holes, 90° view, 400x320 px): each keypoint a little nearer
-# its own frame's centre along the crest. Rounded, it is the standard uncertainty of that gap; measured
-# against the truth, not fitted to the sizes' errors.
-MATCH_GAP_MM = 0.003
+from scope3d.utils.threads import check_threads, resolve_threads
 
 
 @dataclass(frozen=True)
 class ThreadScanOptions:
     """designation : the nominal thread (``M6x1``, ``M8x1.25``, ``M10x1.5``); the gauge's other options
     come from ``gauge`` (its designation is replaced by this one). mapping, panorama, outliers, gauge :
-    the stages' options. dense : the dense clouds' options, or None to gauge the sparse points. threads : quadrants mapped at once (default 2, the machine's cores; OpenCV
-    releases the GIL). registration_draws : draws of the registration from its covariance whose
+    the stages' options. dense : the dense clouds' options, or None to gauge the sparse points. threads :
+    quadrants mapped at once (OpenCV releases the GIL; default 0: every available core,
+    :mod:`scope3d.utils.threads`). registration_draws : draws of the registration from its covariance whose
     re-measured sizes give the systematic uncertainty (default 24: the spread's own relative error is
     1/sqrt(2 (n - 1)), ~15 %; 0 leaves the registration out). point_bias_mm : standard uncertainty of
     the offset of one profile part's points (crest, each flank, root) from the true surface along its
-    normal, propagated by :func:`scope3d.metrology.thread_gauge.profile_bias_systematic` (default
+    normal, propagated by :func:`scope3d.metrology.thread_uncertainty.profile_bias_systematic` (default
     :data:`SPARSE_POINT_BIAS_MM`; 0 leaves it out). match_gap_mm : standard uncertainty of the gap along
-    the circle between neighbour quadrants' matched points, propagated by :func:`match_gap_systematic`
+    the circle between neighbour quadrants' matched points, propagated by
+    :func:`scope3d.metrology.thread_uncertainty.match_gap_systematic`
     (default :data:`MATCH_GAP_MM`; 0 leaves it out). frame_gap : each quadrant map matches frames up to
     this many steps apart (it replaces ``mapping.max_frame_gap``); None (default) takes each quadrant's
     from its own scan with the scan plan's rule (matched frames' views overlap by half:
@@ -112,7 +100,7 @@ class ThreadScanOptions:
     # measure D1 to 0.01-0.025 mm but not D2 or D (one flank seen), and cost ~1 min of CPU per hole;
     # see docs/thread_metrology.md.
     dense: DenseQuadrantOptions | None = None
-    threads: int = 2
+    threads: int = 0
     registration_draws: int = 24
     point_bias_mm: float = SPARSE_POINT_BIAS_MM
     match_gap_mm: float = MATCH_GAP_MM
@@ -123,8 +111,9 @@ class ThreadScanOptions:
     def __post_init__(self) -> None:
         if self.designation not in THREAD_SIZES:
             raise InputError(f"unknown thread {self.designation!r} (use one of {', '.join(THREAD_SIZES)})")
-        if self.threads < 1 or self.registration_draws < 0 or self.point_bias_mm < 0 or self.match_gap_mm < 0:
-            raise ValueError("threads must be >= 1, registration_draws, point_bias_mm and match_gap_mm >= 0")
+        check_threads(self.threads)
+        if self.registration_draws < 0 or self.point_bias_mm < 0 or self.match_gap_mm < 0:
+            raise ValueError("registration_draws, point_bias_mm and match_gap_mm must be >= 0")
         if self.frame_gap is not None and self.frame_gap < 1:
             raise InputError(f"the frame gap must be at least 1, got {self.frame_gap}")
 
@@ -224,16 +213,16 @@ def map_quadrants(options: ThreadScanOptions, dataset: Dataset, scans: list[Quad
 
     def one(q, scan, poses):
         m = map_quadrant([dataset.frame(i) for i in q.frames], dataset.camera, poses,
-                         replace(options.mapping, max_frame_gap=scan.frame_gap))
+                         options=replace(options.mapping, max_frame_gap=scan.frame_gap))
         advance(progress)
         return m
 
-    with ThreadPoolExecutor(max_workers=options.threads) as pool:
+    with ThreadPoolExecutor(max_workers=resolve_threads(options.threads)) as pool:
         maps = list(pool.map(one, layout, scans, reported))
     mount = None
     if options.mount is not None:
         try:
-            mount = estimate_mount_rotation(dataset.camera, maps, reported, options.mount)
+            mount = estimate_mount_rotation(dataset.camera, maps, reported, options=options.mount)
         except ValueError as exc:
             raise InputError(f"{dataset.root}: {exc}") from None
         maps = [retriangulate(dataset.camera, m, [mount.corrected(p) for p in poses]) for m, poses in zip(maps, reported)]
@@ -262,53 +251,12 @@ def dense_clouds(options: ThreadScanOptions, dataset: Dataset, panorama: Panoram
         g = panorama.world_from_stacked[q.index]
         poses = registered_frame_poses(g, stacked_poses(dataset, q.frames, mount), len(q.frames) // 2)
         points, _ = dense_quadrant([dataset.frame(i) for i in q.frames], dataset.camera, poses,
-                                   g.transform(clouds[q.index].points), options.dense)
+                                   g.transform(clouds[q.index].points), options=options.dense)
         advance(progress)
         return points
 
-    with ThreadPoolExecutor(max_workers=options.threads) as pool:
+    with ThreadPoolExecutor(max_workers=resolve_threads(options.threads)) as pool:
         return list(pool.map(one, layout))
-
-
-def registration_systematic(gauge: GaugeResult, panorama: PanoramaResult, points: np.ndarray, quadrant_of: np.ndarray,
-                            n_draws: int, gauge_options: GaugeOptions, *, seed: int = 0) -> dict:
-    """The sizes' systematic standard uncertainty (mm) from the registration's: each draw of the quadrants'
-    ``world_from_stacked`` from the joint solve's covariance moves every quadrant's registered points
-    by ``G_draw G_est^-1``; the gauge re-fits its profile to the moved cloud (warm-started, same points);
-    the spread (standard deviation) of the re-measured sizes over the draws is the registration's share.
-    It acts on the whole hole at once (a quadrant placed off moves its crests and roots together), which
-    the fit's statistical uncertainty, from independent point residuals, cannot see. points : (N, 3) mm
-    the gauged cloud; quadrant_of : (N,) its points' quadrants. Empty without a covariance."""
-    draws = panorama.sample_world_from_stacked(n_draws, seed)
-    if len(draws) < 2:
-        return {}
-    sizes = []
-    for world_from_stacked in draws:
-        moved = points.copy()
-        for q, (g_draw, g_est) in enumerate(zip(world_from_stacked, panorama.world_from_stacked)):
-            sel = quadrant_of == q
-            moved[sel] = (g_draw @ g_est.inverse()).transform(points[sel])
-        sizes.append(remeasure(gauge, moved, gauge_options.noise_mm))
-    return {key: float(np.std([m[key] for m in sizes], ddof=1)) for key in sizes[0]}
-
-
-def match_gap_systematic(gauge: GaugeResult, panorama: PanoramaResult, angles_deg: list[float], points: np.ndarray,
-                         quadrant_of: np.ndarray, gap_mm: float, panorama_options: PanoramaOptions,
-                         noise_mm: float = 0.01) -> dict:
-    """The sizes' systematic standard uncertainty (mm; keys as :func:`scope3d.metrology.thread_gauge.remeasure`'s)
-    from a gap ``gap_mm`` along the circle between neighbour quadrants' matched points
-    (:func:`scope3d.registration.panorama.pairs_drawn_apart`): the joint solve is run again on the pairs
-    so drawn apart, every quadrant's registered points moved by ``G_new G_est^-1``, the profile re-fitted;
-    the size changes are the term. Such a gap moves every quadrant radially at once (by ~gap / (2 sin 15°)
-    for 30° quadrants: every diameter by ~3.9 gap), which neither the fit's residuals nor the joint
-    solve's covariance show. points : (N, 3) mm the gauged cloud; quadrant_of : (N,) its quadrants."""
-    moved_poses = joint_solve(pairs_drawn_apart(panorama.pairs, gap_mm), angles_deg, panorama_options)[0]
-    moved = points.copy()
-    for q, (g_new, g_est) in enumerate(zip(moved_poses, panorama.world_from_stacked)):
-        sel = quadrant_of == q
-        moved[sel] = (g_new @ g_est.inverse()).transform(points[sel])
-    base, sizes = remeasure(gauge, points, noise_mm), remeasure(gauge, moved, noise_mm)
-    return {key: float(abs(sizes[key] - base[key])) for key in base}
 
 
 def true_world_from_stacked(dataset: Dataset, mount: MountEstimate | None = None) -> list[Pose] | None:
@@ -336,7 +284,7 @@ def run(options: ThreadScanOptions, dataset: Dataset, out_dir: str | Path, *,
     timings["mapping"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    panorama = register_quadrants(clouds, options.panorama, seed=options.seed, progress=progress)
+    panorama = register_quadrants(clouds, options=options.panorama, seed=options.seed, progress=progress)
     registered = panorama.apply(clouds)
     timings["registration"] = time.perf_counter() - t0
 
@@ -350,7 +298,7 @@ def run(options: ThreadScanOptions, dataset: Dataset, out_dir: str | Path, *,
     t0 = time.perf_counter()
     merged = np.concatenate(registered)
     quadrant_of = np.repeat(np.arange(len(registered)), [len(r) for r in registered])
-    keep = statistical_inliers(merged, options.outliers)
+    keep = statistical_inliers(merged, options=options.outliers)
     points = merged[keep]
     timings["outliers"] = time.perf_counter() - t0
 
@@ -359,7 +307,7 @@ def run(options: ThreadScanOptions, dataset: Dataset, out_dir: str | Path, *,
     gauge_options = replace(options.gauge, designation=options.designation, axis_hint=(0.0, 0.0, 1.0))
     gauge, gauge_message = None, ""
     try:
-        gauge = gauge_thread(points, gauge_options)
+        gauge = gauge_thread(points, options=gauge_options)
     except ValueError as exc:  # no thread in the cloud: a result to report, not a crash
         gauge_message = str(exc)
     timings["gauge"] = time.perf_counter() - t0
@@ -367,21 +315,20 @@ def run(options: ThreadScanOptions, dataset: Dataset, out_dir: str | Path, *,
     if gauge is not None and (options.registration_draws or options.point_bias_mm or options.match_gap_mm):
         t0 = time.perf_counter()
         if options.registration_draws:
-            systematic["registration"] = registration_systematic(gauge, panorama, points, quadrant_of[keep],
-                                                                 options.registration_draws, gauge_options,
-                                                                 seed=options.seed)
+            draws = panorama.sample_world_from_stacked(options.registration_draws, options.seed)
+            systematic["registration"] = registration_systematic(gauge, draws, panorama.world_from_stacked, points,
+                                                                 quadrant_of[keep], gauge_options.noise_mm)
         if options.point_bias_mm:
             systematic["point_bias"] = profile_bias_systematic(gauge, points, options.point_bias_mm,
                                                                gauge_options.noise_mm)
         if options.match_gap_mm:
-            systematic["match_gap"] = match_gap_systematic(gauge, panorama, [c.angle_deg for c in clouds], points,
-                                                           quadrant_of[keep], options.match_gap_mm, options.panorama,
-                                                           gauge_options.noise_mm)
+            drawn_apart = pairs_drawn_apart(panorama.pairs, options.match_gap_mm)
+            placed = joint_solve(drawn_apart, [c.angle_deg for c in clouds], options=options.panorama)[0]
+            systematic["match_gap"] = match_gap_systematic(gauge, placed, panorama.world_from_stacked, points,
+                                                           quadrant_of[keep], gauge_options.noise_mm)
         systematic = {k: v for k, v in systematic.items() if v}
         if systematic:
-            keys = set().union(*systematic.values())
-            gauge = with_systematic(gauge, {k: float(np.sqrt(sum(v.get(k, 0.0) ** 2 for v in systematic.values())))
-                                            for k in keys}, gauge_options)
+            gauge = with_systematic(gauge, combined_systematic(systematic), options=gauge_options)
         timings["systematic"] = time.perf_counter() - t0
 
     errors = None

@@ -31,10 +31,11 @@ from scope3d.io.tracker import TrackerRecording, read_tracker
 from scope3d.sensor.pose_tolerance import MeasuredPose
 from scope3d.utils.atomic import atomic_directory
 from scope3d.utils.jsonio import write_json
+from scope3d.utils.progress import Progress, advance, stage
 
 
 @dataclass(frozen=True)
-class TrackOptions:
+class TrackMarkersOptions:
     """rate_hz : the tracker's frame rate (default 60 Hz, NDI Polaris); the time step is the frame-number
         difference over it. marker_sigma_mm : a marker position's noise per axis (default 0.25 mm, the
         RMS volumetric accuracy NDI states for Polaris Spectra). kalman : the motion model.
@@ -57,7 +58,7 @@ class TrackOptions:
 
 
 @dataclass
-class TrackResult:
+class TrackMarkersResult:
     """poses : per frame, the filtered (or raw) pose with its tolerance, None where none exists.
     fitted : (F,) bool, the frame's markers gave a fit. report : as written."""
 
@@ -75,8 +76,9 @@ class TrackResult:
         return line
 
 
-def track(recording: TrackerRecording, options: TrackOptions) -> TrackResult:
-    """Fit, filter and predict every frame (see the module docstring)."""
+def track(recording: TrackerRecording, options: TrackMarkersOptions, *,
+          progress: Progress | None = None) -> TrackMarkersResult:
+    """Fit, filter and predict every frame (see the module docstring); progress counts frames."""
     try:
         geometry = plate_geometry(recording.markers_mm)
     except ValueError as exc:
@@ -86,7 +88,9 @@ def track(recording: TrackerRecording, options: TrackOptions) -> TrackResult:
     raw: list[Pose | None] = []
     fitted = np.zeros(len(recording), bool)
     previous = None
+    stage(progress, "tracking markers", len(recording))
     for k in range(len(recording)):
+        advance(progress)
         if previous is not None:
             dt = (recording.frame[k] - previous) / options.rate_hz
             if dt < 0:
@@ -108,7 +112,7 @@ def track(recording: TrackerRecording, options: TrackOptions) -> TrackResult:
         if options.cam_from_plate is not None:
             pose = options.cam_from_plate @ pose
         poses.append(MeasuredPose(pose, covariance_to_tolerance(cov, options.tolerance_sigmas)))
-    return TrackResult(poses, fitted, raw)
+    return TrackMarkersResult(poses, fitted, raw)
 
 
 def agreement_with_tool(recording: TrackerRecording, poses: list[Pose | None]) -> dict:
@@ -139,7 +143,7 @@ def agreement_with_tool(recording: TrackerRecording, poses: list[Pose | None]) -
             "max_position_diff_mm": float(np.max(d_mm)), "max_orientation_diff_deg": float(np.max(d_deg))}
 
 
-def write_outputs(recording: TrackerRecording, result: TrackResult, options: TrackOptions, source: Path,
+def write_outputs(recording: TrackerRecording, result: TrackMarkersResult, options: TrackMarkersOptions, source: Path,
                   out_dir: Path) -> dict:
     """poses.csv (frames with a pose, in order) and report.json into ``out_dir`` (a temporary folder)."""
     names = [f"{f:06d}" for f in recording.frame]
@@ -162,9 +166,12 @@ def write_outputs(recording: TrackerRecording, result: TrackResult, options: Tra
     return report
 
 
-def run(options: TrackOptions, tracker_file: str | Path, out_dir: str | Path) -> TrackResult:
+def run(options: TrackMarkersOptions, tracker_file: str | Path, out_dir: str | Path, *,
+        progress: Progress | None = None) -> TrackMarkersResult:
+    """Track the plate through ``tracker_file`` and write ``poses.csv`` and ``report.json`` into ``out_dir``
+    (atomically)."""
     recording = read_tracker(tracker_file)
-    result = track(recording, options)
+    result = track(recording, options, progress=progress)
     with atomic_directory(Path(out_dir)) as tmp:
         result.report = write_outputs(recording, result, options, Path(tracker_file), tmp)
     return result

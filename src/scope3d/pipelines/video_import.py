@@ -1,7 +1,7 @@
 """A scope's video as a scope3d dataset: every Nth frame or the key frames, poses unknown or planned.
 
 The reference recorded its bladder scans as 30 fps video (19,753 frames for 10 minutes, sec. 2.3.2) and
-mapped from the frames. :func:`import_video` streams a video file once (:mod:`scope3d.io.video`), keeps
+mapped from the frames. :func:`run` streams a video file once (:mod:`scope3d.io.video`), keeps
 every Nth frame or the key frames (:mod:`scope3d.feature.keyframes`), and writes the kept frames as a
 dataset (:func:`scope3d.io.dataset.write_dataset`, atomic: the folder appears complete or not at all).
 
@@ -77,10 +77,27 @@ def planned_pose(plan: PlanFile, time_s: float, options: VideoImportOptions) -> 
     return plan.poses[view].interpolate(plan.poses[view + 1], position - view)
 
 
-def import_video(video: str | Path, out_dir: str | Path, options: VideoImportOptions, *, camera: Camera,
-                 plan: PlanFile | None = None, intrinsics: str = "given", progress: Progress | None = None,
-                 finish=None) -> Path:
-    """Write the kept frames of ``video`` as a dataset folder; returns ``out_dir``.
+@dataclass
+class VideoImportResult:
+    """dataset_dir : the dataset folder written; source : what its ``dataset.json`` records under ``source``
+    (the video, the selection rule, each kept frame's index and time, the decode damage, the plan)."""
+
+    dataset_dir: Path
+    source: dict
+
+    def summary(self) -> str:
+        s = self.source
+        rule = s["selection"]["rule"] + (f" {s['selection']['every']}" if s["selection"]["rule"] == "every" else "")
+        line = f"{s['frames_kept']} of {s['frames_in_container']} frames kept ({rule})"
+        if "plan" in s:
+            line += f", {s['plan']['frames_with_planned_pose']} with a planned pose"
+        return "\n".join([line, *decode_damage_summary(s["decode_damage"])])
+
+
+def run(options: VideoImportOptions, video: str | Path, camera: Camera, out_dir: str | Path, *,
+        plan: PlanFile | None = None, intrinsics: str = "given", progress: Progress | None = None,
+        finish=None) -> VideoImportResult:
+    """Write the kept frames of ``video`` as a dataset folder ``out_dir``.
 
     camera : the intrinsics (its size must be the video's). plan : planned poses by time (see the module
     docstring), or None for unknown poses. intrinsics : where the camera came from, recorded in
@@ -128,8 +145,9 @@ def import_video(video: str | Path, out_dir: str | Path, options: VideoImportOpt
             source["plan"] = {"views": len(plan.poses), "seconds_per_view": options.seconds_per_view,
                               "start_s": options.plan_start_s,
                               "frames_with_planned_pose": n_planned}
-        return write_dataset(out_dir, camera, paths, measured, names=names, metadata={"source": source},
-                             finish=finish)
+        written = write_dataset(out_dir, camera, paths, measured, names=names, metadata={"source": source},
+                                finish=finish)
+    return VideoImportResult(Path(written), source)
 
 
 

@@ -98,8 +98,8 @@ def _undistorted(camera: Camera, pixels: np.ndarray) -> np.ndarray:
     return np.stack([camera.fx * xy[:, 0] + camera.cx, camera.fy * xy[:, 1] + camera.cy], axis=1)
 
 
-def link_frames(frames: list[np.ndarray], cameras: list[Camera], options: MosaicOptions = MosaicOptions(),
-                *, pairs: list[tuple[int, int]] | None = None, features: list[Features] | None = None,
+def link_frames(frames: list[np.ndarray], cameras: list[Camera], *, options: MosaicOptions = MosaicOptions(),
+                pairs: list[tuple[int, int]] | None = None, features: list[Features] | None = None,
                 progress=None) -> list[FrameLink]:
     """Match frames pairwise and keep the pairs a RANSAC homography verifies (steps 1-2).
 
@@ -108,7 +108,7 @@ def link_frames(frames: list[np.ndarray], cameras: list[Camera], options: Mosaic
     """
     if len(frames) != len(cameras):
         raise ValueError("one camera per frame is needed")
-    feats = features or [detect(f, c, options.features) for f, c in zip(frames, cameras)]
+    feats = features or [detect(f, c, options=options.features) for f, c in zip(frames, cameras)]
     pairs = pairs if pairs is not None else [(i, j) for i in range(len(frames)) for j in range(i + 1, len(frames))]
     match = MatchOptions(ratio=options.ratio, geometric_model="homography", ransac_threshold_px=options.ransac_threshold_px,
                          ransac_confidence=options.ransac_confidence, min_matches=options.min_inliers)
@@ -124,7 +124,8 @@ def link_frames(frames: list[np.ndarray], cameras: list[Camera], options: Mosaic
 
 
 def align_globally(n_frames: int, links: list[FrameLink], sizes: list[tuple[int, int]],
-                   options: MosaicOptions = MosaicOptions(), *, reference: int = 0) -> Mosaic:
+                   *,
+                   options: MosaicOptions = MosaicOptions(), reference: int = 0) -> Mosaic:
     """Global least-squares alignment of all frames (step 3). sizes : (width, height) of each frame.
 
     Frames not connected to ``reference`` through links get NaN homographies and ``registered = False``.
@@ -231,7 +232,8 @@ def _apply(h: np.ndarray, points: np.ndarray) -> np.ndarray:
     return p[:, :2] / p[:, 2:3]
 
 
-def blend(mosaic: Mosaic, frames: list[np.ndarray], cameras: list[Camera], options: MosaicOptions = MosaicOptions()) -> Mosaic:
+def blend(mosaic: Mosaic, frames: list[np.ndarray], cameras: list[Camera], *,
+          options: MosaicOptions = MosaicOptions()) -> Mosaic:
     """Warp the registered frames into one canvas with feathered weights (step 4). Fills ``image``,
     ``coverage`` and ``canvas_from_mosaic``. Frames with distortion are undistorted first."""
     idx = np.flatnonzero(mosaic.registered)

@@ -21,7 +21,7 @@ class OutlierOptions:
             raise ValueError("need neighbours >= 1 and n_sigmas > 0")
 
 
-def statistical_inliers(points: np.ndarray, options: OutlierOptions = OutlierOptions()) -> np.ndarray:
+def statistical_inliers(points: np.ndarray, *, options: OutlierOptions = OutlierOptions()) -> np.ndarray:
     """points : (N, 3) float64 mm -> (N,) bool, True for the points kept. A cloud of no more than
     ``neighbours`` points is kept whole (no statistics to judge by)."""
     points = np.asarray(points, float)

@@ -19,7 +19,6 @@ approximately known (default), by robust non-linear least squares from the chain
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -29,6 +28,7 @@ from scope3d.errors import InputError
 from scope3d.geometry.pose import Pose
 from scope3d.geometry.rotation import matrix_to_rotvec, rotation_angle_between, rotvec_to_matrix
 from scope3d.registration.rigid import RansacOptions, fit_rigid, ransac_rigid
+from scope3d.utils.robust import robust_sigma
 
 
 @dataclass
@@ -118,6 +118,31 @@ class PairRegistration:
     time_s: float
 
 
+@dataclass(frozen=True, eq=False)
+class StagePoseModel:
+    """The rotation-stage model's parameters -> every quadrant's ``world_from_stacked`` (see
+    :class:`PanoramaOptions`), for quadrants at the stage angles ``angles_rad`` (k,). Plain data, so a
+    result holding it pickles (cluster workers)."""
+
+    angles_rad: np.ndarray
+
+    def __call__(self, x: np.ndarray) -> list[Pose]:
+        return _stage_poses(x, self.angles_rad)
+
+
+@dataclass(frozen=True, eq=False)
+class FreePoseModel:
+    """The free model's parameters -> every quadrant's ``world_from_stacked`` (quadrant 0 the identity):
+    a rotation vector and an offset per other quadrant, or the offsets alone under fixed ``rotations``
+    (k, 3, 3)."""
+
+    n_quadrants: int
+    rotations: np.ndarray | None = None
+
+    def __call__(self, x: np.ndarray) -> list[Pose]:
+        return _poses_from_params(x, self.n_quadrants, self.rotations)
+
+
 @dataclass
 class PanoramaResult:
     """world_from_stacked : one Pose per quadrant (quadrant 0 the identity: the gauge).
@@ -136,7 +161,7 @@ class PanoramaResult:
     log: list[str] = field(default_factory=list)
     parameters: np.ndarray | None = None
     parameter_covariance: np.ndarray | None = None
-    pose_model: Callable[[np.ndarray], list[Pose]] | None = field(default=None, repr=False)
+    pose_model: StagePoseModel | FreePoseModel | None = field(default=None, repr=False)
 
     def apply(self, clouds: list[QuadrantCloud]) -> list[np.ndarray]:
         """Each quadrant's points in the registered frame, (N_q, 3) mm each."""
@@ -240,7 +265,7 @@ def match_quadrants(cloud_i: QuadrantCloud, cloud_j: QuadrantCloud, ratio: float
     return unique[:, 0], unique[:, 1]
 
 
-def register_pair(cloud_i: QuadrantCloud, cloud_j: QuadrantCloud, options: PanoramaOptions = PanoramaOptions(), *,
+def register_pair(cloud_i: QuadrantCloud, cloud_j: QuadrantCloud, *, options: PanoramaOptions = PanoramaOptions(), 
                   seed: int = 0) -> PairRegistration:
     """Feature-based registration of two neighbour quadrants (sec. 8.2.2): descriptor matches give
     3-D-3-D correspondences; RANSAC + SVD the rigid ``i_from_j``. Raises :class:`InputError` naming the
@@ -249,7 +274,7 @@ def register_pair(cloud_i: QuadrantCloud, cloud_j: QuadrantCloud, options: Panor
 
     t0 = time.perf_counter()
     a, b = match_quadrants(cloud_i, cloud_j, options.ratio)
-    fit = ransac_rigid(cloud_j.points[b], cloud_i.points[a], options.ransac, seed=seed) if len(a) >= 3 else None
+    fit = ransac_rigid(cloud_j.points[b], cloud_i.points[a], options=options.ransac, seed=seed) if len(a) >= 3 else None
     n_inl = 0 if fit is None else fit.n_inliers
     if n_inl < options.min_correspondences:
         raise InputError(f"quadrants {cloud_i.index} and {cloud_j.index} (stage {cloud_i.angle_deg:.1f}° and "
@@ -275,7 +300,7 @@ def solve_panorama(pairs: list[PairRegistration], n_quadrants: int, *, solve_rot
     minimising ``|G_i p_i - G_j p_j|`` over every pair's correspondences, robustly (soft L1). Started from
     the pairs chained from quadrant 0 (the last-to-first pair, if any, then only enters the solve).
     Returns (poses, per-pair residual RMS in mm), and with ``return_covariance`` also the parameters,
-    their covariance (or None) and the function from parameters to poses."""
+    their covariance (or None) and the model from parameters to poses."""
     k = n_quadrants
     chained = [Pose.identity()] + [None] * (k - 1)
     for p in pairs:
@@ -313,7 +338,7 @@ def solve_panorama(pairs: list[PairRegistration], n_quadrants: int, *, solve_rot
     rms = [float(np.sqrt(np.mean(np.sum((poses[p.i].transform(p.points_i) - poses[p.j].transform(p.points_j)) ** 2, 1))))
            for p in pairs]
     if return_covariance:
-        return poses, rms, sol.x, _covariance(sol, loss_scale_mm), lambda x: _poses_from_params(x, k, fixed_rot)
+        return poses, rms, sol.x, _covariance(sol, loss_scale_mm), FreePoseModel(k, fixed_rot)
     return poses, rms
 
 
@@ -323,7 +348,7 @@ def _covariance(sol, loss_scale_mm: float) -> np.ndarray | None:
     the robust loss' outliers), ``s^2`` their mean square per degree of freedom. Assumes independent
     residuals; None when the Jacobian is singular."""
     res = sol.fun
-    core = np.abs(res) < 3 * loss_scale_mm + 3 * 1.4826 * np.median(np.abs(res))
+    core = np.abs(res) < 3 * loss_scale_mm + 3 * robust_sigma(res, about=0.0)
     jac = sol.jac[core]
     jac = jac.toarray() if hasattr(jac, "toarray") else np.asarray(jac)
     dof = int(core.sum()) - len(sol.x)
@@ -355,7 +380,7 @@ def solve_stage_model(pairs: list[PairRegistration], angles_deg: list[float], *,
     """Joint solve under the rotation-stage model (see :class:`PanoramaOptions`): 4 + 2 (k - 1) unknowns
     from every pair's correspondences, started at the stacked guess. Returns (world_from_stacked per
     quadrant, per-pair residual RMS in mm), and with ``return_covariance`` also the parameters, their
-    covariance (or None) and the function from parameters to poses."""
+    covariance (or None) and the model from parameters to poses."""
     angles = np.deg2rad(np.asarray(angles_deg, float))
     k = len(angles)
 
@@ -369,7 +394,7 @@ def solve_stage_model(pairs: list[PairRegistration], angles_deg: list[float], *,
     rms = [float(np.sqrt(np.mean(np.sum((poses[p.i].transform(p.points_i) - poses[p.j].transform(p.points_j)) ** 2, 1))))
            for p in pairs]
     if return_covariance:
-        return poses, rms, sol.x, _covariance(sol, loss_scale_mm), lambda x: _stage_poses(x, angles)
+        return poses, rms, sol.x, _covariance(sol, loss_scale_mm), StagePoseModel(angles)
     return poses, rms
 
 
@@ -384,9 +409,10 @@ def loop_closure(pairs: list[PairRegistration], clouds: list[QuadrantCloud]) -> 
             float(np.linalg.norm(loop.transform(centroid[None])[0] - centroid)))
 
 
-def joint_solve(pairs: list[PairRegistration], angles_deg: list[float], options: PanoramaOptions = PanoramaOptions()):
+def joint_solve(pairs: list[PairRegistration], angles_deg: list[float], *,
+                options: PanoramaOptions = PanoramaOptions()):
     """The joint solve of ``options.model`` over the pairs -> (world_from_stacked per quadrant, per-pair
-    residual RMS mm, parameters, their covariance or None, the function from parameters to poses)."""
+    residual RMS mm, parameters, their covariance or None, the model from parameters to poses)."""
     if options.model == "stage":
         return solve_stage_model(pairs, angles_deg, loss_scale_mm=options.loss_scale_mm, return_covariance=True)
     return solve_panorama(pairs, len(angles_deg), solve_rotations=options.solve_rotations,
@@ -409,7 +435,7 @@ def pairs_drawn_apart(pairs: list[PairRegistration], gap_mm: float) -> list[Pair
             for p in pairs]
 
 
-def register_quadrants(clouds: list[QuadrantCloud], options: PanoramaOptions = PanoramaOptions(), *,
+def register_quadrants(clouds: list[QuadrantCloud], *, options: PanoramaOptions = PanoramaOptions(), 
                        seed: int = 0, progress=None) -> PanoramaResult:
     """Pairwise feature-based registration of angular neighbours, then the joint solve with the loop
     closure. clouds : quadrants in stage order (see :class:`QuadrantCloud`). Raises :class:`InputError`
@@ -422,7 +448,7 @@ def register_quadrants(clouds: list[QuadrantCloud], options: PanoramaOptions = P
     stage(progress, "registering quadrant pairs", len(links))
     pairs = []
     for i, j in links:
-        pairs.append(register_pair(clouds[i], clouds[j], options, seed=seed + i))
+        pairs.append(register_pair(clouds[i], clouds[j], options=options, seed=seed + i))
         advance(progress)
     log = [f"pair {p.i}-{p.j}: {len(p.points_i)} of {p.n_matches} matches consistent, rms {p.rms_mm:.4f} mm"
            for p in pairs]
@@ -430,7 +456,7 @@ def register_quadrants(clouds: list[QuadrantCloud], options: PanoramaOptions = P
     if closed and k > 2:
         loop_deg, loop_mm = loop_closure(pairs, clouds)
         log.append(f"loop closure of the chained pairs: {loop_deg:.3f}°, {loop_mm:.4f} mm")
-    poses, rms, x, cov, model = joint_solve(pairs, [c.angle_deg for c in clouds], options)
+    poses, rms, x, cov, model = joint_solve(pairs, [c.angle_deg for c in clouds], options=options)
     return PanoramaResult(poses, pairs, loop_deg, loop_mm, rms, step, closed and k > 2, log, x, cov, model)
 
 

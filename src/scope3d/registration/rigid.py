@@ -66,7 +66,7 @@ class RigidFit:
         return int(self.inliers.sum())
 
 
-def ransac_rigid(source: np.ndarray, target: np.ndarray, options: RansacOptions = RansacOptions(), *,
+def ransac_rigid(source: np.ndarray, target: np.ndarray, *, options: RansacOptions = RansacOptions(), 
                  seed: int = 0) -> RigidFit | None:
     """RANSAC + SVD rigid fit (minimal samples of 3, the largest consensus refitted by least squares and
     its inliers re-selected until stable). source, target : (N, 3) mm corresponding points.

@@ -36,6 +36,7 @@ from scope3d.geometry.pose import Pose
 from scope3d.scene.mesh import Mesh
 from scope3d.scene.thin_plate import ThinPlateSpline
 from scope3d.sensor.camera import Camera
+from scope3d.utils.robust import MAD_TO_SIGMA, robust_sigma
 
 #: Passes of :func:`off_surface_points`: gross errors (2 mm) first, then ~3 sigma of a two-view point's depth.
 OFF_SURFACE_FLOORS_MM = (2.0, 0.5)
@@ -233,9 +234,9 @@ def _control_points(stn: np.ndarray, cell: float, mad_k: float) -> np.ndarray:
     h_sorted = stn_s[o2, 2]
     med_h = 0.5 * (h_sorted[starts + (counts - 1) // 2] + h_sorted[starts + counts // 2])
     dev = np.abs(stn_s[:, 2] - med_h[inv_s])
-    dev_sorted = np.sort(dev)  # global MAD: robust spread of the whole cloud about the local medians
-    mad = max(float(np.median(dev_sorted)), 1e-3)
-    keep = dev <= mad_k * 1.4826 * mad
+    # global MAD: robust spread of the whole cloud about the local medians (dev are absolute deviations)
+    sigma = max(robust_sigma(dev, about=0.0), MAD_TO_SIGMA * 1e-3)
+    keep = dev <= mad_k * sigma
     n_keep = np.bincount(inv_s[keep], minlength=len(starts))
     ok = n_keep > 0
     sums = np.stack([np.bincount(inv_s[keep], stn_s[keep, c], len(starts)) for c in range(2)], 1)
@@ -266,8 +267,8 @@ def _reject_local_outliers(ctrl: np.ndarray, k: int, mad_k: float, floor_mm: flo
     if k < 3 or len(ctrl) <= k + 3:
         return ctrl
     resid = _local_plane_residuals(ctrl, k)
-    mad = 1.4826 * float(np.median(np.abs(resid - np.median(resid))))
-    keep = np.abs(resid) <= max(mad_k * mad, floor_mm)
+    sigma = robust_sigma(resid)
+    keep = np.abs(resid) <= max(mad_k * sigma, floor_mm)
     return ctrl[keep] if keep.sum() >= 10 else ctrl
 
 
@@ -298,8 +299,7 @@ def off_surface_points(points: np.ndarray, *, towards: np.ndarray | None = None,
         if usable.sum() <= 2 * neighbours + 3:
             break
         resid = _local_plane_residuals(stn, neighbours, usable)
-        mad = 1.4826 * float(np.median(np.abs(resid[usable] - np.median(resid[usable]))))
-        threshold = max(mad_k * mad, floor_mm)
+        threshold = max(mad_k * robust_sigma(resid[usable]), floor_mm)
         suspect = usable & (np.abs(resid) > threshold)
         if suspect.any() and (usable & ~suspect).sum() > neighbours + 3:
             resid = _local_plane_residuals(stn, neighbours, usable & ~suspect)
@@ -307,7 +307,8 @@ def off_surface_points(points: np.ndarray, *, towards: np.ndarray | None = None,
     return off
 
 
-def fit_surface(points: np.ndarray, options: SurfaceOptions = SurfaceOptions(), *, towards: np.ndarray | None = None) -> Surface:
+def fit_surface(points: np.ndarray, *, options: SurfaceOptions = SurfaceOptions(),
+                towards: np.ndarray | None = None) -> Surface:
     """Fit the thin-plate-spline height field.
 
     points : (N, 3) mm world, N >= 10 (the triangulated features). towards : (3,) direction the
@@ -344,8 +345,7 @@ def fit_surface(points: np.ndarray, options: SurfaceOptions = SurfaceOptions(), 
     # through their neighbours: drop control points far from the fit (robust MAD, floor 0.3 mm) and refit.
     for _ in range(options.robust_passes):
         resid = ctrl[:, 2] - tps(ctrl[:, :2])
-        mad = 1.4826 * float(np.median(np.abs(resid - np.median(resid))))
-        keep = np.abs(resid) <= max(options.outlier_mad * mad, 2.0 * options.outlier_floor_mm)
+        keep = np.abs(resid) <= max(options.outlier_mad * robust_sigma(resid), 2.0 * options.outlier_floor_mm)
         if keep.all() or keep.sum() < 10:
             break
         ctrl = ctrl[keep]

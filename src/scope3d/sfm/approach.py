@@ -83,6 +83,7 @@ def target_normal(surface_points_mm: np.ndarray, target_mm: np.ndarray, towards_
 
 
 def plan_approach(surface_points_mm: np.ndarray, target_mm: np.ndarray, start_mm: np.ndarray,
+                  *,
                   options: ApproachOptions = ApproachOptions()) -> ApproachPath:
     """Plan from ``start_mm`` to a safety distance above ``target_mm`` (see the module docstring).
 
@@ -130,9 +131,10 @@ def plan_approach(surface_points_mm: np.ndarray, target_mm: np.ndarray, start_mm
 
 
 def replan(path: ApproachPath, surface_points_mm: np.ndarray, position_mm: np.ndarray,
+           *,
            options: ApproachOptions = ApproachOptions()) -> ApproachPath:
     """The path again from ``position_mm`` (the newly localized tool) to the same target."""
-    return plan_approach(surface_points_mm, path.target_mm, position_mm, options)
+    return plan_approach(surface_points_mm, path.target_mm, position_mm, options=options)
 
 
 def save_approach_png(path, surface_points_mm: np.ndarray, plans: list[ApproachPath], *,

@@ -45,6 +45,7 @@ from scope3d.geometry.rotation import rotation_angle_between
 from scope3d.sensor.camera import Camera
 from scope3d.sensor.pose_tolerance import MeasuredPose
 from scope3d.utils.progress import advance
+from scope3d.utils.threads import check_threads, resolve_threads
 
 
 @dataclass(frozen=True)
@@ -59,7 +60,8 @@ class CoarseOptions:
     min_pairs_per_frame : int, a frame in fewer verified pairs tries more partners (default 3: one pair
         leaves its distance free, two can leave a hinge). reinforce_rounds : int, rounds of that (default 2).
     noise_px : float, keypoint localisation noise, for the relative poses' uncertainty (default 0.5 px).
-    threads : int, pairs matched at once (OpenCV releases the GIL; default 2, the machine's cores).
+    threads : int, pairs matched at once (OpenCV releases the GIL; default 0: every available core,
+        :mod:`scope3d.utils.threads`).
     """
 
     partners_per_frame: int = 3
@@ -68,14 +70,15 @@ class CoarseOptions:
     min_pairs_per_frame: int = 3
     reinforce_rounds: int = 2
     noise_px: float = 0.5
-    threads: int = 2
+    threads: int = 0
     retrieval: RetrievalOptions = field(default_factory=RetrievalOptions)
 
     def __post_init__(self) -> None:
         if (self.partners_per_frame < 1 or self.connect_rounds < 0 or self.min_pairs_per_frame < 0
-                or self.reinforce_rounds < 0 or self.noise_px <= 0 or self.threads < 1):
+                or self.reinforce_rounds < 0 or self.noise_px <= 0):
             raise ValueError("need partners_per_frame >= 1, connect_rounds, min_pairs_per_frame, reinforce_rounds >= 0, "
-                             "noise_px > 0, threads >= 1")
+                             "noise_px > 0")
+        check_threads(self.threads)
         if not 0 < self.max_view_angle_deg <= 180:
             raise ValueError(f"max_view_angle_deg must be in (0, 180], got {self.max_view_angle_deg}")
 
@@ -134,7 +137,8 @@ def _groups(n: int, pairs: list[tuple[int, int]]) -> np.ndarray:
 
 
 def coarse_poses(camera: Camera, features: list[Features], measured: list[MeasuredPose],
-                 match_options: MatchOptions = MatchOptions(), options: CoarseOptions = CoarseOptions(), *,
+                 *,
+                 match_options: MatchOptions = MatchOptions(), options: CoarseOptions = CoarseOptions(), 
                  progress=None) -> CoarseResult:
     """Run the coarse pass (module docstring). progress : tqdm-like or None, advanced by one per pair matched."""
     t0 = time.perf_counter()
@@ -169,7 +173,7 @@ def coarse_poses(camera: Camera, features: list[Features], measured: list[Measur
 
     def run(batch: list[tuple[int, int]]) -> None:
         tried.update(batch)
-        with ThreadPoolExecutor(max_workers=options.threads) as pool:
+        with ThreadPoolExecutor(max_workers=resolve_threads(options.threads)) as pool:
             for out in pool.map(verify, batch):
                 if out is not None:
                     found.append(out)

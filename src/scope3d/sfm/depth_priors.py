@@ -20,6 +20,7 @@ from scope3d.scene.surface import SurfaceOptions, fit_surface
 from scope3d.scene.tracks import Tracks
 from scope3d.sensor.camera import Camera
 from scope3d.sensor.pose_tolerance import MeasuredPose
+from scope3d.utils.robust import robust_sigma
 
 
 def box_depth_prior(box_min_mm: np.ndarray, box_max_mm: np.ndarray, poses: list[Pose], *, margin_mm: float = 0.0) -> DepthPrior:
@@ -46,8 +47,8 @@ def estimate_depth_prior(
     camera: Camera,
     features: list[Features],
     poses: list[MeasuredPose],
-    options: MatchOptions = MatchOptions(),
     *,
+    options: MatchOptions = MatchOptions(),
     percentiles: tuple[float, float] = (2.0, 98.0),
     margin: float = 0.1,
     n_pairs: int = 5,
@@ -139,14 +140,14 @@ def surface_depth_prior(camera: Camera, features: list[Features], matches: list[
                             max_extrapolation_mm=3.0)
     towards = -np.mean([m.pose.optical_axis for m in poses], axis=0)
     try:
-        surface = fit_surface(tracks.points, coarse, towards=towards)
+        surface = fit_surface(tracks.points, options=coarse, towards=towards)
     except ValueError:
         return None
     stn = surface.to_plane(tracks.points)
     resid = stn[:, 2] - surface.height_at(stn[:, :2])
     resid = resid[np.isfinite(resid)]
     pos_tol = max(float(np.linalg.norm(m.tolerance.position_mm)) for m in poses)
-    band = 4.0 * 1.4826 * float(np.median(np.abs(resid - np.median(resid)))) + pos_tol + extra_band_mm
+    band = 4.0 * robust_sigma(resid) + pos_tol + extra_band_mm
     if not np.isfinite(band):
         return None
     return depth_prior.with_band(surface, band)

@@ -176,7 +176,7 @@ class AdjustedMap:
 
 
 def adjust_map(mode: str, measured: list[MeasuredPose], camera: Camera, tracks: Tracks, start: list[MeasuredPose],
-               depth_prior: DepthPrior | None, track_options: TrackOptions, options: BundleStageOptions, *,
+               depth_prior: DepthPrior | None, *, track_options: TrackOptions, options: BundleStageOptions, 
                height_field: bool = False, where: str = "dataset") -> AdjustedMap:
     """Triangulate ``tracks`` (untriangulated, from :func:`scope3d.feature.tracks.build_tracks`) and adjust.
 
@@ -259,8 +259,8 @@ def on_surface(tracks: Tracks, poses: list[Pose], *, gross_only: bool = False) -
 
 
 def refine_poses_for_matching(camera: Camera, measured: list[MeasuredPose], features: list[Features],
-                              matches: list[PairMatches], start: list[Pose], track_options: TrackOptions,
-                              options: BundleStageOptions, *, where: str = "dataset",
+                              matches: list[PairMatches], start: list[Pose], *, track_options: TrackOptions,
+                              options: BundleStageOptions, where: str = "dataset",
                               ) -> tuple[list[MeasuredPose], DepthPrior]:
     """Poses for predicting the fine matching pass: BCBA on the coarse pass's tracks.
 

@@ -43,7 +43,7 @@ from scipy.spatial import cKDTree
 from scope3d.estimators.absolute_pose import AbsolutePoseOptions, AbsolutePoseResult, estimate_absolute_pose
 from scope3d.feature.depth_prior import DepthPrior, pose_error_px
 from scope3d.feature.detection import FeatureOptions, detect, detection_mask, to_grey
-from scope3d.feature.matching import best_two_per_query, pair_squared_distances
+from scope3d.feature.matching import MatchOptions, best_two_per_query, pair_squared_distances
 from scope3d.geometry.pose import Pose
 from scope3d.io.map_points import MapPoints
 from scope3d.sensor.camera import Camera
@@ -58,13 +58,14 @@ class LocalizerOptions:
 
     features : SIFT settings for guided and global matching (default 2000 features: a frame sees a few
         hundred map points, and fewer features halve the detection time).
-    ratio : Lowe's ratio test (0.8, the reference's).
-    guided_base_radius_px : float, search radius around a map point's predicted position when the
-        prediction is the previous frame's pose (default 20 px: the scope moves by well under a
-        millimetre between video frames, ~20 px at 15 mm with f ~ 600 px), plus what the reported pose's
-        tolerance allows when that predicts.
-    max_guided_radius_px : float, beyond this radius the prediction carries little information and the
-        frame is matched globally (default 120 px, a fifth of a 608 px frame).
+    matching : :class:`~scope3d.feature.matching.MatchOptions`, of which the localizer reads three:
+        ``ratio``, Lowe's ratio test (0.8, the reference's); ``base_radius_px``, the search radius around a
+        map point's predicted position when the prediction is the previous frame's pose (default here 20 px:
+        the scope moves by well under a millimetre between video frames, ~20 px at 15 mm with f ~ 600 px),
+        plus what the reported pose's tolerance allows when that predicts; ``max_radius_px``, beyond which
+        the prediction carries little information and the frame is matched globally (default here 120 px,
+        a fifth of a 608 px frame). A frame's matches are verified by its absolute pose, not by the pair
+        RANSAC the other fields set.
     tracking : bool, follow last frame's inliers by optical flow (default True).
     refresh_every : int, re-anchor the tracked points on fresh SIFT keypoints every this many frames
         (default 10: optical flow drifts by ~0.05 px a frame, 0.5 px after ten).
@@ -101,9 +102,7 @@ class LocalizerOptions:
     """
 
     features: FeatureOptions = field(default_factory=lambda: FeatureOptions(max_features=2000))
-    ratio: float = 0.8
-    guided_base_radius_px: float = 20.0
-    max_guided_radius_px: float = 120.0
+    matching: MatchOptions = field(default_factory=lambda: MatchOptions(base_radius_px=20.0, max_radius_px=120.0))
     tracking: bool = True
     refresh_every: int = 10
     min_tracked: int = 60
@@ -119,10 +118,6 @@ class LocalizerOptions:
     pose: AbsolutePoseOptions = field(default_factory=AbsolutePoseOptions)
 
     def __post_init__(self) -> None:
-        if not 0 < self.ratio <= 1:
-            raise ValueError(f"ratio must be in (0, 1], got {self.ratio}")
-        if not 0 < self.guided_base_radius_px <= self.max_guided_radius_px:
-            raise ValueError("need 0 < guided_base_radius_px <= max_guided_radius_px")
         if self.refresh_every < 1 or not self.pose.min_inliers <= self.min_tracked <= self.max_tracked:
             raise ValueError("need refresh_every >= 1 and pose.min_inliers <= min_tracked <= max_tracked")
         if not 0 < self.min_tracked_fraction <= 1:
@@ -273,7 +268,7 @@ class Localizer:
             result = None
             if guide is not None:
                 radius = self._guided_radius(guide, tolerance)
-                if radius <= o.max_guided_radius_px:
+                if radius <= o.matching.max_radius_px:
                     mode = "guided"
                     ids, fidx = self._match_guided(guide, kp, desc, radius)
                     result, used_ids, used_px = self._pose(ids, kp[fidx], reported)
@@ -337,17 +332,17 @@ class Localizer:
         if len(depth) == 0:
             return float("inf")
         prior = DepthPrior(float(np.percentile(depth, 1)), float(depth.max()))
-        return self.options.guided_base_radius_px + pose_error_px(self.camera, tolerance, prior)
+        return self.options.matching.base_radius_px + pose_error_px(self.camera, tolerance, prior)
 
     def _features(self, grey: np.ndarray, usable: np.ndarray, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
         """SIFT keypoints (K, 2) and descriptors (K, 128) of the frame (resized by ``scale`` for detection),
         those on usable pixels only."""
         if scale == 1.0:
-            features = detect(grey, self.camera, self.options.features)
+            features = detect(grey, self.camera, options=self.options.features)
             keypoints = features.keypoints
         else:
             small = cv2.resize(grey, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
-            features = detect(small, None, self.options.features)  # the usable mask below drops the rim
+            features = detect(small, None, options=self.options.features)  # the usable mask below drops the rim
             # pixel centres: full-resolution u = (u_small + 0.5) / scale - 0.5
             keypoints = (features.keypoints + 0.5) / scale - 0.5
         keep = usable[np.clip(np.rint(keypoints[:, 1]).astype(int), 0, grey.shape[0] - 1),
@@ -371,7 +366,7 @@ class Localizer:
         ``guide`` projects them, checked by a pose. Returns (point ids, pixels) to follow, or None. Reads
         nothing that changes, so it runs on the worker thread as well as inline."""
         kp, desc = self._features(grey, usable, self.options.refresh_image_scale)
-        ids, fidx = self._match_guided(guide, kp, desc, self.options.guided_base_radius_px)
+        ids, fidx = self._match_guided(guide, kp, desc, self.options.matching.base_radius_px)
         result, ids, px = self._pose(ids, kp[fidx], reported)
         return self._kept(result, ids, px) if result.ok else None
 
@@ -442,7 +437,7 @@ class Localizer:
         # per map point its nearest feature (ties to the lower index, whatever the pairs' order) and the
         # second distance, in one pass (a lexsort of the ~2.5e5 pairs of a first frame cost ~90 ms)
         best, best_d2, second_d2 = best_two_per_query(row, feat, d2, len(ids))
-        keep = np.flatnonzero((best >= 0) & (best_d2 < self.options.ratio**2 * second_d2.astype(np.float64)))
+        keep = np.flatnonzero((best >= 0) & (best_d2 < self.options.matching.ratio**2 * second_d2.astype(np.float64)))
         return _one_to_one(ids[keep], best[keep], best_d2[keep])
 
     def _match_global(self, desc: np.ndarray):
@@ -451,7 +446,7 @@ class Localizer:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
         pairs = self._matcher.knnMatch(desc, self.map.descriptors, k=2)
         rows = [(p[0].trainIdx, p[0].queryIdx, p[0].distance) for p in pairs
-                if len(p) == 2 and p[0].distance < self.options.ratio * p[1].distance]
+                if len(p) == 2 and p[0].distance < self.options.matching.ratio * p[1].distance]
         if not rows:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
         ids, feat, d = (np.array(v) for v in zip(*rows))

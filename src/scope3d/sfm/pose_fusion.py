@@ -67,6 +67,7 @@ class FusionOptions:
 
 
 def fuse_poses(reported: list[MeasuredPose], others: list[list[PoseEstimate | None]],
+               *,
                options: FusionOptions = FusionOptions()) -> list[MeasuredPose]:
     """Per frame, the robot's ``reported`` pose (its box a uniform error) fused with every other source's
     estimate of that frame (``others[s][k]``; None where source ``s`` has none for frame ``k``).

@@ -76,12 +76,13 @@ class QuadrantMap:
 
 
 def map_quadrant(images: list[np.ndarray], camera: Camera, poses: list[Pose],
+                 *,
                  options: QuadrantMapOptions = QuadrantMapOptions()) -> QuadrantMap:
     """Sparse map of one quadrant. images : (H, W[, 3]) uint8 frames in order of advance; poses : their
     ``cam_from_world`` (the stage's). Returns a :class:`QuadrantMap` (possibly empty)."""
     if len(images) != len(poses) or len(images) < 2:
         raise ValueError(f"need >= 2 frames with a pose each, got {len(images)} frames and {len(poses)} poses")
-    features: list[Features] = [detect(img, camera, options.features) for img in images]
+    features: list[Features] = [detect(img, camera, options=options.features) for img in images]
     matches, counts = [], {}
     for i in range(len(images)):
         for j in range(i + 1, min(len(images), i + options.max_frame_gap + 1)):
@@ -142,6 +143,7 @@ class MountEstimate:
 
 
 def estimate_mount_rotation(camera: Camera, maps: list[QuadrantMap], poses: list[list[Pose]],
+                            *,
                             options: MountOptions = MountOptions()) -> MountEstimate:
     """The camera's rotation on its mount, common to every frame, from the quadrants' epipolar geometry.
 

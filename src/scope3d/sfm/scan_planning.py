@@ -137,7 +137,7 @@ def cavity_centre(mesh: Mesh) -> np.ndarray:
     return np.asarray(tm.triangles_center.T @ tm.area_faces / tm.area_faces.sum(), dtype=float)
 
 
-def plan_spiral_scan(mesh: Mesh, options: ScanPlanOptions, *, caster: RayCaster | None = None,
+def plan_spiral_scan(mesh: Mesh, *, options: ScanPlanOptions, caster: RayCaster | None = None,
                      centre_mm: np.ndarray | None = None) -> ScanPlan:
     """Plan a spiral scan of the inside of a closed, star-shaped cavity (see the module docstring).
 

@@ -7,9 +7,10 @@ running sums restart at each block gives the same bits on any machine.
 """
 from __future__ import annotations
 
-import os
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable, Sequence
+
+from scope3d.utils.threads import resolve_threads
 
 BLOCK_ROWS = 128  # rows per block: ~10 blocks for a 608 px axial grid, a tenth of a row-restart's overhead
 
@@ -23,20 +24,13 @@ def row_blocks(height: int, block_rows: int | None = None) -> list[tuple[int, in
     return [(lo, min(lo + block_rows, height)) for lo in range(0, height, block_rows)]
 
 
-def available_cores() -> int:
-    """CPUs this process may run on (its affinity mask where the platform has one)."""
-    if hasattr(os, "sched_getaffinity"):
-        return max(1, len(os.sched_getaffinity(0)))
-    return max(1, os.cpu_count() or 1)
-
-
 def run_by_row_blocks(kernel: Callable, height: int, inputs: Sequence, outputs: Sequence,
                       block_rows: int | None = None) -> None:
-    """Call ``kernel(*inputs, row_lo, row_hi, *outputs)`` for every block of ``height`` rows, on up to
-    :func:`available_cores` threads (in the caller alone when there is one block or one core); raises what
-    a call raised."""
+    """Call ``kernel(*inputs, row_lo, row_hi, *outputs)`` for every block of ``height`` rows, on up to every
+    available core (:func:`~scope3d.utils.threads.available_cores`; in the caller alone when there is one
+    block or one core); raises what a call raised."""
     blocks = row_blocks(height, block_rows)
-    threads = min(len(blocks), available_cores())
+    threads = resolve_threads(0, len(blocks))
     if threads <= 1:
         for lo, hi in blocks:
             kernel(*inputs, lo, hi, *outputs)

@@ -8,7 +8,7 @@ scalars are fixed, free or bounded; :class:`SolverOptions` says *how* to solve i
 >>> result = solve(problem, SolverOptions(loss="huber", loss_scale_px=2.0))
 >>> print(result.summary()); result.plot_convergence("convergence.png")
 """
-from scope3d.estimators.bundle.bal import apply_bounds_file, bal_to_problem, result_to_bal
+from scope3d.estimators.bundle.bal import apply_bounds, apply_bounds_file, bal_to_problem, result_to_bal
 from scope3d.estimators.bundle.losses import LOSS_NAMES
 from scope3d.estimators.bundle.problem import BundleParameters, BundleProblem
 from scope3d.estimators.bundle.solver import (
@@ -24,6 +24,6 @@ from scope3d.io.bal import BALProblem, read_bal, write_bal
 
 __all__ = [
     "BALProblem", "BoundsWarning", "BundleParameters", "BundleProblem", "BundleResult", "IterationRecord",
-    "LOSS_NAMES", "SolverOptions", "apply_bounds_file", "bal_to_problem", "evaluate", "read_bal",
+    "LOSS_NAMES", "SolverOptions", "apply_bounds", "apply_bounds_file", "bal_to_problem", "evaluate", "read_bal",
     "result_to_bal", "solve", "warm_up", "write_bal",
 ]

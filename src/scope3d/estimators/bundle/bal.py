@@ -1,4 +1,4 @@
-"""Bundle Adjustment in the Large (BAL) problems: reading, conversion to a BundleProblem, bounds files.
+"""Bundle Adjustment in the Large (BAL) problems as BundleProblems: conversion both ways, bounds applied.
 
 BAL convention (Agarwal et al., ECCV 2010): ``P = R X + t``, ``p = -P[:2] / P.z`` (the camera looks down
 -z, y up), ``pixel = f (1 + k1 |p|^2 + k2 |p|^4) p`` with the origin at the image centre, cost
@@ -10,27 +10,8 @@ the cost are then identical. Each camera gets its own intrinsic group ``(f, f, 0
 square pixels and a fixed principal point, poses are parameterised by ``(w, t)`` with
 ``R = exp([w]x) R_initial`` (``position_parameter="translation"``), as Ceres's BAL examples do.
 
-Bounds file
------------
-A text file, one rule per line, ``#`` starts a comment. Indices are 0-based: ``*`` (all), ``7``,
-``0-9`` (inclusive) or a comma list ``1,4,10-12``. Rules:
-
-``camera INDICES COMPONENTS SPEC`` with COMPONENTS a comma list of ``rx ry rz`` (rotation relative to the
-initial orientation, BAL frame, rad: ``R = exp([w]x) R_initial``), ``tx ty tz`` (translation, BAL frame
-and units), ``f k1 k2``, or the groups ``rotation``, ``translation``, ``intrinsics``, ``all``;
-``point INDICES COMPONENTS SPEC`` with COMPONENTS from ``x y z`` or ``all``. SPEC is one of
-``fixed`` (hold at the initial value), ``LOWER UPPER`` (absolute, ``-inf``/``inf`` allowed) or
-``+- HALF`` (initial value ± HALF).
-
-``depth INDICES OX OY OZ AX AY AZ MIN MAX``: depth ``(X - O) . A/|A|`` of the points in [MIN, MAX].
-``shell INDICES CX CY CZ RMIN RMAX``: points inside the spherical shell ``RMIN <= |X - C| <= RMAX``.
-
-Example::
-
-    camera 0 all fixed            # gauge: first camera fixed
-    camera * k1,k2 -1e-6 1e-6
-    camera 1-5 translation +- 0.05
-    shell * 0 0 0 1 50
+Bounds files (their text format and reader: :mod:`scope3d.io.bal_bounds`) are applied to such a problem by
+:func:`apply_bounds` (:func:`apply_bounds_file` reads and applies one).
 """
 from __future__ import annotations
 
@@ -41,23 +22,10 @@ import numpy as np
 from scope3d.errors import InputError
 from scope3d.estimators.bundle.problem import BundleProblem
 from scope3d.geometry.rotation import matrix_to_rotvec, rotvec_to_matrix
-from scope3d.io.bal import BALProblem, _parse_floats, _parse_indices, read_ascii_text
+from scope3d.io.bal import BALProblem
+from scope3d.io.bal_bounds import POINT_COMPONENTS, BoundsRule, read_bounds_file
 
 _FLIP = np.array([1.0, -1.0, -1.0])
-
-
-_CAMERA_COMPONENTS = ("rx", "ry", "rz", "tx", "ty", "tz", "f", "k1", "k2")
-
-
-_CAMERA_GROUPS = {
-    "rotation": ("rx", "ry", "rz"),
-    "translation": ("tx", "ty", "tz"),
-    "intrinsics": ("f", "k1", "k2"),
-    "all": _CAMERA_COMPONENTS,
-}
-
-
-_POINT_COMPONENTS = ("x", "y", "z")
 
 
 def bal_to_problem(bal: BALProblem) -> BundleProblem:
@@ -101,65 +69,41 @@ def result_to_bal(bal: BALProblem, result) -> BALProblem:
 
 
 def apply_bounds_file(problem: BundleProblem, path: str | os.PathLike) -> int:
-    """Apply the rules of a bounds file (format in the module docstring) to a problem made by
-    :func:`bal_to_problem`. Returns the number of rules applied; raises InputError naming file and line."""
-    lines = read_ascii_text(path, "a bounds file").splitlines()
-    applied = 0
-    for number, raw in enumerate(lines, start=1):
-        tokens = raw.split("#", 1)[0].split()
-        if not tokens:
-            continue
-        where = f"{path} line {number}"
+    """Read a bounds file (:func:`scope3d.io.bal_bounds.read_bounds_file`) and apply its rules to a problem made
+    by :func:`bal_to_problem`. Returns the number of rules applied; raises InputError naming file and line."""
+    rules = read_bounds_file(path, problem.num_cameras, problem.num_points)
+    apply_bounds(problem, rules)
+    return len(rules)
+
+
+def apply_bounds(problem: BundleProblem, rules: list[BoundsRule]) -> None:
+    """Apply a bounds file's rules, in order, to a problem made by :func:`bal_to_problem` (BAL's camera frame
+    turned into scope3d's); raises InputError naming the rule's file and line."""
+    for rule in rules:
         try:
-            _apply_rule(problem, tokens, where)
+            _apply_rule(problem, rule)
         except InputError as exc:
-            if str(exc).startswith(where):
+            if str(exc).startswith(rule.where):
                 raise
             # the problem's own checks (an empty shell, a zero axis) do not know the file: name it
-            raise InputError(f"{where}: {exc}") from None
-        applied += 1
-    return applied
+            raise InputError(f"{rule.where}: {exc}") from None
 
 
-def _apply_rule(problem: BundleProblem, tokens: list[str], where: str) -> None:
-    """Apply one rule of a bounds file (its tokens, comment removed); ``where`` names the file and line."""
-    kind = tokens[0]
-    if kind in ("camera", "point"):
-        if len(tokens) < 4:
-            raise InputError(f"{where}: expected '{kind} INDICES COMPONENTS SPEC'")
-        count = problem.num_cameras if kind == "camera" else problem.num_points
-        idx = _parse_indices(tokens[1], count, where)
-        names = []
-        for name in tokens[2].split(","):
-            if kind == "camera" and name in _CAMERA_GROUPS:
-                names.extend(_CAMERA_GROUPS[name])
-            elif kind == "point" and name == "all":
-                names.extend(_POINT_COMPONENTS)
-            elif name in (_CAMERA_COMPONENTS if kind == "camera" else _POINT_COMPONENTS):
-                names.append(name)
-            else:
-                raise InputError(f"{where}: unknown {kind} component {name!r}")
-        spec = tokens[3:]
-        for name in names:
-            _apply_component(problem, kind, idx, name, spec, where)
-    elif kind == "depth":
-        if len(tokens) != 10:
-            raise InputError(f"{where}: expected 'depth INDICES OX OY OZ AX AY AZ MIN MAX'")
-        idx = _parse_indices(tokens[1], problem.num_points, where)
-        v = _parse_floats(tokens[2:], 8, where)
-        problem.bound_point_depth(v[0:3], v[3:6], v[6], v[7], idx)
-    elif kind == "shell":
-        if len(tokens) != 7:
-            raise InputError(f"{where}: expected 'shell INDICES CX CY CZ RMIN RMAX'")
-        idx = _parse_indices(tokens[1], problem.num_points, where)
-        v = _parse_floats(tokens[2:], 5, where)
-        problem.bound_points_to_shell(v[0:3], v[3], v[4], idx)
+def _apply_rule(problem: BundleProblem, rule: BoundsRule) -> None:
+    if rule.kind == "depth":
+        v = rule.values
+        problem.bound_point_depth(list(v[0:3]), list(v[3:6]), v[6], v[7], rule.indices)
+    elif rule.kind == "shell":
+        v = rule.values
+        problem.bound_points_to_shell(list(v[0:3]), v[3], v[4], rule.indices)
     else:
-        raise InputError(f"{where}: unknown rule {kind!r} (expected camera, point, depth or shell)")
+        for name in rule.components:
+            _apply_component(problem, rule, name)
 
 
-def _apply_component(problem: BundleProblem, kind: str, idx: np.ndarray, name: str, spec: list[str], where: str):
-    if kind == "camera":
+def _apply_component(problem: BundleProblem, rule: BoundsRule, name: str) -> None:
+    idx = rule.indices
+    if rule.kind == "camera":
         target, comp, flip = {
             "rx": ("pose", "wx", 1), "ry": ("pose", "wy", -1), "rz": ("pose", "wz", -1),
             "tx": ("pose", "px", 1), "ty": ("pose", "py", -1), "tz": ("pose", "pz", -1),
@@ -171,24 +115,19 @@ def _apply_component(problem: BundleProblem, kind: str, idx: np.ndarray, name: s
     else:
         if np.any(problem.point_kind[idx] != 0) or np.any(problem.point_frame[idx] != np.eye(3)) \
                 or np.any(problem.point_origin[idx] != 0):
-            raise InputError(f"{where}: point coordinate bounds must come before depth/shell rules on the same points")
-        target, comp, flip = "point", ("y0", "y1", "y2")[_POINT_COMPONENTS.index(name)], 1
+            raise InputError(f"{rule.where}: point coordinate bounds must come before depth/shell rules on the same "
+                             "points")
+        target, comp, flip = "point", ("y0", "y1", "y2")[POINT_COMPONENTS.index(name)], 1
         items = idx
-        initial = problem.initial.points[items, _POINT_COMPONENTS.index(name)]
-    if spec == ["fixed"]:
+        initial = problem.initial.points[items, POINT_COMPONENTS.index(name)]
+    if rule.fixed:
         problem.fix(target, items, [comp])
         return
-    if len(spec) == 2 and spec[0] in ("+-", "±"):
-        half = _parse_floats(spec[1:], 1, where)[0]
-        if half < 0:
-            raise InputError(f"{where}: half-width must be non-negative, got {half:g}")
-        lo, hi = initial - half, initial + half
+    if rule.half_width is not None:
+        lo, hi = initial - rule.half_width, initial + rule.half_width
     else:
-        lo_bal, hi_bal = _parse_floats(spec, 2, where)
-        if lo_bal > hi_bal:
-            raise InputError(f"{where}: lower bound {lo_bal:g} > upper bound {hi_bal:g}")
         # y and z of the camera frame are flipped between BAL and scope3d (see module docstring)
-        lo, hi = (lo_bal, hi_bal) if flip > 0 else (-hi_bal, -lo_bal)
+        lo, hi = (rule.lower, rule.upper) if flip > 0 else (-rule.upper, -rule.lower)
         lo = np.full(items.shape, lo)
         hi = np.full(items.shape, hi)
     problem.set_bounds(target, items, [comp], np.asarray(lo)[:, None], np.asarray(hi)[:, None])

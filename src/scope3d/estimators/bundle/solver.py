@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import time
 import warnings
 from concurrent.futures import ThreadPoolExecutor
@@ -39,10 +38,11 @@ import scipy.sparse
 import scipy.sparse.linalg
 
 from scope3d.errors import InputError
-from scope3d.estimators.bundle._blas import blas_threads
 from scope3d.estimators.bundle.losses import LOSS_NAMES, loss_rho, loss_weight
 from scope3d.estimators.bundle.problem import BundleParameters, BundleProblem
 from scope3d.utils.aot import is_compiled, load_kernels
+from scope3d.utils.blas import blas_threads
+from scope3d.utils.threads import available_cores
 
 # compiled at install (scope3d.utils.aot) or, failing that, by numba on first use; the same functions
 kernels = load_kernels("scope3d.estimators.bundle.kernels")
@@ -80,7 +80,7 @@ class SolverOptions:
     sparse_max_parameters: int = 30000  # auto: sparse LU up to this many, PCG beyond
     pcg_tolerance: float = 1e-6  # relative residual of the conjugate-gradient solve
     pcg_max_iterations: int = 500
-    blas_threads: int = 1  # OpenBLAS threads for the dense Cholesky (0: library default); see _blas.py
+    blas_threads: int = 1  # OpenBLAS threads for the dense Cholesky (0: library default); see scope3d.utils.blas
     num_threads: int = 0  # threads for the Schur assembly: 0 = all cores (as Ceres's -1), 1 = serial
 
     def __post_init__(self) -> None:
@@ -325,7 +325,7 @@ def _squared_residuals(problem, pose, intrinsics, points, intr_obs, out, ranges:
 
 def warm_up() -> None:
     """Load the kernels (compile them the first time, on the JIT path) so that timings exclude it."""
-    from scope3d.estimators.bundle.synthetic import make_scene
+    from scope3d.phantoms.bundle_scene import make_scene
 
     scene = make_scene(12, 4000, seed=0)
     problem = BundleProblem(scene.observations_px, scene.camera_index, scene.point_index, scene.rotations,
@@ -388,7 +388,7 @@ class _ReducedSystem:
                 [np.searchsorted(self.indices[self.indptr[b]:self.indptr[b + 1]], b) for b in range(n_blocks)]
             )
             pieces = self.slots.size
-        threads = num_threads or _available_cores()
+        threads = num_threads or available_cores()
         # parallel only when there is enough work (terms, one 6x6 quadrant each) to pay for the per-thread
         # copies of S
         if threads > 1 and pieces > 20 * (self.out.size // 36) and pieces > 50_000:
@@ -476,11 +476,6 @@ class _ReducedSystem:
         if not np.all(np.isfinite(out)):
             return None
         return out
-
-
-def _available_cores() -> int:
-    """Cores this process may run on (its CPU affinity where the platform tells it)."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
 @contextmanager

@@ -1,4 +1,5 @@
-"""Synthetic bundle adjustment scenes with known truth, BAL-like in structure (tests and benchmarks).
+"""Synthetic bundle adjustment scenes with known truth, BAL-like in structure: the phantom lab's scene for
+bundle adjustment (tests, benchmarks and :func:`scope3d.estimators.bundle.warm_up`).
 
 Cameras stand in a row along the world x axis (spacing ``baseline_mm``), looking along +z with a small
 random tilt; each point is seen by ``observations_per_point`` consecutive cameras, like a vehicle's

@@ -1,4 +1,5 @@
-"""Thread count of the OpenBLAS that numpy and scipy bundle, for the dense Cholesky of the reduced system.
+"""Thread count of the OpenBLAS that numpy and scipy bundle, for dense Cholesky factors such as the reduced
+camera system's (:func:`blas_threads`).
 
 OpenBLAS's threads spin while they wait; on a loaded machine a 600 x 600 Cholesky took 15 ms with its
 default threads and 2 ms with one. ``openblas_set_num_threads_local`` changes the count for the calling
