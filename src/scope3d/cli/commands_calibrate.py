@@ -12,10 +12,11 @@ def register(subparsers) -> None:
     p = subparsers.add_parser(
         "calibrate",
         help="calibrate a scope from checkerboard or ChArUco images: intrinsics, their sigmas, BCBA bounds",
-        description="Detect the board in every image, fit the pinhole + k1, k2 model scope3d uses (and the "
-        "fisheye model with --model fisheye), drop outlier views, and write DIR/camera.json, "
-        "DIR/intrinsic_bounds.json (value +- k sigma, for `scope3d map` and `scope3d bundle-adjust "
-        "--intrinsic-bounds`), DIR/report.json (rms_px, n_views_used, intrinsics with value and std, "
+        description="Detect the board in every image, fit the lens model (--model: radial, the pinhole + k1, "
+        "k2 model scope3d's jobs use; opencv; full-opencv; fisheye), drop outlier views, and write "
+        "DIR/camera.json of that model, DIR/intrinsic_bounds.json (value +- k sigma of each of its parameters, "
+        "for `scope3d map` and `scope3d bundle-adjust --intrinsic-bounds`, which take the radial model so "
+        "far), DIR/report.json (rms_px, n_views_used, intrinsics with value and std, "
         "per-view errors, rejected views and why), DIR/coverage.png and DIR/residuals.png.",
     )
     p.add_argument("images", type=Path, nargs="+", help="board images of one camera (same size)")
@@ -23,23 +24,29 @@ def register(subparsers) -> None:
                    help="inner corners, OpenCV's convention (a 10x7-square board is 9x6)")
     p.add_argument("--square", type=float, required=True, metavar="MM", help="side of one square, mm")
     p.add_argument("--out", type=Path, required=True, help="output folder (written atomically, replaced)")
-    p.add_argument("--model", choices=("pinhole", "fisheye"), default="pinhole",
-                   help="pinhole: fx, fy, cx, cy, k1, k2 (default, scope3d's camera); fisheye: "
-                   "equidistant with k1..k4 (capsule and wide-angle scopes); camera.json and the bounds "
-                   "always hold the pinhole fit")
+    p.add_argument("--model", choices=("radial", "opencv", "full-opencv", "fisheye", "pinhole"), default="radial",
+                   help="radial: fx, fy, cx, cy, k1, k2 (default; camera.json model pinhole_radial_k1k2, the "
+                   "jobs' camera; 'pinhole' is its old name); opencv: + p1, p2 (COLMAP OPENCV); full-opencv: + "
+                   "k3..k6, the rational model (COLMAP FULL_OPENCV); fisheye: Kannala-Brandt k1..k4 "
+                   "(COLMAP OPENCV_FISHEYE, cv2.fisheye; capsule and wide-angle scopes)")
     p.add_argument("--charuco", action="store_true", help="the board is a ChArUco board (cv2.aruco)")
     p.add_argument("--charuco-dictionary", default="DICT_4X4_50", help="ArUco dictionary (default DICT_4X4_50)")
     p.add_argument("--marker", type=float, metavar="MM", help="ChArUco marker side, mm (default 0.7 square)")
     p.add_argument("--mask-circle", action="store_true",
                    help="the image is a lit disc (scanning-fibre scope): ignore what lies outside it")
-    p.add_argument("--no-refine", action="store_true",
-                   help="keep the detector's corners (no cornerSubPix): may fit better on small, strongly "
-                   "distorted images such as a capsule's (docs/calibration.md)")
+    refine = p.add_mutually_exclusive_group()
+    refine.add_argument("--no-refine", action="store_false", dest="refine",
+                        help="the sector detector's own corners (the default; kept for scripts written when "
+                        "cornerSubPix was)")
+    refine.add_argument("--refine", action="store_true",
+                        help="refine checkerboard corners with cornerSubPix after OpenCV's sector detector "
+                        "(more precise on sharp, mildly distorted boards; less on small, strongly distorted "
+                        "images such as a capsule's, docs/calibration.md)")
     p.add_argument("--k-sigma", type=float, default=3.0,
                    help="half-width of the bounds in standard deviations (default 3)")
     p.add_argument("--min-views", type=int, default=3, help="fewest usable views (default 3)")
     add_job_arguments(p)
-    p.set_defaults(func=_run)
+    p.set_defaults(func=_run, refine=False)
     register_hand_eye(subparsers)
 
 
@@ -57,7 +64,7 @@ def _run(args) -> int:
     board = BoardSpec.parse(args.board, args.square, kind=kind, marker_mm=args.marker,
                             dictionary=args.charuco_dictionary)
     options = CalibrateOptions(board, model=args.model, k_sigma=args.k_sigma, mask_circle=args.mask_circle,
-                               detection=DetectionOptions(refine_corners=not args.no_refine),
+                               detection=DetectionOptions(refine_corners=args.refine),
                                calibration=CalibrationOptions(min_views=args.min_views))
     show = show_progress(args) and len(args.images) > 20
     with job_folder(args.out) as staged, progress_bar(show, "image") as progress:

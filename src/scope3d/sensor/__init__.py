@@ -1,5 +1,5 @@
-"""What the hardware gives: the camera model (:mod:`.camera`) and the robot's measured poses with their
-tolerance (:mod:`.pose_tolerance`). Calibration lands here too.
+"""What the hardware gives: the camera and its lens models (:mod:`.camera`, :mod:`.camera_models`) and the
+robot's measured poses with their tolerance (:mod:`.pose_tolerance`). Calibration lands here too.
 """
 from scope3d.sensor.camera import Camera
 from scope3d.sensor.pose_tolerance import CABLE_DRIVEN_ARM, MICRO_STAGE, OPTICAL_TRACKER, MeasuredPose, PoseTolerance
