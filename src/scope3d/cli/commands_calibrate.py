@@ -36,17 +36,17 @@ def register(subparsers) -> None:
                    help="the image is a lit disc (scanning-fibre scope): ignore what lies outside it")
     refine = p.add_mutually_exclusive_group()
     refine.add_argument("--no-refine", action="store_false", dest="refine",
-                        help="the sector detector's own corners (the default; kept for scripts written when "
-                        "cornerSubPix was)")
+                        help="keep OpenCV's sector detector's own corners (no cornerSubPix): a smaller residual on "
+                        "small, strongly distorted images such as a capsule's (docs/calibration.md), but sigmas "
+                        "too small on sharp boards")
     refine.add_argument("--refine", action="store_true",
-                        help="refine checkerboard corners with cornerSubPix after OpenCV's sector detector "
-                        "(more precise on sharp, mildly distorted boards; less on small, strongly distorted "
-                        "images such as a capsule's, docs/calibration.md)")
+                        help="refine checkerboard corners with cornerSubPix after OpenCV's sector detector (the "
+                        "default: the more accurate corners against rendered truth, and honest sigmas)")
     p.add_argument("--k-sigma", type=float, default=3.0,
                    help="half-width of the bounds in standard deviations (default 3)")
     p.add_argument("--min-views", type=int, default=3, help="fewest usable views (default 3)")
     add_job_arguments(p)
-    p.set_defaults(func=_run, refine=False)
+    p.set_defaults(func=_run, refine=True)
     register_hand_eye(subparsers)
 
 

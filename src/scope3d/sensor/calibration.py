@@ -123,18 +123,21 @@ class DetectionOptions:
     min_charuco_corners : int, a ChArUco view with fewer corners is not used (6: more than the 4 a
         homography needs, so one wrong marker cannot define the pose).
     refine_corners : bool, refine a checkerboard's corners from OpenCV's sector detector (which has its own
-        sub-pixel accuracy, CALIB_CB_ACCURACY) with cornerSubPix. Off by default: on the real EndoSLAM capsule
-        images (squares of 10-15 px through a fisheye lens) the sector detector's corners fit every model
-        better (fisheye 0.256 vs 0.373 px RMS, radial 0.556 vs 0.603; benchmarks/bench_calibration_models.py),
-        while on sharp rendered boards with exact truth cornerSubPix cuts the corner error from 0.09 to
-        0.03 px RMS (benchmarks/bench_calibration.py). A ChArUco board's corners are always refined (its
-        detector's own are off by ~0.15 px).
+        sub-pixel accuracy, CALIB_CB_ACCURACY) with cornerSubPix. On by default: on rendered boards with exact
+        truth cornerSubPix cuts the corner error from 0.09 to 0.03 px RMS (benchmarks/bench_calibration.py),
+        and only with it are the intrinsics' sigmas honest (63-76 % of errors within 1 sigma, against 38-49 %
+        with the sector detector's corners, whose errors are correlated: benchmarks/results/
+        calibration_models.json); a walkthrough hand-eye through the sector detector's intrinsics came out
+        0.11 deg off (0.05 with cornerSubPix). On the real EndoSLAM capsule images (squares of 10-15 px through
+        a fisheye lens) the sector detector's own corners fit every model better (fisheye 0.256 vs 0.373 px
+        RMS, radial 0.556 vs 0.603), which is a smaller residual, not a known smaller error: turn it off there
+        (``--no-refine``). A ChArUco board's corners are always refined (its detector's own are off by ~0.15 px).
     """
 
     subpixel_window_px: int = 5
     mask_radius_px: float | None = None
     min_charuco_corners: int = 6
-    refine_corners: bool = False
+    refine_corners: bool = True
 
     def __post_init__(self) -> None:
         if self.subpixel_window_px < 1:
