@@ -24,7 +24,7 @@ from scope3d.phantoms.scenes import (
     SCENES,
     Material,
     Scene,
-    Target,
+    TrueTarget,
     build_scene,
 )
 from scope3d.phantoms.trajectories import (
@@ -39,7 +39,7 @@ from scope3d.phantoms.trajectories import (
 
 __all__ = [
     "Hits", "Material", "PhantomSequence", "RayCaster", "RenderOptions", "RenderedFrame", "SCENES",
-    "SCENE_TRAJECTORIES", "Scene", "TRAJECTORIES", "Target", "Trajectory", "axial_trajectory",
+    "SCENE_TRAJECTORIES", "Scene", "TRAJECTORIES", "Trajectory", "TrueTarget", "axial_trajectory",
     "build_scene", "build_trajectory", "catalogue", "contact_sheet", "default_camera", "generate",
     "grid_trajectory", "measure_poses", "quadrant_trajectory", "render_frame",
     "sequence_exposure", "spiral_trajectory", "true_targets", "write",
