@@ -145,7 +145,8 @@ def real_images() -> dict:
     images = [read_image(p, grey=True) for p in paths]
     size = (images[0].shape[1], images[0].shape[0])
     out: dict = {"images": [p.name for p in paths]}
-    refined = [detect_board(im, board, name=p.name) for p, im in zip(paths, images)]
+    refined = [detect_board(im, board, name=p.name, options=DetectionOptions(refine_corners=True))
+               for p, im in zip(paths, images)]
     # The sector detector's corners without the cornerSubPix step, for the ablation.
     raw = [detect_board(im, board, name=p.name, options=DetectionOptions(refine_corners=False))
            for p, im in zip(paths, images)]
@@ -171,8 +172,8 @@ def real_images() -> dict:
                       "--no-refine --out benchmarks/results/calibration_real_run")
     out["command_report"] = res.report
     # The run folder is not committed (results/*_run/ is ignored): keep its two pictures beside the JSON.
-    plot_coverage(res.reported, OUT / "calibration_real_coverage.png")
-    plot_residuals(res.reported, OUT / "calibration_real_residuals.png")
+    plot_coverage(res.calibration, OUT / "calibration_real_coverage.png")
+    plot_residuals(res.calibration, OUT / "calibration_real_residuals.png")
     return out
 
 

@@ -64,10 +64,10 @@ def main() -> int:
         cal = run_calibrate(CalibrateOptions(board, mask_circle=True), paths, tmp / "cal")
         lower, upper = read_intrinsic_bounds(tmp / "cal" / "intrinsic_bounds.json")
         result["calibration"] = {
-            "rms_px": cal.pinhole.rms_px, "n_views_used": len(cal.pinhole.views),
-            "fov_deg": cal.pinhole.camera().fov_deg, "values": cal.pinhole.values.tolist(),
-            "std": cal.pinhole.std.tolist(), "lower": lower.tolist(), "upper": upper.tolist(),
-            "mask_radius_px": cal.pinhole.mask_radius_px, "true_mask_radius_px": truth.mask_radius_px,
+            "rms_px": cal.calibration.rms_px, "n_views_used": len(cal.calibration.views),
+            "fov_deg": cal.calibration.camera().fov_deg, "values": cal.calibration.values.tolist(),
+            "std": cal.calibration.std.tolist(), "lower": lower.tolist(), "upper": upper.tolist(),
+            "mask_radius_px": cal.calibration.mask_radius_px, "true_mask_radius_px": truth.mask_radius_px,
             "fov_deg_interval": [Camera.from_intrinsics(400, 400, upper).fov_deg,
                                  Camera.from_intrinsics(400, 400, lower).fov_deg],
         }

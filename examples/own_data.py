@@ -50,7 +50,7 @@ def main(argv: list[str] | None = None) -> dict:
     # 3. the scan: every third video frame with its pose from the robot's log, through the hand-eye
     options = frames_import.FramesImportOptions(log=log_format, tolerance=PoseTolerance.from_degrees(0.5, 0.25),
                                                 every=3)
-    frames_import.run(options, recording / "scan" / "video.mp4", recording / "scan" / "robot_log.csv", camera,
+    frames_import.run(options, recording / "scan" / "video.mkv", recording / "scan" / "robot_log.csv", camera,
                       args.out / "dataset", frame_times=read_frame_times(recording / "scan" / "frame_times.csv"),
                       hand_eye=flange_from_cam)
 

@@ -17,6 +17,7 @@ from scope3d.sensor.calibration import (
     BoardDetection,
     BoardSpec,
     CalibrationOptions,
+    DetectionOptions,
     calibrate,
     detect_board,
 )
@@ -25,6 +26,7 @@ from scope3d.sensor.camera import Camera
 # A 70 deg endoscope camera with barrel distortion of the size the reference's scopes show (sec. 6.3).
 CAMERA = Camera.from_fov(320, 240, 70.0, k1=-0.25, k2=0.08)
 BOARD = BoardSpec(9, 6, 2.0)
+REFINE = DetectionOptions(refine_corners=True)
 
 
 @pytest.fixture(scope="module")
@@ -36,7 +38,10 @@ def rendered():
 
 @pytest.fixture(scope="module")
 def found(rendered):
-    return [detect_board(im, rendered.board, name=f"view{i:02d}.png") for i, im in enumerate(rendered.images)]
+    # cornerSubPix after the sector detector: the more precise path on sharp rendered boards (0.03 vs 0.09 px
+    # corner RMS); the sector detector alone, the default, fits the real capsule images better.
+    return [detect_board(im, rendered.board, name=f"view{i:02d}.png", options=REFINE)
+            for i, im in enumerate(rendered.images)]
 
 
 def test_rendered_board_recovers_known_intrinsics(rendered, found):
@@ -113,7 +118,7 @@ def test_cli_calibrate_writes_camera_bounds_and_report(rendered, tmp_path):
     write_image(tmp_path / "empty.png", np.zeros_like(rendered.images[0]))
     out = tmp_path / "cal"
     rc = main(["calibrate", *map(str, paths), str(tmp_path / "empty.png"), "--board", "9x6", "--square", "2",
-               "--out", str(out), "--k-sigma", "2"])
+               "--out", str(out), "--k-sigma", "2", "--refine"])
     assert rc == 0
     report = json.loads((out / "report.json").read_text())
     assert report["n_views_used"] == 8 and "empty.png" in report["rejected"]

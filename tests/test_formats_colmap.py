@@ -151,7 +151,7 @@ def _replace_line(path: Path, number: int, text: str) -> None:
     "file, line, text, fragments",
     [
         ("cameras.txt", 4, "1 SIMPLE_RADIAL_FISHEYE 64 48 60 32 24 0.1", ["cameras.txt line 4", "not supported"]),
-        ("cameras.txt", 5, "2 OPENCV 64 48 58 61 32 24 0.05 0 0.001 0", ["cameras.txt line 5", "non-zero p1"]),
+        ("cameras.txt", 5, "2 OPENCV 64 48 58 61 32 24 0.05 0 nan 0", ["cameras.txt line 5", "NaN"]),
         ("cameras.txt", 4, "1 RADIAL 64 48 60 32 24 0.1", ["cameras.txt line 4", "5 parameters, found 4"]),
         ("images.txt", 5, "1 1.1 0 0 0 0 0 0 1 img_00.png", ["images.txt line 5", "not unit"]),
         ("images.txt", 5, "1 0 0 0 0 0 0 0 1 img_00.png", ["images.txt line 5", "not unit", "norm 0"]),

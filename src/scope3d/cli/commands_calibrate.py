@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from scope3d.cli.commands_import_frames import add_log_format_arguments, log_format, max_gap
 from scope3d.cli.job_output import add_job_arguments, finish_job, job_folder, show_progress
 
 
@@ -11,10 +12,11 @@ def register(subparsers) -> None:
     p = subparsers.add_parser(
         "calibrate",
         help="calibrate a scope from checkerboard or ChArUco images: intrinsics, their sigmas, BCBA bounds",
-        description="Detect the board in every image, fit the pinhole + k1, k2 model scope3d uses (and the "
-        "fisheye model with --model fisheye), drop outlier views, and write DIR/camera.json, "
-        "DIR/intrinsic_bounds.json (value +- k sigma, for `scope3d map` and `scope3d bundle-adjust "
-        "--intrinsic-bounds`), DIR/report.json (rms_px, n_views_used, intrinsics with value and std, "
+        description="Detect the board in every image, fit the lens model (--model: radial, the pinhole + k1, "
+        "k2 model scope3d's jobs use; opencv; full-opencv; fisheye), drop outlier views, and write "
+        "DIR/camera.json of that model, DIR/intrinsic_bounds.json (value +- k sigma of each of its parameters, "
+        "for `scope3d map` and `scope3d bundle-adjust --intrinsic-bounds`, which take the radial model so "
+        "far), DIR/report.json (rms_px, n_views_used, intrinsics with value and std, "
         "per-view errors, rejected views and why), DIR/coverage.png and DIR/residuals.png.",
     )
     p.add_argument("images", type=Path, nargs="+", help="board images of one camera (same size)")
@@ -22,23 +24,29 @@ def register(subparsers) -> None:
                    help="inner corners, OpenCV's convention (a 10x7-square board is 9x6)")
     p.add_argument("--square", type=float, required=True, metavar="MM", help="side of one square, mm")
     p.add_argument("--out", type=Path, required=True, help="output folder (written atomically, replaced)")
-    p.add_argument("--model", choices=("pinhole", "fisheye"), default="pinhole",
-                   help="pinhole: fx, fy, cx, cy, k1, k2 (default, scope3d's camera); fisheye: "
-                   "equidistant with k1..k4 (capsule and wide-angle scopes); camera.json and the bounds "
-                   "always hold the pinhole fit")
+    p.add_argument("--model", choices=("radial", "opencv", "full-opencv", "fisheye", "pinhole"), default="radial",
+                   help="radial: fx, fy, cx, cy, k1, k2 (default; camera.json model pinhole_radial_k1k2, the "
+                   "jobs' camera; 'pinhole' is its old name); opencv: + p1, p2 (COLMAP OPENCV); full-opencv: + "
+                   "k3..k6, the rational model (COLMAP FULL_OPENCV); fisheye: Kannala-Brandt k1..k4 "
+                   "(COLMAP OPENCV_FISHEYE, cv2.fisheye; capsule and wide-angle scopes)")
     p.add_argument("--charuco", action="store_true", help="the board is a ChArUco board (cv2.aruco)")
     p.add_argument("--charuco-dictionary", default="DICT_4X4_50", help="ArUco dictionary (default DICT_4X4_50)")
     p.add_argument("--marker", type=float, metavar="MM", help="ChArUco marker side, mm (default 0.7 square)")
     p.add_argument("--mask-circle", action="store_true",
                    help="the image is a lit disc (scanning-fibre scope): ignore what lies outside it")
-    p.add_argument("--no-refine", action="store_true",
-                   help="keep the detector's corners (no cornerSubPix): may fit better on small, strongly "
-                   "distorted images such as a capsule's (docs/calibration.md)")
+    refine = p.add_mutually_exclusive_group()
+    refine.add_argument("--no-refine", action="store_false", dest="refine",
+                        help="the sector detector's own corners (the default; kept for scripts written when "
+                        "cornerSubPix was)")
+    refine.add_argument("--refine", action="store_true",
+                        help="refine checkerboard corners with cornerSubPix after OpenCV's sector detector "
+                        "(more precise on sharp, mildly distorted boards; less on small, strongly distorted "
+                        "images such as a capsule's, docs/calibration.md)")
     p.add_argument("--k-sigma", type=float, default=3.0,
                    help="half-width of the bounds in standard deviations (default 3)")
     p.add_argument("--min-views", type=int, default=3, help="fewest usable views (default 3)")
     add_job_arguments(p)
-    p.set_defaults(func=_run)
+    p.set_defaults(func=_run, refine=False)
     register_hand_eye(subparsers)
 
 
@@ -56,7 +64,7 @@ def _run(args) -> int:
     board = BoardSpec.parse(args.board, args.square, kind=kind, marker_mm=args.marker,
                             dictionary=args.charuco_dictionary)
     options = CalibrateOptions(board, model=args.model, k_sigma=args.k_sigma, mask_circle=args.mask_circle,
-                               detection=DetectionOptions(refine_corners=not args.no_refine),
+                               detection=DetectionOptions(refine_corners=args.refine),
                                calibration=CalibrationOptions(min_views=args.min_views))
     show = show_progress(args) and len(args.images) > 20
     with job_folder(args.out) as staged, progress_bar(show, "image") as progress:
@@ -76,9 +84,17 @@ def register_hand_eye(subparsers) -> None:
         "(every robot row turned into a camera pose with that tolerance: a dataset's poses.csv).",
     )
     p.add_argument("images", type=Path, nargs="+", help="board images, named as in the robot poses file")
-    p.add_argument("--robot-poses", type=Path, required=True, metavar="CSV",
-                   help="poses.csv format (docs/datasets.md); each row is the flange pose in the robot base "
-                   "(x_mm, y_mm, z_mm: flange origin; qw..qz: base_from_flange)")
+    robot = p.add_argument_group("the robot's pose at each image: --robot-poses, or --robot-log with --frame-times")
+    which = robot.add_mutually_exclusive_group(required=True)
+    which.add_argument("--robot-poses", type=Path, metavar="CSV",
+                       help="poses.csv format (docs/datasets.md); each row is the flange pose in the robot base "
+                       "(x_mm, y_mm, z_mm: flange origin; qw..qz: base_from_flange)")
+    which.add_argument("--robot-log", type=Path, metavar="LOG_CSV",
+                       help="the robot's log of the session, read as `scope3d import frames --poses` reads it; "
+                            "each image's pose interpolated at its time (--frame-times)")
+    robot.add_argument("--frame-times", type=Path, metavar="CSV",
+                       help="with --robot-log: a table image,t giving each image's time on the log's clock")
+    add_log_format_arguments(robot)
     p.add_argument("--camera", type=Path, required=True, help="camera.json of the calibrated scope")
     p.add_argument("--board", required=True, metavar="COLSxROWS", help="inner corners (use one odd, one even "
                    "side: an even x even board's orientation is ambiguous)")
@@ -94,7 +110,8 @@ def register_hand_eye(subparsers) -> None:
 def _run_hand_eye(args) -> int:
     from scope3d.errors import InputError
     from scope3d.io.camera_json import read_camera_json
-    from scope3d.pipelines.hand_eye import HandEyeRunOptions, run
+    from scope3d.io.robot_log import read_frame_times
+    from scope3d.pipelines.hand_eye import HandEyeRunOptions, robot_poses_from_log, run
     from scope3d.sensor.calibration import BoardSpec
     from scope3d.sensor.hand_eye import HandEyeOptions
 
@@ -104,6 +121,14 @@ def _run_hand_eye(args) -> int:
     options = HandEyeRunOptions(board, hand_eye=HandEyeOptions(refine=not args.no_refine,
                                                                tolerance_sigmas=args.tolerance_sigmas))
     camera = read_camera_json(args.camera)
+    robot = args.robot_poses
+    if args.robot_log is not None:
+        if args.frame_times is None:
+            raise InputError("--robot-log needs --frame-times: when each image was taken, on the log's clock")
+        robot = robot_poses_from_log(args.robot_log, log_format(args), read_frame_times(args.frame_times, args.time_unit),
+                                     max_gap_s=max_gap(args))
+    elif args.frame_times is not None:
+        raise InputError("--frame-times goes with --robot-log")
     with job_folder(args.out) as staged:
-        result = run(options, args.images, args.robot_poses, camera, staged)
+        result = run(options, args.images, robot, camera, staged)
     return finish_job(args, args.out, result.report, [result.summary(), f"wrote {args.out}/ (hand_eye.json, poses.csv)"])

@@ -43,20 +43,7 @@ def register(formats) -> None:
     log = frm.add_argument_group("robot log")
     log.add_argument("--poses", metavar="LOG_CSV", type=Path, required=True,
                      help="the robot's log: a CSV with a header, a time column and the pose columns")
-    log.add_argument("--pose-format", default="xyz-qxyzw", metavar="FORMAT",
-                     help="xyz-qxyzw (x,y,z,qx,qy,qz,qw; default), xyz-qwxyz, xyz-euler-AXES (x,y,z,r1,r2,r3; "
-                          "AXES as SciPy: xyz extrinsic, ZYX intrinsic), xyz-rotvec (x,y,z,rx,ry,rz), matrix44 "
-                          "(m00..m33, row-major)")
-    log.add_argument("--columns", metavar="NAME=COLUMN,...", default="",
-                     help="the file's own column names where they differ, e.g. t=time,x=X,qw=W")
-    log.add_argument("--unit", default="mm", choices=("mm", "cm", "m", "um"), help="the log's length unit")
-    log.add_argument("--time-unit", default="s", choices=("s", "ms", "us", "ns"),
-                     help="the log's (and the frame-time table's) time unit (default s)")
-    log.add_argument("--angle-unit", default="deg", choices=("deg", "rad"),
-                     help="Euler angles' and rotation vectors' unit (default deg)")
-    log.add_argument("--drop-bad-rows", action="store_true",
-                     help="leave out (and count) rows with NaN, a non-unit quaternion or a time out of order, "
-                          "instead of refusing the log")
+    add_log_format_arguments(log)
     times = frm.add_argument_group("frame times (on the camera's clock; a video has its own)")
     which = times.add_mutually_exclusive_group()
     which.add_argument("--frame-times", metavar="CSV", type=Path,
@@ -69,8 +56,6 @@ def register(formats) -> None:
                        help="with --fps: the first frame's time (default 0)")
     times.add_argument("--clock-offset", type=float, default=0.0, metavar="S",
                        help="added to every frame time to put it on the log's clock (default 0)")
-    times.add_argument("--max-gap", type=float, default=None, metavar="S",
-                       help="longest stretch of log a pose may be interpolated across (default 0.1 s)")
     times.add_argument("--skip-unposed-frames", action="store_true",
                        help="leave out frames outside the log or in a longer gap (listed in dataset.json) "
                             "instead of refusing")
@@ -86,6 +71,45 @@ def register(formats) -> None:
                           "figures are better)")
     add_job_arguments(frm)
     frm.set_defaults(func=run_import_frames)
+
+
+def add_log_format_arguments(group) -> None:
+    """The flags that say how to read a robot log (shared with ``calibrate-hand-eye --robot-log``)."""
+    group.add_argument("--pose-format", default="xyz-qxyzw", metavar="FORMAT",
+                       help="xyz-qxyzw (x,y,z,qx,qy,qz,qw; default), xyz-qwxyz, xyz-euler-AXES (x,y,z,r1,r2,r3; "
+                            "AXES as SciPy: xyz extrinsic, ZYX intrinsic), xyz-rotvec (x,y,z,rx,ry,rz), matrix44 "
+                            "(m00..m33, row-major)")
+    group.add_argument("--columns", metavar="NAME=COLUMN,...", default="",
+                       help="the file's own column names where they differ, e.g. t=time,x=X,qw=W")
+    group.add_argument("--unit", default="mm", choices=("mm", "cm", "m", "um"), help="the log's length unit")
+    group.add_argument("--time-unit", default="s", choices=("s", "ms", "us", "ns"),
+                       help="the log's (and the frame-time table's) time unit (default s)")
+    group.add_argument("--angle-unit", default="deg", choices=("deg", "rad"),
+                       help="Euler angles' and rotation vectors' unit (default deg)")
+    group.add_argument("--drop-bad-rows", action="store_true",
+                       help="leave out (and count) rows with NaN, a non-unit quaternion or a time out of order, "
+                            "instead of refusing the log")
+    group.add_argument("--max-gap", type=float, default=None, metavar="S",
+                       help="longest stretch of log a pose may be interpolated across (default 0.1 s)")
+
+
+def log_format(args):
+    """The :class:`~scope3d.io.robot_log.PoseLogFormat` the flags of :func:`add_log_format_arguments` name."""
+    from scope3d.io.robot_log import PoseLogFormat
+
+    try:
+        return PoseLogFormat(args.pose_format, _column_map(args.columns), args.unit, args.time_unit, args.angle_unit,
+                             args.drop_bad_rows)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+
+
+def max_gap(args) -> float:
+    from scope3d.pipelines.frames_import import DEFAULT_MAX_GAP_S
+
+    if args.max_gap is not None and not args.max_gap > 0:
+        raise InputError(f"--max-gap must be positive, got {args.max_gap}")
+    return DEFAULT_MAX_GAP_S if args.max_gap is None else args.max_gap
 
 
 def _column_map(text: str) -> dict[str, str]:
@@ -121,17 +145,14 @@ def run_import_frames(args) -> int:
     from scope3d.io.camera_json import read_camera_json
     from scope3d.io.hand_eye_json import read_hand_eye_json
     from scope3d.io.json_object import read_json_object
-    from scope3d.io.robot_log import PoseLogFormat, read_frame_times
-    from scope3d.pipelines.frames_import import DEFAULT_MAX_GAP_S, FramesImportOptions, FrameTiming, run
+    from scope3d.io.robot_log import read_frame_times
+    from scope3d.pipelines.frames_import import FramesImportOptions, FrameTiming, run
 
     tolerance, source = _tolerance(args)
     try:
         options = FramesImportOptions(
-            log=PoseLogFormat(args.pose_format, _column_map(args.columns), args.unit, args.time_unit, args.angle_unit,
-                              args.drop_bad_rows),
-            timing=FrameTiming(args.times_in_names, args.fps, args.first_frame, args.clock_offset),
-            tolerance=tolerance, tolerance_source=source,
-            max_gap_s=DEFAULT_MAX_GAP_S if args.max_gap is None else args.max_gap,
+            log=log_format(args), timing=FrameTiming(args.times_in_names, args.fps, args.first_frame, args.clock_offset),
+            tolerance=tolerance, tolerance_source=source, max_gap_s=max_gap(args),
             skip_unposed_frames=args.skip_unposed_frames, every=args.every)
     except ValueError as exc:
         raise InputError(str(exc)) from None

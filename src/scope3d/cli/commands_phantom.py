@@ -105,6 +105,9 @@ def register(subparsers) -> None:
                           "x-y-z-w quaternions, the robot's own clock) and the hidden truth (--size, --seed apply)")
     raw.add_argument("--scan-speed", type=float, default=25.0, metavar="MM_S",
                      help="with --raw-recording: the scan's speed between raster points (default 25 mm/s)")
+    raw.add_argument("--robot-error", type=float, default=0.2, metavar="MM",
+                     help="with --raw-recording: the controller's smooth pose error along the path, at most MM "
+                          "per axis and MM x 0.5 deg (default 0.2; 0 = an exact robot)")
     add_job_arguments(p)
     p.set_defaults(func=run)
 
@@ -190,12 +193,15 @@ def _run_raw_recording(args) -> int:
         raise InputError(f"--raw-recording renders the dome phantom, not {args.scene!r}")
     if not args.scan_speed > 0:
         raise InputError(f"--scan-speed must be positive, got {args.scan_speed}")
+    if not args.robot_error >= 0:
+        raise InputError(f"--robot-error must be zero or positive, got {args.robot_error}")
     out = Path(args.out)
     if out.exists() and not (out / "README.txt").is_file() and any(out.iterdir()):
         raise InputError(f"{out}: exists and is not a recording; choose another --out")
     started = time.perf_counter()
     with progress_bar(show_progress(args), "image") as progress:
-        write_recording(RecordingOptions(size=args.size, speed_mm_s=args.scan_speed, seed=args.seed), out,
+        write_recording(RecordingOptions(size=args.size, speed_mm_s=args.scan_speed, seed=args.seed,
+                                         robot_error_mm=args.robot_error), out,
                         progress=progress)
     report = {"job": "phantom", "scene": "dome", "raw_recording": str(out), "seed": args.seed,
               "time_s": round(time.perf_counter() - started, 3)}

@@ -9,12 +9,15 @@ scope3d's:
 * COLMAP puts the pixel origin at the top-left *corner* of the image (the centre of the top-left pixel is
   (0.5, 0.5)); scope3d puts it at the centre of the top-left pixel. Principal points and keypoints are
   therefore shifted by +0.5 px when written and by -0.5 px when read.
-* Cameras are written as ``RADIAL`` (``f, cx, cy, k1, k2``) when ``fx == fy``, else as ``OPENCV``
-  (``fx, fy, cx, cy, k1, k2, p1, p2``) with ``p1 = p2 = 0``, so the two radial terms survive. The
-  circular mask of a scanning-fibre endoscope has no COLMAP equivalent and is dropped.
-* The reader accepts ``SIMPLE_PINHOLE``, ``PINHOLE``, ``SIMPLE_RADIAL``, ``RADIAL``, and ``OPENCV`` /
-  ``FULL_OPENCV`` whose extra terms are zero; anything else cannot be represented by
-  :class:`scope3d.sensor.camera.Camera` and is an InputError.
+* A ``pinhole_radial_k1k2`` camera (scope3d's default model) is written as ``RADIAL`` (``f, cx, cy, k1,
+  k2``) when ``fx == fy``, else as ``OPENCV`` (``fx, fy, cx, cy, k1, k2, p1, p2``) with ``p1 = p2 = 0``,
+  so the two radial terms survive; a camera of a COLMAP-named model (:mod:`scope3d.sensor.camera_models`:
+  ``PINHOLE``, ``OPENCV``, ``FULL_OPENCV``, ``OPENCV_FISHEYE``) under its own name with its parameters.
+  The circular mask of a scanning-fibre endoscope has no COLMAP equivalent and is dropped.
+* The reader accepts ``SIMPLE_PINHOLE``, ``PINHOLE``, ``SIMPLE_RADIAL``, ``RADIAL``, ``OPENCV``,
+  ``FULL_OPENCV`` and ``OPENCV_FISHEYE``. A camera the default model represents (no p1, p2, k3..k6, or
+  those zero) is read as ``pinhole_radial_k1k2``, as it always was; the others keep their model.
+  Anything else is an InputError.
 * Quaternions may be printed with few digits: one whose norm is within rounding of 1
   (:data:`scope3d.geometry.rotation.ROTATION_ROUNDING_TOLERANCE`) is normalised, and ``import_colmap`` records the
   largest normalisation in ``dataset.json`` (``source.quaternion_normalised_max``); others are refused.
@@ -35,6 +38,7 @@ from scope3d.geometry.rotation import matrix_to_quaternion, normalised_quaternio
 from scope3d.io.dataset import write_dataset
 from scope3d.io.images import read_image
 from scope3d.sensor.camera import Camera
+from scope3d.sensor.camera_models import DEFAULT_MODEL, MODELS
 from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance
 from scope3d.utils.atomic import atomic_directory
 
@@ -194,13 +198,7 @@ def write_colmap_text(model: SparseModel, out_dir: str | Path) -> Path:
         lines = ["# Camera list with one line of data per camera:",
                  "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]",
                  f"# Number of cameras: {len(model.cameras)}"]
-        for i, cam in enumerate(model.cameras):
-            cx, cy = cam.cx + _COLMAP_PIXEL_OFFSET, cam.cy + _COLMAP_PIXEL_OFFSET
-            if cam.fx == cam.fy:
-                params = ("RADIAL", [cam.fx, cx, cy, cam.k1, cam.k2])
-            else:
-                params = ("OPENCV", [cam.fx, cam.fy, cx, cy, cam.k1, cam.k2, 0.0, 0.0])
-            lines.append(f"{i + 1} {params[0]} {cam.width} {cam.height} " + " ".join(_num(v) for v in params[1]))
+        lines += [camera_line(i + 1, cam) for i, cam in enumerate(model.cameras)]
         (tmp / "cameras.txt").write_text("\n".join(lines) + "\n")
 
         # the point each keypoint belongs to (-1: none), per image, as arrays (a dict of ~10^6 tuples was ~10^8 bytes)
@@ -240,6 +238,19 @@ def write_colmap_text(model: SparseModel, out_dir: str | Path) -> Path:
     return out_dir
 
 
+def camera_line(camera_id: int, cam: Camera) -> str:
+    """One ``cameras.txt`` line: ``CAMERA_ID MODEL WIDTH HEIGHT PARAMS...`` (principal point shifted to
+    COLMAP's pixel corner origin)."""
+    cx, cy = cam.cx + _COLMAP_PIXEL_OFFSET, cam.cy + _COLMAP_PIXEL_OFFSET
+    if cam.model == DEFAULT_MODEL and cam.fx == cam.fy:
+        name, params = "RADIAL", [cam.fx, cx, cy, cam.k1, cam.k2]
+    elif cam.model == DEFAULT_MODEL:
+        name, params = "OPENCV", [cam.fx, cam.fy, cx, cy, cam.k1, cam.k2, 0.0, 0.0]
+    else:
+        name, params = cam.lens.colmap_name, [cam.fx, cam.fy, cx, cy, *cam.params[4:]]
+    return f"{camera_id} {name} {cam.width} {cam.height} " + " ".join(_num(v) for v in params)
+
+
 def _num(value: float) -> str:
     # repr is the shortest text that reads back as the same float64: no precision is lost.
     return repr(float(value))
@@ -255,6 +266,7 @@ _CAMERA_MODELS = {
     "RADIAL": ("f", "cx", "cy", "k1", "k2"),
     "OPENCV": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"),
     "FULL_OPENCV": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"),
+    "OPENCV_FISHEYE": ("fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4"),
 }
 
 
@@ -266,6 +278,11 @@ def read_colmap_text(model_dir: str | Path, *, length_scale_to_mm: float = 1.0, 
     model's reading time is its points). Problems are InputErrors naming the file and line.
     """
     return _read_model(Path(model_dir), length_scale_to_mm, read_points=points)[0]
+
+
+def read_colmap_cameras(path: str | Path) -> list[Camera]:
+    """The cameras of a ``cameras.txt``, in file order (problems are InputErrors naming the file and line)."""
+    return _read_cameras(Path(path))[0]
 
 
 def _read_model(model_dir: Path, length_scale_to_mm: float, *, read_points: bool = True) -> tuple[SparseModel, float]:
@@ -334,17 +351,16 @@ def _read_cameras(path: Path) -> tuple[list[Camera], dict[int, int]]:
         except ValueError:
             raise InputError(f"{where}: CAMERA_ID, WIDTH and HEIGHT must be integers") from None
         p = dict(zip(names, _floats(path, number, tokens[4:], "camera parameters")))
-        extra = [k for k in ("p1", "p2", "k3", "k4", "k5", "k6") if abs(p.get(k, 0.0)) > _NEGLIGIBLE_DISTORTION]
-        if extra:
-            raise InputError(f"{where}: {model} camera has non-zero {', '.join(extra)}, which scope3d's "
-                             "camera model (k1, k2 only) cannot represent")
         fx = p.get("fx", p.get("f"))
         fy = p.get("fy", p.get("f"))
         if camera_id in index:
             raise InputError(f"{where}: camera {camera_id} is defined twice")
+        p.update(fx=fx, fy=fy, cx=p["cx"] - _COLMAP_PIXEL_OFFSET, cy=p["cy"] - _COLMAP_PIXEL_OFFSET)
+        extra = [k for k in ("p1", "p2", "k3", "k4", "k5", "k6") if abs(p.get(k, 0.0)) > _NEGLIGIBLE_DISTORTION]
+        kind = model if model == "OPENCV_FISHEYE" or extra else DEFAULT_MODEL
+        names = MODELS[kind].param_names
         try:
-            cameras.append(Camera(width, height, fx, fy, p["cx"] - _COLMAP_PIXEL_OFFSET,
-                                  p["cy"] - _COLMAP_PIXEL_OFFSET, p.get("k1", 0.0), p.get("k2", 0.0)))
+            cameras.append(Camera.from_params(width, height, kind, [p.get(n, 0.0) for n in names]))
         except ValueError as exc:
             raise InputError(f"{where}: {exc}") from None
         index[camera_id] = len(cameras) - 1

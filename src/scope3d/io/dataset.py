@@ -48,6 +48,7 @@ from scope3d.io.ply import read_ply, write_ply
 from scope3d.io.poses_csv import _read_pose_rows, format_poses_csv, read_poses_csv
 from scope3d.scene.mesh import Mesh
 from scope3d.sensor.camera import Camera, fov_from_focal
+from scope3d.sensor.camera_models import DEFAULT_MODEL
 from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance
 from scope3d.utils.atomic import atomic_directory
 from scope3d.utils.jsonio import write_json
@@ -81,6 +82,7 @@ def load_dataset(root: str | Path, *, check_images: bool = False) -> Dataset:
         raise InputError(f"{meta_path}: unknown length_unit {unit!r} (use one of {', '.join(LENGTH_UNITS_TO_MM)})")
     scale = LENGTH_UNITS_TO_MM[unit]
     camera = read_camera_json(root / "camera.json")
+    check_jobs_take(camera, root / "camera.json")
     poses_path = root / "poses.csv"
     names, poses, row_numbers = _read_pose_rows(poses_path, scale)
     frames_dir = root / "frames"
@@ -160,6 +162,15 @@ def _check_ground_truth_files(gt: GroundTruth, camera: Camera) -> None:
         gt.surface()
 
 
+def check_jobs_take(camera: Camera, where: str | Path) -> None:
+    """A dataset's camera must be of the model the jobs use: ``pinhole_radial_k1k2``, until the jobs take
+    every model of :mod:`scope3d.sensor.camera_models` (issue 32, second part). An InputError naming
+    ``where`` otherwise, so that a fisheye's parameters are never read as radial ones."""
+    if camera.model != DEFAULT_MODEL:
+        raise InputError(f"{where}: a {camera.model} camera; scope3d's jobs take {DEFAULT_MODEL} cameras only "
+                         "so far (calibrate with --model radial for a dataset's camera.json)")
+
+
 def write_dataset(
     out_dir: str | Path,
     camera: Camera,
@@ -206,6 +217,7 @@ def write_dataset(
         if items is not None and len(items) != n:
             raise ValueError(f"{n} frames but {len(items)} {label}")
     out_dir = Path(out_dir)
+    check_jobs_take(camera, out_dir)
     with atomic_directory(out_dir) as tmp:
         meta = {"format": "scope3d-dataset", "version": 1, "length_unit": "mm", "name": out_dir.name}
         meta.update(metadata or {})

@@ -8,7 +8,10 @@ reference eq. 6.2 and sec. 6.3, where the field of view was known only as 50-56 
      "fx": {"value": 228.6, "std": 0.09, "lower": 228.3, "upper": 228.9}, ... "k2": {...}}
 
 Only ``lower`` and ``upper`` are required per parameter; a parameter left out is held fixed by the reader's
-caller. Units: pixels for fx, fy, cx, cy; unitless for k1, k2.
+caller. Units: pixels for fx, fy, cx, cy; unitless for k1, k2. ``scope3d calibrate --model`` writes the
+bounds of any camera model (``model`` names it, one entry per parameter of
+:mod:`scope3d.sensor.camera_models`); the jobs read the ``pinhole_radial_k1k2`` model's until they take
+every model (issue 32), and refuse another's.
 """
 from __future__ import annotations
 
@@ -20,14 +23,20 @@ import numpy as np
 from scope3d.errors import InputError
 from scope3d.io.json_object import read_json_object
 from scope3d.sensor.camera import INTRINSIC_NAMES
+from scope3d.sensor.camera_models import DEFAULT_MODEL
 from scope3d.utils.jsonio import write_json
 
 
 def write_intrinsic_bounds(path: str | Path, values: np.ndarray, std: np.ndarray, k_sigma: float, *,
-                           source: str = "") -> None:
-    """values, std : (6,) ``(fx, fy, cx, cy, k1, k2)`` and their standard deviations."""
-    data: dict = {"model": "pinhole_radial_k1k2", "k_sigma": float(k_sigma), "source": source}
-    for name, v, s in zip(INTRINSIC_NAMES, np.asarray(values, float), np.asarray(std, float)):
+                           source: str = "", model: str = DEFAULT_MODEL,
+                           names: tuple[str, ...] = INTRINSIC_NAMES) -> None:
+    """values, std : (P,) the model's parameters (default ``(fx, fy, cx, cy, k1, k2)``) and their standard
+    deviations; names : the parameters' names in that order."""
+    values, std = np.asarray(values, float), np.asarray(std, float)
+    if not len(names) == len(values) == len(std):
+        raise ValueError(f"{len(names)} names, {len(values)} values and {len(std)} sigmas")
+    data: dict = {"model": model, "k_sigma": float(k_sigma), "source": source}
+    for name, v, s in zip(names, values, std):
         data[name] = {"value": float(v), "std": float(s), "lower": float(v - k_sigma * s),
                       "upper": float(v + k_sigma * s)}
     write_json(path, data)
@@ -41,6 +50,10 @@ def read_intrinsic_bounds(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     if not path.is_file():
         raise InputError(f"{path}: intrinsic bounds file is missing")
     data = read_json_object(path)
+    model = data.get("model", DEFAULT_MODEL)
+    if model != DEFAULT_MODEL:
+        raise InputError(f"{path}: bounds of a {model!r} camera; scope3d's jobs take {DEFAULT_MODEL} bounds only "
+                         "so far")
     lower = np.full(6, np.nan)
     upper = np.full(6, np.nan)
     found = 0

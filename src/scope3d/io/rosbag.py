@@ -26,6 +26,7 @@ from scope3d.geometry.pose import Pose
 from scope3d.geometry.rotation import quaternion_to_matrix
 from scope3d.io.images import decode_image_data
 from scope3d.sensor.camera import Camera
+from scope3d.sensor.camera_models import DEFAULT_MODEL, lens_model
 from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance
 
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
@@ -147,9 +148,21 @@ def decode_image(msg, msgtype: str, where: str) -> np.ndarray:
     return np.ascontiguousarray(img)
 
 
+# ROS distortion_model -> the coefficients of D in order (REP 104 / image_geometry)
+ROS_DISTORTION_MODELS = {
+    "plumb_bob": ("k1", "k2", "p1", "p2", "k3"),
+    "rational_polynomial": ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"),
+    "equidistant": ("k1", "k2", "k3", "k4"),
+}
+
+
 def camera_from_info(msg, where: str) -> Camera:
-    """A Camera from a CameraInfo message (plumb_bob / rational_polynomial: k1, k2 kept; the others must
-    be negligible, as scope3d's model has k1, k2 only)."""
+    """A Camera from a CameraInfo message, by its ``distortion_model``: ``equidistant`` is the fisheye
+    (OPENCV_FISHEYE, D = k1..k4); ``rational_polynomial`` is FULL_OPENCV; ``plumb_bob`` (D = k1, k2, p1, p2,
+    k3) is scope3d's ``pinhole_radial_k1k2`` when p1, p2 and k3 are zero (as every import so far), OPENCV
+    when only k3 is, FULL_OPENCV otherwise. A message without the name (an empty one) is read as plumb_bob,
+    or rational_polynomial when D has 8 values; a D shorter than the model's is padded with zeros (ROS
+    leaves D empty for a camera without distortion)."""
     # a damaged bag's message definition can turn K into one number or D into text: refused, not reshaped
     try:
         k = np.asarray(getattr(msg, "k", getattr(msg, "K", None)), float)
@@ -159,16 +172,54 @@ def camera_from_info(msg, where: str) -> Camera:
     if k.size != 9:
         raise InputError(f"{where}: camera info's K has {k.size} values, not 9")
     k = k.reshape(3, 3)
+    if not np.all(np.isfinite(k)) or not np.all(np.isfinite(d)):
+        raise InputError(f"{where}: camera info's K or D has NaN or infinite values")
     if not k[0, 0] > 0 or not k[1, 1] > 0:
         raise InputError(f"{where}: camera info has no focal length (uncalibrated camera)")
-    if len(d) > 2 and np.any(np.abs(d[2:]) > 1e-9):
-        raise InputError(f"{where}: distortion terms beyond k1, k2 ({d.tolist()}); undistort first")
-    k1, k2 = (list(d[:2]) + [0.0, 0.0])[:2]
+    name = str(getattr(msg, "distortion_model", "") or "")
+    if not name:
+        name = "rational_polynomial" if len(d) == 8 else "plumb_bob"
+    if name not in ROS_DISTORTION_MODELS:
+        raise InputError(f"{where}: distortion model {name!r} is not supported "
+                         f"(supported: {', '.join(ROS_DISTORTION_MODELS)})")
+    names = ROS_DISTORTION_MODELS[name]
+    if len(d) > len(names):
+        raise InputError(f"{where}: {name} has {len(names)} distortion coefficients, D has {len(d)}")
+    coeffs = dict(zip(names, list(d) + [0.0] * (len(names) - len(d))))
+    if name == "equidistant":
+        model = "OPENCV_FISHEYE"
+    elif name == "rational_polynomial" or coeffs["k3"] != 0.0:
+        model = "FULL_OPENCV"
+    elif coeffs["p1"] != 0.0 or coeffs["p2"] != 0.0:
+        model = "OPENCV"
+    else:
+        model = DEFAULT_MODEL
+    lens = lens_model(model)
+    head = {"fx": k[0, 0], "fy": k[1, 1], "cx": k[0, 2], "cy": k[1, 2]}
+    params = [float(head[n]) if n in head else float(coeffs.get(n, 0.0)) for n in lens.param_names]
     # ROS's pixel centres are at integer coordinates, as scope3d's are: cx, cy carry over unchanged
     try:
-        return Camera(int(msg.width), int(msg.height), k[0, 0], k[1, 1], k[0, 2], k[1, 2], k1=float(k1), k2=float(k2))
+        return Camera.from_params(int(msg.width), int(msg.height), model, params)
     except ValueError as exc:
         raise InputError(f"{where}: camera info is no camera ({exc})") from None
+
+
+def camera_info_fields(camera: Camera) -> dict:
+    """The sensor_msgs/CameraInfo fields of a camera (width, height, distortion_model, d, k, r, p): the
+    fisheye as ``equidistant``, FULL_OPENCV as ``rational_polynomial``, the others as ``plumb_bob``
+    (:func:`camera_from_info` reads them back as the same model). The circular mask has no field."""
+    p = dict(zip(camera.param_names, map(float, camera.params)))
+    if camera.lens.is_fisheye:
+        name = "equidistant"
+    elif camera.model == "FULL_OPENCV":
+        name = "rational_polynomial"
+    else:
+        name = "plumb_bob"
+    d = [p.get(n, 0.0) for n in ROS_DISTORTION_MODELS[name]]
+    return {"width": camera.width, "height": camera.height, "distortion_model": name, "d": d,
+            "k": [camera.fx, 0.0, camera.cx, 0.0, camera.fy, camera.cy, 0.0, 0.0, 1.0],
+            "r": [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+            "p": [camera.fx, 0.0, camera.cx, 0.0, 0.0, camera.fy, camera.cy, 0.0, 0.0, 0.0, 1.0, 0.0]}
 
 
 def pair_by_time(image_ns: np.ndarray, pose_ns: np.ndarray, slop_ns: int) -> list[tuple[int, int]]:

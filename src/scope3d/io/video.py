@@ -37,6 +37,10 @@ from scope3d.io.images import quiet_decoders
 from scope3d.utils.atomic import atomic_path
 
 MP4_FOURCC = "mp4v"  # MPEG-4 Part 2: encodable by the opencv wheel's FFmpeg (H.264 'avc1' is not)
+# The codec :func:`write_video` uses for a file's suffix: MPEG-4 Part 2 in .mp4 (lossy: at OpenCV's default
+# bitrate a 304 px phantom frame comes back ~5 grey levels RMS off), FFV1 in .mkv (lossless, ~7x larger), and
+# Motion JPEG in .avi (each frame a JPEG of quality 95, ~1 grey level off: a frame grabber's recording).
+VIDEO_CODECS = {".mp4": (MP4_FOURCC, []), ".mkv": ("FFV1", []), ".avi": ("MJPG", [cv2.VIDEOWRITER_PROP_QUALITY, 95])}
 
 
 @dataclass(frozen=True)
@@ -204,11 +208,15 @@ def read_video(path: str | Path, *, every: int = 1, check: DecodeCheck | None = 
 
 
 def write_video(path: str | Path, frames: Iterable[np.ndarray], fps: float) -> Path:
-    """Write frames ((H, W, 3) uint8 RGB or (H, W) uint8 grey, all one size) as an MPEG-4 video at ``fps``
-    frames per second, atomically (a temporary beside ``path``, renamed at the end). Returns ``path``."""
+    """Write frames ((H, W, 3) uint8 RGB or (H, W) uint8 grey, all one size) as a video at ``fps`` frames
+    per second, in the codec :data:`VIDEO_CODECS` gives ``path``'s suffix (.mp4, .mkv, .avi), atomically (a
+    temporary beside ``path``, renamed at the end). Returns ``path``."""
     if not (math.isfinite(fps) and fps > 0):
         raise ValueError(f"fps must be positive, got {fps}")
     path = Path(path)
+    if path.suffix.lower() not in VIDEO_CODECS:
+        raise ValueError(f"{path}: a video file's name ends in {', '.join(VIDEO_CODECS)}")
+    fourcc, params = VIDEO_CODECS[path.suffix.lower()]
     with atomic_path(path) as tmp:
         writer = None
         try:
@@ -219,9 +227,9 @@ def write_video(path: str | Path, frames: Iterable[np.ndarray], fps: float) -> P
                     raise ValueError(f"frame {k}: expected (H, W[, 3]) uint8, got {frame.shape} {frame.dtype}")
                 if writer is None:
                     size = (frame.shape[1], frame.shape[0])
-                    writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*MP4_FOURCC), float(fps), size)
+                    writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*fourcc), float(fps), size, params)
                     if not writer.isOpened():
-                        raise OSError(f"{path}: OpenCV cannot open an {MP4_FOURCC} video writer")
+                        raise OSError(f"{path}: OpenCV cannot open an {fourcc} video writer")
                 if (frame.shape[1], frame.shape[0]) != size:
                     raise ValueError(f"frame {k} is {frame.shape[1]}x{frame.shape[0]}, the first {size[0]}x{size[1]}")
                 writer.write(cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR) if frame.ndim == 2 else frame[..., ::-1].copy())

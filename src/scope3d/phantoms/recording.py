@@ -9,7 +9,7 @@ brings to scope3d before any of its own files exist (the walkthrough of ``docs/o
       hand_eye/board_NN.png      checkerboard stills, the robot dwelling at each view
       hand_eye/robot_log.csv     the flange pose during that session (same layout as the scan's log)
       hand_eye/frame_times.csv   image,t: when each still was taken, on the robot's clock
-      scan/video.mp4             the scan: 30 fps along a raster over the dome phantom
+      scan/video.mkv             the scan: 30 fps along a raster over the dome phantom (lossless FFV1)
       scan/robot_log.csv         the flange pose at 250 Hz: t (s, the robot's clock), x, y, z (metres),
                                  qx, qy, qz, qw (base_from_flange)
       scan/frame_times.csv       image,t: each video frame (by index) on the robot's clock
@@ -61,7 +61,8 @@ class RecordingOptions:
     hand_eye_views : board images of each session. grid : (rows, cols) of the scan's raster over the dome
     (5 mm apart, 15 mm above it, as ``grid5x6``). speed_mm_s : the scan's speed between raster points
     (the frames in between are rendered too). fps, log_hz : the camera's and the log's rates.
-    clock_offset_s : the robot's clock minus the camera's. sync_error_s : error of the frame times given
+    video_name : the scan's file, its codec by its suffix (:func:`scope3d.io.video.write_video`: .mkv
+    lossless, .avi Motion JPEG, .mp4 MPEG-4). clock_offset_s : the robot's clock minus the camera's. sync_error_s : error of the frame times given
     on the robot's clock. robot_error_mm : the controller's pose error (module docstring). seed : every
     random choice (board poses, the robot's error, image noise)."""
 
@@ -75,6 +76,7 @@ class RecordingOptions:
     clock_offset_s: float = 1000.137
     sync_error_s: float = 0.0
     robot_error_mm: float = 0.2
+    video_name: str = "video.mkv"
     seed: int = 0
     render: RenderOptions = field(default_factory=RenderOptions)
 
@@ -119,7 +121,7 @@ def write_recording(options: RecordingOptions, out_dir: str | Path, *, progress:
             frames.append(render_frame(scene, camera, pose, seed=options.seed, frame_index=i, exposure=exposure,
                                        options=options.render).image)
             advance(progress)
-        write_video(tmp / "scan" / "video.mp4", frames, options.fps)
+        write_video(tmp / "scan" / options.video_name, frames, options.fps)
         # the controller's ticks fall anywhere between the camera's
         phase = np.random.default_rng([options.seed, 42]).uniform(0.0, 1.0 / options.log_hz)
         log_times = np.arange(scan_times[0] - 0.5 + phase, scan_times[-1] + 0.5, 1.0 / options.log_hz)
@@ -207,6 +209,7 @@ def _write_frame_times(path: Path, names: list[str], camera_times, options: Reco
 
 def _describe(options: RecordingOptions) -> dict:
     return {"board": "9x6 inner corners, 2 mm squares", "grid": "x".join(map(str, options.grid)),
+            "video_name": options.video_name,
             "speed_mm_s": options.speed_mm_s, "fps": options.fps, "log_hz": options.log_hz,
             "clock_offset_s": options.clock_offset_s, "sync_error_s": options.sync_error_s,
             "robot_error_mm": options.robot_error_mm, "seed": options.seed}
@@ -217,7 +220,7 @@ _README = """A session with a robot-held endoscope over a dome phantom (rendered
 calibration/       {board} checkerboard views for the camera's intrinsics
 hand_eye/          checkerboard stills with the robot dwelling at each view; robot_log.csv is the robot's flange
                    pose log of that session, frame_times.csv when each still was taken (robot clock)
-scan/video.mp4     the scan, {fps:g} fps: a {grid} raster at {speed_mm_s:g} mm/s, 15 mm over the phantom
+scan/{video_name}     the scan, {fps:g} fps: a {grid} raster at {speed_mm_s:g} mm/s, 15 mm over the phantom
 scan/robot_log.csv the flange pose at {log_hz:g} Hz: t in seconds on the robot's clock, x, y, z in metres,
                    qx, qy, qz, qw (base_from_flange)
 scan/frame_times.csv image,t: each video frame (its index) on the robot's clock

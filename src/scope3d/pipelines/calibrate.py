@@ -5,15 +5,14 @@ Read top to bottom like the method section::
     images      <- read grey
     field       <- circular_field_radius          (scanning-fibre scope: the lit disc; optional)
     detections  <- detect_board per image          (corners, sub-pixel; which images lack the board)
-    pinhole     <- calibrate(model="pinhole")      (scope3d's Camera: fx, fy, cx, cy, k1, k2 + covariance)
-    fisheye     <- calibrate(model="fisheye")      (when asked: the capsule / wide-angle lens model)
-    files       <- camera.json, intrinsic_bounds.json (pinhole value +- k sigma), report.json,
-                   coverage.png, residuals.png
+    calibration <- calibrate(model)                (radial, opencv, full-opencv or fisheye: the camera
+                                                    model's parameters + covariance)
+    files       <- camera.json (that model), intrinsic_bounds.json (its parameters, value +- k sigma),
+                   report.json, coverage.png, residuals.png
 
 ``run(options, image_paths, out_dir) -> CalibrateResult`` is what the CLI (``scope3d calibrate``) calls.
-camera.json and intrinsic_bounds.json always hold the pinhole model, the one scope3d's datasets and
-bundle adjustment use; with ``model="fisheye"`` report.json's ``intrinsics`` are the fisheye model's and
-``pinhole`` holds the other fit.
+camera.json records the calibrated model by name (:mod:`scope3d.io.camera_json`); scope3d's datasets and
+jobs take the radial model (``pinhole_radial_k1k2``) until they take every model (issue 32).
 """
 from __future__ import annotations
 
@@ -27,6 +26,7 @@ from scope3d.io.camera_json import camera_to_dict
 from scope3d.io.images import read_image
 from scope3d.io.intrinsic_bounds import write_intrinsic_bounds
 from scope3d.sensor.calibration import (
+    CAMERA_MODEL_OF,
     BoardSpec,
     Calibration,
     CalibrationOptions,
@@ -42,42 +42,36 @@ from scope3d.utils.progress import Progress, advance, stage
 
 @dataclass(frozen=True)
 class CalibrateOptions:
-    """board : the board. model : "pinhole" or "fisheye" (the reported model; pinhole is always fitted too).
+    """board : the board. model : "radial", "opencv", "full-opencv" or "fisheye" ("pinhole": "radial"),
+    the model fitted and written (:data:`scope3d.sensor.calibration.CAMERA_MODEL_OF`).
     k_sigma : half-width of the bounds in standard deviations (3: a 99.7 % interval for a Gaussian error).
     mask_circle : find the circular field of a scanning-fibre scope and ignore what lies outside.
     detection, calibration : the stages' options (calibration.model is set from ``model``)."""
 
     board: BoardSpec
-    model: str = "pinhole"
+    model: str = "radial"
     k_sigma: float = 3.0
     mask_circle: bool = False
     detection: DetectionOptions = field(default_factory=DetectionOptions)
     calibration: CalibrationOptions = field(default_factory=CalibrationOptions)
 
     def __post_init__(self) -> None:
-        if self.model not in ("pinhole", "fisheye"):
-            raise ValueError(f"model must be pinhole or fisheye, got {self.model!r}")
+        if self.model not in CAMERA_MODEL_OF:
+            raise ValueError(f"model must be one of {', '.join(CAMERA_MODEL_OF)}, got {self.model!r}")
         if not self.k_sigma > 0:
             raise ValueError("k_sigma must be positive")
 
 
 @dataclass
 class CalibrateResult:
-    """pinhole : always. fisheye : with model="fisheye". reported : the one report.json leads with."""
+    """calibration : the fitted model. report : what report.json holds."""
 
-    pinhole: Calibration
-    fisheye: Calibration | None
+    calibration: Calibration
     report: dict
 
-    @property
-    def reported(self) -> Calibration:
-        return self.fisheye if self.fisheye is not None else self.pinhole
-
     def summary(self) -> str:
-        lines = [self.reported.summary()]
-        if self.fisheye is not None:
-            lines.append(self.pinhole.summary())
-        for name, why in self.reported.rejected.items():
+        lines = [self.calibration.summary()]
+        for name, why in self.calibration.rejected.items():
             lines.append(f"  rejected {name}: {why}")
         return "\n".join(lines)
 
@@ -100,53 +94,42 @@ def run(options: CalibrateOptions, image_paths: list[str | Path], out_dir: str |
     for path, image in zip(image_paths, images):
         detections.append(detect_board(image, options.board, name=path.name, options=detection))
         advance(progress)
-    pinhole = calibrate(detections, options.board, (width, height), mask_radius_px=mask_radius,
-                        options=_with_model(options.calibration, "pinhole"))
-    fisheye = None
-    if options.model == "fisheye":
-        fisheye = calibrate(detections, options.board, (width, height), mask_radius_px=mask_radius,
-                            options=_with_model(options.calibration, "fisheye"))
+    cal = calibrate(detections, options.board, (width, height), mask_radius_px=mask_radius,
+                    options=replace(options.calibration, model=options.model))
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    reported = fisheye if fisheye is not None else pinhole
-    report = _report(options, reported, pinhole, fisheye, [p.name for p in image_paths])
-    write_json(out / "camera.json", camera_to_dict(pinhole.camera()))
-    write_intrinsic_bounds(out / "intrinsic_bounds.json", pinhole.values, pinhole.std, options.k_sigma,
-                           source=f"scope3d calibrate, {len(pinhole.views)} views, RMS {pinhole.rms_px:.3f} px")
-    plot_coverage(reported, out / "coverage.png")
-    plot_residuals(reported, out / "residuals.png")
+    report = _report(options, cal, [p.name for p in image_paths])
+    write_json(out / "camera.json", camera_to_dict(cal.camera()))
+    write_intrinsic_bounds(out / "intrinsic_bounds.json", cal.values, cal.std, options.k_sigma,
+                           source=f"scope3d calibrate, {len(cal.views)} views, RMS {cal.rms_px:.3f} px",
+                           model=cal.model, names=cal.names)
+    plot_coverage(cal, out / "coverage.png")
+    plot_residuals(cal, out / "residuals.png")
     write_json(out / "report.json", report)
-    return CalibrateResult(pinhole, fisheye, report)
-
-
-def _with_model(options: CalibrationOptions, model: str) -> CalibrationOptions:
-    return replace(options, model=model)
+    return CalibrateResult(cal, report)
 
 
 def _intrinsics_dict(cal: Calibration) -> dict:
     return {n: {"value": float(v), "std": float(s)} for n, v, s in zip(cal.names, cal.values, cal.std)}
 
 
-def _report(options, reported, pinhole, fisheye, names) -> dict:
+def _report(options, cal, names) -> dict:
     report = {
-        "model": reported.model,
+        "model": cal.model,
         "board": {"cols": options.board.cols, "rows": options.board.rows, "square_mm": options.board.square_mm,
                   "kind": options.board.kind},
-        "image_size": [reported.width, reported.height],
-        "rms_px": reported.rms_px,
+        "image_size": [cal.width, cal.height],
+        "rms_px": cal.rms_px,
         "n_images": len(names),
-        "n_views_used": len(reported.views),
-        "intrinsics": _intrinsics_dict(reported),
-        "per_view_rms_px": dict(zip(reported.views, map(float, reported.view_rms_px))),
-        "rejected": reported.rejected,
+        "n_views_used": len(cal.views),
+        "intrinsics": _intrinsics_dict(cal),
+        "per_view_rms_px": dict(zip(cal.views, map(float, cal.view_rms_px))),
+        "rejected": cal.rejected,
         "k_sigma": options.k_sigma,
-        "mask_radius_px": reported.mask_radius_px,
+        "mask_radius_px": cal.mask_radius_px,
     }
-    if reported.opencv_std is not None:
-        report["opencv_std"] = dict(zip(reported.names, map(float, reported.opencv_std)))
-    if fisheye is not None:
-        report["pinhole"] = {"rms_px": pinhole.rms_px, "n_views_used": len(pinhole.views),
-                             "intrinsics": _intrinsics_dict(pinhole), "rejected": pinhole.rejected}
+    if cal.opencv_std is not None:
+        report["opencv_std"] = dict(zip(cal.names, map(float, cal.opencv_std)))
     return report
 
 

@@ -140,7 +140,7 @@ def run(options: FramesImportOptions, source: str | Path, log: str | Path, camer
         times = times + options.timing.clock_offset_s
         rotations, positions, gaps = trajectory.at(times)
         bad = ~(gaps <= options.max_gap_s)
-        skipped = {names[k]: _why_unposed(times[k], gaps[k], pose_log, options.max_gap_s) for k in np.flatnonzero(bad)}
+        skipped = {names[k]: unposed_reason(times[k], gaps[k], pose_log, options.max_gap_s) for k in np.flatnonzero(bad)}
         if skipped and not options.skip_unposed_frames:
             name, why = next(iter(skipped.items()))
             where = f"{source / name}: the frame" if kind == "folder" else f"{source}: frame {name}"
@@ -247,7 +247,8 @@ def _check_size(path: Path, camera: Camera) -> None:
         raise InputError(f"{path}: {size[0]}x{size[1]} px, the camera is {camera.width}x{camera.height}")
 
 
-def _why_unposed(time_s: float, gap_s: float, log: PoseLog, max_gap_s: float) -> str:
+def unposed_reason(time_s: float, gap_s: float, log: PoseLog, max_gap_s: float) -> str:
+    """Why a frame at ``time_s`` gets no pose from ``log`` (outside it, or in a gap longer than allowed)."""
     if math.isinf(gap_s):
         return (f"at {time_s:.6g} s lies outside the log's {log.times_s[0]:.6g} to {log.times_s[-1]:.6g} s")
     return f"at {time_s:.6g} s falls in a {gap_s * 1e3:.4g} ms gap of the log (longest allowed {max_gap_s * 1e3:.4g} ms)"

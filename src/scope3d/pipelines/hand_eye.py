@@ -1,13 +1,14 @@
 """Hand-eye calibration of a robot-held scope, as one job (reference sec. 8.1)::
 
-    robot      <- poses.csv rows (the flange in the robot base: position mm, orientation quaternion)
+    robot      <- poses.csv rows (the flange in the robot base: position mm, orientation quaternion), or
+                  the robot's log interpolated to each image's time (robot_poses_from_log)
     corners    <- detect_board per image                (images without the board are listed and skipped)
     board      <- board_pose per view                   (solvePnP through the calibrated camera.json)
     hand-eye   <- calibrate_hand_eye                    (Park-Martin closed form, joint refinement)
     files      <- hand_eye.json (flange_from_cam, cam_from_flange, residuals, tolerance; report.json the same),
                   poses.csv (cam_from_base of every robot row with the tolerance: a dataset's poses)
 
-``run(options, image_paths, robot_poses_csv, camera, out_dir, *, progress=None) -> HandEyeRunResult`` is what
+``run(options, image_paths, robot, camera, out_dir, *, progress=None) -> HandEyeRunResult`` is what
 ``scope3d calibrate-hand-eye`` calls.
 """
 from __future__ import annotations
@@ -19,7 +20,9 @@ import numpy as np
 
 from scope3d.errors import InputError
 from scope3d.geometry.pose import Pose
+from scope3d.geometry.trajectory import Trajectory
 from scope3d.io.images import read_image
+from scope3d.io.robot_log import PoseLogFormat, read_pose_log
 from scope3d.io.poses_csv import format_poses_csv, read_poses_csv
 from scope3d.sensor.calibration import BoardSpec, DetectionOptions, detect_board
 from scope3d.sensor.camera import Camera
@@ -27,6 +30,7 @@ from scope3d.sensor.hand_eye import HandEyeOptions, HandEyeResult, board_pose, c
 from scope3d.sensor.pose_tolerance import MeasuredPose
 from scope3d.utils.atomic import atomic_file
 from scope3d.utils.jsonio import write_json
+from scope3d.pipelines.frames_import import DEFAULT_MAX_GAP_S, unposed_reason
 from scope3d.utils.progress import Progress, advance, stage
 
 
@@ -57,16 +61,35 @@ def robot_flange_poses(path: str | Path) -> dict[str, Pose]:
     return {n: m.pose.inverse() for n, m in zip(names, measured)}
 
 
-def run(options: HandEyeRunOptions, image_paths: list[str | Path], robot_poses_csv: str | Path, camera: Camera,
-        out_dir: str | Path, *, progress: Progress | None = None) -> HandEyeRunResult:
-    """Hand-eye calibration from board images taken at the robot poses of ``robot_poses_csv``, through the
-    calibrated ``camera``; writes ``hand_eye.json``, ``poses.csv`` and ``report.json`` into ``out_dir``.
-    progress : counts the images searched for the board."""
-    robot = robot_flange_poses(robot_poses_csv)
+def robot_poses_from_log(log: str | Path, log_format: PoseLogFormat, frame_times: dict[str, float], *,
+                         max_gap_s: float = DEFAULT_MAX_GAP_S) -> dict[str, Pose]:
+    """``base_from_flange`` at each image's time (``frame_times``: image name -> seconds on the log's
+    clock), interpolated in the robot's log as ``scope3d import frames`` does. InputError naming the image
+    for one outside the log or in a gap longer than ``max_gap_s``."""
+    pose_log = read_pose_log(log, log_format)
+    names = list(frame_times)
+    times = np.array([frame_times[n] for n in names], dtype=float)
+    rotations, positions, gaps = Trajectory(pose_log.times_s, pose_log.rotations, pose_log.positions_mm).at(times)
+    bad = np.flatnonzero(~(gaps <= max_gap_s))
+    if bad.size:
+        k = bad[0]
+        raise InputError(f"{log}: image {names[k]} {unposed_reason(times[k], gaps[k], pose_log, max_gap_s)}")
+    return {n: Pose(r, p) for n, r, p in zip(names, rotations, positions)}
+
+
+def run(options: HandEyeRunOptions, image_paths: list[str | Path], robot: str | Path | dict[str, Pose],
+        camera: Camera, out_dir: str | Path, *, progress: Progress | None = None) -> HandEyeRunResult:
+    """Hand-eye calibration from board images taken at the robot's poses, through the calibrated
+    ``camera``; writes ``hand_eye.json``, ``poses.csv`` and ``report.json`` into ``out_dir``.
+
+    robot : a poses.csv of flange poses (:func:`robot_flange_poses`), or image name -> ``base_from_flange``
+    (e.g. :func:`robot_poses_from_log`). progress : counts the images searched for the board."""
+    where = "the robot poses" if isinstance(robot, dict) else robot
+    robot = dict(robot) if isinstance(robot, dict) else robot_flange_poses(robot)
     image_paths = [Path(p) for p in image_paths]
     missing = [p.name for p in image_paths if p.name not in robot]
     if missing:
-        raise InputError(f"{robot_poses_csv}: no robot pose for image(s) {', '.join(missing)}")
+        raise InputError(f"{where}: no robot pose for image(s) {', '.join(missing)}")
     obj_all = options.board.object_points()
     views, flange, boards, objs, pixels, skipped = [], [], [], [], [], {}
     stage(progress, "detect", len(image_paths))

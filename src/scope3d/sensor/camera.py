@@ -1,25 +1,32 @@
-"""Pinhole camera with two-term radial distortion, the model of the reference's bundle adjustment (sec. 6.2).
+"""The camera of a dataset: image size, a lens model and its parameters, and the optional circular field.
 
-A point ``X_cam = (X, Y, Z)`` (mm, camera frame, +z forward) projects to normalised coordinates
+The default model, ``pinhole_radial_k1k2``, is the model of the reference's bundle adjustment (sec. 6.2):
+a point ``X_cam = (X, Y, Z)`` (mm, camera frame, +z forward) projects to normalised coordinates
 ``x = X/Z, y = Y/Z``, is distorted radially, ``x_d = x (1 + k1 r^2 + k2 r^4)`` with ``r^2 = x^2 + y^2``,
 and lands at pixel ``u = fx x_d + cx, v = fy y_d + cy``. Pixel coordinates have their origin at the
 centre of the top-left pixel, u to the right and v down; an image of width W spans u in [-0.5, W-0.5].
+A Camera carries any model of :mod:`scope3d.sensor.camera_models` (``model`` names it; the parameters
+after ``(fx, fy, cx, cy, k1, k2)`` are in ``extra``, see :attr:`Camera.params`).
 
-Intrinsic parameters are ordered ``(fx, fy, cx, cy, k1, k2)`` everywhere in scope3d (pixels, pixels,
-pixels, pixels, unitless, unitless). Pose parameters in Jacobians are ``(w, t)``: the rotation vector of
-``R = exp([w]x)`` (rad) and the translation (mm) of ``cam_from_world``.
+Intrinsic parameters of the default model are ordered ``(fx, fy, cx, cy, k1, k2)`` everywhere in scope3d
+(pixels, pixels, pixels, pixels, unitless, unitless). Pose parameters in Jacobians are ``(w, t)``: the
+rotation vector of ``R = exp([w]x)`` (rad) and the translation (mm) of ``cam_from_world``.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
+from functools import cached_property
 
 import numpy as np
 
 from scope3d.geometry.pose import Pose
 from scope3d.geometry.rotation import hat, rotvec_to_matrix, so3_left_jacobian
+from scope3d.sensor.camera_models import DEFAULT_MODEL, LensModel, lens_model, opencv_distortion
 
 INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2")
-_UNDISTORT_ITERATIONS = 20
+# A pixel is inside the lens's image when its ray projects back onto it within this (px): the round trip
+# is exact to ~1e-9 px inside the field and misses by far where the map folds back.
+_ROUND_TRIP_PX = 1e-6
 
 
 @dataclass(frozen=True)
@@ -28,9 +35,13 @@ class Camera:
 
     width, height : int, pixels.
     fx, fy : float, focal lengths in pixels; cx, cy : float, principal point in pixels.
-    k1, k2 : float, radial distortion on normalised coordinates.
+    k1, k2 : float, the model's first two distortion coefficients (radial k1, k2 of the pinhole family;
+        the fisheye's k1, k2 on theta); 0 for ``PINHOLE``.
     mask_radius_px : float or None. The scanning-fibre endoscope's image is a disc inside a square
         frame; pixels farther than this from the image centre are not part of the image.
+    model : str, a name of :data:`scope3d.sensor.camera_models.MODELS` (default ``pinhole_radial_k1k2``).
+    extra : tuple of float, the model's parameters after k2 in its order (OPENCV: p1, p2; FULL_OPENCV:
+        p1, p2, k3, k4, k5, k6; OPENCV_FISHEYE: k3, k4).
     """
 
     width: int
@@ -42,9 +53,12 @@ class Camera:
     k1: float = 0.0
     k2: float = 0.0
     mask_radius_px: float | None = None
+    model: str = DEFAULT_MODEL
+    extra: tuple[float, ...] = field(default=())
 
     def __post_init__(self) -> None:
-        values = [self.fx, self.fy, self.cx, self.cy, self.k1, self.k2]
+        lens = lens_model(self.model)
+        values = [self.fx, self.fy, self.cx, self.cy, self.k1, self.k2, *self.extra]
         if not np.all(np.isfinite(values)):
             raise ValueError(f"camera intrinsics must be finite, got {values}")
         if self.width <= 0 or self.height <= 0:
@@ -53,6 +67,13 @@ class Camera:
             raise ValueError(f"camera focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
         if self.mask_radius_px is not None and self.mask_radius_px <= 0:
             raise ValueError("camera mask radius must be positive")
+        if lens.num_params < 6 and (self.k1 != 0.0 or self.k2 != 0.0 or self.extra):
+            raise ValueError(f"a {self.model} camera has no distortion, got k1={self.k1}, k2={self.k2}, "
+                             f"extra={self.extra}")
+        if lens.num_params >= 6 and len(self.extra) != lens.num_params - 6:
+            raise ValueError(f"{self.model} takes {lens.num_params} parameters ({', '.join(lens.param_names)}), "
+                             f"got {6 + len(self.extra)}")
+        object.__setattr__(self, "extra", tuple(float(v) for v in self.extra))
 
     # --- construction ------------------------------------------------------------------------
     @classmethod
@@ -76,14 +97,51 @@ class Camera:
         fx, fy, cx, cy, k1, k2 = (float(v) for v in np.asarray(intrinsics, dtype=float).reshape(6))
         return cls(width, height, fx, fy, cx, cy, k1, k2, **kw)
 
+    @classmethod
+    def from_params(cls, width: int, height: int, model: str, params, *,
+                    mask_radius_px: float | None = None) -> "Camera":
+        """A camera of any model from its parameter vector in the model's order (ValueError when the count
+        does not fit the model or the name is unknown)."""
+        lens = lens_model(model)
+        p = [float(v) for v in lens.check(np.asarray(params, dtype=float).ravel())]
+        head = (p + [0.0, 0.0])[:6]
+        return cls(width, height, *head, mask_radius_px=mask_radius_px, model=model, extra=tuple(p[6:]))
+
+    @property
+    def lens(self) -> LensModel:
+        return lens_model(self.model)
+
+    @property
+    def params(self) -> np.ndarray:
+        """(P,) the model's parameters in its order (:attr:`LensModel.param_names`)."""
+        head = [self.fx, self.fy, self.cx, self.cy, self.k1, self.k2]
+        return np.array((head + list(self.extra))[:self.lens.num_params], dtype=float)
+
+    @property
+    def param_names(self) -> tuple[str, ...]:
+        return self.lens.param_names
+
+    def with_params(self, params: np.ndarray) -> "Camera":
+        """The same camera and model with other parameters."""
+        return Camera.from_params(self.width, self.height, self.model, params, mask_radius_px=self.mask_radius_px)
+
     @property
     def intrinsics(self) -> np.ndarray:
-        """(6,) (fx, fy, cx, cy, k1, k2)."""
+        """(6,) (fx, fy, cx, cy, k1, k2) of the default model (the jobs' bundle adjustment's vector)."""
+        self._require_default("intrinsics")
         return np.array([self.fx, self.fy, self.cx, self.cy, self.k1, self.k2])
 
     def with_intrinsics(self, intrinsics: np.ndarray) -> "Camera":
+        self._require_default("with_intrinsics")
         fx, fy, cx, cy, k1, k2 = (float(v) for v in np.asarray(intrinsics, dtype=float).reshape(6))
         return replace(self, fx=fx, fy=fy, cx=cx, cy=cy, k1=k1, k2=k2)
+
+    def _require_default(self, what: str) -> None:
+        # The 6-vector means (fx, fy, cx, cy, k1, k2) of the radial model to every caller: another model's
+        # parameters read through it would be silently wrong (a fisheye's k1 is no radial k1).
+        if self.model != DEFAULT_MODEL:
+            raise ValueError(f"Camera.{what} is the {DEFAULT_MODEL} vector; a {self.model} camera has "
+                             f"params {self.param_names}")
 
     @property
     def K(self) -> np.ndarray:
@@ -92,62 +150,70 @@ class Camera:
 
     @property
     def fov_deg(self) -> float:
-        """Full field of view across the image width (undistorted pinhole), degrees."""
-        return fov_from_focal(self.width, self.fx)
+        """Full field of view across the image width: of the undistorted pinhole for the default model (as
+        scope3d always reported it); through the lens, at the principal point's row, for the others."""
+        if self.model == DEFAULT_MODEL:
+            return fov_from_focal(self.width, self.fx)
+        rays = self.lens.unproject(self.params, np.array([[self.cx + self.width / 2.0, self.cy]]))
+        return float(np.rad2deg(2.0 * np.arctan2(np.hypot(rays[0, 0], rays[0, 1]), rays[0, 2])))
 
     @property
     def distortion_coeffs(self) -> np.ndarray:
-        """OpenCV's (k1, k2, p1, p2) for the same model."""
-        return np.array([self.k1, self.k2, 0.0, 0.0])
+        """OpenCV's distortion vector for the same model: (k1, k2, p1, p2[, k3, k4, k5, k6]) for
+        cv2.projectPoints, (k1, k2, k3, k4) of a fisheye for cv2.fisheye."""
+        return opencv_distortion(self.model, self.params)
+
+    @cached_property
+    def max_half_angle_rad(self) -> float:
+        """Half-angle from the optical axis up to which the lens's image does not fold back (past pi/2 for
+        a fisheye that sees that far)."""
+        return self.lens.max_half_angle(self.params)
 
     # --- distortion ---------------------------------------------------------------------------
     def distort(self, normalised: np.ndarray) -> np.ndarray:
         """(N, 2) undistorted normalised coordinates -> (N, 2) distorted normalised coordinates."""
-        xy = np.asarray(normalised, dtype=float)
-        r2 = np.sum(xy * xy, axis=-1, keepdims=True)
-        return xy * (1.0 + self.k1 * r2 + self.k2 * r2 * r2)
+        return self.lens.distort(self.params, normalised)
 
     def undistort(self, distorted: np.ndarray) -> np.ndarray:
-        """Inverse of :meth:`distort`, by Newton's method on the radius (exact to ~1e-12 in the image)."""
-        xy_d = np.asarray(distorted, dtype=float)
-        if self.k1 == 0.0 and self.k2 == 0.0:
-            return xy_d.copy()
-        rd = np.linalg.norm(xy_d, axis=-1)
-        r = rd.copy()
-        for _ in range(_UNDISTORT_ITERATIONS):
-            r2 = r * r
-            f = r * (1.0 + self.k1 * r2 + self.k2 * r2 * r2) - rd
-            df = 1.0 + 3.0 * self.k1 * r2 + 5.0 * self.k2 * r2 * r2
-            r = r - f / np.where(np.abs(df) < 1e-12, 1e-12, df)
-        scale = np.where(rd > 0, r / np.where(rd > 0, rd, 1.0), 1.0)
-        return xy_d * scale[..., None]
+        """Inverse of :meth:`distort` (Newton's method, exact to ~1e-12 in the image)."""
+        return self.lens.undistort(self.params, distorted)
 
     # --- projection ---------------------------------------------------------------------------
     def project(self, points_cam: np.ndarray) -> np.ndarray:
-        """points_cam : (N, 3) mm in the camera frame -> (N, 2) pixels. Points behind give NaN."""
-        p = np.asarray(points_cam, dtype=float)
-        z = p[..., 2:3]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            xy = np.where(z > 0, p[..., :2] / z, np.nan)
-        xy_d = self.distort(xy)
-        return np.stack([self.fx * xy_d[..., 0] + self.cx, self.fy * xy_d[..., 1] + self.cy], axis=-1)
+        """points_cam : (N, 3) mm in the camera frame -> (N, 2) pixels. Points the lens cannot see give NaN:
+        at or behind the camera plane for the pinhole family, beyond :attr:`max_half_angle_rad` for a fisheye."""
+        pixels = self.lens.project(self.params, points_cam)
+        if self.lens.is_fisheye:
+            outside = ~self.lens.in_field(self.params, points_cam)
+            pixels = np.where(outside[..., None], np.nan, pixels)
+        return pixels
 
     def project_world(self, pose: Pose, points_world: np.ndarray) -> np.ndarray:
         """points_world : (N, 3) mm -> (N, 2) pixels in the camera at ``pose``."""
         return self.project(pose.transform(points_world))
 
+    def project_with_jacobians(self, points_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """pixels (N, 2), d pixel / d point_cam (N, 2, 3) and d pixel / d :attr:`params` (N, 2, P), any model
+        (the pose's Jacobian: :func:`scope3d.sensor.camera_models.project_world_with_jacobians`)."""
+        return self.lens.project_with_jacobians(self.params, points_cam)
+
     def pixel_to_normalised(self, pixels: np.ndarray) -> np.ndarray:
-        """(N, 2) pixels -> (N, 2) undistorted normalised coordinates."""
-        uv = np.asarray(pixels, dtype=float)
-        xy_d = np.stack([(uv[..., 0] - self.cx) / self.fx, (uv[..., 1] - self.cy) / self.fy], axis=-1)
-        return self.undistort(xy_d)
+        """(N, 2) pixels -> (N, 2) undistorted normalised coordinates (rays in front of the camera)."""
+        return self.undistort(self.lens.to_distorted(self.params, pixels))
 
     def unproject(self, pixels: np.ndarray, depth_mm: np.ndarray | float | None = None) -> np.ndarray:
         """Back-project pixels.
 
-        pixels : (N, 2). Without ``depth_mm``, returns unit rays (N, 3) in the camera frame;
-        with ``depth_mm`` (N,) or scalar, the z-depth, returns points (N, 3) mm in the camera frame.
+        pixels : (N, 2). Without ``depth_mm``, returns unit rays (N, 3) in the camera frame (a fisheye's
+        may point backwards, past 90 deg); with ``depth_mm`` (N,) or scalar, the z-depth, returns points
+        (N, 3) mm in the camera frame.
         """
+        if self.lens.is_fisheye:
+            rays = self.lens.unproject(self.params, pixels)
+            if depth_mm is None:
+                return rays
+            with np.errstate(divide="ignore", invalid="ignore"):
+                return rays / rays[..., 2:3] * np.asarray(depth_mm, dtype=float)[..., None]
         xy = self.pixel_to_normalised(pixels)
         rays = np.concatenate([xy, np.ones(xy.shape[:-1] + (1,))], axis=-1)
         if depth_mm is None:
@@ -173,6 +239,21 @@ class Camera:
         grid = self.pixel_grid()
         centre = np.array([(self.width - 1) / 2.0, (self.height - 1) / 2.0])
         return np.linalg.norm(grid - centre, axis=-1) <= self.mask_radius_px
+
+    def valid_mask(self) -> np.ndarray:
+        """(H, W) bool: :meth:`mask` and the lens sees through the pixel, i.e. its ray lies inside
+        :attr:`max_half_angle_rad` and projects back onto it (where the image folds back it does not)."""
+        grid = self.pixel_grid().reshape(-1, 2)
+        return self.mask() & self.sees_pixels(grid).reshape(self.height, self.width)
+
+    def sees_pixels(self, pixels: np.ndarray) -> np.ndarray:
+        """(N,) bool: each pixel is the image of one ray inside the lens's field (frame and mask aside)."""
+        uv = np.asarray(pixels, dtype=float)
+        rays = self.unproject(uv)
+        inside = self.lens.in_field(self.params, rays)
+        with np.errstate(invalid="ignore"):
+            back = self.lens.project(self.params, np.where(inside[..., None], rays, np.nan))
+            return inside & (np.linalg.norm(back - uv, axis=-1) <= _ROUND_TRIP_PX)
 
     def in_image(self, pixels: np.ndarray, margin_px: float = 0.0) -> np.ndarray:
         """(N,) bool: pixel inside the frame (and the circular mask), at least ``margin_px`` from its edge."""

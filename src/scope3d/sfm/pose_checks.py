@@ -144,7 +144,8 @@ class PoseCheck:
             flagged.append({
                 "frame": names[t.frame], "statistic": t.statistic, "p_value": t.p_value,
                 "critical_value": t.critical_value, "noise_px": t.noise_px, "inliers": t.inliers,
-                "disagreement_mm": t.disagreement_mm, "disagreement_deg": float(np.rad2deg(t.disagreement_rad)),
+                "disagreement_mm": t.disagreement_mm, "disagreement_sd_mm": t.disagreement_sd_mm,
+                "disagreement_deg": float(np.rad2deg(t.disagreement_rad)),
                 "beyond_tolerance_mm": float(np.linalg.norm(t.beyond_box[3:])),
                 "beyond_tolerance_deg": float(np.rad2deg(np.linalg.norm(t.beyond_box[:3]))),
                 "tolerance_mm": tol.position_mm.tolist(), "tolerance_deg": tol.orientation_deg.tolist(),
