@@ -3,6 +3,7 @@ modules import each other, directly or through others (docs/architecture.md draw
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 from scipy.sparse import coo_matrix
@@ -123,3 +124,50 @@ def test_no_private_name_crosses_a_package():
                     and node.value.id in aliases):
                 bad.append(f"{module} uses {aliases[node.value.id]}.{node.attr}")
     assert not bad, "\n".join(sorted(set(bad)))
+
+
+ARCHITECTURE = PACKAGE.parents[1] / "docs" / "architecture.md"
+
+
+def _diagram_by_layer() -> dict[str, str]:
+    """The text of architecture.md's layer diagram (its first code block), by the layer each line describes:
+    a line whose first word (after the diagram's ``│``) is a layer's name starts that layer's text."""
+    block = ARCHITECTURE.read_text().split("```")[1]
+    text: dict[str, str] = {}
+    layer = None
+    for line in block.splitlines():
+        words = re.findall(r"[A-Za-z_]+", line.replace("│", " "))
+        if words and words[0] in RANK:
+            layer = words[0]
+        if layer is not None:
+            text[layer] = text.get(layer, "") + "\n" + line
+    return text
+
+
+def test_the_architecture_diagram_names_every_module_in_its_layer():
+    # a module named nowhere on the newcomer's map is how the map drifted from the tree before (issue 31)
+    text = _diagram_by_layer()
+    missing = []
+    for module in _modules():
+        parts = module.split(".")[1:]
+        if len(parts) < 2:  # the package and the layers themselves (errors is its own layer)
+            assert not parts or parts[0] in text, f"layer {parts[0]} is not in docs/architecture.md's diagram"
+            continue
+        if not re.search(rf"(?<!\w){re.escape(parts[-1])}(?!\w)", text.get(parts[0], "")):
+            missing.append(module)
+    assert not missing, f"modules docs/architecture.md's diagram does not name in their layer: {missing}"
+
+
+def test_every_package_docstring_names_modules_that_exist_and_no_future():
+    # a package's docstring is the second thing a newcomer reads: it must not point at modules that are
+    # gone or promise code that has landed
+    modules = _modules()
+    for package, path in modules.items():
+        if path.name != "__init__.py":
+            continue
+        doc = ast.get_docstring(ast.parse(path.read_text())) or ""
+        assert doc, f"{package} has no docstring"
+        assert "lands here" not in doc and "land here" not in doc, f"{package}'s docstring promises code"
+        for name in re.findall(r":mod:`(\.?[\w.]+)`", doc):
+            full = package + name if name.startswith(".") else name
+            assert full in modules, f"{package}'s docstring names {name}, which is not a module"

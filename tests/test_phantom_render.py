@@ -218,7 +218,7 @@ def test_scene_default_supersampling_leaves_the_dome_unchanged():
 
 
 def test_target_ids_from_the_box_prefilter_equal_contains_on_every_point():
-    # _target_ids asks Target.contains only about points inside each target's world box; the answer must be
+    # _target_ids asks TrueTarget.contains only about points inside each target's world box; the answer must be
     # exactly the one contains gives on all points (the box bounds the outline box times the depth range).
     from scope3d.phantoms.render import _target_ids
 

@@ -10,6 +10,7 @@ from scope3d.feature.matching import MatchOptions
 from scope3d.metrology.evaluation import EvaluationOptions
 from scope3d.pipelines.surgical_map import MapOptions
 from scope3d.pipelines.thread_scan import ThreadScanOptions
+from scope3d.sfm.cavity_mapping import CavityOptions
 from scope3d.sfm.coarse_poses import CoarseOptions
 from scope3d.utils.threads import available_cores, check_threads, resolve_threads
 
@@ -23,7 +24,8 @@ def test_zero_is_every_core_the_process_may_use():
     assert resolve_threads(0, tasks=0) == 1
 
 
-@pytest.mark.parametrize("options", [MatchOptions, EvaluationOptions, MapOptions, ThreadScanOptions, CoarseOptions])
+@pytest.mark.parametrize("options", [MatchOptions, EvaluationOptions, MapOptions, ThreadScanOptions, CoarseOptions,
+                                     CavityOptions])
 def test_every_threads_option_defaults_to_every_core_and_refuses_a_negative_count(options):
     assert options().threads == 0
     assert options(threads=1).threads == 1

@@ -1,8 +1,9 @@
 """scope3d: metric 3D models from a robot-held scope whose poses are known within a tolerance.
 
-Layers, lowest first (a lower layer never imports a higher one):
-``geometry`` -> ``pose``, ``camera`` -> ``dataset``/``formats``, ``phantoms`` -> features, bundle adjustment
--> stereo, registration, metrology -> ``pipelines`` -> ``cli``.
+Layers, lowest first (a layer imports only its own and lower ones; docs/architecture.md names every module):
+:mod:`.errors`, :mod:`.utils` -> :mod:`.geometry` -> :mod:`.sensor` -> :mod:`.scene` -> :mod:`.io` ->
+:mod:`.phantoms` -> :mod:`.feature` -> :mod:`.estimators` -> :mod:`.sfm`, :mod:`.mvs`, :mod:`.registration`,
+:mod:`.metrology` -> :mod:`.pipelines` -> :mod:`.report` -> :mod:`.cli`.
 """
 from scope3d.errors import InputError
 

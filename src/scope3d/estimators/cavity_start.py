@@ -33,7 +33,7 @@ from scope3d.geometry.pose import Pose
 from scope3d.geometry.rotation import rotation_angle, rotvec_to_matrix
 from scope3d.sensor.camera import Camera
 from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance
-from scope3d.utils.robust import huber_weights, robust_norm_sigma
+from scope3d.utils.robust import huber_weights, relative_spread, robust_norm_sigma
 
 
 def pair_depths(camera: Camera, pixels_i: np.ndarray, pixels_j: np.ndarray,
@@ -59,8 +59,7 @@ def depth_spread(camera: Camera, pixels_i: np.ndarray, pixels_j: np.ndarray, rel
     zi, front = pair_depths(camera, pixels_i, pixels_j, relative)
     if front.mean() < 0.5:
         return float("inf")
-    med = float(np.median(zi[front]))
-    return float(np.median(np.abs(zi[front] - med)) / med)
+    return relative_spread(zi[front])
 
 
 def _bearing_rotation(camera: Camera, pixels_i: np.ndarray, pixels_j: np.ndarray) -> np.ndarray:

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import least_squares
 
-from scope3d.utils.robust import robust_sigma
+from scope3d.utils.robust import relative_spread, robust_sigma
 
 
 def fit_sphere(points: np.ndarray, *, robust: bool = False) -> tuple[np.ndarray, float]:
@@ -53,6 +53,4 @@ def wall_spread(points: np.ndarray) -> float:
     threshold: :func:`scope3d.sfm.cavity_map_choice.choose_map` only compares two maps of the same frames."""
     if len(points) < 4:
         return float("inf")
-    r = np.linalg.norm(np.asarray(points, float) - fit_sphere(points)[0], axis=1)
-    med = float(np.median(r))
-    return float(np.median(np.abs(r - med)) / med)
+    return relative_spread(np.linalg.norm(np.asarray(points, float) - fit_sphere(points)[0], axis=1))

@@ -1,8 +1,11 @@
-"""Other tools' file formats: COLMAP sparse text models and Middlebury multi-view ``*_par.txt`` sets.
-
-Each importer turns a foreign format into a scope3d dataset folder (see :mod:`scope3d.io.dataset`); the
-COLMAP writer lets any pipeline hand its sparse reconstruction to COLMAP, pycolmap or their viewers.
-(Bundle Adjustment in the Large problems and their bounds files: :mod:`.bal`, :mod:`.bal_bounds`.)
+"""Files: the dataset folder (:mod:`.dataset`) and what it holds (:mod:`.images`, :mod:`.poses_csv`,
+:mod:`.camera_json`, :mod:`.hand_eye_json`, :mod:`.intrinsic_bounds`, :mod:`.quadrants`, :mod:`.scan_plan`),
+outputs (:mod:`.ply`, :mod:`.obj`, :mod:`.map_points`), and other tools' formats, each importer turning a
+foreign format into a dataset folder: COLMAP sparse text models (:mod:`.colmap`, also written so any
+pipeline can hand its model to COLMAP, pycolmap or their viewers), Middlebury multi-view sets
+(:mod:`.middlebury`), videos (:mod:`.video`), ROS bags (:mod:`.rosbag`), robot pose logs
+(:mod:`.robot_log`), NDI Track exports (:mod:`.tracker`), Bundle Adjustment in the Large problems and
+their bounds files (:mod:`.bal`, :mod:`.bal_bounds`); :mod:`.json_object` reads anyone's JSON object.
 """
 from scope3d.io.colmap import SparseModel, import_colmap, read_colmap_text, write_colmap_text
 from scope3d.io.middlebury import import_middlebury, read_middlebury_par

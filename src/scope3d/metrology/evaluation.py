@@ -29,6 +29,7 @@ from scope3d.geometry.similarity import Similarity, fit_similarity
 from scope3d.scene.mesh import Mesh, SampledSurface
 from scope3d.sensor.camera import Camera
 from scope3d.sensor.pose_tolerance import MeasuredPose
+from scope3d.utils.robust import robust_sigma
 from scope3d.utils.threads import check_threads, resolve_threads
 
 
@@ -248,7 +249,7 @@ def errors_after_similarity(points: np.ndarray, true_points: np.ndarray, truth: 
     sim = fit_similarity(x[use], y[use])
     for _ in range(iterations):
         r = np.linalg.norm(sim.apply(x) - y, axis=1)
-        sigma = max(float(np.median(r[use])) / 0.6745, 1e-9)
+        sigma = max(robust_sigma(r[use], about=0.0), 1e-9)
         keep = use & (r <= 3.0 * sigma)
         if keep.sum() < 3:
             break

@@ -43,6 +43,7 @@ from scope3d.geometry.pose import Pose
 from scope3d.metrology.fluorescence import FluorescenceOptions, auto_threshold, segment
 from scope3d.scene.tracks import Tracks
 from scope3d.sensor.camera import Camera
+from scope3d.utils.robust import relative_spread
 
 
 #: a regular pentagram's perimeter over the square root of its area
@@ -299,4 +300,4 @@ def star_scale(camera: Camera, poses: list[Pose], tracks: Tracks, fluorescence: 
                          "scale (use --no-scale for an unscaled model)")
     scales = np.array([v["scale"] for v in views])
     scale, uncertainty = combine_views(scales, np.array([v["sigma"] for v in views]))
-    return StarScale(scale, views, float(np.median(np.abs(scales - scale)) / scale), uncertainty)
+    return StarScale(scale, views, relative_spread(scales, about=scale), uncertainty)

@@ -2,10 +2,13 @@
 
 Scenes (:mod:`.scenes`): ``dome`` (brain-tumour cavity with fluorescent targets), ``sheet`` (flat print),
 ``bladder`` (closed cavity with star markers), ``thread`` (ISO internal thread in a blind hole).
-Trajectories (:mod:`.trajectories`): ``grid5x6``, ``grid7x8``, ``axial``, ``quadrants``, ``spiral``.
-Rendering (:mod:`.render`): Embree ray casting refined in double precision, light at the scope tip,
+Trajectories (:mod:`.trajectories`): ``grid5x6``, ``grid7x8``, ``axial``, ``quadrants``, ``spiral``, ``approach``.
+Rendering (:mod:`.render`, compiled :mod:`.render_kernels`): Embree ray casting refined in double precision
+(:mod:`.raycast`, :mod:`.raycast_kernels`), procedural textures (:mod:`.textures`), light at the scope tip,
 Blinn-Phong specular, seeded sensor noise. :func:`generate` renders a sequence, :func:`write` saves it
-as a :mod:`scope3d.io.dataset` folder with ground truth.
+as a :mod:`scope3d.io.dataset` folder with ground truth (:mod:`.lab`). Also: calibration boards
+(:mod:`.boards`), synthetic bundle-adjustment scenes (:mod:`.bundle_scene`), a tool hiding part of the view
+(:mod:`.tool`), a raw lab recording (:mod:`.recording`).
 """
 from scope3d.phantoms.lab import (
     PhantomSequence,
@@ -24,7 +27,7 @@ from scope3d.phantoms.scenes import (
     SCENES,
     Material,
     Scene,
-    Target,
+    TrueTarget,
     build_scene,
 )
 from scope3d.phantoms.trajectories import (
@@ -39,7 +42,7 @@ from scope3d.phantoms.trajectories import (
 
 __all__ = [
     "Hits", "Material", "PhantomSequence", "RayCaster", "RenderOptions", "RenderedFrame", "SCENES",
-    "SCENE_TRAJECTORIES", "Scene", "TRAJECTORIES", "Target", "Trajectory", "axial_trajectory",
+    "SCENE_TRAJECTORIES", "Scene", "TRAJECTORIES", "Trajectory", "TrueTarget", "axial_trajectory",
     "build_scene", "build_trajectory", "catalogue", "contact_sheet", "default_camera", "generate",
     "grid_trajectory", "measure_poses", "quadrant_trajectory", "render_frame",
     "sequence_exposure", "spiral_trajectory", "true_targets", "write",

@@ -116,7 +116,7 @@ class _Radiance:
 def _target_ids(scene: Scene, points: np.ndarray) -> np.ndarray:
     """(N,) int16 id of the target each surface point (N, 3) mm lies on, 0 elsewhere.
 
-    ``Target.contains`` is exact but costs a few array passes over every point; a frame sees ~300k
+    ``TrueTarget.contains`` is exact but costs a few array passes over every point; a frame sees ~300k
     points and a target covers a few mm. Only points inside the world box that bounds the target's
     region (outline box x depth range, padded by 1 µm against rounding) can be on it, and ``contains``
     decides point by point, so asking it about those points alone gives the same answer.

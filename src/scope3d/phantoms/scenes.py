@@ -65,7 +65,7 @@ class Material:
 
 
 @dataclass(frozen=True)
-class Target:
+class TrueTarget:
     """A flat fluorescent film laid on the surface (sec. 4.2: dye-in-polymer targets).
 
     The target is the set of surface points whose projection along ``frame[2]`` onto the plane through
@@ -131,7 +131,7 @@ class Scene:
     mesh: Mesh
     albedo: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
     material: Material
-    targets: tuple[Target, ...]
+    targets: tuple[TrueTarget, ...]
     trajectories: tuple[str, ...]
     camera: str
     fov_deg: float
@@ -231,7 +231,7 @@ def _polygon_area(uv: np.ndarray) -> float:
     return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
 
 
-def _lift(caster: RayCaster, target: Target, uv: np.ndarray):
+def _lift(caster: RayCaster, target: TrueTarget, uv: np.ndarray):
     """Drop points of the target plane onto the surface along -n. -> (points (N, 3), normals (N, 3), hit (N,))."""
     origins = target.origin_mm + uv @ target.frame[:2]
     dirs = np.broadcast_to(-target.frame[2], origins.shape)
@@ -240,7 +240,7 @@ def _lift(caster: RayCaster, target: Target, uv: np.ndarray):
     return hits.points, hits.normals, hit
 
 
-def target_ground_truth(caster: RayCaster, target: Target, *, sample_mm: float = 0.02) -> dict:
+def target_ground_truth(caster: RayCaster, target: TrueTarget, *, sample_mm: float = 0.02) -> dict:
     """Measure a target on the true surface: centroid, area, 3D outline.
 
     The area on the surface is the flat outline's area times the mean area stretch of the projection,
@@ -348,8 +348,8 @@ def build_dome(radius_mm: float = 17.5, *, texture_seed: int = 0, mm_per_texel: 
         outline, sizes = target_outline(shape, size_mm)
         a = np.deg2rad(az)
         origin = np.array([ring * np.cos(a), ring * np.sin(a), 1.0])
-        targets.append(Target(tid, shape, sizes, origin, _frame_from_normal(np.array([0.0, 0.0, 1.0]), np.deg2rad(spin)),
-                              outline, depth_range_mm=depth + 2.0))
+        frame = _frame_from_normal(np.array([0.0, 0.0, 1.0]), np.deg2rad(spin))
+        targets.append(TrueTarget(tid, shape, sizes, origin, frame, outline, depth_range_mm=depth + 2.0))
     scene.targets = tuple(targets)
     scene.info = {
         "name": "dome",
@@ -474,8 +474,8 @@ def build_bladder(*, texture_seed: int = 0, mm_per_texel: float = 0.05, semi_axe
         normal_in = h.normals[0] if np.dot(h.normals[0], dvec) < 0 else -h.normals[0]
         outline, sizes = target_outline("star", 6.0 * np.sin(np.deg2rad(72.0)))  # 6 mm outer diameter
         origin = h.points[0] + 2.0 * normal_in
-        targets.append(Target(k + 1, "star", sizes, origin, _frame_from_normal(normal_in, 0.4 * k), outline,
-                              depth_range_mm=5.0))
+        targets.append(TrueTarget(k + 1, "star", sizes, origin, _frame_from_normal(normal_in, 0.4 * k), outline,
+                                  depth_range_mm=5.0))
     scene.targets = tuple(targets)
     scene.info = {
         "name": "bladder",

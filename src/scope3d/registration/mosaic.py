@@ -5,7 +5,7 @@ Method, as in the reference with one change (global alignment instead of chainin
 1. SIFT features per frame (:mod:`scope3d.feature.detection`).
 2. Every pair of frames matched (ratio test, mutual check) and verified by a RANSAC homography whose
    number of iterations OpenCV chooses from the inlier ratio for the requested success probability
-   (``ransac_confidence``, 0.99 in the reference, sec. 2.3.3). Pairs with too few inliers are not linked.
+   (``matching.ransac_confidence``, 0.99 in the reference, sec. 2.3.3). Pairs with too few inliers are not linked.
 3. Global alignment: each frame ``i`` gets a homography ``H_i`` (frame pixels -> mosaic pixels, frame 0 is
    the mosaic's frame: ``H_0 = I``). Every inlier match ``(x in i, y in j)`` asks ``H_i(x) = H_j(y)``; all of
    them are solved together by least squares, first with affine ``H_i`` (a sparse linear problem,
@@ -40,28 +40,26 @@ from scope3d.utils.progress import advance
 
 @dataclass(frozen=True)
 class MosaicOptions:
-    """features : SIFT options. ratio : Lowe's ratio test. ransac_threshold_px : homography inlier
-    threshold (SIFT keypoints are good to ~0.5 px; 3 px leaves room for the parallax of a curved wall).
-    ransac_confidence : probability that RANSAC draws an all-inlier sample (0.99, reference sec. 2.3.3).
-    min_inliers : a pair with fewer verified matches is not linked (15: a homography has 8 unknowns and a
-    pair that weak is often a coincidence). max_matches_per_pair : matches kept per pair in the global
-    adjustment (evenly subsampled; more add time, not accuracy). max_canvas_px : the mosaic's larger side
-    is scaled down to at most this.
+    """features : SIFT options. matching : the pairwise matcher (:class:`~scope3d.feature.matching.MatchOptions`),
+    verified by a homography: Lowe's ratio 0.8; inlier threshold 3 px (SIFT keypoints are good to ~0.5 px;
+    3 px leaves room for the parallax of a curved wall); RANSAC confidence 0.99, the probability that RANSAC
+    draws an all-inlier sample (reference sec. 2.3.3); a pair with fewer than ``min_matches`` (15) verified
+    matches is not linked (a homography has 8 unknowns and a pair that weak is often a coincidence).
+    max_matches_per_pair : matches kept per pair in the global adjustment (evenly subsampled; more add time,
+    not accuracy). max_canvas_px : the mosaic's larger side is scaled down to at most this.
     """
 
     features: FeatureOptions = FeatureOptions(max_features=2000)
-    ratio: float = 0.8
-    ransac_threshold_px: float = 3.0
-    ransac_confidence: float = 0.99
-    min_inliers: int = 15
+    matching: MatchOptions = MatchOptions(geometric_model="homography", ransac_threshold_px=3.0,
+                                          ransac_confidence=0.99)
     max_matches_per_pair: int = 40
     max_canvas_px: int = 3000
 
     def __post_init__(self) -> None:
-        if not 0 < self.ransac_confidence < 1:
-            raise ValueError(f"RANSAC confidence must be in (0, 1), got {self.ransac_confidence}")
-        if self.ransac_threshold_px <= 0 or self.min_inliers < 4 or self.max_matches_per_pair < 4:
-            raise ValueError("need a positive RANSAC threshold, min_inliers >= 4 and max_matches_per_pair >= 4")
+        if self.matching.geometric_model != "homography":
+            raise ValueError(f"a mosaic's pairs are verified by a homography, got {self.matching.geometric_model!r}")
+        if self.matching.min_matches < 4 or self.max_matches_per_pair < 4:
+            raise ValueError("need matching.min_matches >= 4 and max_matches_per_pair >= 4")
         if self.max_canvas_px < 64:
             raise ValueError(f"max_canvas_px must be at least 64, got {self.max_canvas_px}")
 
@@ -110,13 +108,11 @@ def link_frames(frames: list[np.ndarray], cameras: list[Camera], *, options: Mos
         raise ValueError("one camera per frame is needed")
     feats = features or [detect(f, c, options=options.features) for f, c in zip(frames, cameras)]
     pairs = pairs if pairs is not None else [(i, j) for i in range(len(frames)) for j in range(i + 1, len(frames))]
-    match = MatchOptions(ratio=options.ratio, geometric_model="homography", ransac_threshold_px=options.ransac_threshold_px,
-                         ransac_confidence=options.ransac_confidence, min_matches=options.min_inliers)
     links = []
     for i, j in pairs:
         # Matching verifies with the camera of frame i; frames from another dataset are undistorted first.
-        m = match_exhaustive(cameras[i], feats[i], feats[j], match, i=i, j=j)
-        if len(m.idx_i) >= options.min_inliers:
+        m = match_exhaustive(cameras[i], feats[i], feats[j], options.matching, i=i, j=j)
+        if len(m.idx_i) >= options.matching.min_matches:
             links.append(FrameLink(i, j, _undistorted(cameras[i], feats[i].keypoints[m.idx_i]),
                                    _undistorted(cameras[j], feats[j].keypoints[m.idx_j])))
         advance(progress)

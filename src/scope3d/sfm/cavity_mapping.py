@@ -86,6 +86,7 @@ from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance
 from scope3d.sfm.cavity_map_choice import choose_map, map_disagreement, map_figures, spread_difference
 from scope3d.sfm.guided_mapping import bundle_problem
 from scope3d.utils.progress import advance
+from scope3d.utils.threads import check_threads, resolve_threads
 
 
 @dataclass(frozen=True)
@@ -128,7 +129,8 @@ class CavityOptions:
     tracks : triangulation gates (reprojection error, smallest ray angle).
     noise_px : float, keypoint localisation noise for the pair and ray weights (default 0.5 px).
     min_observations : int, a frame with fewer observations in the final map is not registered (default 8).
-    threads : int, pairs matched at once (default 2, the machine's cores).
+    threads : int, pairs matched at once: 0 (default) every core, n >= 1 at most n (:mod:`scope3d.utils.threads`;
+        the map does not depend on it).
     plan_overlap_at_wall : bool, with planned poses the overlapping pairs are found with the wall at the
         distance the first pairs (capture order, retrieval) measure, the median over their points with the
         plan's baselines, instead of anywhere in the shell (its geometric mean, 37 mm). Default True. On the
@@ -151,7 +153,7 @@ class CavityOptions:
     tracks: TrackOptions = field(default_factory=TrackOptions)
     noise_px: float = 0.5
     min_observations: int = 8
-    threads: int = 2
+    threads: int = 0
     retrieval: RetrievalOptions = field(default_factory=RetrievalOptions)
     plan_overlap_at_wall: bool = True
 
@@ -164,8 +166,7 @@ class CavityOptions:
             raise ValueError("need partners_per_frame >= 1, max_depth_spread > 0, loss_scale_px > 0")
         if self.max_iterations < 1 or self.max_points < 10 or self.noise_px <= 0 or self.min_observations < 1:
             raise ValueError("need max_iterations >= 1, max_points >= 10, noise_px > 0, min_observations >= 1")
-        if self.threads < 1:
-            raise ValueError("threads must be >= 1")
+        check_threads(self.threads)
 
 
 def knows_poses(measured: list[MeasuredPose] | None) -> bool:
@@ -227,7 +228,7 @@ def pair_poses(camera: Camera, features: list[Features], options: CavityOptions 
         return PairMatches(i, j, m.idx_i[rel.inliers], m.idx_j[rel.inliers], m.n_putative, m.n_candidates,
                            m.time_s, "exhaustive"), rel
 
-    with ThreadPoolExecutor(max_workers=options.threads) as pool:
+    with ThreadPoolExecutor(max_workers=resolve_threads(options.threads)) as pool:
         found = [r for r in pool.map(verify, sorted(chosen)) if r is not None]
         if planned and options.plan_overlap_at_wall:
             depth = _wall_distance(camera, features, poses, found)
@@ -269,12 +270,13 @@ def _wall_distance(camera: Camera, features: list[Features], poses: list[Pose], 
 
 def verified_matches(camera: Camera, features: list[Features], matches: list[PairMatches], poses: list[Pose],
                      match_options: MatchOptions = MatchOptions(), noise_px: float = 0.5,
-                     threads: int = 2) -> tuple[list[PairMatches], list[RelativePose]]:
+                     threads: int = 0) -> tuple[list[PairMatches], list[RelativePose]]:
     """Geometric verification for the tracks, apart from the shape test the start needs: each pair's
     matches reduced to the inliers of its relative pose (:func:`scope3d.estimators.averaging.relative_pose`:
     the essential matrix by five-point RANSAC on the calibrated rays and the relative pose of ``poses``
     (a map already adjusted), each refined, the one with most inliers kept); pairs left with fewer than
-    ``match_options.min_matches`` are dropped. Returns (matches, their relative poses).
+    ``match_options.min_matches`` are dropped; ``threads`` pairs at once (0, the default: every core).
+    Returns (matches, their relative poses).
 
     Why the essential matrix and not the fundamental one the matcher fits: on the 36-frame spiral (608 px,
     all 630 pairs matched) 117 pairs passed the fundamental-matrix RANSAC at 1.5 px, with 10.5 % wrong
@@ -291,7 +293,8 @@ def verified_matches(camera: Camera, features: list[Features], matches: list[Pai
         return PairMatches(m.i, m.j, m.idx_i[rel.inliers], m.idx_j[rel.inliers], m.n_putative, m.n_candidates,
                            m.time_s, m.method), rel
 
-    with ThreadPoolExecutor(max_workers=threads) as pool:
+    check_threads(threads)
+    with ThreadPoolExecutor(max_workers=resolve_threads(threads, len(matches))) as pool:
         found = [v for v in pool.map(verify, matches) if v is not None]
     return [m for m, _ in found], [r for _, r in found]
 
@@ -321,7 +324,7 @@ def overlapping_pairs(camera: Camera, features: list[Features], poses: list[Pose
         advance(progress)
         return m
 
-    with ThreadPoolExecutor(max_workers=options.threads) as pool:
+    with ThreadPoolExecutor(max_workers=resolve_threads(options.threads, len(todo))) as pool:
         return [m for m in pool.map(match, todo) if len(m) >= max(match_options.min_matches, 8)]
 
 

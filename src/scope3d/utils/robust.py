@@ -1,6 +1,7 @@
 """Robust scales and weights, one copy for every layer: a standard deviation from the median absolute
-deviation (:func:`robust_sigma`), a scale of residual norms from their median (:func:`robust_norm_sigma`), and
-the Huber loss's reweighting (:func:`huber_weights`).
+deviation (:func:`robust_sigma`), a scale of residual norms from their median (:func:`robust_norm_sigma`), a
+spread as a fraction of the values' size (:func:`relative_spread`), and the Huber loss's reweighting
+(:func:`huber_weights`).
 """
 from __future__ import annotations
 
@@ -17,6 +18,15 @@ def robust_sigma(values: np.ndarray, *, about: float | None = None) -> float:
     values = np.asarray(values)
     deviation = np.abs(values - np.median(values)) if about is None else np.abs(values - about)
     return MAD_TO_SIGMA * float(np.median(deviation))
+
+
+def relative_spread(values: np.ndarray, *, about: float | None = None) -> float:
+    """Median absolute deviation of positive ``values`` about their median (``about`` None) or about
+    ``about``, over that centre: a unitless spread (0 when every value is equal), e.g. of a wall's distances
+    from a sphere's centre or from a camera, or of the views' star scales about their combined scale."""
+    values = np.asarray(values, float)
+    centre = float(np.median(values)) if about is None else float(about)
+    return float(np.median(np.abs(values - centre)) / centre)
 
 
 def robust_norm_sigma(norms: np.ndarray, floor: float) -> float:
