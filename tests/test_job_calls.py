@@ -164,3 +164,24 @@ def test_scan_plan_mosaic_and_video_import_results_pickle(tmp_path):
     imported = video_import.run(video_import.VideoImportOptions(every=2), tmp_path / "v.mp4", seq.camera,
                                 tmp_path / "imported")
     assert _round_trip(imported).source["frames_kept"] == 2
+
+
+@pytest.mark.parametrize("name", sorted(__import__("scope3d").JOBS))
+def test_the_package_exports_every_job(name):
+    """``scope3d.<job>`` is its pipeline's ``run`` with the options after the inputs."""
+    import scope3d
+
+    module, options_class = scope3d.JOBS[name]
+    pipeline = importlib.import_module(f"scope3d.pipelines.{module}")
+    assert getattr(scope3d, name).__wrapped__ is pipeline.run
+    assert getattr(scope3d, options_class) is getattr(pipeline, options_class)
+
+
+def test_scope3d_map_maps_a_dataset_folder(tmp_path):
+    import scope3d
+    from scope3d.phantoms import generate, write
+
+    folder = write(generate("dome", "grid5x6", size=(128, 128), seed=0, n_frames=6), tmp_path / "dome")
+    result = scope3d.map(folder, tmp_path / "map", scope3d.MapOptions(figures=False))
+    assert isinstance(result, scope3d.MapResult) and (tmp_path / "map" / "report.json").is_file()
+    assert result.report["n_frames"] == 6 and result.points.shape == (result.report["n_points"], 3)

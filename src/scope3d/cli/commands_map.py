@@ -43,7 +43,6 @@ def register(subparsers) -> None:
                         "flagged, glitches of 2 mm and more mostly found, 0.1-0.2 s CPU per 12-frame map and "
                         "0.5-1.2 s per 30-frame map; see docs/reliability.md)")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
-    p.add_argument("--no-progress", action="store_true", help="no progress bars")
     add_job_arguments(p)
     p.set_defaults(func=run)
 

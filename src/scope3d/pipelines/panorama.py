@@ -214,16 +214,22 @@ def save_panorama_png(path: Path, cavity: CavityMap, distances: np.ndarray | Non
     save_figure(fig, path)
 
 
+def check_dataset(options: Panorama3dOptions, dataset: Dataset) -> None:
+    """What :func:`run` refuses before any work (``scope3d check --for panorama`` runs it too): raises
+    InputError."""
+    if len(dataset) < 2:
+        raise InputError(f"{dataset.root}: need at least 2 frames for a panorama, found {len(dataset)}")
+    if options.stars is not None and dataset.fluorescence_paths is None:
+        raise InputError(f"{dataset.root}: no fluorescence frames, so no star targets to set the scale "
+                         "(use --no-scale for an unscaled model)")
+
+
 def run(options: Panorama3dOptions, dataset: Dataset, out_dir: str | Path, *,
         progress: Progress | None = None) -> Panorama3dResult:
     """The 3-D panorama of ``dataset`` into ``out_dir`` (written atomically)."""
     t0, c0 = time.perf_counter(), time.process_time()
+    check_dataset(options, dataset)
     n = len(dataset)
-    if n < 2:
-        raise InputError(f"{dataset.root}: need at least 2 frames for a panorama, found {n}")
-    if options.stars is not None and dataset.fluorescence_paths is None:
-        raise InputError(f"{dataset.root}: no fluorescence frames, so no star targets to set the scale "
-                         "(use --no-scale for an unscaled model)")
     timings, cpu = {}, {}  # wall and CPU seconds per stage (CPU: every thread of the process)
     stage(progress, "panorama: features", n)
     features = panorama_features(options, dataset, progress=progress)

@@ -754,9 +754,14 @@ def run(options: MapOptions, dataset: Dataset, out_dir: str | Path, *, progress:
         return _run_stages(options, dataset, out_dir, progress)
 
 
-def _run_stages(options: MapOptions, dataset: Dataset, out_dir: str | Path, progress: Progress | None) -> MapResult:
+def check_dataset(options: MapOptions, dataset: Dataset) -> None:
+    """What :func:`run` refuses before any work (``scope3d check`` runs it too): raises InputError."""
     if len(dataset) < 2:
         raise InputError(f"{dataset.root}: need at least 2 frames to map, found {len(dataset)}")
+
+
+def _run_stages(options: MapOptions, dataset: Dataset, out_dir: str | Path, progress: Progress | None) -> MapResult:
+    check_dataset(options, dataset)
     timings: dict = {}
     tick = time.perf_counter()
 
