@@ -97,6 +97,8 @@ def test_panorama_result_pickles():
               "self_check": {"map_choice": None, "warnings": [], "passed": True, "problems": []}}
     back = _round_trip(Panorama3dResult(report, cavity))
     assert np.array_equal(back.cavity.tracks.points, points)
+    assert np.array_equal(back.points, points) and back.colors.shape == (n, 3)
+    assert np.array_equal(back.cam_from_world, np.eye(4)[None])
 
 
 def test_thread_batch_and_localize_results_pickle(tmp_path):
@@ -108,7 +110,7 @@ def test_thread_batch_and_localize_results_pickle(tmp_path):
             {"hole": "b", "status": "error", "verdict": "", "message": "no quadrants.json"}]
     _round_trip(ThreadBatchResult(rows, ["a"], 2.0, 2))
     report = {"n_frames": 0, "n_localized": 0, "frames_per_s": 0.0, "cpu_ms_per_frame": 0.0}
-    _round_trip(LocalizeResult(report, tmp_path, []))
+    assert _round_trip(LocalizeResult(report, tmp_path, [])).cam_from_world.shape == (0, 4, 4)
 
 
 def test_track_markers_result_pickles(tmp_path):
@@ -159,7 +161,8 @@ def test_scan_plan_mosaic_and_video_import_results_pickle(tmp_path):
     dataset = write(seq, tmp_path / "sheet")
     from scope3d.io.dataset import load_dataset
 
-    _round_trip(mosaic.run(MosaicOptions(), [load_dataset(dataset)], tmp_path / "mosaic"))
+    result = _round_trip(mosaic.run(MosaicOptions(), [load_dataset(dataset)], tmp_path / "mosaic"))
+    assert result.image is result.mosaic.image and result.image.ndim == 3
     write_video(tmp_path / "v.mp4", seq.frames, 10.0)
     imported = video_import.run(video_import.VideoImportOptions(every=2), tmp_path / "v.mp4", seq.camera,
                                 tmp_path / "imported")

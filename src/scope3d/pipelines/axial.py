@@ -93,6 +93,16 @@ class AxialResult:
     report: dict
     out_dir: Path | None
 
+    @property
+    def points(self) -> np.ndarray:
+        """(N, 3) mm world, the cloud's points."""
+        return self.cloud.points
+
+    @property
+    def colors(self) -> np.ndarray | None:
+        """(N, 3) uint8 RGB, each point's colour."""
+        return self.cloud.colors
+
     def summary(self) -> str:
         r = self.report
         line = f"axial {r['method']}: {r['n_points']} points in {r['time_s']:.2f} s"

@@ -83,6 +83,21 @@ class Panorama3dResult:
     report: dict
     cavity: CavityMap
 
+    @property
+    def points(self) -> np.ndarray:
+        """(N, 3) mm, the wall's points (mm when the scale is known, see the report's ``scale_source``)."""
+        return self.cavity.tracks.points
+
+    @property
+    def colors(self) -> np.ndarray:
+        """(N, 3) uint8 RGB, each point's colour."""
+        return self.cavity.tracks.colors
+
+    @property
+    def cam_from_world(self) -> np.ndarray:
+        """(m, 4, 4) every frame's pose as a matrix (meaningful where ``cavity.registered``)."""
+        return np.stack([p.matrix for p in self.cavity.poses])
+
     def summary(self) -> str:
         r = self.report
         line = (f"{r['n_registered']}/{r['n_frames']} frames registered, {r['n_points']} points, "
