@@ -78,8 +78,14 @@ def test_check_refuses_what_map_refuses_in_the_same_line(capsys, tmp_path):
     check_err = capsys.readouterr().err.strip().splitlines()
     assert len(map_err) == len(check_err) == 1 and "need at least 2 frames to map, found 1" in map_err[0]
     assert check_err[0].replace("scope3d check:", "scope3d map:") == map_err[0]
-    assert main(["check", str(one), "--for", "panorama"]) == 2
-    assert "need at least 2 frames for a panorama, found 1" in capsys.readouterr().err
+    for job, message in (("panorama", "need at least 2 frames for a panorama, found 1"),
+                         ("axial", "axial stereo needs at least two frames"),
+                         ("thread-scan", "quadrants.json")):
+        assert main(["check", str(one), "--for", job]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and message in err[0], (job, err)
+        assert main([job, str(one), "--out", str(tmp_path / job), "--quiet"]) == 2
+        assert capsys.readouterr().err.strip() == err[0].replace("scope3d check:", f"scope3d {job}:")
 
 
 def test_check_and_report_speak_json(capsys, small_dome_map, tmp_path):

@@ -168,7 +168,9 @@ def _tolerance(args):
 #: The jobs ``check --for`` knows: name -> (pipeline module, options class); each module's
 #: ``check_dataset(options, dataset)`` is what its ``run`` calls before any work.
 CHECKED_JOBS = {"map": ("scope3d.pipelines.surgical_map", "MapOptions"),
-                "panorama": ("scope3d.pipelines.panorama", "Panorama3dOptions")}
+                "axial": ("scope3d.pipelines.axial", "AxialOptions"),
+                "panorama": ("scope3d.pipelines.panorama", "Panorama3dOptions"),
+                "thread-scan": ("scope3d.pipelines.thread_scan", "ThreadScanOptions")}
 
 
 def run_check(args) -> int:
