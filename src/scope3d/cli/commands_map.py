@@ -18,7 +18,8 @@ def register(subparsers) -> None:
                     "similar frames, essential matrices, rotation and position averaging, BCBA), "
                     "triangulation, bundle adjustment (poses fixed, free, or bounded by their tolerance), "
                     "thin-plate-spline surface with texture and fluorescence, targets table, figures, "
-                    "COLMAP text model, and report.json (with errors against ground truth when present).",
+                    "COLMAP text model, the adjusted poses as poses_refined.csv (the dataset's poses.csv form, with "
+                    "their remaining sigma), and report.json (with errors against ground truth when present).",
     )
     p.add_argument("dataset", metavar="DATASET", help="dataset folder (see scope3d.io.dataset)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (written atomically, replaced)")
