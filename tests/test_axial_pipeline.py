@@ -22,6 +22,7 @@ def test_two_view_depth_against_ground_truth(thread_dataset):
     ds = load_dataset(thread_dataset)
     result = run(AxialOptions(method="sgm", frames=(2, 3)), ds, None)
     assert pickle.loads(pickle.dumps(result)).summary() == result.summary()  # results travel to cluster workers
+    assert result.points is result.cloud.points and result.colors.shape == result.points.shape
     depth = result.depths[0]
     truth = ds.ground_truth.depth(3)
     ok = depth.valid & np.isfinite(truth)

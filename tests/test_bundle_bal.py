@@ -92,11 +92,13 @@ def test_bounds_file_rules_are_applied_in_the_bal_frame(ladybug, tmp_path):
 
 
 def test_cli_bundle_adjust_writes_report(tmp_path, capsys):
-    report = tmp_path / "report.json"
-    plot = tmp_path / "curve.png"
-    status = main(["bundle-adjust", str(LADYBUG), "--report", str(report), "--max-iterations", "4",
-                   "--loss", "huber", "--loss-scale-px", "2", "--plot", str(plot)])
+    """--out DIR: report.json, the solved problem and the convergence plot, as every job writes into --out."""
+    report = tmp_path / "run" / "report.json"
+    plot = tmp_path / "run" / "convergence.png"
+    status = main(["bundle-adjust", str(LADYBUG), "--out", str(tmp_path / "run"), "--max-iterations", "4",
+                   "--loss", "huber", "--loss-scale-px", "2"])
     assert status == 0
+    assert len(read_bal(tmp_path / "run" / "solution.bal").cameras) == len(read_bal(LADYBUG).cameras)
     data = json.loads(report.read_text())
     for key in ("initial_cost", "final_cost", "iterations", "solve_time_s", "peak_memory_mb", "iteration_log",
                 "termination"):
@@ -106,6 +108,16 @@ def test_cli_bundle_adjust_writes_report(tmp_path, capsys):
     assert {"cost", "damping", "active_set_size", "time_s", "projected_gradient_norm"} <= set(data["iteration_log"][1])
     assert plot.exists()
     assert "iter    1" in capsys.readouterr().err
+
+
+def test_cli_bundle_adjust_old_output_flags_still_work(tmp_path, capsys):
+    """--report/--output/--plot, the flags before --out, are hidden aliases for old scripts; mixed with --out
+    they are refused."""
+    status = main(["bundle-adjust", str(LADYBUG), "--report", str(tmp_path / "r.json"), "--max-iterations", "1",
+                   "--quiet", "--output", str(tmp_path / "s.bal")])
+    assert status == 0 and (tmp_path / "r.json").is_file() and (tmp_path / "s.bal").is_file()
+    assert main(["bundle-adjust", str(LADYBUG), "--out", str(tmp_path / "o"), "--report", str(tmp_path / "x.json")]) == 2
+    assert "not both" in capsys.readouterr().err
 
 
 def test_cli_reports_bad_files_without_traceback(tmp_path, capsys):

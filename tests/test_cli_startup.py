@@ -27,6 +27,11 @@ def test_importing_the_cli_imports_no_heavy_library():
     assert _heavy(_modules_after("import scope3d.cli.main")) == []
 
 
+def test_importing_the_package_with_its_jobs_imports_no_heavy_library():
+    """The jobs and options the package exports load on first use, not with ``import scope3d``."""
+    assert _heavy(_modules_after("import scope3d\nscope3d.JOBS, scope3d.__all__")) == []
+
+
 def test_building_the_parser_and_help_import_no_heavy_library():
     code = ("import contextlib, io\nfrom scope3d.cli.main import build_parser\n"
             "with contextlib.redirect_stdout(io.StringIO()):\n"

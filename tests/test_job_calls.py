@@ -97,6 +97,8 @@ def test_panorama_result_pickles():
               "self_check": {"map_choice": None, "warnings": [], "passed": True, "problems": []}}
     back = _round_trip(Panorama3dResult(report, cavity))
     assert np.array_equal(back.cavity.tracks.points, points)
+    assert np.array_equal(back.points, points) and back.colors.shape == (n, 3)
+    assert np.array_equal(back.cam_from_world, np.eye(4)[None])
 
 
 def test_thread_batch_and_localize_results_pickle(tmp_path):
@@ -108,7 +110,7 @@ def test_thread_batch_and_localize_results_pickle(tmp_path):
             {"hole": "b", "status": "error", "verdict": "", "message": "no quadrants.json"}]
     _round_trip(ThreadBatchResult(rows, ["a"], 2.0, 2))
     report = {"n_frames": 0, "n_localized": 0, "frames_per_s": 0.0, "cpu_ms_per_frame": 0.0}
-    _round_trip(LocalizeResult(report, tmp_path, []))
+    assert _round_trip(LocalizeResult(report, tmp_path, [])).cam_from_world.shape == (0, 4, 4)
 
 
 def test_track_markers_result_pickles(tmp_path):
@@ -159,8 +161,30 @@ def test_scan_plan_mosaic_and_video_import_results_pickle(tmp_path):
     dataset = write(seq, tmp_path / "sheet")
     from scope3d.io.dataset import load_dataset
 
-    _round_trip(mosaic.run(MosaicOptions(), [load_dataset(dataset)], tmp_path / "mosaic"))
+    result = _round_trip(mosaic.run(MosaicOptions(), [load_dataset(dataset)], tmp_path / "mosaic"))
+    assert result.image is result.mosaic.image and result.image.ndim == 3
     write_video(tmp_path / "v.mp4", seq.frames, 10.0)
     imported = video_import.run(video_import.VideoImportOptions(every=2), tmp_path / "v.mp4", seq.camera,
                                 tmp_path / "imported")
     assert _round_trip(imported).source["frames_kept"] == 2
+
+
+@pytest.mark.parametrize("name", sorted(__import__("scope3d").JOBS))
+def test_the_package_exports_every_job(name):
+    """``scope3d.<job>`` is its pipeline's ``run`` with the options after the inputs."""
+    import scope3d
+
+    module, options_class = scope3d.JOBS[name]
+    pipeline = importlib.import_module(f"scope3d.pipelines.{module}")
+    assert getattr(scope3d, name).__wrapped__ is pipeline.run
+    assert getattr(scope3d, options_class) is getattr(pipeline, options_class)
+
+
+def test_scope3d_map_maps_a_dataset_folder(tmp_path):
+    import scope3d
+    from scope3d.phantoms import generate, write
+
+    folder = write(generate("dome", "grid5x6", size=(128, 128), seed=0, n_frames=6), tmp_path / "dome")
+    result = scope3d.map(folder, tmp_path / "map", scope3d.MapOptions(figures=False))
+    assert isinstance(result, scope3d.MapResult) and (tmp_path / "map" / "report.json").is_file()
+    assert result.report["n_frames"] == 6 and result.points.shape == (result.report["n_points"], 3)

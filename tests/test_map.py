@@ -97,6 +97,46 @@ def test_the_map_result_pickles(dome_run):
     assert np.array_equal(back.sparse.tracks.points, result.sparse.tracks.points)
 
 
+def test_poses_refined_csv_reads_back_as_the_maps_adjusted_poses(dome_run):
+    """poses_refined.csv is a poses.csv (read_poses_csv reads it) holding the adjusted poses, to the 12
+    significant digits it writes (1e-9 of the dome's ~30 mm coordinates, far below 1e-9 mm absolute), with 3
+    remaining sigmas as the tolerance and the sigmas in their own columns."""
+    from scope3d.io.poses_csv import SIGMA_COLUMNS, read_poses_csv
+
+    ds, result, _, _ = dome_run
+    path = result.out_dir / "poses_refined.csv"
+    names, poses = read_poses_csv(path)
+    assert names == ds.names == result.names
+    for got, want in zip(poses, result.poses):
+        assert np.allclose(got.pose.centre, want.centre, rtol=0, atol=1e-9)
+        assert np.allclose(got.pose.rotation, want.rotation, rtol=0, atol=1e-11)
+    sigmas = result.pose_sigmas
+    assert sigmas.shape == (len(ds), 6)
+    boxes = np.array([np.r_[p.tolerance.orientation_rad, p.tolerance.position_mm] for p in poses])
+    assert np.allclose(boxes, 3.0 * sigmas, rtol=1e-8, atol=0)
+    header = path.read_text().splitlines()[0].split(",")
+    assert header[-6:] == list(SIGMA_COLUMNS)
+    # the prior is the measured box as a uniform error; the images can only narrow it
+    prior = np.array([np.r_[m.tolerance.orientation_rad, m.tolerance.position_mm] for m in ds.poses]) / np.sqrt(3.0)
+    assert np.all(sigmas <= prior * (1 + 1e-9))
+
+
+def test_the_map_result_saves_and_loads(dome_run, tmp_path):
+    """MapResult.save / load: the model's arrays, the tracks, the camera and the surface come back exactly."""
+    from scope3d.pipelines.surgical_map import MapResult
+
+    result = dome_run[1]
+    back = MapResult.load(result.save(tmp_path / "map.npz"))
+    assert back.summary() == result.summary() and back.report == json.loads(json.dumps(result.report, default=float))
+    for name in ("points", "colors", "cam_from_world", "pose_sigmas"):
+        assert np.array_equal(getattr(back, name), getattr(result, name)), name
+    assert np.array_equal(back.sparse.tracks.pixels, result.sparse.tracks.pixels)
+    assert back.sparse.camera == result.sparse.camera and back.names == result.names
+    assert np.array_equal(back.mesh.vertices, result.mesh.vertices)
+    assert np.array_equal(back.mesh.faces, result.mesh.faces)
+    assert np.array_equal(back.mesh.vertex_colors, result.mesh.vertex_colors)
+
+
 @pytest.fixture(scope="module")
 def dome_map(dome_run):
     ds, result, _, _ = dome_run

@@ -39,8 +39,10 @@ def register(subparsers) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("problem_file", metavar="PROBLEM_FILE", help="BAL problem (uncompressed text)")
-    parser.add_argument("--report", required=True, metavar="REPORT_JSON",
-                        help="write the solve report (costs, iterations, times, memory, per-iteration log)")
+    parser.add_argument("--out", metavar="DIR",
+                        help="write report.json (costs, iterations, times, memory, per-iteration log), "
+                             "solution.bal (the solved problem) and convergence.png into DIR (created; the three "
+                             "files are replaced together)")
     parser.add_argument("--bounds", metavar="BOUNDS_FILE", help="fixed/bounded parameters, format below")
     parser.add_argument("--intrinsic-bounds", metavar="FILE",
                         help="intrinsic_bounds.json from `scope3d calibrate`: every camera's f (from fx), k1 and "
@@ -52,10 +54,11 @@ def register(subparsers) -> None:
                         help="stop when a step lowers the cost by less than this fraction (1e-6)")
     parser.add_argument("--linear-solver", choices=["auto", "dense", "sparse", "pcg"], default="auto",
                         help="reduced camera system solver (auto: dense when small, sparse LU, then PCG)")
-    parser.add_argument("--output", metavar="BAL_FILE", help="write the solved problem as a BAL file")
-    parser.add_argument("--plot", metavar="PNG", help="write the convergence curve")
-    parser.add_argument("--quiet", action="store_true", help="no per-iteration progress on stderr")
-    add_job_arguments(parser, quiet=False)
+    # the file-by-file outputs of before --out, kept (hidden) so that scripts written with them still run
+    parser.add_argument("--report", metavar="REPORT_JSON", help=argparse.SUPPRESS)
+    parser.add_argument("--output", metavar="BAL_FILE", help=argparse.SUPPRESS)
+    parser.add_argument("--plot", metavar="PNG", help=argparse.SUPPRESS)
+    add_job_arguments(parser)  # --quiet: no per-iteration progress on stderr
     parser.set_defaults(func=run)
 
 
@@ -76,6 +79,17 @@ def run(args: argparse.Namespace) -> int:
         max_iterations=args.max_iterations, loss=args.loss, loss_scale_px=args.loss_scale_px,
         function_tolerance=args.function_tolerance, linear_solver=args.linear_solver,
     )
+    if args.out is not None:
+        if any((args.report, args.output, args.plot)):
+            raise InputError("--out writes report.json, solution.bal and convergence.png: give it or the old "
+                             "--report/--output/--plot, not both")
+        if os.path.exists(args.out) and not os.path.isdir(args.out):
+            raise InputError(f"{args.out}: is a file; --out needs a folder")
+        os.makedirs(args.out, exist_ok=True)
+        args.report, args.output, args.plot = (os.path.join(args.out, name)
+                                               for name in ("report.json", "solution.bal", "convergence.png"))
+    elif args.report is None:
+        raise InputError("--out DIR is required (where report.json, solution.bal and convergence.png go)")
     outputs = [args.report] + [p for p in (args.output, args.plot) if p]
     if len({os.path.realpath(p) for p in outputs}) != len(outputs):
         raise InputError("--report, --output and --plot must name different files")

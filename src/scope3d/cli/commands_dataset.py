@@ -28,10 +28,14 @@ def register(subparsers) -> None:
     check = subparsers.add_parser(
         "check",
         help="validate a dataset folder and say what it holds",
-        description="Validate a dataset (parse every file, decode every image) and print what it holds, "
-                    "or the first problem found (exit status 2).",
+        description="Validate a dataset (parse every file, decode every image) and check it against what a job "
+                    "refuses before any work (the job's own check, so the message is the job's), then print what "
+                    "it holds, or the first problem found in one line (exit status 2).",
     )
     check.add_argument("dataset", metavar="DATASET", type=Path, help="dataset folder")
+    check.add_argument("--for", dest="job", choices=sorted(CHECKED_JOBS), default="map", metavar="JOB",
+                       help="the job to check the dataset for: %(choices)s (default map; with its default options)")
+    add_job_arguments(check)  # --quiet accepted for uniformity: the check shows no progress bar
     check.set_defaults(func=run_check)
 
     imp = subparsers.add_parser(
@@ -127,7 +131,6 @@ def register(subparsers) -> None:
                            "10 min for 529 views)")
     plan.add_argument("--plan-start", type=float, default=0.0, metavar="S",
                       help="with --plan: time into the video at which the scope is at the first view (default 0)")
-    vid.add_argument("--no-progress", action="store_true", help="no progress bar (as --quiet)")
     add_job_arguments(vid)
     vid.set_defaults(func=run_import_video)
     commands_import_frames.register(formats)
@@ -162,13 +165,27 @@ def _tolerance(args):
 # --- handlers ----------------------------------------------------------------------------------
 
 
+#: The jobs ``check --for`` knows: name -> (pipeline module, options class); each module's
+#: ``check_dataset(options, dataset)`` is what its ``run`` calls before any work.
+CHECKED_JOBS = {"map": ("scope3d.pipelines.surgical_map", "MapOptions"),
+                "axial": ("scope3d.pipelines.axial", "AxialOptions"),
+                "panorama": ("scope3d.pipelines.panorama", "Panorama3dOptions"),
+                "thread-scan": ("scope3d.pipelines.thread_scan", "ThreadScanOptions")}
+
+
 def run_check(args) -> int:
+    import importlib
+
+    from scope3d.cli.job_output import finish_job
     from scope3d.io.dataset import load_dataset
 
     dataset = load_dataset(args.dataset, check_images=True)
-    print(dataset.summary())
-    print("ok: every file parsed and every image decoded")
-    return 0
+    module_name, options_name = CHECKED_JOBS[args.job]
+    module = importlib.import_module(module_name)
+    module.check_dataset(getattr(module, options_name)(), dataset)
+    report = {"job": "check", "dataset": str(args.dataset), "for": args.job, "n_frames": len(dataset), "ok": True}
+    return finish_job(args, None, report, [dataset.summary(),
+                                           f"ok: every file parsed, every image decoded, {args.job} accepts it"])
 
 
 def _import_report(args, source: str) -> tuple[dict, object]:

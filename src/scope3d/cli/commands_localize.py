@@ -31,7 +31,6 @@ def register(subparsers) -> None:
                    help="threaded: the SIFT refresh of the tracked points runs on a second thread at half size "
                    "and is merged 2 frames later, so the stream only tracks (same outputs on every run; see "
                    "docs/localization.md)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_job_arguments(p)
     p.set_defaults(func=_run)
 

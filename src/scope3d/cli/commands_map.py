@@ -18,7 +18,8 @@ def register(subparsers) -> None:
                     "similar frames, essential matrices, rotation and position averaging, BCBA), "
                     "triangulation, bundle adjustment (poses fixed, free, or bounded by their tolerance), "
                     "thin-plate-spline surface with texture and fluorescence, targets table, figures, "
-                    "COLMAP text model, and report.json (with errors against ground truth when present).",
+                    "COLMAP text model, the adjusted poses as poses_refined.csv (the dataset's poses.csv form, with "
+                    "their remaining sigma), and report.json (with errors against ground truth when present).",
     )
     p.add_argument("dataset", metavar="DATASET", help="dataset folder (see scope3d.io.dataset)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (written atomically, replaced)")
@@ -43,7 +44,6 @@ def register(subparsers) -> None:
                         "flagged, glitches of 2 mm and more mostly found, 0.1-0.2 s CPU per 12-frame map and "
                         "0.5-1.2 s per 30-frame map; see docs/reliability.md)")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
-    p.add_argument("--no-progress", action="store_true", help="no progress bars")
     add_job_arguments(p)
     p.set_defaults(func=run)
 

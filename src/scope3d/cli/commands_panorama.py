@@ -60,7 +60,6 @@ def register_mosaic(subparsers) -> None:
     )
     p.add_argument("datasets", type=Path, nargs="+", metavar="DATASET", help="dataset folder(s)")
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder (written atomically, replaced)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_job_arguments(p)
     p.set_defaults(func=_run_mosaic)
 

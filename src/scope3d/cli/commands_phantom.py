@@ -78,7 +78,6 @@ def register(subparsers) -> None:
                         "image rows (degrees); default 0.08:-0.05:0")
     p.add_argument("--quadrant-step", type=float, metavar="MM",
                    help="quadrants: the scope's advance per frame, mm (default 0.1)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar (as --quiet)")
     p.add_argument("--target", type=int, metavar="N",
                    help="approach trajectory: the target to approach (dome: 1-8); a tool hides part of the view, "
                         "its mask written as tool_mask.png")

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from scope3d.cli.job_output import add_job_arguments, finish_job
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -17,6 +19,7 @@ def register(subparsers) -> None:
                    help="vertices drawn per cloud at most; more are thinned to a seeded random subset and the "
                         "full PLY is linked (default 200000)")
     p.add_argument("--seed", type=int, default=0, help="seed of that thinning (default 0)")
+    add_job_arguments(p)  # --quiet accepted for uniformity: the page is written without a progress bar
     p.set_defaults(func=_run)
 
 
@@ -27,5 +30,5 @@ def _run(args) -> int:
     if args.max_points < 1:
         raise InputError("--max-points must be >= 1")
     path = write_report(args.run_dir, ReportOptions(max_points=args.max_points, seed=args.seed))
-    print(f"wrote {path}")
-    return 0
+    return finish_job(args, None, {"job": "report", "run_dir": str(args.run_dir), "report_html": str(path)},
+                      [f"wrote {path}"])

@@ -25,7 +25,6 @@ def register(subparsers) -> None:
                    help="match frames up to N steps apart within a quadrant (default: from the scan itself, "
                         "its step and side view read off the poses, so that matched frames' views of the "
                         "nominal thread's wall overlap by half, as the scan plan does)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_job_arguments(p)
     p.set_defaults(func=_run_scan)
 
@@ -51,7 +50,6 @@ def register(subparsers) -> None:
                    help="Dask scheduler address (e.g. tcp://host:8786); default: a local cluster")
     t.add_argument("--workers", type=int, default=2, metavar="N",
                    help="local cluster worker processes (default 2; ignored with --scheduler)")
-    t.add_argument("--no-progress", action="store_true", help="no progress bar (as --quiet)")
     add_job_arguments(t)
     t.epilog += "\nA batch also exits with 1 when a hole failed (its row in summary.csv says why)."
     t.set_defaults(func=_run_batch)

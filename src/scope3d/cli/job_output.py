@@ -23,14 +23,16 @@ def add_job_arguments(parser: argparse.ArgumentParser, *, quiet: bool = True) ->
                         help="print the job's report as JSON on stdout (and nothing else there)")
     if quiet:
         parser.add_argument("--quiet", action="store_true", help="no progress bars")
+        # the old spelling of --quiet, kept hidden so that scripts written with it still run
+        parser.add_argument("--no-progress", dest="quiet", action="store_true", help=argparse.SUPPRESS)
     parser.epilog = f"{parser.epilog}\n\n{EXIT_CODES}" if parser.epilog else EXIT_CODES
     if parser.formatter_class is argparse.HelpFormatter:
         parser.formatter_class = argparse.RawDescriptionHelpFormatter
 
 
 def show_progress(args) -> bool:
-    """Progress bars unless --quiet (or the job's own --no-progress) asks for silence."""
-    return not (getattr(args, "quiet", False) or getattr(args, "no_progress", False))
+    """Progress bars unless --quiet (or its hidden old spelling --no-progress) asks for silence."""
+    return not getattr(args, "quiet", False)
 
 
 def dataset_report_writer(report: dict, name: str, started: float) -> Callable[[Path], None]:

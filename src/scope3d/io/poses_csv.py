@@ -19,18 +19,28 @@ POSE_COLUMNS = (
 )
 
 
-def format_poses_csv(names: list[str], poses: list[MeasuredPose]) -> str:
+#: Extra columns of a map's ``poses_refined.csv``: each adjusted pose's remaining standard deviation (the
+#: tolerance columns there hold 3 of them); :func:`read_poses_csv` reads such a file as any poses.csv.
+SIGMA_COLUMNS = ("sigma_x_mm", "sigma_y_mm", "sigma_z_mm", "sigma_rx_deg", "sigma_ry_deg", "sigma_rz_deg")
+
+
+def format_poses_csv(names: list[str], poses: list[MeasuredPose], sigmas: np.ndarray | None = None) -> str:
+    """``poses.csv`` text. sigmas : optional (m, 6) standard deviations (rotation rad, centre mm, in the order
+    of :attr:`PoseTolerance.orientation_rad`, :attr:`PoseTolerance.position_mm`) written as
+    :data:`SIGMA_COLUMNS` after the tolerance columns."""
     out = io.StringIO()
     writer = csv.writer(out, lineterminator="\n")
-    writer.writerow(POSE_COLUMNS)
-    for name, measured in zip(names, poses):
+    writer.writerow(POSE_COLUMNS + (SIGMA_COLUMNS if sigmas is not None else ()))
+    for k, (name, measured) in enumerate(zip(names, poses)):
         c = measured.pose.centre
         q = matrix_to_quaternion(measured.pose.rotation.T)  # world_from_cam, (x, y, z, w)
         tol = measured.tolerance
+        extra = [] if sigmas is None else [f"{v:.9g}" for v in (*sigmas[k][3:], *np.rad2deg(sigmas[k][:3]))]
         writer.writerow(
             [name, *(f"{v:.12g}" for v in c), *(f"{v:.12g}" for v in (q[3], q[0], q[1], q[2]))]
             + [f"{v:.9g}" for v in tol.position_mm]
             + [f"{v:.9g}" for v in tol.orientation_deg]
+            + extra
         )
     return out.getvalue()
 

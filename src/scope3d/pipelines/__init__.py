@@ -9,4 +9,8 @@
   (the 3-D panorama), :mod:`.video_import` and :mod:`.frames_import` (``import video``, ``import frames``).
 
 Every result pickles (cluster workers send them back); ``tests/test_job_calls.py`` holds every job to this.
+The package exports them as ``scope3d.map``, ``scope3d.localize``... (:data:`scope3d.JOBS`: the inputs first,
+the options after them). A job whose dataset must meet static requirements has
+``check_dataset(options, dataset)``, called first by its ``run`` and alone by ``scope3d check --for JOB``
+(:mod:`.surgical_map`, :mod:`.axial`, :mod:`.panorama`, :mod:`.thread_scan`).
 """

@@ -93,6 +93,16 @@ class AxialResult:
     report: dict
     out_dir: Path | None
 
+    @property
+    def points(self) -> np.ndarray:
+        """(N, 3) mm world, the cloud's points."""
+        return self.cloud.points
+
+    @property
+    def colors(self) -> np.ndarray | None:
+        """(N, 3) uint8 RGB, each point's colour."""
+        return self.cloud.colors
+
     def summary(self) -> str:
         r = self.report
         line = f"axial {r['method']}: {r['n_points']} points in {r['time_s']:.2f} s"
@@ -116,18 +126,35 @@ def _check_frame(dataset: Dataset, index: int) -> int:
     return index % len(dataset)
 
 
+def check_dataset(options: AxialOptions, dataset: Dataset) -> None:
+    """What the job refuses before any work (``scope3d check --for axial`` runs it too): raises InputError."""
+    _poses(dataset, options.use_true_poses)
+    if options.method in ("sgm", "sad"):
+        if len(dataset) < 2:
+            raise InputError(f"{dataset.root}: axial stereo needs at least two frames")
+        for index in options.frames or ():
+            _check_frame(dataset, index)
+    elif not reference_frames(len(dataset), options=_multiview_options(options)):
+        raise InputError(f"{dataset.root}: {len(dataset)} frames are too few for multi-view with offsets "
+                         f"{options.multiview.baseline_offsets}")
+
+
+def _multiview_options(options: AxialOptions) -> MultiViewOptions:
+    return MultiViewOptions(**{**{k: getattr(options.multiview, k) for k in options.multiview.__dataclass_fields__},
+                               "two_view": options.two_view})
+
+
 def reconstruct(options: AxialOptions, dataset: Dataset, *, progress: Progress | None = None,
                 ) -> tuple[list[ImageDepth], list[np.ndarray], dict]:
     """The depth stage: returns per-reference ImageDepth, their colour images (H, W, 3) and timings.
 
     progress : tqdm-like or None, advanced by one per multi-view reference frame.
     """
+    check_dataset(options, dataset)
     poses = _poses(dataset, options.use_true_poses)
     cam = dataset.camera
     t0 = time.perf_counter()
     if options.method in ("sgm", "sad"):
-        if len(dataset) < 2:
-            raise InputError(f"{dataset.root}: axial stereo needs at least two frames")
         i, j = options.frames if options.frames is not None else (len(dataset) // 2 - 1, len(dataset) // 2)
         i, j = _check_frame(dataset, i), _check_frame(dataset, j)
         tv = TwoViewOptions(**{**{k: getattr(options.two_view, k) for k in options.two_view.__dataclass_fields__},
@@ -140,11 +167,8 @@ def reconstruct(options: AxialOptions, dataset: Dataset, *, progress: Progress |
                   "frames": [i, j], "front_frame": front, "baseline_mm": res.pair.baseline_mm,
                   "axis_angle_deg": float(np.rad2deg(res.pair.axis_angle_rad))}
         return [depth], [dataset.frame(front)], timing
-    mv = MultiViewOptions(**{**{k: getattr(options.multiview, k) for k in options.multiview.__dataclass_fields__},
-                             "two_view": options.two_view})
+    mv = _multiview_options(options)
     refs = reference_frames(len(dataset), options=mv)
-    if not refs:
-        raise InputError(f"{dataset.root}: {len(dataset)} frames are too few for multi-view with offsets {mv.baseline_offsets}")
     stage(progress, "axial multiview", len(refs))
     depths, colours = [], []
     for ref in refs:

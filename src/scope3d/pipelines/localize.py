@@ -63,6 +63,12 @@ class LocalizeResult:
     out_dir: Path
     frames: list[LocalizationResult]
 
+    @property
+    def cam_from_world(self) -> np.ndarray:
+        """(m, 4, 4) each frame's localized pose as a matrix, NaN where it was not localized."""
+        return np.array([f.pose.matrix if f.pose is not None else np.full((4, 4), np.nan)
+                         for f in self.frames]).reshape(-1, 4, 4)
+
     def summary(self) -> str:
         r = self.report
         line = (f"{r['n_localized']} of {r['n_frames']} frames localized, {r['frames_per_s']:.1f} frames/s "

@@ -32,6 +32,11 @@ class MosaicResult:
     report: dict
     mosaic: Mosaic
 
+    @property
+    def image(self) -> np.ndarray | None:
+        """(H, W, 3) uint8, the blended mosaic (mosaic.png)."""
+        return self.mosaic.image
+
     def summary(self) -> str:
         r = self.report
         err = r["alignment_error_px"]

@@ -83,6 +83,21 @@ class Panorama3dResult:
     report: dict
     cavity: CavityMap
 
+    @property
+    def points(self) -> np.ndarray:
+        """(N, 3) mm, the wall's points (mm when the scale is known, see the report's ``scale_source``)."""
+        return self.cavity.tracks.points
+
+    @property
+    def colors(self) -> np.ndarray:
+        """(N, 3) uint8 RGB, each point's colour."""
+        return self.cavity.tracks.colors
+
+    @property
+    def cam_from_world(self) -> np.ndarray:
+        """(m, 4, 4) every frame's pose as a matrix (meaningful where ``cavity.registered``)."""
+        return np.stack([p.matrix for p in self.cavity.poses])
+
     def summary(self) -> str:
         r = self.report
         line = (f"{r['n_registered']}/{r['n_frames']} frames registered, {r['n_points']} points, "
@@ -214,16 +229,22 @@ def save_panorama_png(path: Path, cavity: CavityMap, distances: np.ndarray | Non
     save_figure(fig, path)
 
 
+def check_dataset(options: Panorama3dOptions, dataset: Dataset) -> None:
+    """What :func:`run` refuses before any work (``scope3d check --for panorama`` runs it too): raises
+    InputError."""
+    if len(dataset) < 2:
+        raise InputError(f"{dataset.root}: need at least 2 frames for a panorama, found {len(dataset)}")
+    if options.stars is not None and dataset.fluorescence_paths is None:
+        raise InputError(f"{dataset.root}: no fluorescence frames, so no star targets to set the scale "
+                         "(use --no-scale for an unscaled model)")
+
+
 def run(options: Panorama3dOptions, dataset: Dataset, out_dir: str | Path, *,
         progress: Progress | None = None) -> Panorama3dResult:
     """The 3-D panorama of ``dataset`` into ``out_dir`` (written atomically)."""
     t0, c0 = time.perf_counter(), time.process_time()
+    check_dataset(options, dataset)
     n = len(dataset)
-    if n < 2:
-        raise InputError(f"{dataset.root}: need at least 2 frames for a panorama, found {n}")
-    if options.stars is not None and dataset.fluorescence_paths is None:
-        raise InputError(f"{dataset.root}: no fluorescence frames, so no star targets to set the scale "
-                         "(use --no-scale for an unscaled model)")
     timings, cpu = {}, {}  # wall and CPU seconds per stage (CPU: every thread of the process)
     stage(progress, "panorama: features", n)
     features = panorama_features(options, dataset, progress=progress)

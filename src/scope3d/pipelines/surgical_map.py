@@ -34,9 +34,11 @@ Units: mm and radians inside; pixels with their origin at the top-left pixel's c
 """
 from __future__ import annotations
 
+import json
 import time
+import zipfile
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -57,6 +59,7 @@ from scope3d.io.dataset import Dataset
 from scope3d.io.images import write_image
 from scope3d.io.map_points import MAP_POINTS_FILE, MapPoints, write_map_points
 from scope3d.io.ply import write_ply
+from scope3d.io.poses_csv import format_poses_csv
 from scope3d.metrology.evaluation import (
     EvaluationOptions,
     pose_errors,
@@ -75,28 +78,31 @@ from scope3d.metrology.fluorescence import (
     write_targets,
 )
 from scope3d.phantoms.lab import true_targets
-from scope3d.scene.mesh import PointCloud, SampledSurface
+from scope3d.scene.mesh import Mesh, PointCloud, SampledSurface
 from scope3d.scene.surface import Surface, SurfaceOptions, enlarge_raster, fit_surface, save_depth_map_png, texture
 from scope3d.scene.tracks import Tracks
 from scope3d.sensor.camera import INTRINSIC_NAMES, Camera
-from scope3d.sensor.pose_tolerance import MeasuredPose
+from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance
 from scope3d.sfm.coarse_poses import CoarseOptions, CoarseResult, coarse_poses
 from scope3d.sfm.depth_priors import box_depth_prior, estimate_depth_prior, surface_depth_prior
 from scope3d.sfm.guided_mapping import (
     POSE_MODES,
     BundleStageOptions,
     adjust_map,
+    adjusted_pose_sigmas,
     refine_poses_for_matching,
 )
 from scope3d.sfm.model_checks import check_model, model_checks_summary
 from scope3d.sfm.pose_checks import PoseCheck, PoseCheckOptions, check_pose_reports
-from scope3d.utils.atomic import atomic_directory
+from scope3d.utils.atomic import atomic_directory, atomic_file
 from scope3d.utils.background import BackgroundCalls
-from scope3d.utils.jsonio import write_json
+from scope3d.utils.jsonio import json_default, write_json
 from scope3d.utils.progress import Progress, advance, stage
 from scope3d.utils.threads import check_threads, resolve_threads
 
 MATCHERS = ("guided", "exhaustive")
+#: The adjusted poses in poses.csv form, in the map's folder (:func:`write_refined_poses`).
+REFINED_POSES_FILE = "poses_refined.csv"
 
 
 @dataclass(frozen=True)
@@ -220,6 +226,8 @@ class SparseResult:
         (:func:`scope3d.sfm.guided_mapping.on_surface`; only when the map has a surface stage).
     matched : every matched observation as tracks, untriangulated (what the adjustment started from; the pose
         check tests the reports against all of them, not only those the map kept).
+    pose_sigmas : (m, 6) what is left of each adjusted pose's uncertainty, standard deviations (rotation rad,
+        centre mm; :func:`scope3d.sfm.guided_mapping.adjusted_pose_sigmas`), None when not computed.
     """
 
     tracks: Tracks
@@ -230,6 +238,7 @@ class SparseResult:
     time_s: float
     off_surface_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     matched: Tracks | None = None
+    pose_sigmas: np.ndarray | None = None
 
     @property
     def n_off_surface(self) -> int:
@@ -255,15 +264,100 @@ class TargetResult:
 
 @dataclass
 class MapResult:
-    """What :func:`run` returns: the report (also in ``out_dir/report.json``) and the in-memory model."""
+    """What :func:`run` returns: the report (also in ``out_dir/report.json``) and the in-memory model.
+
+    The model as arrays: :attr:`points`, :attr:`colors`, :attr:`cam_from_world`, :attr:`pose_sigmas`,
+    :attr:`mesh` (the textured surface) and :attr:`names` (the frames, in the order of the poses).
+    :meth:`save` writes them (and the tracks, the camera and the surface grid) to one ``.npz`` that
+    :meth:`load` reads back; the stages' intermediates (features, matches, bundle logs, fluorescence rasters)
+    are not saved: a loaded result has ``features == []``, ``matching is None``, ``targets is None`` (the
+    targets are in its report and in targets.csv). The whole result also pickles.
+    """
 
     report: dict
     out_dir: Path
     features: list[Features]
-    matching: MatchingResult
+    matching: MatchingResult | None
     sparse: SparseResult
     surface: SurfaceResult | None
     targets: TargetResult | None
+    names: list[str] = field(default_factory=list)
+
+    @property
+    def points(self) -> np.ndarray:
+        """(N, 3) mm world, the map's points."""
+        return self.sparse.tracks.points
+
+    @property
+    def colors(self) -> np.ndarray:
+        """(N, 3) uint8 RGB, each point's colour."""
+        return self.sparse.tracks.colors
+
+    @property
+    def poses(self) -> list[Pose]:
+        """The adjusted ``cam_from_world`` poses, one per frame."""
+        return self.sparse.poses
+
+    @property
+    def cam_from_world(self) -> np.ndarray:
+        """(m, 4, 4) the adjusted poses as matrices (mm)."""
+        return np.stack([p.matrix for p in self.sparse.poses])
+
+    @property
+    def pose_sigmas(self) -> np.ndarray | None:
+        """(m, 6) each adjusted pose's remaining standard deviations (rotation rad, centre mm), as in
+        poses_refined.csv."""
+        return self.sparse.pose_sigmas
+
+    @property
+    def mesh(self) -> Mesh | None:
+        """The surface as a triangle mesh with its texture's vertex colours (mesh_reflectance.ply), or None."""
+        return None if self.surface is None else self.surface.surface.mesh(self.surface.colors)
+
+    def save(self, path: str | Path) -> Path:
+        """Write the model's arrays and the report to ``path`` (one ``.npz``, written atomically); returns it."""
+        tr, camera = self.sparse.tracks, self.sparse.camera
+        arrays = {"report": np.array(json.dumps(self.report, default=json_default)), "out_dir": np.array(str(self.out_dir)),
+                  "names": np.array(self.names, dtype=str), "camera": np.array(json.dumps(asdict(camera), default=json_default)),
+                  "track": tr.track, "frame": tr.frame, "feature": tr.feature, "pixels": tr.pixels,
+                  "colors": tr.colors, "points": tr.points, "cam_from_world": self.cam_from_world,
+                  "off_surface_points": self.sparse.off_surface_points}
+        if self.pose_sigmas is not None:
+            arrays["pose_sigmas"] = self.pose_sigmas
+        if self.surface is not None:
+            s = self.surface.surface
+            arrays.update(surface_origin=s.origin, surface_axes=s.axes, surface_s=s.s, surface_t=s.t,
+                          surface_height=s.height, surface_colors=self.surface.colors,
+                          surface_view_map=self.surface.view_map)
+        path = Path(path)
+        with atomic_file(path, "wb") as fh:
+            np.savez_compressed(fh, **arrays)
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> "MapResult":
+        """The result :meth:`save` wrote to ``path``. Raises InputError if it is not such a file."""
+        path = Path(path)
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                a = {k: z[k] for k in z.files}
+        except (OSError, ValueError, zipfile.BadZipFile) as exc:
+            raise InputError(f"{path}: not a saved map result ({exc})") from None
+        missing = [k for k in ("report", "names", "camera", "track", "points", "cam_from_world") if k not in a]
+        if missing:
+            raise InputError(f"{path}: not a saved map result (no {', '.join(missing)})")
+        report = json.loads(str(a["report"]))
+        timings = report.get("timings_s", {})
+        tracks = Tracks(a["track"], a["frame"], a["feature"], a["pixels"], a["colors"], a["points"])
+        poses = [Pose(m[:3, :3], m[:3, 3]) for m in a["cam_from_world"]]
+        sparse = SparseResult(tracks, poses, Camera(**json.loads(str(a["camera"]))), [],
+                              float(report["mean_reprojection_error_px"]), float(timings.get("bundle", 0.0)),
+                              a["off_surface_points"], None, a.get("pose_sigmas"))
+        surface = None
+        if "surface_height" in a:
+            grid = Surface(a["surface_origin"], a["surface_axes"], a["surface_s"], a["surface_t"], a["surface_height"])
+            surface = SurfaceResult(grid, a["surface_colors"], a["surface_view_map"], float(timings.get("surface", 0.0)))
+        return cls(report, Path(str(a["out_dir"])), [], None, sparse, surface, None, [str(n) for n in a["names"]])
 
     def summary(self) -> str:
         r = self.report
@@ -434,8 +528,10 @@ def reconstruct(options: MapOptions, dataset: Dataset, features: list[Features],
                           track_options=options.tracks, options=options.bundle,
                           height_field=options.surface is not None, where=str(dataset.root))
     err = reprojection_errors(adjusted.camera, adjusted.poses, adjusted.tracks)
+    sigmas = adjusted_pose_sigmas(options.pose_mode, dataset.poses, adjusted.camera, adjusted.tracks, adjusted.poses,
+                                  options=options.bundle)
     return SparseResult(adjusted.tracks, adjusted.poses, adjusted.camera, adjusted.bundle_results, float(np.mean(err)),
-                        time.perf_counter() - t0, adjusted.off_surface_points, tracks)
+                        time.perf_counter() - t0, adjusted.off_surface_points, tracks, sigmas)
 
 
 def check_reported_poses(options: MapOptions, dataset: Dataset, matching: MatchingResult,
@@ -525,6 +621,7 @@ def write_outputs(
     model = SparseModel.from_observations(sparse.camera, dataset.names, sparse.poses, tr.points, tr.frame, tr.track,
                                           tr.pixels, colors=tr.colors, errors=per_point_err)
     write_colmap_text(model, out_dir / "sparse")
+    write_refined_poses(out_dir / REFINED_POSES_FILE, dataset.names, sparse)
     # what localization against this map needs (scope3d localize): points, one descriptor each, track lengths
     write_map_points(out_dir / MAP_POINTS_FILE, MapPoints(tr.points, track_descriptors(features, tr),
                                                           tr.lengths(), tr.colors))
@@ -588,6 +685,16 @@ def write_outputs(
     return report
 
 
+def write_refined_poses(path: Path, names: list[str], sparse: SparseResult) -> None:
+    """``poses_refined.csv``: the adjusted poses in the dataset's own poses.csv form, each with a box of 3 of
+    its remaining standard deviations as its tolerance (as ``import rosbag`` reads a covariance) and the
+    standard deviations themselves in the extra :data:`scope3d.io.poses_csv.SIGMA_COLUMNS`: a dataset whose
+    poses.csv is this file maps again from the refined poses."""
+    sigmas = sparse.pose_sigmas if sparse.pose_sigmas is not None else np.full((len(sparse.poses), 6), np.inf)
+    boxes = [PoseTolerance(3.0 * s[3:], 3.0 * s[:3]) for s in sigmas]
+    path.write_text(format_poses_csv(names, [MeasuredPose(p, b) for p, b in zip(sparse.poses, boxes)], sigmas))
+
+
 def _bundle_summary(result) -> dict:
     d = result.to_dict()
     d.pop("iteration_log", None)
@@ -647,9 +754,14 @@ def run(options: MapOptions, dataset: Dataset, out_dir: str | Path, *, progress:
         return _run_stages(options, dataset, out_dir, progress)
 
 
-def _run_stages(options: MapOptions, dataset: Dataset, out_dir: str | Path, progress: Progress | None) -> MapResult:
+def check_dataset(options: MapOptions, dataset: Dataset) -> None:
+    """What :func:`run` refuses before any work (``scope3d check`` runs it too): raises InputError."""
     if len(dataset) < 2:
         raise InputError(f"{dataset.root}: need at least 2 frames to map, found {len(dataset)}")
+
+
+def _run_stages(options: MapOptions, dataset: Dataset, out_dir: str | Path, progress: Progress | None) -> MapResult:
+    check_dataset(options, dataset)
     timings: dict = {}
     tick = time.perf_counter()
 
@@ -694,4 +806,4 @@ def _run_stages(options: MapOptions, dataset: Dataset, out_dir: str | Path, prog
         stage(progress, "writing outputs")
         report = write_outputs(options, dataset, tmp, frames, features, matching, sparse, surface, targets, evaluation,
                                timings, pose_check, background=background, figure_pair=figure_pair)
-    return MapResult(report, Path(out_dir), features, matching, sparse, surface, targets)
+    return MapResult(report, Path(out_dir), features, matching, sparse, surface, targets, list(dataset.names))

@@ -187,6 +187,13 @@ class ThreadScanResult:
         return "\n".join(lines)
 
 
+def check_dataset(options: ThreadScanOptions, dataset: Dataset) -> None:
+    """What the job refuses before any work (``scope3d check --for thread-scan`` runs it too): the quadrants'
+    layout (quadrants.json) and each quadrant's scan read off its poses, as :func:`run` reads them first.
+    Raises InputError."""
+    quadrant_scans(options, dataset)
+
+
 def quadrant_scans(options: ThreadScanOptions, dataset: Dataset) -> list[QuadrantScanPlan]:
     """Per quadrant, its scan read off the stage's poses and the frame gap its map matches over
     (``options.frame_gap`` when given)."""

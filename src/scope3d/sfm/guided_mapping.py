@@ -20,7 +20,7 @@ import numpy as np
 
 from scope3d.errors import InputError
 from scope3d.estimators.bundle import BundleProblem, BundleResult, SolverOptions, solve
-from scope3d.estimators.bundle.covariance import pairwise_pose_covariances
+from scope3d.estimators.bundle.covariance import pairwise_pose_covariances, reduced_camera_system
 from scope3d.estimators.gauge import align_gauge
 from scope3d.estimators.triangulation import TrackOptions, reprojection_errors, triangulate_tracks
 from scope3d.feature.depth_prior import DepthPrior, pose_error_px
@@ -239,6 +239,39 @@ def adjust_map(mode: str, measured: list[MeasuredPose], camera: Camera, tracks: 
     if tracks.n_tracks == 0:
         raise InputError(f"{where}: no point lies on a consistent surface")
     return AdjustedMap(tracks, poses, camera, results, np.concatenate(dropped))
+
+
+def adjusted_pose_sigmas(mode: str, measured: list[MeasuredPose], camera: Camera, tracks: Tracks, poses: list[Pose],
+                         *, options: BundleStageOptions) -> np.ndarray:
+    """(m, 6) standard deviations of the adjusted ``poses`` (rotation vector about the world axes, rad; camera
+    centre, mm): what the images and the measurements together leave of each pose's uncertainty.
+
+    The measured box of half-width ``a`` is a uniform error of sigma ``a / sqrt(3)``; it is the prior, and the
+    images' information at the adjusted poses (the reduced camera system of the ``options.max_points``
+    strongest tracks, the noise estimated from their residuals, as the adjustment weighed them) is added to it.
+    A scalar measured exactly (``a = 0``) keeps sigma 0; an unknown one (``a = inf``) has only the images'
+    information, and when no camera has a finite position box the images fix no gauge and those sigmas are
+    inf. ``fixed`` mode keeps the measured poses as they are, so their sigma is the prior's. The Gaussian
+    reading of a box is an approximation: a bounded adjustment at its box's edge is not Gaussian there."""
+    prior = np.array([np.r_[m.tolerance.orientation_rad, m.tolerance.position_mm] for m in measured]) / np.sqrt(3.0)
+    if mode == "fixed" or not np.isfinite(prior[:, 3:]).any() or tracks.n_tracks == 0:
+        return prior
+    strongest = tracks.strongest(options.max_points)
+    # the problem parametrised at the adjusted poses themselves (rotation vector 0 about each), so that the
+    # information is the curvature where the adjustment ended, whatever box that is in
+    at = [MeasuredPose(p, m.tolerance) for p, m in zip(poses, measured)]
+    problem = BundleProblem.from_measured_poses(at, camera, strongest.points, strongest.pixels, strongest.frame,
+                                                strongest.track, refine_intrinsics=False)
+    S, seen, noise_px = reduced_camera_system(problem, problem.initial, options.loss_scale_px)
+    flat = prior.reshape(-1)
+    free = flat > 0
+    information = S[np.ix_(free, free)] / noise_px**2 + np.diag(1.0 / flat[free] ** 2)  # 1 / inf^2 = 0
+    out = np.zeros_like(flat)
+    try:
+        out[free] = np.sqrt(np.diag(np.linalg.inv(information)))
+    except np.linalg.LinAlgError:  # a camera with an unknown pose that no image ties to the rest
+        out[free] = np.inf
+    return out.reshape(prior.shape)
 
 
 def on_surface(tracks: Tracks, poses: list[Pose], *, gross_only: bool = False) -> np.ndarray:
