@@ -151,6 +151,24 @@ def test_tf_stream_picks_the_camera_frame(sequence, tmp_path):
         import_rosbag(bag, tmp_path / "ds2", options=_options(pose_topic="/tf"))
 
 
+def test_a_flange_stream_through_the_hand_eye_gives_the_camera_poses(sequence, tmp_path):
+    """A robot's tf publishes its flange, not the camera: --hand-eye turns each into the camera's pose."""
+    import dataclasses
+
+    from scope3d.geometry.pose import Pose
+    from scope3d.sensor.pose_tolerance import MeasuredPose
+
+    flange_from_cam = Pose.from_rotvec([0.05, -0.1, 1.2], [3.0, -2.0, 40.0])
+    flange = [MeasuredPose(flange_from_cam @ m.pose, m.tolerance) for m in sequence.measured_poses]
+    bag = _write_bag(tmp_path / "flange_bag", dataclasses.replace(sequence, measured_poses=flange), ros1=False,
+                     compressed=False, pose_kind="tf")
+    options = _options(pose_topic="/tf", camera_frame="scope_optical", flange_from_cam=flange_from_cam)
+    _assert_same_as_phantom(import_rosbag(bag, tmp_path / "ds", options=options), sequence)
+    # and without it the flange's poses, 40 mm behind the camera, are taken for the camera's
+    ds = load_dataset(import_rosbag(bag, tmp_path / "raw", options=_options(pose_topic="/tf", camera_frame="scope_optical")))
+    assert np.linalg.norm(ds.poses[0].pose.centre - sequence.measured_poses[0].pose.centre) > 39.0
+
+
 def test_tolerance_from_covariance_or_from_the_parameter(sequence, tmp_path):
     bag = _write_bag(tmp_path / "cov_bag", sequence, ros1=False, compressed=False, pose_kind="covariance",
                      sigma_m=0.0005)

@@ -87,6 +87,9 @@ def register(subparsers) -> None:
     intrinsics = bag.add_mutually_exclusive_group(required=True)
     intrinsics.add_argument("--camera-info-topic", metavar="T", help="sensor_msgs/CameraInfo topic")
     intrinsics.add_argument("--camera", metavar="CAMERA_JSON", type=Path, help="camera.json (see docs/datasets.md)")
+    bag.add_argument("--hand-eye", metavar="HAND_EYE_JSON", type=Path,
+                     help="hand_eye.json (scope3d calibrate-hand-eye): the pose stream (or --camera-frame's tf "
+                          "frame) is the robot's flange, turned into the camera's pose through it")
     bag.add_argument("--slop-ms", type=float, default=20.0,
                      help="largest gap between an image's stamp and its pose's, ms (default 20)")
     _add_output_arguments(bag)
@@ -216,13 +219,16 @@ def run_import_colmap(args) -> int:
 
 def run_import_rosbag(args) -> int:
     from scope3d.io.camera_json import read_camera_json
+    from scope3d.io.hand_eye_json import read_hand_eye_json
     from scope3d.io.rosbag import RosbagOptions, import_rosbag
 
     if not args.slop_ms > 0:
         raise InputError("--slop-ms must be positive")
     check_dataset_output(args.out)
     given = args.tolerance is not None or args.tolerance_deg > 0
-    options = RosbagOptions(image_topic=args.image_topic, pose_topic=args.pose_topic, camera_frame=args.camera_frame,
+    flange_from_cam = read_hand_eye_json(args.hand_eye) if args.hand_eye else None
+    options = RosbagOptions(flange_from_cam=flange_from_cam, image_topic=args.image_topic, pose_topic=args.pose_topic,
+                            camera_frame=args.camera_frame,
                             camera_info_topic=args.camera_info_topic, slop_s=args.slop_ms / 1000.0,
                             tolerance=_tolerance(args) if given else None)
     camera = read_camera_json(args.camera) if args.camera else None

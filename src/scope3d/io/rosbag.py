@@ -47,6 +47,9 @@ class RosbagOptions:
     slop_s : float, seconds, largest gap between an image's stamp and its pose's (ROS's approximate-time
         slop). tolerance : PoseTolerance or None, the poses' box; None = from the pose covariance when the
         messages carry one (``covariance_sigmas`` standard deviations), else exact.
+    flange_from_cam : Pose or None, the hand-eye transform (``scope3d calibrate-hand-eye``'s hand_eye.json):
+        the pose stream (or the tf frame ``camera_frame``) is then the robot's flange, and each camera pose
+        is ``base_from_flange @ flange_from_cam``.
     """
 
     image_topic: str
@@ -56,6 +59,7 @@ class RosbagOptions:
     slop_s: float = 0.02
     tolerance: PoseTolerance | None = None
     covariance_sigmas: float = 3.0  # a 3-sigma box holds 99.7 % of a Gaussian's mass per axis
+    flange_from_cam: Pose | None = None
 
     def __post_init__(self) -> None:
         if not self.image_topic or not self.pose_topic:
@@ -355,7 +359,9 @@ def import_rosbag(bag: str | Path, out_dir: str | Path, *, options: RosbagOption
                                                 f"{bag}: {options.pose_topic} pose {j}")
             else:
                 tol = PoseTolerance.exact()
-            measured.append(MeasuredPose(p.pose, tol))
+            # the stream's frame is the flange's with a hand-eye: cam_from_world = cam_from_flange @ flange_from_world
+            pose = p.pose if options.flange_from_cam is None else options.flange_from_cam.inverse() @ p.pose
+            measured.append(MeasuredPose(pose, tol))
         with tempfile.TemporaryDirectory(prefix="scope3d-rosbag-") as tmp:
             frames = []
             for index, _time_ns, msg, msgtype in _messages(reader, image_conns, bag, options.image_topic):
@@ -374,6 +380,9 @@ def import_rosbag(bag: str | Path, out_dir: str | Path, *, options: RosbagOption
             return write_dataset(out_dir, camera, frames, measured, metadata={
                 "source": {"rosbag": str(bag), "image_topic": options.image_topic, "pose_topic": options.pose_topic,
                            "camera_frame": options.camera_frame, "slop_s": options.slop_s,
+                           "flange_from_cam": None if options.flange_from_cam is None else
+                           {"rotation": options.flange_from_cam.rotation.tolist(),
+                            "translation_mm": options.flange_from_cam.translation.tolist()},
                            "images_in_bag": int(len(image_ns)), "images_paired": len(pairs),
                            "image_stamps_ns": [int(image_ns[i]) for i, _ in pairs],
                            "pose_gaps_s": [float(abs(image_ns[i] - pose_ns[j]) / 1e9) for i, j in pairs]}},
