@@ -86,6 +86,10 @@ def test_the_example_follows_the_same_path(recording):
     cli = load_dataset(recording / "scan")
     api = load_dataset(recording / "example" / "dataset")
     assert api.names == cli.names
+    # the same path: OpenCV's threaded calibration differs in the last bits between runs (5e-13 px here),
+    # and the hand-eye's least squares stops at a relative step of 1e-8 (SciPy's xtol), so the two agree
+    # to within ten such steps of the 40 mm lever
+    he = read_hand_eye_json(recording / "he" / "hand_eye.json")
     for a, b in zip(api.poses, cli.poses):
-        assert a.pose.distance_to(b.pose)[0] < 1e-9
+        assert a.pose.distance_to(b.pose)[0] < 10 * 1e-8 * np.linalg.norm(he.translation)
         np.testing.assert_array_equal(a.tolerance.position_mm, b.tolerance.position_mm)
