@@ -186,6 +186,7 @@ def write_dataset(
     metadata: dict | None = None,
     extra_images: dict[str, np.ndarray] | None = None,
     finish: Callable[[Path], None] | None = None,
+    move_frames: bool = False,
 ) -> Path:
     """Write a dataset folder atomically (built beside ``out_dir``, then renamed into place).
 
@@ -199,6 +200,9 @@ def write_dataset(
         so that the folder appears complete or not at all.
     finish : called with the folder being built once everything above is in it, before it is put in place
         (a job's report.json and report.html): what it writes appears with the dataset or not at all.
+    move_frames : frames given as paths of the caller's own temporary files, just written whole in the
+        name's format: moved into the dataset, neither copied nor decoded again to check them (an import's
+        own PNGs; a user's files are always copied and checked).
 
     If anything fails, ``out_dir`` is left as it was (absent, or the previous dataset).
     """
@@ -228,7 +232,10 @@ def write_dataset(
         (tmp / "poses.csv").write_text(format_poses_csv(names, poses))
         (tmp / "frames").mkdir()
         for name, img in zip(names, frames):
-            _write_frame(tmp / "frames" / name, img)
+            if move_frames and isinstance(img, (str, Path)) and Path(img).suffix.lower() == Path(name).suffix.lower():
+                shutil.move(img, tmp / "frames" / name)
+            else:
+                _write_frame(tmp / "frames" / name, img)
         if fluorescence is not None:
             (tmp / "fluorescence").mkdir()
             for name, img in zip(names, fluorescence):

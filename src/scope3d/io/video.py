@@ -39,8 +39,8 @@ from scope3d.utils.atomic import atomic_path
 MP4_FOURCC = "mp4v"  # MPEG-4 Part 2: encodable by the opencv wheel's FFmpeg (H.264 'avc1' is not)
 # The codec :func:`write_video` uses for a file's suffix: MPEG-4 Part 2 in .mp4 (lossy: at OpenCV's default
 # bitrate a 304 px phantom frame comes back ~5 grey levels RMS off), FFV1 in .mkv (lossless, ~7x larger), and
-# Motion JPEG in .avi (each frame a JPEG of quality 95, ~1 grey level off: a frame grabber's recording).
-VIDEO_CODECS = {".mp4": (MP4_FOURCC, []), ".mkv": ("FFV1", []), ".avi": ("MJPG", [cv2.VIDEOWRITER_PROP_QUALITY, 95])}
+# Motion JPEG in .avi (each frame a JPEG, ~1 grey level off: a frame grabber's recording).
+VIDEO_CODECS = {".mp4": (MP4_FOURCC, []), ".mkv": ("FFV1", []), ".avi": ("MJPG", [])}
 
 
 @dataclass(frozen=True)

@@ -18,6 +18,7 @@ from __future__ import annotations
 import math
 import re
 import tempfile
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -34,6 +35,7 @@ from scope3d.io.video import read_video
 from scope3d.sensor.camera import Camera
 from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance
 from scope3d.utils.progress import Progress, advance, stage
+from scope3d.utils.threads import resolve_threads
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 #: Longest stretch of log a frame's pose may be interpolated across by default: at a 100-1000 Hz log the
@@ -158,7 +160,7 @@ def run(options: FramesImportOptions, source: str | Path, log: str | Path, camer
                                  skipped)
         stage(progress, "write dataset", None)
         write_dataset(out_dir, camera, [paths[k] for k in keep], measured, names=kept_names,
-                      metadata={"source": provenance}, finish=finish)
+                      metadata={"source": provenance}, finish=finish, move_frames=kind == "video")
     return FramesImportResult(Path(out_dir), kept_names, times[keep], gaps[keep], skipped, pose_log)
 
 
@@ -188,21 +190,30 @@ def _folder_frames(folder: Path, camera: Camera, timing: FrameTiming, table: dic
 def _video_frames(video: Path, camera: Camera, options: FramesImportOptions, table: dict[str, float] | None,
                   tmp: Path, progress: Progress | None) -> tuple[list[Path], list[str], np.ndarray]:
     stage(progress, "decode video", None)
-    paths, names, keys, times = [], [], [], []
-    for frame in read_video(video, every=options.every):
-        if frame.image.shape[:2] != (camera.height, camera.width):
-            raise InputError(f"{video}: frames are {frame.image.shape[1]}x{frame.image.shape[0]} px, the camera "
-                             f"{camera.width}x{camera.height}")
-        name = f"{frame.index:06d}.png"
-        path = tmp / name
-        if not cv2.imwrite(str(path), cv2.cvtColor(frame.image, cv2.COLOR_RGB2BGR)):
+    paths, names, keys, times, pending = [], [], [], [], []
+
+    def write(path: Path, rgb: np.ndarray) -> None:
+        if not cv2.imwrite(str(path), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
             raise InputError(f"{path}: could not write a frame")
-        paths.append(path)
-        names.append(name)
-        keys.append(str(frame.index))
-        timing = options.timing
-        times.append(timing.first_frame_s + frame.index / timing.rate_hz if timing.rate_hz else frame.time_s)
-        advance(progress)
+
+    # the PNG encoding (OpenCV releases the GIL) runs beside the decoding; a bounded backlog keeps memory flat
+    with ThreadPoolExecutor(max_workers=resolve_threads(0)) as pool:
+        for frame in read_video(video, every=options.every):
+            if frame.image.shape[:2] != (camera.height, camera.width):
+                raise InputError(f"{video}: frames are {frame.image.shape[1]}x{frame.image.shape[0]} px, the camera "
+                                 f"{camera.width}x{camera.height}")
+            name = f"{frame.index:06d}.png"
+            pending.append(pool.submit(write, tmp / name, frame.image))
+            if len(pending) > 32:
+                pending.pop(0).result()
+            paths.append(tmp / name)
+            names.append(name)
+            keys.append(str(frame.index))
+            timing = options.timing
+            times.append(timing.first_frame_s + frame.index / timing.rate_hz if timing.rate_hz else frame.time_s)
+            advance(progress)
+        for job in pending:
+            job.result()
     if table is not None:
         aliases = {**{k: n for k, n in zip(keys, names)}, **{n: n for n in names}}
         # rows of the frames --every passes over name frames of the video too: not a mistake
