@@ -452,9 +452,10 @@ def gauge_thread(points: np.ndarray, *, options: GaugeOptions = GaugeOptions()) 
     d2 = 2 * rp
     d2_virtual = d2 - f_p - f_alpha
 
-    # (5) crest defects
+    # (5) crest defects, over the whole threaded stretch the zone came from (the fitted helix runs on
+    # through the pitch of run-out trimmed at each end for the sizes' fit; a chip there is as damaging)
     t_all, r_all, z_all = _cylindrical(points, axis_point, axis_dir)
-    keep = (z_all >= z0) & (z_all <= z1)
+    keep = (z_all >= z0 - pitch_nom) & (z_all <= z1 + pitch_nom)
     t_all, r_all, z_all = t_all[keep], r_all[keep], z_all[keep]
     s = z_all - pitch * t_all / (2 * np.pi) - x[5]
     w = np.mod(s + pitch / 2, pitch) - pitch / 2
