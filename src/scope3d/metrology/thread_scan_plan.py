@@ -170,6 +170,11 @@ class ScanCoverage:
         twice (nothing to triangulate)."""
         return self.pitches < self.needed_pitches - 1e-9 or self.views_per_point < 2
 
+    @property
+    def below_plan(self) -> bool:
+        """Fewer pitches shown or fewer views per wall point than the plan's."""
+        return self.pitches < self.needed_pitches - 1e-9 or self.views_per_point < self.needed_views - 1e-9
+
     def message(self) -> str:
         """One line: what the scan shows against what the gauge needs, and the planned scan."""
         p = self.plan

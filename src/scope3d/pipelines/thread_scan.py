@@ -177,7 +177,8 @@ class ThreadScanResult:
                      **({"coverage": {"pitches": self.coverage.pitches, "views_per_point": self.coverage.views_per_point,
                                       "needed_pitches": self.coverage.needed_pitches,
                                       "needed_views_per_point": self.coverage.needed_views,
-                                      "short": self.coverage.short, "plan": self.coverage.plan.to_dict(),
+                                      "short": self.coverage.short, "below_plan": self.coverage.below_plan,
+                                      "plan": self.coverage.plan.to_dict(),
                                       "message": self.coverage.message()}} if self.coverage else {})},
             "timings_s": self.timings_s,
         }
@@ -185,8 +186,8 @@ class ThreadScanResult:
     def summary(self) -> str:
         lines = [self.gauge.summary() if self.gauge is not None else
                  f"thread gauge: INDETERMINATE ({self.gauge_message})"]
-        if self.gauge is not None and self.gauge.verdict == "indeterminate" and self.coverage and self.coverage.short:
-            lines.append(f"scan too short: {self.coverage.message()}")
+        if self.gauge is not None and self.gauge.verdict == "indeterminate" and self.coverage and self.coverage.below_plan:
+            lines.append(f"scan below the plan: {self.coverage.message()}")
         p = self.panorama
         if p.loop_closure_deg is not None:
             lines.append(f"registration: loop closure {p.loop_closure_deg:.3f}° / {p.loop_closure_mm:.4f} mm "
