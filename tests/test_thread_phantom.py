@@ -58,3 +58,26 @@ def test_chip_placed_at_a_height_lies_on_the_crest_turn_nearest_it():
         assert "defect height" in str(exc)
     else:
         raise AssertionError("a chip above the thread must be refused")
+
+
+def test_a_default_quadrant_scan_follows_the_scan_plan_and_a_short_one_is_refused(tmp_path, capsys):
+    from scope3d.metrology.thread_scan_plan import minimum_frames, plan_quadrant_scan
+    from scope3d.phantoms.lab import borescope_camera
+
+    out = tmp_path / "hole"
+    assert main(["phantom", "thread", "--trajectory", "quadrants", "--thread", "M10x1.5", "--side-view", "45",
+                 "--size", "40x32", "--out", str(out), "--no-progress"]) == 0
+    plan = plan_quadrant_scan(borescope_camera(size=(40, 32)), "M10x1.5", 45.0)
+    layout = json.loads((out / "quadrants.json").read_text())
+    assert layout["thread"] == "M10x1.5" and layout["step_mm"] == plan.step_mm
+    assert all(len(q["frames"]) == plan.frames_per_quadrant for q in layout["quadrants"])
+    assert json.loads((out / "report.json").read_text())["scan_plan"]["frame_gap"] == plan.frame_gap
+    # the old default, 0.1 mm steps, 4 frames per quadrant: refused in one line with the least it needs
+    capsys.readouterr()
+    assert main(["phantom", "thread", "--trajectory", "quadrants", "--side-view", "90", "--quadrant-step", "0.1",
+                 "--frames", "48", "--size", "40x32", "--out", str(tmp_path / "short"), "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip()
+    least = minimum_frames(borescope_camera(size=(40, 32)), "M8x1.25", 90.0, 0.1)
+    assert "too short to gauge" in err and f"at least {least} frames per quadrant" in err
+    assert len([line for line in err.splitlines() if "too short" in line]) == 1
+    assert not (tmp_path / "short").exists()

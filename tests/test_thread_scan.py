@@ -46,6 +46,13 @@ def test_thread_scan_registers_the_quadrants(hole, tmp_path, capsys):
     # rule), not from a size-specific argument
     scan = plan_quadrant_scan(Camera.from_fov(320, 256, BORESCOPE_FOV_DEG), "M8x1.25", 45.0)
     assert report["scan"]["frame_gap"] == [matched_frame_gap(0.1, scan.view_extent_mm)] * 12
+    # 3 frames 0.1 mm apart (the Python API's default step) see each wall point 3 times, not the plan's 8:
+    # no thread is gauged, and the verdict's line says what the scan showed and what the plan would do
+    coverage = report["scan"]["coverage"]
+    assert coverage["views_per_point"] == 3 < coverage["needed_views_per_point"]
+    assert coverage["plan"]["step_mm"] == scan.step_mm and f"{scan.frames_per_quadrant} frames per quadrant" in coverage["message"]
+    assert report["gauge"]["verdict"] == "indeterminate" and coverage["message"] in report["gauge"]["message"]
+    assert coverage["message"] in printed.splitlines()[0]
     assert (out / "cloud.ply").is_file() and (out / "registration.png").is_file()
     assert len(list((out / "quadrants").glob("q*.ply"))) == 12
 

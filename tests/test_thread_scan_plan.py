@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from scope3d.geometry.iso_thread import THREAD_SIZES
-from scope3d.metrology.thread_scan_plan import (QuadrantScanPlanOptions, measured_quadrant_scan,
-                                                plan_quadrant_scan, view_extent_mm)
+from scope3d.metrology.thread_scan_plan import (QuadrantScanPlanOptions, measured_quadrant_scan, minimum_frames,
+                                                plan_quadrant_scan, scan_coverage, view_extent_mm)
 from scope3d.phantoms.trajectories import quadrant_trajectory
 from scope3d.sensor.camera import Camera
 
@@ -71,3 +71,33 @@ def test_a_scan_that_does_not_advance_or_looks_upside_down_is_refused():
         measured_quadrant_scan(CAMERA, [poses[0]] * 4, "M8x1.25")
     with pytest.raises(ValueError, match="rows run up"):
         measured_quadrant_scan(CAMERA, poses[::-1], "M8x1.25")  # withdrawing: rows point against the motion
+
+
+@pytest.mark.parametrize("designation,side_view", [(d, v) for d in THREAD_SIZES for v in (45.0, 90.0)])
+def test_the_plans_scan_shows_what_the_gauge_needs_and_one_frame_less_does_not(designation, side_view):
+    options = QuadrantScanPlanOptions()
+    plan = plan_quadrant_scan(CAMERA, designation, side_view, options=options)
+    # the scope crosses a whole view: each wall point is seen views_per_point times, even where a 45° view
+    # would show the thread's length in two frames
+    assert plan.frames_per_quadrant >= options.views_per_point
+    cover = scan_coverage(CAMERA, designation, side_view, plan.step_mm, plan.frames_per_quadrant, options=options)
+    assert not cover.short and cover.pitches >= options.thread_pitches
+    assert cover.views_per_point == pytest.approx(min(plan.frames_per_quadrant, plan.view_extent_mm / plan.step_mm))
+    least = minimum_frames(CAMERA, designation, side_view, plan.step_mm, options=options)
+    assert least <= plan.frames_per_quadrant
+    if least > 2:  # one frame fewer than the least shows less than the gauge needs
+        short = scan_coverage(CAMERA, designation, side_view, plan.step_mm, least - 1, options=options)
+        assert short.short and short.pitches < options.thread_pitches
+        line = short.message()
+        assert "\n" not in line and f"{plan.frames_per_quadrant} frames per quadrant" in line
+
+
+def test_an_imposed_step_keeps_the_plans_rules():
+    plan = plan_quadrant_scan(CAMERA, "M8x1.25", 90.0, step_mm=0.2)
+    assert plan.step_mm == 0.2 and plan.frames_per_quadrant == minimum_frames(CAMERA, "M8x1.25", 90.0, 0.2)
+    assert plan.frame_gap * 0.2 <= 0.5 * plan.view_extent_mm < (plan.frame_gap + 1) * 0.2
+    # a step over the whole view sees each wall point once: nothing to triangulate, however long the scan
+    far = scan_coverage(CAMERA, "M8x1.25", 90.0, plan.view_extent_mm * 1.1, 40)
+    assert far.short and far.views_per_point < 1
+    with pytest.raises(ValueError, match="positive"):
+        plan_quadrant_scan(CAMERA, "M8x1.25", 90.0, step_mm=0.0)

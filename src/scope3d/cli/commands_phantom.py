@@ -49,7 +49,8 @@ def register(subparsers) -> None:
                         "written as their tolerance; 0 = exact, with the micro-stage tolerance 0.01 mm (default)")
     p.add_argument("--thread", default="M8x1.25", metavar="SIZE",
                    help="ISO thread size (default M8x1.25; the sizes: see --list)")
-    p.add_argument("--frames", type=int, metavar="N", help="number of frames (limits grids; quadrants: total)")
+    p.add_argument("--frames", type=int, metavar="N", help="number of frames (limits grids; quadrants: total, "
+                   "default the scan plan's for the thread size, lens and side view)")
     p.add_argument("--fov", type=float, metavar="DEG", help="camera field of view across the width, degrees")
     p.add_argument("--size", type=_size, metavar="WxH", help="image size in pixels (e.g. 160x160 for tests)")
     p.add_argument("--side-view", type=float, default=45.0, metavar="DEG",
@@ -77,7 +78,8 @@ def register(subparsers) -> None:
                    help="quadrants: the camera's unknown offset from the rotation axis (mm) and tilt about its "
                         "image rows (degrees); default 0.08:-0.05:0")
     p.add_argument("--quadrant-step", type=float, metavar="MM",
-                   help="quadrants: the scope's advance per frame, mm (default 0.1)")
+                   help="quadrants: the scope's advance per frame, mm (default: the scan plan's for the thread "
+                        "size, lens and side view, docs/thread_metrology.md)")
     p.add_argument("--target", type=int, metavar="N",
                    help="approach trajectory: the target to approach (dome: 1-8); a tool hides part of the view, "
                         "its mask written as tool_mask.png")
@@ -165,23 +167,61 @@ def run(args) -> int:
         raise InputError("--video needs --plan")
     if args.mp4 and args.video is None:
         raise InputError("--mp4 needs --video FPS")
+    n_frames, step, scan_plan = args.frames, args.quadrant_step, None
+    if args.scene == "thread" and args.trajectory == "quadrants" and not args.plan:
+        n_frames, step, scan_plan = _planned_quadrant_scan(args)
     started = time.perf_counter()
     with progress_bar(show_progress(args), "frame") as progress:
         seq = generate(
             args.scene, args.trajectory, seed=args.seed, pose_noise_mm=args.pose_noise, thread=args.thread,
-            n_frames=args.frames, size=args.size, fov_deg=args.fov, side_view_deg=args.side_view,
+            n_frames=n_frames, size=args.size, fov_deg=args.fov, side_view_deg=args.side_view,
             axis_offset_mm=args.axis_offset, axis_tilt_deg=args.axis_tilt,
             dome_radius_mm=args.dome_radius, options=RenderOptions(blur_sigma_px=args.blur, supersample=args.supersample),
             progress=progress, target=args.target, thread_offsets_mm=offsets, thread_defect=defect,
-            quadrant_mount=mount, quadrant_step_mm=args.quadrant_step, bladder=bladder or None, plan=plan, video_fps=args.video,
+            quadrant_mount=mount, quadrant_step_mm=step, bladder=bladder or None, plan=plan, video_fps=args.video,
             seconds_per_view=args.seconds_per_view,
         )
     report = {"job": "phantom", "scene": args.scene, "trajectory": seq.trajectory.name, "seed": args.seed,
-              "pose_noise_mm": args.pose_noise}
+              "pose_noise_mm": args.pose_noise, **({"scan_plan": scan_plan} if scan_plan else {})}
     out = write(seq, args.out, mp4=args.mp4, finish=dataset_report_writer(report, Path(args.out).name, started))
     return finish_job(args, None, report, [
         f"wrote {len(seq)} frames of {args.scene}/{seq.trajectory.name} ({seq.camera.width}x{seq.camera.height}) "
         f"to {out}", f"wrote {Path(out) / 'report.html'}"])
+
+
+def _planned_quadrant_scan(args) -> tuple[int, float, dict]:
+    """(total frames, step mm, what was planned) of a thread's quadrant scan: the scan plan's for the thread
+    size, the lens and the side view (``metrology.thread_scan_plan``), ``--frames`` and ``--quadrant-step``
+    overriding it. A scan too short to gauge is refused with the least it needs."""
+    from scope3d.geometry.iso_thread import THREAD_SIZES
+    from scope3d.metrology.thread_scan_plan import minimum_frames, plan_quadrant_scan, scan_coverage
+    from scope3d.phantoms.lab import borescope_camera
+    from scope3d.phantoms.trajectories import QUADRANT_COUNT
+
+    if args.thread not in THREAD_SIZES:
+        raise InputError(f"unknown thread size {args.thread!r} (use one of {', '.join(THREAD_SIZES)})")
+    if args.quadrant_step is not None and not args.quadrant_step > 0:
+        raise InputError(f"the quadrant step must be a positive length in mm, got {args.quadrant_step}")
+    if args.frames is not None and args.frames < 1:
+        raise InputError(f"number of frames must be at least 1, got {args.frames}")
+    try:
+        camera = borescope_camera(size=args.size, fov_deg=args.fov)
+        plan = plan_quadrant_scan(camera, args.thread, args.side_view, step_mm=args.quadrant_step)
+        frames = plan.frames_per_quadrant if args.frames is None else max(1, args.frames // QUADRANT_COUNT)
+        coverage = scan_coverage(camera, args.thread, args.side_view, plan.step_mm, frames)
+        least = minimum_frames(camera, args.thread, args.side_view, plan.step_mm)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    if coverage.short:
+        fix = (f"at {plan.step_mm:g} mm per frame it needs at least {least} frames per quadrant "
+               f"(--frames {least * QUADRANT_COUNT})" if coverage.views_per_point >= 2 or frames < 2 else
+               f"the step must be at most {plan.view_extent_mm / 2:.2f} mm (half the view's extent)")
+        raise InputError(f"too short to gauge: {coverage.message()}; {fix}")
+    return frames * QUADRANT_COUNT, plan.step_mm, {**plan.to_dict(), "frames_per_quadrant": frames,
+                                                  "designation": args.thread,
+                                                  "overridden": [o for o, v in (("--frames", args.frames),
+                                                                                ("--quadrant-step", args.quadrant_step))
+                                                                 if v is not None]}
 
 
 def _run_raw_recording(args) -> int:

@@ -18,9 +18,8 @@ def register(subparsers) -> None:
     )
     p.add_argument("dataset", type=Path, help="dataset folder with quadrants.json (see docs/thread_metrology.md)")
     p.add_argument("--out", type=Path, required=True, help="output folder (replaced when complete)")
-    p.add_argument("--thread", default="M8x1.25", metavar="SIZE",
-                   choices=LazyChoices("scope3d.geometry.iso_thread", "THREAD_SIZES"),
-                   help="nominal thread: %(choices)s (default M8x1.25)")
+    p.add_argument("--thread", metavar="SIZE", choices=LazyChoices("scope3d.geometry.iso_thread", "THREAD_SIZES"),
+                   help="nominal thread: %(choices)s (default: the one quadrants.json names, else M8x1.25)")
     p.add_argument("--frame-gap", type=int, metavar="N",
                    help="match frames up to N steps apart within a quadrant (default: from the scan itself, "
                         "its step and side view read off the poses, so that matched frames' views of the "
@@ -39,9 +38,9 @@ def register(subparsers) -> None:
                                     "and OUT/report.html the batch's.")
     t.add_argument("datasets", type=Path, nargs="+", metavar="DATASET", help="hole dataset folders")
     t.add_argument("--out", type=Path, required=True, help="folder of the per-hole results and the summary")
-    t.add_argument("--thread", default="M8x1.25", metavar="SIZE",
-                   choices=LazyChoices("scope3d.geometry.iso_thread", "THREAD_SIZES"),
-                   help="nominal thread: %(choices)s (default M8x1.25)")
+    t.add_argument("--thread", metavar="SIZE", choices=LazyChoices("scope3d.geometry.iso_thread", "THREAD_SIZES"),
+                   help="nominal thread: %(choices)s (default: the one each hole's quadrants.json names, else "
+                        "M8x1.25)")
     t.add_argument("--frame-gap", type=int, metavar="N",
                    help="match frames up to N steps apart within a quadrant (default: from the scan itself, "
                         "its step and side view read off the poses, so that matched frames' views of the "

@@ -2,10 +2,11 @@
 
 Layout (written by the phantom lab for the ``quadrants`` trajectory)::
 
-    {"angle_step_deg": 30, "step_mm": 0.1, "side_view_deg": 45,
+    {"thread": "M8x1.25", "angle_step_deg": 30, "step_mm": 0.1, "side_view_deg": 45,
      "quadrants": [{"index": 0, "angle_deg": 0, "frames": ["0000.png", ...]}, ...]}
 
-Frames are listed in order of advance; quadrants in stage order.
+Frames are listed in order of advance; quadrants in stage order. ``thread`` (optional) is the hole's
+nominal thread, as on its drawing.
 """
 from __future__ import annotations
 
@@ -56,3 +57,15 @@ def read_quadrants(root: str | Path, names: list[str]) -> list[Quadrant]:
             raise InputError(f"{path}: quadrant {number}: needs at least 2 frames, has {len(frames)}")
         out.append(Quadrant(number, angle, frames))
     return out
+
+
+def read_quadrant_thread(root: str | Path) -> str | None:
+    """The hole's nominal thread named in ``root/quadrants.json`` (its ``thread``), or None when it names
+    none. Raises :class:`InputError` for a missing file or a ``thread`` that is not a string."""
+    path = Path(root) / FILE_NAME
+    if not path.is_file():
+        raise InputError(f"{path}: missing (a thread scan needs the quadrant layout)")
+    thread = read_json_object(path).get("thread")
+    if thread is not None and not isinstance(thread, str):
+        raise InputError(f"{path}: thread must be a designation such as \"M8x1.25\", found {thread!r}")
+    return thread

@@ -394,6 +394,12 @@ def gauge_thread(points: np.ndarray, *, options: GaugeOptions = GaugeOptions()) 
     # (2) zone
     theta, r, z = _cylindrical(points, p0, d0)
     z0, z1 = _thread_zone(z, r, pitch_nom, depth_nom, major_nom / 2 - depth_nom, major_nom / 2)
+    # The defect search runs on through the pitch of run-out trimmed for the sizes' fit at an end where the
+    # cloud itself ends within a pitch of the threaded stretch (the scan's last view: the crests there are
+    # whole thread), not where the wall leaves the thread (a counterbore or a plain bore lies beyond: the
+    # turn there is cut short, not damaged).
+    search_z = (z0 - pitch_nom if z.min() > z0 - 2 * pitch_nom else z0,
+                z1 + pitch_nom if z.max() < z1 + 2 * pitch_nom else z1)
     zone_index = np.flatnonzero((z >= z0) & (z <= z1))
     if len(zone_index) > options.max_points:
         zone_index = np.sort(rng.choice(zone_index, options.max_points, replace=False))
@@ -452,9 +458,9 @@ def gauge_thread(points: np.ndarray, *, options: GaugeOptions = GaugeOptions()) 
     d2 = 2 * rp
     d2_virtual = d2 - f_p - f_alpha
 
-    # (5) crest defects
+    # (5) crest defects, over the zone and where the cloud ends within a pitch of it (search_z above)
     t_all, r_all, z_all = _cylindrical(points, axis_point, axis_dir)
-    keep = (z_all >= z0) & (z_all <= z1)
+    keep = (z_all >= search_z[0]) & (z_all <= search_z[1])
     t_all, r_all, z_all = t_all[keep], r_all[keep], z_all[keep]
     s = z_all - pitch * t_all / (2 * np.pi) - x[5]
     w = np.mod(s + pitch / 2, pitch) - pitch / 2

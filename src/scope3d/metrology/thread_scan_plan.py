@@ -63,17 +63,20 @@ class QuadrantScanPlan:
     """step_mm : the scope's advance per frame (mm); frames_per_quadrant : frames of each quadrant;
     frame_gap : the quadrant maps match frames up to this many steps apart
     (``QuadrantMapOptions.max_frame_gap``); view_extent_mm : axial extent of wall one frame shows (mm);
-    wall_radius_mm : the radius it was computed at (the pitch radius)."""
+    wall_radius_mm : the radius it was computed at (the pitch radius); side_view_deg : the side view it is
+    for (None: not known)."""
 
     step_mm: float
     frames_per_quadrant: int
     frame_gap: int
     view_extent_mm: float
     wall_radius_mm: float
+    side_view_deg: float | None = None
 
     def to_dict(self) -> dict:
         return {"step_mm": self.step_mm, "frames_per_quadrant": self.frames_per_quadrant, "frame_gap": self.frame_gap,
-                "view_extent_mm": self.view_extent_mm, "wall_radius_mm": self.wall_radius_mm}
+                "view_extent_mm": self.view_extent_mm, "wall_radius_mm": self.wall_radius_mm,
+                "side_view_deg": self.side_view_deg}
 
 
 def view_extent_mm(camera: Camera, side_view_deg: float, wall_radius_mm: float) -> tuple[float, float]:
@@ -108,20 +111,93 @@ def matched_frame_gap(step_mm: float, extent_mm: float, *,
 
 
 def plan_quadrant_scan(camera: Camera, designation: str, side_view_deg: float = 90.0,
-                       *,
+                       *, step_mm: float | None = None,
                        options: QuadrantScanPlanOptions = QuadrantScanPlanOptions()) -> QuadrantScanPlan:
     """The quadrant scan of a ``designation`` hole (``M6x1``, ``M8x1.25``, ``M10x1.5``) seen by ``camera``
-    at ``side_view_deg`` (see the module docstring)."""
+    at ``side_view_deg`` (see the module docstring); ``step_mm`` imposes the step (None: the plan's), the
+    frames and the frame gap then follow from it."""
+    radius = pitch_radius_mm(designation)
+    above, below = view_extent_mm(camera, side_view_deg, radius)
+    extent = above + below
+    if step_mm is None:
+        step = np.floor(extent / options.views_per_point * 100) / 100  # a stage steps in hundredths of a mm
+    elif step_mm > 0:
+        step = step_mm
+    else:
+        raise ValueError(f"the step must be a positive length in mm, got {step_mm}")
+    gap = matched_frame_gap(step, extent, options=options)
+    # every wall point is seen views_per_point times only if the scope crosses a whole view's extent: a
+    # 45° view shows the thread in two frames, but each point in only those two
+    frames = max(minimum_frames(camera, designation, side_view_deg, float(step), options=options),
+                 int(np.ceil(options.views_per_point - 1e-9)))
+    return QuadrantScanPlan(float(step), frames, gap, float(extent), float(radius), float(side_view_deg))
+
+
+def minimum_frames(camera: Camera, designation: str, side_view_deg: float, step_mm: float,
+                   *,
+                   options: QuadrantScanPlanOptions = QuadrantScanPlanOptions()) -> int:
+    """The fewest frames per quadrant, ``step_mm`` apart, whose scan shows ``options.thread_pitches``
+    pitches of the thread (at least 2: a point is triangulated from two views)."""
+    radius = pitch_radius_mm(designation)
+    pitch = THREAD_SIZES[designation][1]
+    _, below = view_extent_mm(camera, side_view_deg, radius)
+    # thread shown = start offset + advance + the view below the last frame
+    advance = max(0.0, options.thread_pitches * pitch - options.start_below_thread_mm - below)
+    return max(2, int(np.ceil(advance / step_mm - 1e-9)) + 1)
+
+
+@dataclass(frozen=True)
+class ScanCoverage:
+    """What a quadrant scan of ``frames`` frames ``step_mm`` apart shows of a thread: pitches : pitches of
+    thread from its first turn to the bottom of the last frame's view (the scope starting
+    ``start_below_thread_mm`` below the first turn, as planned); views_per_point : frames that see one wall
+    point in the middle of the scan (the view's extent over the step, at most the frame count); and the
+    plan's (``plan``) for the same camera, size and side view."""
+
+    designation: str
+    side_view_deg: float
+    step_mm: float
+    frames: int
+    pitches: float
+    views_per_point: float
+    plan: QuadrantScanPlan
+    needed_pitches: float
+    needed_views: float
+
+    @property
+    def short(self) -> bool:
+        """Too short to gauge: fewer pitches shown than the gauge needs, or wall points seen fewer than
+        twice (nothing to triangulate)."""
+        return self.pitches < self.needed_pitches - 1e-9 or self.views_per_point < 2
+
+    @property
+    def below_plan(self) -> bool:
+        """Fewer pitches shown or fewer views per wall point than the plan's."""
+        return self.pitches < self.needed_pitches - 1e-9 or self.views_per_point < self.needed_views - 1e-9
+
+    def message(self) -> str:
+        """One line: what the scan shows against what the gauge needs, and the planned scan."""
+        p = self.plan
+        return (f"a {self.designation} scan at {self.side_view_deg:g}° of {self.frames} frames per quadrant "
+                f"{self.step_mm:g} mm apart shows {self.pitches:.1f} pitches of thread (the gauge needs "
+                f"{self.needed_pitches:g}) and each wall point in {self.views_per_point:.1f} views (planned "
+                f"{self.needed_views:g}); the scan plan: {p.frames_per_quadrant} frames per quadrant "
+                f"{p.step_mm:g} mm apart, frame gap {p.frame_gap}")
+
+
+def scan_coverage(camera: Camera, designation: str, side_view_deg: float, step_mm: float, frames: int,
+                  *,
+                  options: QuadrantScanPlanOptions = QuadrantScanPlanOptions()) -> ScanCoverage:
+    """What a scan of ``frames`` frames per quadrant, ``step_mm`` apart, shows of a ``designation`` hole
+    (see :class:`ScanCoverage`)."""
     radius = pitch_radius_mm(designation)
     pitch = THREAD_SIZES[designation][1]
     above, below = view_extent_mm(camera, side_view_deg, radius)
-    extent = above + below
-    step = np.floor(extent / options.views_per_point * 100) / 100  # a stage steps in hundredths of a mm
-    gap = matched_frame_gap(step, extent, options=options)
-    # thread shown = start offset + advance + the view below the last frame
-    advance = max(0.0, options.thread_pitches * pitch - options.start_below_thread_mm - below)
-    frames = int(np.ceil(advance / step - 1e-9)) + 1
-    return QuadrantScanPlan(float(step), max(frames, 2), gap, float(extent), float(radius))
+    shown = options.start_below_thread_mm + (frames - 1) * step_mm + below
+    views = min(float(frames), (above + below) / step_mm)
+    return ScanCoverage(designation, float(side_view_deg), float(step_mm), int(frames), float(shown / pitch),
+                        float(views), plan_quadrant_scan(camera, designation, side_view_deg, options=options),
+                        options.thread_pitches, options.views_per_point)
 
 
 def measured_quadrant_scan(camera: Camera, poses: list[Pose], designation: str,
@@ -152,4 +228,5 @@ def measured_quadrant_scan(camera: Camera, poses: list[Pose], designation: str,
     side_view_deg = round(side_view_deg, 9)  # a 90° view read off float poses comes out at 90 + 1e-14
     radius = pitch_radius_mm(designation)
     extent = float(sum(view_extent_mm(camera, side_view_deg, radius)))
-    return QuadrantScanPlan(step, len(poses), matched_frame_gap(step, extent, options=options), extent, float(radius))
+    return QuadrantScanPlan(step, len(poses), matched_frame_gap(step, extent, options=options), extent, float(radius),
+                            side_view_deg)

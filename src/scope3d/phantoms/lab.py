@@ -88,11 +88,18 @@ def default_camera(
     60° FOV, no mask (sec. 8.3). size : (width, height) px; fov_deg : across the width.
     """
     if trajectory == "quadrants":
-        w, h = size or BORESCOPE_SIZE_PX
-        return Camera.from_fov(w, h, fov_deg or BORESCOPE_FOV_DEG, k1=k1, k2=k2)
+        return borescope_camera(size=size, fov_deg=fov_deg, k1=k1, k2=k2)
     w, h = size or ENDOSCOPE_SIZE_PX
     return Camera.from_fov(w, h, fov_deg or scene.fov_deg, k1=k1, k2=k2,
                            mask_radius_px=ENDOSCOPE_MASK_FRACTION * min(w, h))
+
+
+def borescope_camera(*, size: tuple[int, int] | None = None, fov_deg: float | None = None,
+                     k1: float = 0.0, k2: float = 0.0) -> Camera:
+    """The ``quadrants`` borescope: 1280 x 1024, 60° FOV, no mask (sec. 8.3); size (width, height) px and
+    fov_deg (across the width) adjust it."""
+    w, h = size or BORESCOPE_SIZE_PX
+    return Camera.from_fov(w, h, fov_deg or BORESCOPE_FOV_DEG, k1=k1, k2=k2)
 
 
 def measure_poses(true_poses: list[Pose], pose_noise_mm: float, *, seed: int) -> list[MeasuredPose]:
@@ -276,12 +283,14 @@ def _stage_reported_quadrant_poses(traj: Trajectory, pose_noise_mm: float, seed:
                                                m.tolerance.orientation_rad + mount_rad)) for m in reported]
 
 
-def quadrant_layout(trajectory: Trajectory, names: list[str]) -> dict:
+def quadrant_layout(trajectory: Trajectory, names: list[str], thread: str | None = None) -> dict:
     """The ``quadrants.json`` of a quadrant scan: per quadrant its stage angle (degrees) and frames in
-    order of advance, plus the stage's nominal step and side-view angle."""
+    order of advance, plus the stage's nominal step and side-view angle, and the hole's nominal ``thread``
+    (the drawing's designation, which ``thread-scan`` gauges against) when given."""
     p = trajectory.params
     m = p["frames_per_quadrant"]
-    return {"angle_step_deg": p["angle_step_deg"], "step_mm": p["step_mm"], "side_view_deg": p["side_view_deg"],
+    return {**({"thread": thread} if thread else {}),
+            "angle_step_deg": p["angle_step_deg"], "step_mm": p["step_mm"], "side_view_deg": p["side_view_deg"],
             "rotation_axis": "world z through the origin (nominal)",
             "quadrants": [{"index": q, "angle_deg": q * p["angle_step_deg"], "frames": names[q * m:(q + 1) * m]}
                           for q in range(p["quadrants"])]}
@@ -368,7 +377,8 @@ def _complete(sequence: PhantomSequence, folder: Path, mp4: bool, finish) -> Non
     if sequence.trajectory.params.get("kind") == "quadrants":
         from scope3d.utils.jsonio import write_json
 
-        write_json(folder / "quadrants.json", quadrant_layout(sequence.trajectory, sequence.names))
+        write_json(folder / "quadrants.json", quadrant_layout(sequence.trajectory, sequence.names,
+                                                              (sequence.scene_info.get("thread") or {}).get("designation")))
     if mp4:
         from scope3d.io.video import write_video
 

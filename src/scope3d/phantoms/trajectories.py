@@ -199,7 +199,8 @@ TRAJECTORIES = {
     "grid7x8": ("7 x 8 raster looking down from 15 mm, 5 mm spacing (56 frames)", 56),
     "axial": ("forward view on the hole axis from z = +1 mm, 0.25 mm steps inwards (30 frames)", 30),
     "quadrants": ("45° side view, 0.1 mm steps from z = -1.5 mm, 12 quadrants 30° apart, camera 0.094 mm off "
-                  "the rotation axis (8 frames per quadrant, 96 frames)", 96),
+                  "the rotation axis (8 frames per quadrant, 96 frames; `scope3d phantom thread` takes the scan "
+                  "plan's step and frames instead)", 96),
     "spiral": ("camera 8 mm from the cavity centre looking outwards, 3-turn spherical spiral (36 frames)", 36),
     "approach": ("from 15 mm above the plate, 6 mm to the side of target N (--target), straight down to 9 mm "
                  "above it, looking at it; a tool hides part of the view (30 frames)", 30),

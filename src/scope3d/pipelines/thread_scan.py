@@ -48,9 +48,9 @@ from scope3d.geometry.iso_thread import THREAD_SIZES
 from scope3d.geometry.pose import Pose
 from scope3d.io.dataset import Dataset
 from scope3d.io.ply import write_ply
-from scope3d.io.quadrants import read_quadrants
+from scope3d.io.quadrants import read_quadrant_thread, read_quadrants
 from scope3d.metrology.thread_gauge import GaugeOptions, GaugeResult, gauge_thread
-from scope3d.metrology.thread_scan_plan import QuadrantScanPlan, measured_quadrant_scan
+from scope3d.metrology.thread_scan_plan import QuadrantScanPlan, ScanCoverage, measured_quadrant_scan, scan_coverage
 from scope3d.metrology.thread_uncertainty import (MATCH_GAP_MM, SPARSE_POINT_BIAS_MM, combined_systematic,
                                                   match_gap_systematic, profile_bias_systematic,
                                                   registration_systematic, with_systematic)
@@ -69,9 +69,14 @@ from scope3d.utils.progress import Progress, advance, stage
 from scope3d.utils.threads import check_threads, resolve_threads
 
 
+# the thread gauged when neither the options nor the dataset name one
+DEFAULT_THREAD = "M8x1.25"
+
+
 @dataclass(frozen=True)
 class ThreadScanOptions:
-    """designation : the nominal thread (``M6x1``, ``M8x1.25``, ``M10x1.5``); the gauge's other options
+    """designation : the nominal thread (``M6x1``, ``M8x1.25``, ``M10x1.5``; None, the default: the one the
+    dataset's ``quadrants.json`` names, else :data:`DEFAULT_THREAD`); the gauge's other options
     come from ``gauge`` (its designation is replaced by this one). mapping, panorama, outliers, gauge :
     the stages' options. dense : the dense clouds' options, or None to gauge the sparse points. threads :
     quadrants mapped at once (OpenCV releases the GIL; default 0: every available core,
@@ -91,7 +96,7 @@ class ThreadScanOptions:
     registered (:func:`scope3d.sfm.quadrant_mapping.estimate_mount_rotation`), or None to triangulate with
     the reported poses as they are. seed : RANSAC's and the draws' seeds."""
 
-    designation: str = "M8x1.25"
+    designation: str | None = None
     mapping: QuadrantMapOptions = QuadrantMapOptions()
     panorama: PanoramaOptions = PanoramaOptions()
     outliers: OutlierOptions = OutlierOptions()
@@ -109,7 +114,7 @@ class ThreadScanOptions:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        if self.designation not in THREAD_SIZES:
+        if self.designation is not None and self.designation not in THREAD_SIZES:
             raise InputError(f"unknown thread {self.designation!r} (use one of {', '.join(THREAD_SIZES)})")
         check_threads(self.threads)
         if self.registration_draws < 0 or self.point_bias_mm < 0 or self.match_gap_mm < 0:
@@ -127,7 +132,8 @@ class ThreadScanResult:
     registration errors against the truth or None; timings_s : per stage; systematic_mm : the sizes'
     systematic standard uncertainties (mm) by source, ``registration``, ``point_bias`` and ``match_gap`` (each keyed as
     :func:`scope3d.metrology.thread_gauge.remeasure`), empty when not computed. scans : per quadrant the
-    scan read off its poses and the frame gap its map used. mount : the camera's measured mount rotation
+    scan read off its poses and the frame gap its map used; coverage : what the shortest of them shows
+    of the thread against what the gauge needs (None when the rule cannot tell). mount : the camera's measured mount rotation
     (None when not estimated); the stacked frame is that of the reported poses so corrected."""
 
     clouds: list[QuadrantCloud]
@@ -141,6 +147,7 @@ class ThreadScanResult:
     systematic_mm: dict = field(default_factory=dict)
     scans: list[QuadrantScanPlan] = field(default_factory=list)
     mount: MountEstimate | None = None
+    coverage: ScanCoverage | None = None
 
     def report(self) -> dict:
         g = self.gauge
@@ -166,13 +173,21 @@ class ThreadScanResult:
             "points": {"per_quadrant": [len(c.points) for c in self.clouds],
                        "dense_per_quadrant": [len(d) for d in self.dense], "registered": len(self.points)},
             "scan": {"step_mm": [s.step_mm for s in self.scans], "frame_gap": [s.frame_gap for s in self.scans],
-                     "view_extent_mm": [s.view_extent_mm for s in self.scans]},
+                     "view_extent_mm": [s.view_extent_mm for s in self.scans],
+                     **({"coverage": {"pitches": self.coverage.pitches, "views_per_point": self.coverage.views_per_point,
+                                      "needed_pitches": self.coverage.needed_pitches,
+                                      "needed_views_per_point": self.coverage.needed_views,
+                                      "short": self.coverage.short, "below_plan": self.coverage.below_plan,
+                                      "plan": self.coverage.plan.to_dict(),
+                                      "message": self.coverage.message()}} if self.coverage else {})},
             "timings_s": self.timings_s,
         }
 
     def summary(self) -> str:
         lines = [self.gauge.summary() if self.gauge is not None else
                  f"thread gauge: INDETERMINATE ({self.gauge_message})"]
+        if self.gauge is not None and self.gauge.verdict == "indeterminate" and self.coverage and self.coverage.below_plan:
+            lines.append(f"scan below the plan: {self.coverage.message()}")
         p = self.panorama
         if p.loop_closure_deg is not None:
             lines.append(f"registration: loop closure {p.loop_closure_deg:.3f}° / {p.loop_closure_mm:.4f} mm "
@@ -194,9 +209,26 @@ def check_dataset(options: ThreadScanOptions, dataset: Dataset) -> None:
     quadrant_scans(options, dataset)
 
 
+def with_designation(options: ThreadScanOptions, dataset: Dataset) -> ThreadScanOptions:
+    """``options`` with the nominal thread set: its own, else the one ``quadrants.json`` names, else
+    :data:`DEFAULT_THREAD`."""
+    if options.designation is not None:
+        return options
+    return replace(options, designation=read_quadrant_thread(dataset.root) or DEFAULT_THREAD)
+
+
+def shortest_coverage(dataset: Dataset, designation: str, scans: list[QuadrantScanPlan]) -> ScanCoverage:
+    """What the quadrant scan showing the fewest pitches shows of the thread (see
+    :func:`scope3d.metrology.thread_scan_plan.scan_coverage`)."""
+    covers = [scan_coverage(dataset.camera, designation, s.side_view_deg, s.step_mm, s.frames_per_quadrant)
+              for s in scans]
+    return min(covers, key=lambda c: (c.pitches, c.views_per_point))
+
+
 def quadrant_scans(options: ThreadScanOptions, dataset: Dataset) -> list[QuadrantScanPlan]:
     """Per quadrant, its scan read off the stage's poses and the frame gap its map matches over
     (``options.frame_gap`` when given)."""
+    options = with_designation(options, dataset)
     scans = []
     for q in read_quadrants(dataset.root, dataset.names):
         try:
@@ -286,7 +318,12 @@ def run(options: ThreadScanOptions, dataset: Dataset, out_dir: str | Path, *,
     """Measure a tapped hole from a side-view quadrant scan and write the run folder ``out_dir``."""
     timings = {}
     t0 = time.perf_counter()
+    options = with_designation(options, dataset)
     scans = quadrant_scans(options, dataset)
+    try:
+        coverage = shortest_coverage(dataset, options.designation, scans)
+    except ValueError:  # a view the plan's rule cannot take (looking down the hole): nothing to say
+        coverage = None
     clouds, mount = map_quadrants(options, dataset, scans, progress)
     timings["mapping"] = time.perf_counter() - t0
 
@@ -316,7 +353,7 @@ def run(options: ThreadScanOptions, dataset: Dataset, out_dir: str | Path, *,
     try:
         gauge = gauge_thread(points, options=gauge_options)
     except ValueError as exc:  # no thread in the cloud: a result to report, not a crash
-        gauge_message = str(exc)
+        gauge_message = str(exc) + (f"; {coverage.message()}" if coverage is not None else "")
     timings["gauge"] = time.perf_counter() - t0
     systematic = {}
     if gauge is not None and (options.registration_draws or options.point_bias_mm or options.match_gap_mm):
@@ -353,7 +390,8 @@ def run(options: ThreadScanOptions, dataset: Dataset, out_dir: str | Path, *,
                 "major_diameter": gauge.major_diameter_mm.value - made["major_diameter_mm"],
                 "pitch_diameter": gauge.pitch_diameter_mm.value - made["pitch_diameter_mm"],
                 "pitch": gauge.pitch_mm.value - dataset.ground_truth.scene["thread"]["pitch_mm"]}
-    result = ThreadScanResult(clouds, panorama, dense, points, gauge, errors, timings, gauge_message, systematic, scans, mount)
+    result = ThreadScanResult(clouds, panorama, dense, points, gauge, errors, timings, gauge_message, systematic, scans,
+                              mount, coverage)
     write_outputs(result, out_dir)
     return result
 
