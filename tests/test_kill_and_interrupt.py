@@ -210,3 +210,32 @@ def test_outputs_get_the_permissions_of_a_plain_write_not_owner_only(tmp_path, u
     for name, full in (("a.txt", 0o666), ("b.png", 0o666), ("run", 0o777)):
         assert (tmp_path / name).stat().st_mode & 0o777 == full & ~umask, name
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt", "b.png", "run"]
+
+
+def test_a_killed_writers_temporary_is_stale_even_before_its_parent_reaps_it(tmp_path):
+    """A SIGKILLed writer stays a zombie until its parent reaps it (a Dask nanny may take a while): its
+    temporary is stale from the moment it died, not from the reaping (the batch test's leftover .tmp)."""
+    from scope3d.utils.atomic import remove_stale_temporaries
+
+    target = tmp_path / "hole_a"
+    pid = os.fork()
+    if pid == 0:  # the writer: makes its temporary, then waits to be killed
+        (tmp_path / f".hole_a.{os.getpid()}.x.tmp").mkdir()
+        signal.pause()
+        os._exit(0)
+    try:
+        for _ in range(2000):
+            if (tmp_path / f".hole_a.{pid}.x.tmp").exists():
+                break
+            time.sleep(0.005)
+        assert remove_stale_temporaries(target) == []  # a live writer's temporary is kept
+        os.kill(pid, signal.SIGKILL)
+        for _ in range(2000):  # until the kernel has made it a zombie (not reaped: no waitpid yet)
+            with open(f"/proc/{pid}/stat", "rb") as fh:
+                if fh.read().rsplit(b")", 1)[1].split()[0] == b"Z":
+                    break
+            time.sleep(0.005)
+        assert [p.name for p in remove_stale_temporaries(target)] == [f".hole_a.{pid}.x.tmp"]
+    finally:
+        os.kill(pid, signal.SIGKILL)
+        os.waitpid(pid, 0)

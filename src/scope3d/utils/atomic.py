@@ -57,7 +57,13 @@ def _process_alive(pid: int) -> bool:
         return False
     except PermissionError:  # someone else's process: alive
         return True
-    return True
+    # a killed process stays a zombie until its parent reaps it (a Dask nanny can take its time): it still
+    # answers signal 0 but will never finish its temporary (the batch test's leftover .hole_a...tmp)
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as fh:
+            return fh.read().rsplit(b")", 1)[1].split()[0] != b"Z"
+    except (OSError, IndexError):  # no /proc (macOS): signal 0 is all there is
+        return True
 
 
 def remove_stale_temporaries(path: str | os.PathLike) -> list[Path]:
