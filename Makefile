@@ -53,7 +53,7 @@ test: $(STAMP_ALL) $(BROWSER)
 	@dpkg -s libusb-1.0-0 >/dev/null 2>&1 || (apt-get update && apt-get install -y libusb-1.0-0)
 	@echo "== the versions and machine this run tests (a failure names them)"
 	@$(BIN)/python -m pip freeze --all --exclude-editable
-	@$(BIN)/python -c "import os, platform, threadpoolctl; print(platform.platform(), platform.python_version(), \
+	@$(BIN)/python -c "import os, platform, numpy, scipy.linalg, threadpoolctl; print(platform.platform(), platform.python_version(), \
 	  os.cpu_count(), 'cpus'); [print(i['internal_api'], i['version'], i.get('architecture'), i['num_threads'], \
 	  'threads') for i in threadpoolctl.threadpool_info()]"
 	$(BIN)/python -m pytest -q
