@@ -5,7 +5,7 @@ the robot log, import frames, check), then map the imported scan and its twin (t
 true camera poses and the same tolerance), both with the recording's truth attached. Writes
 benchmarks/results/own_data.json.
 
-    python benchmarks/bench_own_data.py [--robot-errors 0 0.2] [--seeds 0] [--size 304]
+    python benchmarks/bench_own_data.py [--robot-errors 0 0.2] [--seeds 0] [--size 304] [--results FILE]
 """
 from __future__ import annotations
 
@@ -97,14 +97,16 @@ def main() -> None:
     parser.add_argument("--robot-errors", type=float, nargs="+", default=[0.0, 0.2])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0])
     parser.add_argument("--size", type=int, default=304)
+    parser.add_argument("--results", type=Path, default=RESULTS, help=f"where the JSON goes (default {RESULTS.name})")
     args = parser.parse_args()
+    args.results = args.results.resolve()  # each case works in its own folder
     rows = []
     for error in args.robot_errors:
         for seed in args.seeds:
             with tempfile.TemporaryDirectory(prefix="bench-own-data-") as tmp:
                 rows.append(case(Path(tmp), error, seed, args.size))
             print(json.dumps(rows[-1]))
-    RESULTS.write_text(json.dumps({"machine": platform.platform(), "cpus": os.cpu_count(),
+    args.results.resolve().write_text(json.dumps({"machine": platform.platform(), "cpus": os.cpu_count(),
                                    "load_average": os.getloadavg(), "rows": rows}, indent=2) + "\n")
 
 
