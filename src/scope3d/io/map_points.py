@@ -10,7 +10,8 @@ Written by ``scope3d map`` beside ``points.ply``; read by :mod:`scope3d.sfm.loca
 
 Optional (maps written before issue 34 lack them; localization then matches the representatives only):
 
-* ``observation_descriptors`` : (M, 128) float32, every observation's own descriptor.
+* ``observation_descriptors`` : (M, 128), every observation's own descriptor (uint8 in the file when the
+  values are whole numbers in 0-255, as OpenCV's SIFT gives them; float32 in memory).
 * ``observation_point`` : (M,) int32, the point each of those observes (an index into ``xyz_mm``).
 
 A new frame between two mapped views often resembles one observation of a point and not the other, and the
@@ -77,7 +78,11 @@ def write_map_points(path: str | Path, points: MapPoints) -> None:
     arrays = {"xyz_mm": points.xyz_mm.astype(np.float64), "descriptors": points.descriptors.astype(np.float32),
               "n_observations": points.n_observations.astype(np.int32), "colors": points.colors.astype(np.uint8)}
     if points.observation_point is not None:
-        arrays["observation_descriptors"] = points.observation_descriptors.astype(np.float32)
+        d = points.observation_descriptors
+        # OpenCV's SIFT values are whole numbers in 0-255: stored as bytes, losslessly (the dome's 19,872
+        # observations: the file 4.8 -> 3.2 MB, its writing 0.48 -> 0.30 s at load 15; 1.2 MB without them)
+        lossless = d.size == 0 or (np.all(d == np.round(d)) and d.min() >= 0 and d.max() <= 255)
+        arrays["observation_descriptors"] = d.astype(np.uint8 if lossless else np.float32)
         arrays["observation_point"] = points.observation_point.astype(np.int32)
     with atomic_path(Path(path)) as tmp:
         with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED, compresslevel=ZIP_COMPRESS_LEVEL) as archive:
