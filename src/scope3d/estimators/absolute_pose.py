@@ -9,11 +9,13 @@ were known"):
 2. :func:`refine_pose` refines it with every point and the intrinsics held fixed, Huber loss, and — when
    the frame comes with a reported pose — every pose scalar kept inside the reported
    :class:`~scope3d.sensor.pose_tolerance.PoseTolerance` box (BCBA, eq. 6.2, with the points fixed). An
-   infinite tolerance leaves the scalar free: the image alone decides.
+   infinite tolerance leaves the scalar free: the image alone decides. The final inliers (2 px) are those
+   of the refined pose, and the pose is refined again on exactly them until they stop changing.
 
 A frame is never given a pose it cannot support: too few correspondences, too few inliers, inliers
-bunched in a small patch of the image (rotation and translation trade off there) or all on one line, and
-a RANSAC pose that the reported box cannot hold, each return a status other than ``"ok"`` and no pose.
+bunched in a small patch of the image (rotation and translation trade off there) or all on one line, a
+RANSAC pose that the reported box cannot hold, and a pose its own covariance fixes no better than a stated
+fraction of its depth (``"imprecise"``), each return a status other than ``"ok"`` and no pose.
 
 Units: mm and radians; pixels with their origin at the top-left pixel's centre.
 """

@@ -20,7 +20,8 @@ Each frame is localized in one of three modes, the cheapest that works:
   pose's uncertainty (:func:`~scope3d.feature.depth_prior.pose_error_px`); the ratio test runs among those
   candidates only (feature position prediction, reference sec. 4.3.1, applied to map points).
 * ``global`` — SIFT against every map descriptor, ratio test (relocalization: the first frame, or after
-  tracking was lost and no finite reported pose narrows the search).
+  tracking was lost and no finite reported pose narrows the search); when that gives no pose and the map
+  holds every observation's descriptor, SIFT against those, the ratio test between the two nearest points.
 
 Every mode ends in :func:`~scope3d.estimators.absolute_pose.estimate_absolute_pose` (PnP + RANSAC, then
 the pose refined with the map fixed inside the reported pose's tolerance box). A frame that cannot be
