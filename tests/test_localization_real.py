@@ -16,7 +16,7 @@ against COLMAP's 3.8 mm.
 """
 from __future__ import annotations
 
-import importlib.util
+import importlib
 import sys
 from pathlib import Path
 
@@ -28,19 +28,12 @@ BENCH = REPO / "benchmarks" / "bench_localize_real.py"
 PAR = REPO.parent / "shared" / "data" / "middlebury_templeSparseRing" / "templeSR_par.txt"
 
 
-def _load_bench():
-    spec = importlib.util.spec_from_file_location("bench_localize_real", BENCH)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["bench_localize_real"] = module
-    spec.loader.exec_module(module)
-    return module
-
-
 @pytest.fixture(scope="module")
 def temple_split(tmp_path_factory):
     if not PAR.is_file():
         pytest.fail(f"real data missing: {PAR} (see /work/shared/data/README.md)")
-    bench = _load_bench()
+    sys.path.insert(0, str(BENCH.parent))
+    bench = importlib.import_module(BENCH.stem)
     work = tmp_path_factory.mktemp("temple_split")
     return bench.scene_run(bench.temple(work), work, "temple_sparse_ring", diagnose=False)
 
