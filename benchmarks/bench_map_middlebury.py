@@ -88,16 +88,19 @@ def colmap_run(ds, work: Path) -> dict:
 
 def _known_pose_reconstruction(pycolmap, db_path: Path, pose_of: dict):
     """A pycolmap Reconstruction holding the database's cameras, rigs, frames and images, posed with
-    the calibration (images are matched by name: COLMAP numbers them in its own order)."""
+    the calibration (images are matched by name: COLMAP numbers them in its own order); images whose name
+    ``pose_of`` lacks are left out (bench_localize_real.py maps a subset of the views)."""
     db = pycolmap.Database.open(db_path)
     rec = pycolmap.Reconstruction()
     for c in db.read_all_cameras():
         rec.add_camera(c)
     for r in db.read_all_rigs():
         rec.add_rig(r)
-    images = db.read_all_images()
+    images = [im for im in db.read_all_images() if im.name in pose_of]
     image_of_frame = {im.frame_id: im for im in images}
     for f in db.read_all_frames():
+        if f.frame_id not in image_of_frame:
+            continue
         p = pose_of[image_of_frame[f.frame_id].name]
         f.rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(matrix_to_quaternion(p.rotation)), p.translation)
         rec.add_frame(f)

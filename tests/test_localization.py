@@ -86,6 +86,25 @@ def test_absolute_pose_refuses_what_it_cannot_support():
     with pytest.raises(ValueError):
         AbsolutePoseOptions(min_inliers=3)
     with pytest.raises(ValueError):
+        AbsolutePoseOptions(max_centre_sigma_fraction=0.0)
+
+
+def test_a_pose_its_inliers_fix_loosely_is_refused_as_imprecise():
+    # 25 points seen within ~20 px (std) of the image centre from 100 mm, 1 px noise: the centre's sigma along
+    # the view is ~ z sigma / (f sqrt(N)) * (z / extent) = 100 * 1 / (609 * 5) * (609 / 20) = 1 mm, 3 sigma
+    # = 3 % of the depth, beyond the 2 % the default accepts
+    cam = Camera.from_fov(608, 608, 53.0)
+    rng = np.random.default_rng(5)
+    truth = Pose.from_centre(np.eye(3), [0.0, 0.0, -100.0])
+    pts = np.c_[rng.normal(0, 100 * 20 / cam.fx, (25, 2)), rng.uniform(-1, 1, 25)]
+    px = cam.project(truth.transform(pts)) + rng.normal(0, 1.0, (25, 2))
+    options = AbsolutePoseOptions(min_spread_fraction=0.02, min_inlier_ratio=0.0)
+    r = estimate_absolute_pose(cam, pts, px, options=options)
+    assert r.status == "imprecise" and r.pose is None
+    # the same estimate without the test: a pose, and its own covariance says it is that loose
+    r = estimate_absolute_pose(cam, pts, px, options=replace(options, max_centre_sigma_fraction=np.inf))
+    assert r.ok and 3 * np.sqrt(np.linalg.eigvalsh(r.covariance[3:, 3:])[-1]) > 0.02 * 100
+    with pytest.raises(ValueError):
         LocalizerOptions(min_tracked_fraction=0.0)
 
 

@@ -49,3 +49,25 @@ def test_map_points_round_trip_and_refusals(tmp_path):
     np.savez(tmp_path / "short.npz", xyz_mm=pts.xyz_mm)
     with pytest.raises(InputError, match="missing array"):
         read_map_points(tmp_path / "short.npz")
+
+
+def test_observation_descriptors_round_trip_and_old_files_still_read(tmp_path):
+    rng = np.random.default_rng(2)
+    obs = rng.uniform(0, 200, (7, 128)).astype(np.float32)
+    pts = MapPoints(rng.normal(size=(3, 3)), obs[:3], np.array([2, 3, 2], np.int32), np.zeros((3, 3), np.uint8),
+                    obs, np.array([0, 0, 1, 1, 1, 2, 2]))
+    write_map_points(tmp_path / "map_points.npz", pts)
+    back = read_map_points(tmp_path)
+    np.testing.assert_array_equal(back.observation_descriptors, obs)
+    np.testing.assert_array_equal(back.observation_point, pts.observation_point)
+    # a map written before the optional arrays existed is read as before: representatives only
+    write_map_points(tmp_path / "old.npz", MapPoints(pts.xyz_mm, pts.descriptors, pts.n_observations, pts.colors))
+    assert read_map_points(tmp_path / "old.npz").observation_point is None
+    # an observation pointing past the points, or one array without the other, is refused in one line
+    arrays = dict(np.load(tmp_path / "map_points.npz"))
+    np.savez(tmp_path / "past.npz", **(arrays | {"observation_point": np.array([0, 0, 1, 1, 1, 2, 3], np.int32)}))
+    with pytest.raises(InputError, match="past.npz.*index"):
+        read_map_points(tmp_path / "past.npz")
+    np.savez(tmp_path / "half.npz", **{k: v for k, v in arrays.items() if k != "observation_descriptors"})
+    with pytest.raises(InputError, match="half.npz"):
+        read_map_points(tmp_path / "half.npz")

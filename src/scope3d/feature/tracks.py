@@ -89,6 +89,13 @@ def track_descriptors(features: list[Features], tracks: Tracks) -> np.ndarray:
     return _observation_descriptors(features, tracks, first)
 
 
+def observation_descriptors(features: list[Features], tracks: Tracks) -> np.ndarray:
+    """(n_observations, 128) float32: every observation's own descriptor, in the tracks' order (the point
+    of row k is ``tracks.track[k]``). Localization matches a new frame against all of them
+    (:class:`~scope3d.io.map_points.MapPoints`)."""
+    return _observation_descriptors(features, tracks, np.arange(tracks.n_observations))
+
+
 def _observation_descriptors(features: list[Features], tracks: Tracks, rows: np.ndarray) -> np.ndarray:
     """(len(rows), 128) float32 descriptors of the observations ``rows`` (indices into ``tracks``)."""
     frame = tracks.frame[rows]

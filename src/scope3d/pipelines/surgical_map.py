@@ -51,7 +51,7 @@ from scope3d.feature.detection import FEATURE_PRESETS, FeatureOptions, Features,
 from scope3d.feature.figures import save_matches_png
 from scope3d.feature.matching import MatchOptions, PairMatches, match_exhaustive, match_guided, match_pairs
 from scope3d.feature.pairs import PairOptions, select_pairs, spanning_pairs
-from scope3d.feature.tracks import build_tracks, track_descriptors
+from scope3d.feature.tracks import build_tracks, observation_descriptors, track_descriptors
 from scope3d.geometry.plane import plane_residuals, plane_rms
 from scope3d.geometry.pose import Pose
 from scope3d.io.colmap import SparseModel, write_colmap_text
@@ -622,9 +622,11 @@ def write_outputs(
                                           tr.pixels, colors=tr.colors, errors=per_point_err)
     write_colmap_text(model, out_dir / "sparse")
     write_refined_poses(out_dir / REFINED_POSES_FILE, dataset.names, sparse)
-    # what localization against this map needs (scope3d localize): points, one descriptor each, track lengths
+    # what localization against this map needs (scope3d localize): points, one descriptor each, track lengths,
+    # and every observation's descriptor (a new view may resemble one observation and not the representative)
     write_map_points(out_dir / MAP_POINTS_FILE, MapPoints(tr.points, track_descriptors(features, tr),
-                                                          tr.lengths(), tr.colors))
+                                                          tr.lengths(), tr.colors, observation_descriptors(features, tr),
+                                                          tr.track))
     prior = matching.depth_prior
     report: dict = {
         "dataset": str(dataset.root), "n_frames": len(dataset), "pose_mode": options.pose_mode, "matcher": options.matcher,

@@ -57,7 +57,10 @@ class LeaveOneOutOptions:
         start; the joint steps, measured on the dome with a glitch, in 2-7).
     """
 
-    absolute_pose: AbsolutePoseOptions = field(default_factory=AbsolutePoseOptions)
+    # only a start, refined by the frame's own adjustment after: as before issue 34 (no refinement on the
+    # final inliers, no precision bound, which would swap a loose start for the bounded pose)
+    absolute_pose: AbsolutePoseOptions = field(default_factory=lambda: AbsolutePoseOptions(
+        final_refinements=0, max_centre_sigma_fraction=float("inf")))
     loss_scale_px: float = 1.0
     max_iterations: int = 30
 

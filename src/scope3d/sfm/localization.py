@@ -20,7 +20,8 @@ Each frame is localized in one of three modes, the cheapest that works:
   pose's uncertainty (:func:`~scope3d.feature.depth_prior.pose_error_px`); the ratio test runs among those
   candidates only (feature position prediction, reference sec. 4.3.1, applied to map points).
 * ``global`` — SIFT against every map descriptor, ratio test (relocalization: the first frame, or after
-  tracking was lost and no finite reported pose narrows the search).
+  tracking was lost and no finite reported pose narrows the search); when that gives no pose and the map
+  holds every observation's descriptor, SIFT against those, the ratio test between the two nearest points.
 
 Every mode ends in :func:`~scope3d.estimators.absolute_pose.estimate_absolute_pose` (PnP + RANSAC, then
 the pose refined with the map fixed inside the reported pose's tolerance box). A frame that cannot be
@@ -50,6 +51,8 @@ from scope3d.sensor.camera import Camera
 from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance
 
 LOCALIZATION_MODES = ("tracking", "guided", "global")
+# squared descriptor distances held at once by the every-observation match (float32: 64 MB)
+_DISTANCE_BLOCK_ENTRIES = 1 << 24
 
 
 @dataclass(frozen=True)
@@ -205,6 +208,7 @@ class Localizer:
         self._matcher = cv2.BFMatcher(cv2.NORM_L2)
         self._detect_mask = detection_mask(camera, options.features.mask_margin_px) > 0
         self._usable_cache: tuple[np.ndarray, np.ndarray] | None = None
+        self._observations: tuple | None = None  # the observation descriptors by point, built on first use
         self._executor: ThreadPoolExecutor | None = None
         self.reset()
 
@@ -277,6 +281,11 @@ class Localizer:
                 mode = "global"
                 ids, fidx = self._match_global(desc)
                 result, used_ids, used_px = self._pose(ids, kp[fidx], reported)
+                if not result.ok and self.map.observation_point is not None:
+                    # against every observation's descriptor: a view between two mapped ones may resemble
+                    # the observation that is not the representative (2-4x the descriptors: tried second)
+                    ids, fidx = self._match_every_observation(desc)
+                    result, used_ids, used_px = self._pose(ids, kp[fidx], reported)
             self._since_refresh = 0
             self._pending = None  # this frame is fresher than any refresh still to come
         if result.ok:
@@ -451,6 +460,39 @@ class Localizer:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
         ids, feat, d = (np.array(v) for v in zip(*rows))
         return _one_to_one(ids.astype(np.int64), feat.astype(np.int64), d**2)
+
+    def _match_every_observation(self, desc: np.ndarray):
+        """Every feature against every observation's descriptor: per map point the nearest of its
+        observations, the ratio test between the two nearest points (a point's own observations are never
+        each other's second), one-to-one."""
+        empty = np.zeros(0, np.int64), np.zeros(0, np.int64)
+        if self._observations is None:
+            point = self.map.observation_point
+            order = np.argsort(point, kind="stable")
+            rows = np.ascontiguousarray(self.map.observation_descriptors[order], np.float32)
+            starts = np.flatnonzero(np.r_[True, point[order][1:] != point[order][:-1]]) if len(order) else order
+            self._observations = (rows, np.einsum("ij,ij->i", rows, rows), starts, point[order][starts])
+        rows, rows2, starts, points = self._observations
+        if len(desc) < 2 or len(points) < 2:
+            return empty
+        desc = np.ascontiguousarray(desc, np.float32)
+        best, best_d2, second_d2 = (np.empty(len(desc), t) for t in (np.int64, np.float32, np.float32))
+        chunk = max(1, _DISTANCE_BLOCK_ENTRIES // len(rows))  # features per block of squared distances
+        for lo in range(0, len(desc), chunk):
+            q = desc[lo:lo + chunk]
+            d2 = rows2[None, :] - 2.0 * (q @ rows.T)  # + |q|^2 below: the same for every row
+            per_point = np.minimum.reduceat(d2, starts, axis=1)
+            two = np.argpartition(per_point, 1, axis=1)[:, :2]
+            pair = np.take_along_axis(per_point, two, axis=1)
+            first = np.argmin(pair, axis=1)
+            q2 = np.einsum("ij,ij->i", q, q)
+            best[lo:lo + chunk] = points[two[np.arange(len(q)), first]]
+            best_d2[lo:lo + chunk] = np.maximum(pair[np.arange(len(q)), first] + q2, 0.0)
+            second_d2[lo:lo + chunk] = np.maximum(pair[np.arange(len(q)), 1 - first] + q2, 0.0)
+        keep = np.flatnonzero(best_d2 < self.options.matching.ratio**2 * second_d2)
+        if len(keep) == 0:
+            return empty
+        return _one_to_one(best[keep], keep.astype(np.int64), best_d2[keep].astype(np.float64))
 
     def _pose(self, ids: np.ndarray, pixels: np.ndarray, reported: MeasuredPose | None
               ) -> tuple[AbsolutePoseResult, np.ndarray, np.ndarray]:
