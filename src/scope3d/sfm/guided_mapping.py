@@ -58,10 +58,10 @@ class BundleStageOptions:
         (from ``scope3d calibrate``'s intrinsic_bounds.json: the calibration's value +- k sigma, the
         reference's FOV range of sec. 6.3); NaN in both holds that intrinsic fixed. Used only with
         ``refine_intrinsics``.
-    align_gauge : bool, after free BA with inexact poses, move the map to the similarity frame that best
-        fits all measured poses (:func:`scope3d.estimators.gauge.align_gauge`; default True). Bounded BA
-        needs no such move: its prior at the measurements (:func:`adjust`) already puts the map where they
-        say, and a move after it would leave that optimum.
+    align_gauge : bool, after free or bounded BA with inexact poses, move the map to the similarity frame
+        that best fits all measured poses (:func:`scope3d.estimators.gauge.align_gauge`; default True). After
+        bounded BA this finishes what its box prior (:func:`adjust`) asks for along the similarities, where
+        the adjustment converges slowly, as far as the boxes allow.
     settled_mm, settled_rad : no second adjustment round when no camera moved more than ``settled_mm``
         in the first and none turned more than ``settled_rad`` (defaults 0.02 mm, twice a micro-stage's
         tolerance, and 2e-4 rad, which moves a point by a tenth of a pixel at a focal length of 600 px).
@@ -201,7 +201,7 @@ def adjust_map(mode: str, measured: list[MeasuredPose], camera: Camera, tracks: 
     Triangulation and the adjustment start from ``start`` (the poses that guided matching); the bounds
     are always the ``measured`` boxes. With inexact poses and a mode that may move them, the first
     triangulation keeps the observations the pose error can explain (:func:`scope3d.feature.depth_prior.pose_error_px`). Each round:
-    adjust (bounded: with the boxes' prior, :func:`adjust`), align the gauge to the measurements (free BA),
+    adjust (bounded: with the boxes' prior, :func:`adjust`), align the gauge to the measurements,
     re-triangulate every track with the strict gate. A second
     round runs unless the poses cannot move or barely moved. Raises InputError (naming ``where``) when no
     point survives.
@@ -240,11 +240,8 @@ def adjust_map(mode: str, measured: list[MeasuredPose], camera: Camera, tracks: 
         _, result = adjust(options, mode, measured, camera, tracks, poses)
         results.append(result)
         poses = result.poses
-        if mode == "free" and options.align_gauge and not exact:
-            # bounded BA is not moved: its box prior (adjust) holds the gauge where the measurements put it,
-            # the weighted least-squares placement, jointly with the shape; a rule applied after it on a
-            # fixed shape (gauge_centred_in_boxes) moved true poses in 0.5 mm boxes 0.4-0.6 mm off
-            poses = align_gauge(poses, measured)
+        if movable and options.align_gauge and not exact:
+            poses = align_gauge(poses, measured, bounded=mode == "bounded")
         if options.refine_intrinsics:
             camera = camera.with_intrinsics(result.intrinsics[0])
         tracks = keep_on_surface(triangulate_tracks(camera, poses, tracks.untriangulated(), track_options),
