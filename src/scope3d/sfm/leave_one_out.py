@@ -42,8 +42,8 @@ from scope3d.geometry.rotation import rotvec_to_matrix
 from scope3d.scene.tracks import Tracks
 from scope3d.sensor.camera import Camera
 from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance
+from scope3d.sfm.guided_mapping import start_noise_px
 from scope3d.utils.blas import blas_threads
-from scope3d.utils.robust import robust_norm_sigma
 
 
 @dataclass(frozen=True)
@@ -174,14 +174,6 @@ def _start_pose(camera: Camera, tracks: Tracks, poses: list[Pose], k: int, track
     return estimate.pose if estimate.ok else poses[k]
 
 
-def _start_noise_px(camera: Camera, poses: list[Pose], tracks: Tracks) -> float:
-    """The keypoints' noise (px) the box prior of an adjustment from ``poses`` is weighed at
-    (:meth:`scope3d.estimators.bundle.BundleProblem.set_box_prior`), as the map's bounded adjustment reads it
-    (:func:`scope3d.sfm.guided_mapping.start_noise_px`): the residuals' median norm / 1.1774."""
-    errors = reprojection_errors(camera, poses, tracks)
-    return robust_norm_sigma(errors[np.isfinite(errors)], 1e-3)
-
-
 def _noise_px(residuals: np.ndarray, loss_scale_px: float, redundancy: int) -> float:
     """The keypoints' noise (px): the Huber-weighted squared residuals (N, 2) over the redundancy (the
     a-posteriori variance factor). A two-view point keeps 1 of its 4 residual dimensions, so the residuals'
@@ -234,7 +226,7 @@ def _adjust(camera: Camera, released: list[MeasuredPose], current: Tracks, start
         problem = BundleProblem.from_measured_poses(released, camera, current.points, current.pixels, current.frame,
                                                     current.track, refine_intrinsics=False)
         problem.start_from(start)
-        problem.set_box_prior(_start_noise_px(camera, start, current))  # as the map's adjustment holds them
+        problem.set_box_prior(start_noise_px(camera, start, current))  # as the map's adjustment holds them
         if held:
             problem.fix("pose", held)
         result = solve(problem, solver)
@@ -381,7 +373,7 @@ def linearise(camera: Camera, measured: list[MeasuredPose], tracks: Tracks, pose
     problem = BundleProblem.from_measured_poses(measured, camera, kept.points, kept.pixels, kept.frame, kept.track,
                                                 refine_intrinsics=False)
     problem.start_from(poses)
-    problem.set_box_prior(_start_noise_px(camera, poses, kept))  # as the map's adjustment holds them
+    problem.set_box_prior(start_noise_px(camera, poses, kept))  # as the map's adjustment holds them
     result = solve(problem, SolverOptions(max_iterations=options.max_iterations, loss="huber",
                                           loss_scale_px=options.loss_scale_px, num_threads=1))
     seen = np.bincount(problem.camera_index, minlength=problem.num_cameras) > 0
