@@ -25,6 +25,9 @@ Parameters (every scalar is fixed, free, or bounded by a box ``[lower, upper]``,
     ``y = (r, theta, phi)``, so a spherical shell ``r_min <= |X - o| <= r_max`` is a box bound on ``r``
     (:meth:`BundleProblem.bound_points_to_shell`).
 
+A pose scalar may also carry a Gaussian prior at its box's centre (:meth:`BundleProblem.set_box_prior`): the
+measurement's weak hold inside its box, for the directions the images leave free.
+
 Bounds on a point are stated in its parameterisation; changing the parameterisation resets the point's
 bounds. Initial values outside their box are clamped onto it by the solver, with a warning.
 

@@ -511,7 +511,8 @@ def solve(
     *,
     callback: Callable[[IterationRecord, BundleParameters], None] | None = None,
 ) -> BundleResult:
-    """Minimise 0.5 sum rho(|r|^2) subject to the problem's bounds (eq. 6.2) by BCBA (eq. 6.9–6.13).
+    """Minimise 0.5 sum rho(|r|^2) (plus the poses' prior, :meth:`BundleProblem.set_box_prior`, when set) subject
+    to the problem's bounds (eq. 6.2) by BCBA (eq. 6.9–6.13).
 
     problem : the BundleProblem; it is not modified. options : SolverOptions (defaults if None).
     callback : called after every iteration with its log record and the current (accepted) parameters;
