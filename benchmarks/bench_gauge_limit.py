@@ -7,7 +7,8 @@ errors, ``scope3d phantom --pose-noise N``: phantoms.measure_poses, ±N mm, ±0.
 and measures what each rule leaves, over many noise draws (no rendering: the poses alone decide it):
 
   bounded  -- estimators.gauge.align_gauge(bounded=True), the bounded map's rule (least squares among the
-              placements well inside every box, only as far as the boxes allow);
+              placements that keep every pose in its box; before issue 33's box prior it was least squares
+              among those well inside every box, and results/map_gauge_limit.json is of that rule);
   free     -- align_gauge(bounded=False), the free map's rule (least squares on centres and orientations);
   centres  -- the Umeyama similarity of the centres alone (bench_map_pose_noise.py's 'oracle' row).
 

@@ -3,10 +3,11 @@
 Images fix a reconstruction only up to a similarity (rotation, translation, scale). The measured poses
 fix it, each through its tolerance:
 
-* :func:`gauge_from_measurements` — least squares on all measured centres and orientations;
-* :func:`gauge_centred_in_boxes` — the least-squares placement among those that keep every camera
-  well inside its tolerance box (bound-constrained adjustment's poses must stay in their boxes);
-* :func:`align_gauge` — either of them applied to adjusted poses (the map it describes is the same).
+* :func:`gauge_from_measurements` — least squares on all measured centres and orientations, each weighed by
+  its box as a uniform error's sigma (the placement the bounded adjustment's box prior asks for,
+  :meth:`scope3d.estimators.bundle.BundleProblem.set_box_prior`);
+* :func:`gauge_in_boxes` — the same least squares among the placements that keep every pose in its box;
+* :func:`align_gauge` — either applied to adjusted poses (the map it describes is the same).
 
 Units: mm and radians. Poses are ``cam_from_world``.
 """
@@ -80,35 +81,25 @@ def _start_similarity(C, R, meas_c, meas_R, tol_w) -> Similarity:
 
 
 
-def gauge_centred_in_boxes(poses: list[Pose], measured: list[MeasuredPose], *, rounds: int = 3) -> Similarity:
-    """The similarity that best fits the measurements while keeping every camera well inside its box.
+def gauge_in_boxes(poses: list[Pose], measured: list[MeasuredPose], *, rounds: int = 3) -> Similarity:
+    """:func:`gauge_from_measurements`'s least squares restricted to the similarities that keep every pose in
+    its box: the box prior's minimum (:meth:`scope3d.estimators.bundle.BundleProblem.set_box_prior`) over the
+    moves that leave the images unchanged, with the boxes as the hard constraints they are. One camera the
+    images hold at a wall must not veto the whole move (on a 2 mm box one camera's rotation at its wall left
+    a 0.8 % scale where a fraction of the free fit was all that kept it inside), and must not be pushed out.
 
-    A measurement's tolerance box says the truth is inside; with uniform errors that is all it says, and
-    the intersection of all boxes can pin the gauge better than a least-squares fit of the centres (the
-    midrange of n uniform errors has a spread ~1/n, their mean ~1/sqrt n: on the dome at +-3 mm the
-    centres' least-squares scale was 7 % off). But the deepest point alone (the Chebyshev centre) is
-    set by the few tightest walls and is not unique; on the tracker's anisotropic boxes it left the
-    cameras 0.17 mm off where least squares gives 0.04 mm. So two steps, linear in a small rotation,
-    shift and log-scale about the current placement, re-linearised ``rounds`` times:
-
-    1. the largest common slack ``delta*`` (each scalar's distance to its wall as a fraction of its
-       half-width) any placement reaches (a linear programme, HiGHS);
-    2. the least-squares fit of every measured centre and orientation (sigma = half-width / sqrt 3)
-       among the placements that keep every scalar at least ``delta* / 2`` inside (a small quadratic
-       programme, SLSQP).
-
-    Scalars with an infinite tolerance take part in neither; an exact scalar pins the gauge (the
-    identity is returned), as does an empty feasible set.
+    Linear in a small rotation, shift and log-scale about the current placement (a quadratic programme in 7
+    unknowns, SLSQP from the identity, which is feasible), re-linearised ``rounds`` times. Scalars with an
+    infinite tolerance take no part; an exact scalar pins the gauge (the identity is returned).
     """
-    from scipy.optimize import linprog, minimize
+    from scipy.optimize import minimize
 
     total = Similarity(1.0, np.eye(3), np.zeros(3), np.zeros(3))
     if any(np.any(m.tolerance.position_mm == 0) or np.any(m.tolerance.orientation_rad == 0) for m in measured):
         return total  # an exact scalar pins the gauge: no similarity may move it
     current = list(poses)
     for _ in range(rounds):
-        C = np.stack([p.centre for p in current])
-        c0 = C.mean(axis=0)
+        c0 = np.stack([p.centre for p in current]).mean(axis=0)
         J_rows, d0, tol = [], [], []
         for m, p in zip(measured, current):
             # centre: c + omega x (c - c0) + tau + lambda (c - c0); orientation: R exp(-omega) = exp(-R omega) R
@@ -126,58 +117,46 @@ def gauge_centred_in_boxes(poses: list[Pose], measured: list[MeasuredPose], *, r
         if not keep.any():
             return total
         J, d0, tol = J[keep], d0[keep], tol[keep]
-        # 1. |d0 + J x| <= tol (1 - delta), maximise delta
-        A = np.r_[np.c_[J, tol], np.c_[-J, tol]]
-        b = np.r_[tol - d0, tol + d0]
-        lp = linprog(np.r_[np.zeros(7), -1.0], A_ub=A, b_ub=b, bounds=[(None, None)] * 7 + [(None, 1.0)],
-                     method="highs")
-        if lp.status != 0 or lp.x[7] < 0:
-            return total
-        margin = 0.5 * lp.x[7]
-        # 2. least squares inside the boxes shrunk by that margin, from the deepest point
-        w = np.sqrt(3.0) / tol
-        qp = minimize(lambda x: float(np.sum((w * (d0 + J @ x)) ** 2)), lp.x[:7],
-                      jac=lambda x: 2.0 * J.T @ (w**2 * (d0 + J @ x)), method="SLSQP",
-                      constraints=[{"type": "ineq", "fun": lambda x: tol * (1 - margin) - (d0 + J @ x),
-                                    "jac": lambda x: -J},
-                                   {"type": "ineq", "fun": lambda x: tol * (1 - margin) + (d0 + J @ x),
-                                    "jac": lambda x: J}])
-        x = qp.x if qp.success else lp.x[:7]
+        w2 = 3.0 / tol**2  # sigma = half-width / sqrt(3)
+        # a scalar already outside its box (by rounding) may not go further out, nothing more
+        room = np.maximum(tol, np.abs(d0))
+        qp = minimize(lambda x: float(np.sum(w2 * (d0 + J @ x) ** 2)), np.zeros(7),
+                      jac=lambda x: 2.0 * J.T @ (w2 * (d0 + J @ x)), method="SLSQP",
+                      constraints=[{"type": "ineq", "fun": lambda x: room - (d0 + J @ x), "jac": lambda x: -J},
+                                   {"type": "ineq", "fun": lambda x: room + (d0 + J @ x), "jac": lambda x: J}])
+        if not qp.success:
+            break
+        x = qp.x
         step = Similarity(float(np.exp(x[6])), rotvec_to_matrix(x[:3]), c0, c0 + x[3:6])
         total = _compose(step, total)
-        current = [Pose(*step.apply_to_cam_from_world(p.rotation, p.translation)) for p in current]
+        current = moved_by(current, step)
     return total
 
 
 def _compose(outer: Similarity, inner: Similarity) -> Similarity:
     """``outer(inner(X))`` as one Similarity about inner's origin."""
-    target = outer.apply(inner.target)
-    return Similarity(outer.scale * inner.scale, outer.rotation @ inner.rotation, inner.origin, target)
+    return Similarity(outer.scale * inner.scale, outer.rotation @ inner.rotation, inner.origin, outer.apply(inner.target))
 
 
 def align_gauge(poses: list[Pose], measured: list[MeasuredPose], *, bounded: bool = False) -> list[Pose]:
     """Express adjusted poses in the similarity frame that best fits the measured poses.
 
     Images fix a reconstruction only up to a similarity (rotation, translation, scale: the gauge).
-    Free BA pins it to one camera's measurement; bounded BA keeps it inside the tolerance boxes, but
-    where the boxes are wide compared with the trajectory, LM drifts along the scale (on the
-    cable-driven-robot test the map shrank by 9 %, as the reference's Fig. 6.4 shows BA doing).
-    Moving to the similarity that best fits every measured centre and orientation
-    (:func:`gauge_from_measurements`) changes no reprojection error — it is the same
+    Free BA pins it to one camera's measurement. Moving to the similarity that best fits every measured
+    centre and orientation (:func:`gauge_from_measurements`) changes no reprojection error — it is the same
     map — but uses every measurement, so their random errors average out (a common bias cannot: it is
     unobservable).
 
-    bounded : the poses (in their boxes) must stay in their boxes. Then the placement is the
-        least-squares one among those that keep every camera well inside its box
-        (:func:`gauge_centred_in_boxes`): with uniform errors the boxes' intersection
-        says more than a least-squares fit alone (on the dome at +-3 mm the centres' least-squares scale
-        was 7 % off); and only as much of it is applied (:meth:`scope3d.geometry.similarity.Similarity.fraction`)
-        as keeps every pose inside.
+    bounded : the poses (in their boxes) must stay in their boxes. The bounded adjustment's box prior asks
+        for the same placement (its cost over the similarities that leave the images unchanged is exactly
+        this least squares), but the adjustment converges slowly along those directions: the images'
+        curvature dwarfs the prior's in its damping, and it stops on its relative cost change first. This
+        finishes that minimisation among the moves that keep every pose in its box (:func:`gauge_in_boxes`);
+        should the linearisation still leave one outside, only as much of it is applied
+        (:meth:`scope3d.geometry.similarity.Similarity.fraction`) as keeps every pose inside.
     """
-    if not bounded:
-        return moved_by(poses, gauge_from_measurements(poses, measured))
-    similarity = gauge_centred_in_boxes(poses, measured)
-    if not all_in_boxes(moved_by(poses, similarity), measured):
+    similarity = gauge_in_boxes(poses, measured) if bounded else gauge_from_measurements(poses, measured)
+    if bounded and not all_in_boxes(moved_by(poses, similarity), measured):
         lo, hi = 0.0, 1.0  # the identity keeps them inside; bisect for the largest step that does
         for _ in range(30):
             mid = 0.5 * (lo + hi)

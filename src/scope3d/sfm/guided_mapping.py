@@ -35,6 +35,7 @@ from scope3d.scene.tracks import Tracks
 from scope3d.sensor.camera import INTRINSIC_NAMES, Camera
 from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance
 from scope3d.sfm.depth_priors import points_depth_prior
+from scope3d.utils.robust import robust_norm_sigma
 
 POSE_MODES = ("fixed", "free", "bounded")
 
@@ -57,8 +58,10 @@ class BundleStageOptions:
         (from ``scope3d calibrate``'s intrinsic_bounds.json: the calibration's value +- k sigma, the
         reference's FOV range of sec. 6.3); NaN in both holds that intrinsic fixed. Used only with
         ``refine_intrinsics``.
-    align_gauge : bool, after free or bounded BA with inexact poses, move the map to the similarity
-        frame that best fits all measured poses (:func:`scope3d.estimators.gauge.align_gauge`; default True).
+    align_gauge : bool, after free or bounded BA with inexact poses, move the map to the similarity frame
+        that best fits all measured poses (:func:`scope3d.estimators.gauge.align_gauge`; default True). After
+        bounded BA this finishes what its box prior (:func:`adjust`) asks for along the similarities, where
+        the adjustment converges slowly, as far as the boxes allow.
     settled_mm, settled_rad : no second adjustment round when no camera moved more than ``settled_mm``
         in the first and none turned more than ``settled_rad`` (defaults 0.02 mm, twice a micro-stage's
         tolerance, and 2e-4 rad, which moves a point by a tenth of a pixel at a focal length of 600 px).
@@ -152,11 +155,26 @@ def fix_gauge(problem: BundleProblem, poses: list[Pose]) -> None:
 
 def adjust(options: BundleStageOptions, mode: str, measured: list[MeasuredPose], camera: Camera, tracks: Tracks,
            start: list[Pose]) -> tuple[BundleProblem, BundleResult]:
-    """One bundle adjustment of the ``options.max_points`` strongest tracks in ``mode`` from ``start``."""
-    problem = bundle_problem(mode, measured, camera, tracks.strongest(options.max_points),
-                             refine_intrinsics=options.refine_intrinsics, start=start,
-                             intrinsic_bounds=options.intrinsic_bounds)
+    """One bundle adjustment of the ``options.max_points`` strongest tracks in ``mode`` from ``start``.
+
+    ``bounded`` mode holds every pose weakly at its measurement besides its box
+    (:meth:`scope3d.estimators.bundle.BundleProblem.set_box_prior`), at the observations' noise as the
+    residuals at the start show it (:func:`start_noise_px`)."""
+    strongest = tracks.strongest(options.max_points)
+    problem = bundle_problem(mode, measured, camera, strongest, refine_intrinsics=options.refine_intrinsics,
+                             start=start, intrinsic_bounds=options.intrinsic_bounds)
+    if mode == "bounded":
+        problem.set_box_prior(start_noise_px(camera, start, strongest))
     return problem, solve(problem, options.solver())
+
+
+def start_noise_px(camera: Camera, poses: list[Pose], tracks: Tracks) -> float:
+    """The observations' noise (px) as the residuals of ``tracks`` (triangulated with ``poses``) show it: their
+    norms' median / 1.1774 (a 2-D Gaussian's), as :func:`scope3d.estimators.bundle.covariance.reduced_camera_system`
+    reads it; robust to the wrong matches the Huber loss discounts. The start's pose errors can only add to it:
+    an overstated noise holds the poses a little harder at their measurements, never outside their boxes."""
+    errors = reprojection_errors(camera, poses, tracks)
+    return robust_norm_sigma(errors[np.isfinite(errors)], 1e-3)
 
 
 # --- the adjustment rounds ---------------------------------------------------------------------
@@ -183,7 +201,8 @@ def adjust_map(mode: str, measured: list[MeasuredPose], camera: Camera, tracks: 
     Triangulation and the adjustment start from ``start`` (the poses that guided matching); the bounds
     are always the ``measured`` boxes. With inexact poses and a mode that may move them, the first
     triangulation keeps the observations the pose error can explain (:func:`scope3d.feature.depth_prior.pose_error_px`). Each round:
-    adjust, align the gauge to the measurements, re-triangulate every track with the strict gate. A second
+    adjust (bounded: with the boxes' prior, :func:`adjust`), align the gauge to the measurements,
+    re-triangulate every track with the strict gate. A second
     round runs unless the poses cannot move or barely moved. Raises InputError (naming ``where``) when no
     point survives.
 

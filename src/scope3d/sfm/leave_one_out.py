@@ -42,6 +42,7 @@ from scope3d.geometry.rotation import rotvec_to_matrix
 from scope3d.scene.tracks import Tracks
 from scope3d.sensor.camera import Camera
 from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance
+from scope3d.sfm.guided_mapping import start_noise_px
 from scope3d.utils.blas import blas_threads
 
 
@@ -228,6 +229,7 @@ def _adjust(camera: Camera, released: list[MeasuredPose], current: Tracks, start
         problem = BundleProblem.from_measured_poses(released, camera, current.points, current.pixels, current.frame,
                                                     current.track, refine_intrinsics=False)
         problem.start_from(start)
+        problem.set_box_prior(start_noise_px(camera, start, current))  # as the map's adjustment holds them
         if held:
             problem.fix("pose", held)
         result = solve(problem, solver)
@@ -374,6 +376,7 @@ def linearise(camera: Camera, measured: list[MeasuredPose], tracks: Tracks, pose
     problem = BundleProblem.from_measured_poses(measured, camera, kept.points, kept.pixels, kept.frame, kept.track,
                                                 refine_intrinsics=False)
     problem.start_from(poses)
+    problem.set_box_prior(start_noise_px(camera, poses, kept))  # as the map's adjustment holds them
     result = solve(problem, SolverOptions(max_iterations=options.max_iterations, loss="huber",
                                           loss_scale_px=options.loss_scale_px, num_threads=1))
     seen = np.bincount(problem.camera_index, minlength=problem.num_cameras) > 0

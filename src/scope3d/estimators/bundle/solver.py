@@ -402,9 +402,11 @@ class _ReducedSystem:
         self.threads = 1 if self.chunks is None else self.chunks.size - 1
         self.rhs = np.empty(self.size)
 
-    def assemble(self, r, jc, jp, cam_blocks, point_ptr, damp_c, damp_p, v_inv, gp, pool) -> bool:
+    def assemble(self, r, jc, jp, cam_blocks, point_ptr, damp_c, damp_p, v_inv, gp, pool,
+                 prior_gradient: np.ndarray | None = None) -> bool:
         """Fill the damped reduced camera system (eq. 6.7 with eq. 6.13); with point chunks, one thread
-        per chunk (the kernels release the GIL) into its own copy, then summed."""
+        per chunk (the kernels release the GIL) into its own copy, then summed. prior_gradient : the
+        camera scalars' prior gradient (active scalars zeroed), taken off the right-hand side."""
         if self.chunks is None:
             self.out[:] = 0.0
             self.rhs[:] = 0.0
@@ -423,6 +425,8 @@ class _ReducedSystem:
             ok = all(list(pool.map(chunk, range(self.threads))))
             np.sum(self.out_t, axis=0, out=self.out)
             np.sum(self.rhs_t, axis=0, out=self.rhs)
+        if prior_gradient is not None:
+            self.rhs -= prior_gradient
         if self.dense:
             self.out[:: self.size + 1] += damp_c
         else:
@@ -507,7 +511,8 @@ def solve(
     *,
     callback: Callable[[IterationRecord, BundleParameters], None] | None = None,
 ) -> BundleResult:
-    """Minimise 0.5 sum rho(|r|^2) subject to the problem's bounds (eq. 6.2) by BCBA (eq. 6.9–6.13).
+    """Minimise 0.5 sum rho(|r|^2) (plus the poses' prior, :meth:`BundleProblem.set_box_prior`, when set) subject
+    to the problem's bounds (eq. 6.2) by BCBA (eq. 6.9–6.13).
 
     problem : the BundleProblem; it is not modified. options : SolverOptions (defaults if None).
     callback : called after every iteration with its log record and the current (accepted) parameters;
@@ -549,10 +554,18 @@ def solve(
     def split(vec):
         return vec[: 6 * m].reshape(m, 6), vec[6 * m:].reshape(g, 6)
 
+    # the poses' Gaussian prior (BundleProblem.set_box_prior), on the camera vector: a residual block of its own
+    prior_weight = np.concatenate([problem.pose_prior_weight.ravel(), np.zeros(6 * g)])
+    prior_mean = np.concatenate([problem.pose_prior_mean.ravel(), np.zeros(6 * g)])
+    has_prior = bool(np.any(prior_weight > 0))
+
+    def prior_cost(vc) -> float:
+        return 0.5 * float(prior_weight @ (vc - prior_mean) ** 2) if has_prior else 0.0
+
     def cost_of(vc, vp) -> float:
         pose, intr = split(vc)
         _squared_residuals(problem, pose, intr, vp, intr_obs, sq, ranges)
-        return 0.5 * float(np.sum(loss_rho(options.loss, sq, options.loss_scale_px)))
+        return 0.5 * float(np.sum(loss_rho(options.loss, sq, options.loss_scale_px))) + prior_cost(vc)
 
     def linearise(vc, vp) -> float:
         pose, intr = split(vc)
@@ -561,7 +574,7 @@ def solve(
         weights = loss_weight(options.loss, sq, options.loss_scale_px)
         if weights is not None:
             kernels.scale_rows(r, jc, jp, weights)
-        return 0.5 * float(np.sum(loss_rho(options.loss, sq, options.loss_scale_px)))
+        return 0.5 * float(np.sum(loss_rho(options.loss, sq, options.loss_scale_px))) + prior_cost(vc)
 
     def params_view(vc, vp) -> BundleParameters:
         pose, intr = split(vc)
@@ -586,11 +599,18 @@ def solve(
                 parts = ranges.map(lambda _pa, _pb, oa, ob: kernels.gradient_and_diagonal(
                     r[oa:ob], jc[oa:ob], jp[oa:ob], cam_blocks[oa:ob], point_index[oa:ob], n_blocks, n))
                 gc, dc, gp, dp = (sum(part[q] for part in parts) for q in range(4))
+                prior_g = None
+                if has_prior:  # the prior's gradient and its (diagonal) Gauss-Newton Hessian
+                    prior_g = prior_weight * (xc - prior_mean)
+                    gc = gc + prior_g
+                    dc = dc + prior_weight
                 # eq. 6.10: a scalar is active at a bound whose gradient points out of the box
                 active_c = fixed_c | ((xc <= lower_c) & (gc > 0)) | ((xc >= upper_c) & (gc < 0))
                 active_p = fixed_p | ((xp <= lower_p) & (gp > 0)) | ((xp >= upper_p) & (gp < 0))
                 n_active = int(active_c.sum() - fixed_c.sum() + active_p.sum() - fixed_p.sum())
                 ghat_c = np.where(active_c, 0.0, gc)  # eq. 6.11
+                if prior_g is not None:
+                    prior_g = np.where(active_c, 0.0, prior_g)
                 ghat_p = np.where(active_p, 0.0, gp)
                 pg_norm = float(max(np.abs(ghat_c).max(initial=0.0), np.abs(ghat_p).max(initial=0.0)))
                 diag_c = np.clip(dc, options.min_diagonal, options.max_diagonal)
@@ -611,9 +631,10 @@ def solve(
                 break
             iterations += 1
             # eq. 6.13: B_hat = H_hat + lambda D_hat; the active scalars keep only their diagonal
-            damp_c = np.where(active_c, diag_c * (1.0 + lam), lam * diag_c)
+            damp_c = np.where(active_c, diag_c * (1.0 + lam), lam * diag_c + prior_weight)
             damp_p = np.where(active_p, diag_p * (1.0 + lam), lam * diag_p)
-            ok = system.assemble(r, jc, jp, cam_blocks, problem.point_ptr, damp_c, damp_p, v_inv, gp_buf, pool)
+            ok = system.assemble(r, jc, jp, cam_blocks, problem.point_ptr, damp_c, damp_p, v_inv, gp_buf, pool,
+                                  prior_g)
             delta_c = system.solve(options) if ok else None
             step_norm = 0.0
             accepted = False
@@ -636,7 +657,8 @@ def solve(
                 model_decrease = -(float(ghat_c @ step_c) + float(np.sum(ghat_p * step_p))
                                    + 0.5 * sum(ranges.map(lambda _pa, _pb, oa, ob: kernels.jacobian_step_norm2(
                                        jc[oa:ob], jp[oa:ob], cam_blocks[oa:ob], point_index[oa:ob], step_c,
-                                       step_p))))
+                                       step_p)))
+                                   + 0.5 * float(prior_weight @ step_c**2))
                 change = cost - new_cost
                 accepted = math.isfinite(new_cost) and change > 0
             if accepted:
