@@ -26,6 +26,8 @@ from scope3d.sensor.camera import Camera
 
 _BLACK, _WHITE, _BACKGROUND = 0.08, 0.85, 0.45
 _CHARUCO_TEXELS_PER_SQUARE = 40
+# the lab's checkerboard: odd x even, an unambiguous orientation; 20 x 14 mm fills an endoscope's view at ~25 mm
+LAB_BOARD = BoardSpec(9, 6, 2.0)
 
 
 @dataclass(frozen=True)
@@ -123,7 +125,7 @@ def render_board_view(camera: Camera, board: BoardSpec, pose: Pose, *, rng: np.r
     if options.blur_sigma_px > 0:
         img = cv2.GaussianBlur(img, (0, 0), options.blur_sigma_px)
     img = img * 255.0 + options.noise_grey * rng.standard_normal(img.shape).astype(np.float32)
-    img[~camera.mask()] = 0.0
+    img[~camera.valid_mask()] = 0.0
     return np.clip(np.round(img), 0, 255).astype(np.uint8)
 
 

@@ -397,7 +397,7 @@ def _dataset(run_dir: Path, report: dict, notes: list[str]):
             found = False
         if found:
             try:
-                return load_dataset(candidate)
+                return load_dataset(candidate, any_camera_model=True)
             except InputError as exc:
                 notes.append(f"dataset {name} not read: {exc}")
                 return None
@@ -479,6 +479,8 @@ def explorer_payload(scene: ViewScene, centre: np.ndarray) -> dict | None:
             "data:image/jpeg;base64," + base64.b64encode(frame.thumbnail).decode(),
         })
     return {"camera": {"width": camera.width, "height": camera.height, "fx": camera.fx, "fy": camera.fy,
-                       "cx": camera.cx, "cy": camera.cy, "k1": camera.k1, "k2": camera.k2,
+                       "cx": camera.cx, "cy": camera.cy, "model": camera.model,
+                       "param_names": list(camera.param_names), "params": camera.params.tolist(),
+                       "fisheye": camera.lens.is_fisheye, "max_half_angle_rad": camera.max_half_angle_rad,
                        "mask_radius_px": camera.mask_radius_px},
             "frames": frames, "inside": scene.inside, "centre_mm": centre.tolist()}
