@@ -47,7 +47,7 @@ def dataset_report_writer(report: dict, name: str, started: float) -> Callable[[
         from scope3d.report import write_report
         from scope3d.utils.jsonio import write_json
 
-        dataset = load_dataset(folder, any_camera_model=True)
+        dataset = load_dataset(folder)
         camera = dataset.camera
         report.update({
             "dataset": ".",  # the report's own folder: the page draws its cameras

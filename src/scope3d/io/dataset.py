@@ -56,7 +56,7 @@ from scope3d.utils.jsonio import write_json
 LENGTH_UNITS_TO_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "um": 1e-3}
 
 
-def load_dataset(root: str | Path, *, check_images: bool = False, any_camera_model: bool = False) -> Dataset:
+def load_dataset(root: str | Path, *, check_images: bool = False) -> Dataset:
     """Load and validate a dataset folder; lengths are returned in mm whatever ``length_unit`` says.
 
     Always checked: the JSON and CSV files parse, every value is finite (tolerances may be ``inf``),
@@ -65,8 +65,6 @@ def load_dataset(root: str | Path, *, check_images: bool = False, any_camera_mod
     image is also decoded once and its size compared with ``camera.json``, every ground-truth depth map
     is opened and its shape checked, and the ground-truth surface is parsed (what ``scope3d check`` does).
     The first problem found is raised as an :class:`InputError` naming the file (and the row).
-    any_camera_model : read a camera of any model (a report's view, a phantom's own check); else a camera
-        the jobs do not take yet is refused (:func:`check_jobs_take`).
     """
     root = Path(root)
     if not root.is_dir():
@@ -84,8 +82,6 @@ def load_dataset(root: str | Path, *, check_images: bool = False, any_camera_mod
         raise InputError(f"{meta_path}: unknown length_unit {unit!r} (use one of {', '.join(LENGTH_UNITS_TO_MM)})")
     scale = LENGTH_UNITS_TO_MM[unit]
     camera = read_camera_json(root / "camera.json")
-    if not any_camera_model:
-        check_jobs_take(camera, root / "camera.json")
     poses_path = root / "poses.csv"
     names, poses, row_numbers = _read_pose_rows(poses_path, scale)
     frames_dir = root / "frames"
@@ -165,14 +161,14 @@ def _check_ground_truth_files(gt: GroundTruth, camera: Camera) -> None:
         gt.surface()
 
 
-def check_jobs_take(camera: Camera, where: str | Path) -> None:
-    """A dataset read for the jobs must have a camera of the model they use: ``pinhole_radial_k1k2``, until
-    the jobs take every model of :mod:`scope3d.sensor.camera_models` (issue 32, second part). An InputError
-    naming ``where`` otherwise, so that a fisheye's parameters are never read as radial ones. A dataset of
-    any model is written (the phantom lab's lenses, importers), and refused here when read."""
+def check_jobs_take(camera: Camera, where: str | Path, job: str) -> None:
+    """A job that takes scope3d's radial model only, so far (issue 32: ``map`` takes every model of
+    :mod:`scope3d.sensor.camera_models`; the others follow): an InputError naming ``where`` for a camera of
+    another model, so that a fisheye's parameters are never read as radial ones. Its ``check_dataset`` (or
+    ``run``) calls it before any work."""
     if camera.model != DEFAULT_MODEL:
-        raise InputError(f"{where}: a {camera.model} camera; scope3d's jobs take {DEFAULT_MODEL} cameras only "
-                         "so far (calibrate with --model radial for a dataset's camera.json)")
+        raise InputError(f"{where}: a {camera.model} camera; scope3d {job} takes {DEFAULT_MODEL} cameras only so "
+                         "far (map takes every model; calibrate with --model radial for the others)")
 
 
 def write_dataset(

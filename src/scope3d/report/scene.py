@@ -397,7 +397,7 @@ def _dataset(run_dir: Path, report: dict, notes: list[str]):
             found = False
         if found:
             try:
-                return load_dataset(candidate, any_camera_model=True)
+                return load_dataset(candidate)
             except InputError as exc:
                 notes.append(f"dataset {name} not read: {exc}")
                 return None
