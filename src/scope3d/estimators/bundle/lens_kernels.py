@@ -123,6 +123,9 @@ def residuals_and_jacobians(
                 p0, p1, p2, intrinsics[q, 4], intrinsics[q, 5], extra[q])
         residuals[o, 0] = fx * xd + intrinsics[q, 2] - observed[o, 0]
         residuals[o, 1] = fy * yd + intrinsics[q, 3] - observed[o, 1]
+        # From here on the pose's and the point's columns are the radial kernel's, line for line: a kernel
+        # module cannot import another (setup.py compiles each alone, without scope3d), and the radial
+        # kernel stays as it was (its compiled build and timings).
         e00 = fx * d00; e01 = fx * d01; e02 = fx * d02
         e10 = fy * d10; e11 = fy * d11; e12 = fy * d12
         f00 = -e01 * a2 + e02 * a1; f01 = e00 * a2 - e02 * a0; f02 = -e00 * a1 + e01 * a0
