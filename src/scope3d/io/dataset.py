@@ -168,7 +168,7 @@ def check_jobs_take(camera: Camera, where: str | Path, job: str) -> None:
     ``run``) calls it before any work."""
     if camera.model != DEFAULT_MODEL:
         raise InputError(f"{where}: a {camera.model} camera; scope3d {job} takes {DEFAULT_MODEL} cameras only so "
-                         "far (map takes every model; calibrate with --model radial for the others)")
+                         "far (map and localize take every model; calibrate with --model radial for the others)")
 
 
 def write_dataset(
@@ -329,8 +329,10 @@ class Dataset:
             f"dataset       {self.root} ({self.metadata.get('name', self.root.name)})",
             f"frames        {len(self)} images of {cam.width}x{cam.height} px ({self.names[0]} .. {self.names[-1]})",
             f"camera        fx {cam.fx:.6g} fy {cam.fy:.6g} cx {cam.cx:.6g} cy {cam.cy:.6g} px, "
-            f"k1 {cam.k1:.4g} k2 {cam.k2:.4g}; field of view {cam.fov_deg:.1f} x "
-            f"{fov_from_focal(cam.height, cam.fy):.1f} deg; "
+            + (f"k1 {cam.k1:.4g} k2 {cam.k2:.4g}; field of view {cam.fov_deg:.1f} x "
+               f"{fov_from_focal(cam.height, cam.fy):.1f} deg; " if cam.model == DEFAULT_MODEL else
+               f"{cam.model} " + " ".join(f"{n} {v:.4g}" for n, v in zip(cam.param_names[4:], cam.params[4:]))
+               + f"; field of view {cam.fov_deg:.1f} deg across the width; ")
             + (f"circular mask radius {cam.mask_radius_px:.6g} px" if cam.mask_radius_px else "no circular mask"),
             f"poses         camera centres span {span[0]:.4g} x {span[1]:.4g} x {span[2]:.4g} mm; "
             f"tolerance {_tolerance_summary([m.tolerance for m in self.poses])}",
