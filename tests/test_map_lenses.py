@@ -21,11 +21,12 @@ def fisheye_map(tmp_path_factory):
     assert main(["phantom", "dome", "--lens", "fisheye-140", "--size", SIZE, "--frames", "12",
                  "--out", str(root / "data"), "--no-progress"]) == 0
     assert main(["map", str(root / "data"), "--out", str(root / "map"), "--no-progress"]) == 0
-    return read_camera_json(root / "data" / "camera.json"), json.loads((root / "map" / "report.json").read_text())
+    return (read_camera_json(root / "data" / "camera.json"), json.loads((root / "map" / "report.json").read_text()),
+            root / "data")
 
 
 def test_the_map_keeps_the_lens_model(fisheye_map):
-    camera, report = fisheye_map
+    camera, report, _ = fisheye_map
     assert camera.model == "OPENCV_FISHEYE"
     assert list(report["camera_adjusted"]["intrinsics"]) == list(camera.param_names)
     # the observations fit the fisheye's projection (a pinhole's reading of them would miss by pixels)
@@ -33,7 +34,7 @@ def test_the_map_keeps_the_lens_model(fisheye_map):
 
 
 def test_fisheye_dome_surface_error_follows_two_view_precision(fisheye_map):
-    camera, report = fisheye_map
+    camera, report, _ = fisheye_map
     # depth error of two views 5 mm apart at the farthest 25 mm, with the lens's focal length (its angular
     # resolution near the axis, where the dome is seen: d theta_d / d theta = 1 + 3 k1 theta^2 + ... >= 1)
     sigma_z = 25.0**2 * SIFT_SIGMA_PX / (camera.fx * 5.0)
@@ -92,3 +93,16 @@ def test_localization_through_the_fisheye_against_the_truth(tmp_path):
     assert report["median_position_error_mm"] < 0.3 * scale and report["median_orientation_error_deg"] < 1.0 * scale
     done = [f for f in report["frames"] if f["status"] == "ok"]
     assert max(f["position_error_mm"] for f in done) < 1.0 * scale
+
+
+def test_map_refuses_bounds_of_another_model_in_one_line(fisheye_map, tmp_path, capsys):
+    from scope3d.io.intrinsic_bounds import write_intrinsic_bounds
+
+    data = fisheye_map[2]
+    write_intrinsic_bounds(tmp_path / "radial.json", np.array([115.0, 115.0, 199.5, 199.5, 0.0, 0.0]),
+                           np.full(6, 0.1), 3.0)
+    assert main(["map", str(data), "--out", str(tmp_path / "m"), "--intrinsic-bounds", str(tmp_path / "radial.json"),
+                 "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "bounds of a 'pinhole_radial_k1k2' camera, for a OPENCV_FISHEYE camera" in err[0]
+    assert not (tmp_path / "m").exists()
