@@ -95,4 +95,8 @@ def test_lens_refusals(tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
         main(["phantom", "dome", "--lens", "fisheye-200", "--out", str(tmp_path / "b")])
     assert exc.value.code == 2
-    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+    assert main(["phantom", "dome", "--raw-recording", "--lens", "barrel-70", "--out", str(tmp_path / "c")]) == 2
+    assert "--lens and --boards apply to a dataset" in capsys.readouterr().err
+    assert main(["phantom", "dome", "--boards", "-1", "--out", str(tmp_path / "d")]) == 2
+    assert "number of board views must be zero or positive" in capsys.readouterr().err
+    assert not any((tmp_path / name).exists() for name in "abcd")

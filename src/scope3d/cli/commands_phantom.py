@@ -144,6 +144,9 @@ def run(args) -> int:
     if not args.out:
         raise InputError("--out DIR is required")
     if args.raw_recording:
+        if args.lens != "pinhole" or args.boards:
+            raise InputError("--lens and --boards apply to a dataset; a raw recording is rendered through the "
+                             "pinhole with its own boards")
         return _run_raw_recording(args)
     if args.blur < 0:
         raise InputError(f"--blur must be non-negative, got {args.blur}")
