@@ -100,3 +100,17 @@ def test_lens_refusals(tmp_path, capsys):
     assert main(["phantom", "dome", "--boards", "-1", "--out", str(tmp_path / "d")]) == 2
     assert "number of board views must be zero or positive" in capsys.readouterr().err
     assert not any((tmp_path / name).exists() for name in "abcd")
+
+
+def test_report_frusta_of_a_fisheye_stay_in_its_field():
+    """The report's 3D view draws each camera to a z-depth: a fisheye's image corners lie past 90 deg, so its
+    frustum's edges are cut where the lens sees, at most 75 deg from the axis (finite, in front)."""
+    from scope3d.geometry.pose import Pose
+    from scope3d.report.scene import camera_frusta
+
+    camera = LENSES["fisheye-140"].camera(304, 304, fov_deg=53.0, mask_radius_px=150.0)
+    segments = camera_frusta(camera, [Pose(np.eye(3), np.zeros(3))], 5.0)
+    corners = segments[0::2, 1]  # centre -> corner edges
+    assert np.all(np.isfinite(segments)) and np.allclose(corners[:, 2], 5.0)
+    angle = np.arctan2(np.hypot(corners[:, 0], corners[:, 1]), corners[:, 2])
+    assert np.all(angle <= np.deg2rad(75.0) + 1e-9) and np.all(angle > np.deg2rad(70.0))
