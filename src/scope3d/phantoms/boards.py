@@ -62,6 +62,11 @@ class BoardRenderOptions:
             raise ValueError("blur, noise and margin must be non-negative")
 
 
+# how the lab poses its board (the raw recording's calibration and hand-eye views, a dataset's --boards): up
+# to 50 deg of tilt, which the detectors still find and which separates focal length from depth
+LAB_BOARD_OPTIONS = BoardRenderOptions(max_tilt_deg=50)
+
+
 @dataclass
 class BoardViews:
     """Rendered board views and their truth.

@@ -25,8 +25,8 @@ from scope3d.geometry.iso_thread import THREAD_SIZES
 from scope3d.geometry.pose import Pose
 from scope3d.io.dataset import write_dataset
 from scope3d.io.scan_plan import PlanFile
-from scope3d.phantoms.boards import LAB_BOARD, BoardRenderOptions, render_board_views
-from scope3d.phantoms.lenses import ENDOSCOPE_MASK_FRACTION, LENSES, PINHOLE, lens_named
+from scope3d.phantoms.boards import LAB_BOARD, LAB_BOARD_OPTIONS, render_board_views
+from scope3d.phantoms.lenses import ENDOSCOPE_MASK_FRACTION, PINHOLE, lens_named
 from scope3d.phantoms.render import RenderOptions, render_frame, sequence_exposure, supersample_factor
 from scope3d.phantoms.scenes import SCENE_TRAJECTORIES, SCENES, Scene, build_scene
 from scope3d.phantoms.tool import paint_tool, tool_mask
@@ -39,7 +39,6 @@ from scope3d.utils.progress import Progress, advance, stage
 
 ORIENTATION_NOISE_DEG_PER_MM = 0.5
 BOARDS_FOLDER = "boards"  # checkerboard views through the dataset's lens (generate's board_views); beside dataset.json
-LAB_BOARD_OPTIONS = BoardRenderOptions(max_tilt_deg=50)
 TOOL_MASK_FILE = "tool_mask.png"  # white where the tool hides the scene; beside dataset.json
 SECONDS_PER_PLANNED_VIEW = 600.0 / 529.0  # the reference's 15 mm scan: about 10 min for 529 views (sec. 2.3.2)
 ENDOSCOPE_SIZE_PX = (608, 608)  # scanning fibre endoscope (sec. 3.1)
@@ -196,12 +195,14 @@ def generate(
         9 x 6 inner corners, 2 mm squares) through the same camera, for ``scope3d calibrate`` (:func:`write`
         puts them in ``boards/``); their poses are drawn from ``seed``.
     """
-    if lens not in LENSES:
-        raise InputError(f"unknown lens {lens!r} (use one of {', '.join(LENSES)})")
-    if camera is not None and lens != PINHOLE.name:
+    try:
+        chosen = lens_named(lens)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    if camera is not None and chosen is not PINHOLE:
         raise InputError("give either a camera or a lens, not both")
     if options.vignetting is None:
-        options = replace(options, vignetting=LENSES[lens].vignetting)
+        options = replace(options, vignetting=chosen.vignetting)
     if thread not in THREAD_SIZES:
         raise InputError(f"unknown thread size {thread!r} (use one of {', '.join(THREAD_SIZES)})")
     if scene not in SCENES:
@@ -295,10 +296,11 @@ def generate(
         },
     })
     if boards:
+        board = f"{LAB_BOARD.cols}x{LAB_BOARD.rows}"
         info["boards"] = {"folder": BOARDS_FOLDER, "count": len(boards), "inner_corners": [LAB_BOARD.cols, LAB_BOARD.rows],
                           "square_mm": LAB_BOARD.square_mm,
-                          "calibrate": f"scope3d calibrate {BOARDS_FOLDER}/*.png --board {LAB_BOARD.cols}x{LAB_BOARD.rows} "
-                                       f"--square {LAB_BOARD.square_mm:g} --model {calibration_model(camera.model)}"}
+                          "calibrate": f"scope3d calibrate {BOARDS_FOLDER}/*.png --board {board} --square "
+                                       f"{LAB_BOARD.square_mm:g} --model {calibration_model(camera.model)}"}
     if blocked is not None:
         info["tool"] = {"mask": "tool_mask.png", "fraction_of_view": float(blocked[camera.mask()].mean()),
                         "model": "rigid with the scope: the same pixels in every frame (scope3d.phantoms.tool)"}

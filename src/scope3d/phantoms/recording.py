@@ -38,7 +38,7 @@ from scope3d.io.images import write_image
 from scope3d.io.ply import write_ply
 from scope3d.io.poses_csv import format_poses_csv
 from scope3d.io.video import write_video
-from scope3d.phantoms.boards import (LAB_BOARD, BoardRenderOptions, random_board_poses, render_board_view,
+from scope3d.phantoms.boards import (LAB_BOARD, LAB_BOARD_OPTIONS, random_board_poses, render_board_view,
                                      render_board_views)
 from scope3d.phantoms.lab import ORIENTATION_NOISE_DEG_PER_MM, default_camera
 from scope3d.phantoms.render import RenderOptions, render_frame, sequence_exposure
@@ -90,7 +90,7 @@ def write_recording(options: RecordingOptions, out_dir: str | Path, *, progress:
     with atomic_directory(Path(out_dir)) as tmp:
         for sub in ("calibration", "hand_eye", "scan", "truth"):
             (tmp / sub).mkdir()
-        board_options = BoardRenderOptions(max_tilt_deg=50)
+        board_options = LAB_BOARD_OPTIONS
         stage(progress, "recording: boards", options.calibration_views + options.hand_eye_views)
         views = render_board_views(camera, LAB_BOARD, n_views=options.calibration_views, seed=options.seed + 1,
                                    options=board_options)
