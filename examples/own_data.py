@@ -17,7 +17,8 @@ from scope3d.io.camera_json import read_camera_json
 from scope3d.io.dataset import load_dataset
 from scope3d.io.hand_eye_json import read_hand_eye_json
 from scope3d.io.robot_log import PoseLogFormat, read_frame_times
-from scope3d.phantoms.recording import BOARD, RecordingOptions, write_recording
+from scope3d.phantoms.boards import LAB_BOARD
+from scope3d.phantoms.recording import RecordingOptions, write_recording
 from scope3d.pipelines import calibrate, frames_import, hand_eye, surgical_map
 from scope3d.sensor.pose_tolerance import PoseTolerance
 
@@ -35,13 +36,13 @@ def main(argv: list[str] | None = None) -> dict:
                                     args.out / "recording")
 
     # 1. the camera, from the checkerboard views (the endoscope's lit disc: ignore what lies outside it)
-    calibrate.run(calibrate.CalibrateOptions(BOARD, mask_circle=True), sorted((recording / "calibration").glob("*.png")),
-                  args.out / "calibration")
+    calibrate.run(calibrate.CalibrateOptions(LAB_BOARD, mask_circle=True),
+                  sorted((recording / "calibration").glob("*.png")), args.out / "calibration")
     camera = read_camera_json(args.out / "calibration" / "camera.json")
 
     # 2. the hand-eye transform, from board stills and the robot's log of that session
     log_format = PoseLogFormat("xyz-qxyzw", length_unit="m")
-    hand_eye.run(hand_eye.HandEyeRunOptions(BOARD), sorted((recording / "hand_eye").glob("*.png")),
+    hand_eye.run(hand_eye.HandEyeRunOptions(LAB_BOARD), sorted((recording / "hand_eye").glob("*.png")),
                  hand_eye.robot_poses_from_log(recording / "hand_eye" / "robot_log.csv", log_format,
                                                read_frame_times(recording / "hand_eye" / "frame_times.csv")),
                  camera, args.out / "hand_eye")

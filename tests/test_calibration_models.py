@@ -124,8 +124,12 @@ def test_cli_calibrate_fisheye_writes_a_fisheye_camera_and_its_bounds(tmp_path):
     # focal length and principal point recovered to a fraction of a pixel (sigma ~0.1 px, corner bias of
     # the detector on rendered boards ~0.1 px)
     np.testing.assert_allclose(camera.params[:4], FISHEYE.params[:4], atol=0.5)
-    # the jobs' bundle adjustment takes the radial model's bounds only, so far: refused, not misread
-    with pytest.raises(InputError, match="OPENCV_FISHEYE"):
+    # a fisheye dataset's map reads the bounds of the parameters it refines (fx .. k2, the fisheye's own k1,
+    # k2); a radial dataset's refuses them rather than read a fisheye's k1, k2 as radial ones
+    lower, upper = read_intrinsic_bounds(out / "intrinsic_bounds.json", "OPENCV_FISHEYE")
+    np.testing.assert_array_equal(lower, [bounds[n]["lower"] for n in ("fx", "fy", "cx", "cy", "k1", "k2")])
+    np.testing.assert_array_equal(upper, [bounds[n]["upper"] for n in ("fx", "fy", "cx", "cy", "k1", "k2")])
+    with pytest.raises(InputError, match="bounds of a 'OPENCV_FISHEYE' camera, for a pinhole_radial_k1k2 camera"):
         read_intrinsic_bounds(out / "intrinsic_bounds.json")
 
 

@@ -139,9 +139,17 @@ def test_camera_info_models_are_read_by_name():
     assert radial == Camera(64, 48, 60.0, 61.0, 31.5, 23.5, 0.1, 0.02)
 
 
-def test_datasets_take_the_radial_model_only_until_the_jobs_take_every_model(tmp_path):
-    from scope3d.io.dataset import write_dataset
+def test_datasets_of_any_model_are_read_and_the_jobs_that_take_the_radial_model_only_refuse_them(tmp_path):
+    from scope3d.geometry.pose import Pose
+    from scope3d.io.dataset import load_dataset, write_dataset
+    from scope3d.pipelines import axial
+    from scope3d.sensor.pose_tolerance import MICRO_STAGE, MeasuredPose
 
-    with pytest.raises(InputError, match="OPENCV_FISHEYE camera; scope3d's jobs take pinhole_radial_k1k2"):
-        write_dataset(tmp_path / "ds", CAMERAS[-1], [np.zeros((256, 256), np.uint8)], [None])
-    assert not (tmp_path / "ds").exists()
+    camera = CAMERAS[-1]
+    write_dataset(tmp_path / "ds", camera, [np.zeros((camera.height, camera.width), np.uint8)],
+                  [MeasuredPose(Pose(np.eye(3), np.zeros(3)), MICRO_STAGE)])
+    dataset = load_dataset(tmp_path / "ds")
+    assert dataset.camera == camera
+    with pytest.raises(InputError, match="camera.json: a OPENCV_FISHEYE camera; scope3d axial takes "
+                                         "pinhole_radial_k1k2 cameras only"):
+        axial.check_dataset(axial.AxialOptions(), dataset)

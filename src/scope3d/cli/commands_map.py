@@ -70,7 +70,7 @@ def run(args) -> int:
     if args.intrinsic_bounds:
         from scope3d.io.intrinsic_bounds import read_intrinsic_bounds
 
-        lower, upper = read_intrinsic_bounds(args.intrinsic_bounds)
+        lower, upper = read_intrinsic_bounds(args.intrinsic_bounds, dataset.camera.model)
         options = replace(options, bundle=replace(options.bundle, refine_intrinsics=True,
                                                   intrinsic_bounds=(tuple(lower), tuple(upper))))
     try:

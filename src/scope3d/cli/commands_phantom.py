@@ -51,7 +51,15 @@ def register(subparsers) -> None:
                    help="ISO thread size (default M8x1.25; the sizes: see --list)")
     p.add_argument("--frames", type=int, metavar="N", help="number of frames (limits grids; quadrants: total, "
                    "default the scan plan's for the thread size, lens and side view)")
-    p.add_argument("--fov", type=float, metavar="DEG", help="camera field of view across the width, degrees")
+    p.add_argument("--fov", type=float, metavar="DEG", help="camera field of view across the width, degrees "
+                   "(the pinhole lens's)")
+    p.add_argument("--lens", default="pinhole", choices=LazyChoices("scope3d.phantoms.lenses", "LENSES"),
+                   metavar="LENS", help="the scope's lens, %(choices)s (default pinhole): fisheye-140 a capsule-like "
+                   "OPENCV_FISHEYE with a circular field and vignetting, barrel-70 a rigid scope with strong barrel "
+                   "distortion (OPENCV); camera.json is written of that model (docs/phantoms.md)")
+    p.add_argument("--boards", type=int, default=0, metavar="N",
+                   help="also render N checkerboard views (9x6 inner corners, 2 mm squares) through the same lens "
+                        "into DIR/boards/, for `scope3d calibrate` (scene.json gives its command line)")
     p.add_argument("--size", type=_size, metavar="WxH", help="image size in pixels (e.g. 160x160 for tests)")
     p.add_argument("--side-view", type=float, default=45.0, metavar="DEG",
                    help="borescope side-view angle for quadrants (45 or 90 in the reference)")
@@ -136,9 +144,14 @@ def run(args) -> int:
     if not args.out:
         raise InputError("--out DIR is required")
     if args.raw_recording:
+        if args.lens != "pinhole" or args.boards:
+            raise InputError("--lens and --boards apply to a dataset; a raw recording is rendered through the "
+                             "pinhole with its own boards")
         return _run_raw_recording(args)
     if args.blur < 0:
         raise InputError(f"--blur must be non-negative, got {args.blur}")
+    if args.lens != "pinhole" and args.fov is not None:
+        raise InputError(f"--fov sets the pinhole's field; the {args.lens} lens has its own")
     if args.supersample is not None and not 1 <= args.supersample <= 8:
         raise InputError(f"--supersample must be from 1 to 8, got {args.supersample}")
     defect = None
@@ -179,7 +192,7 @@ def run(args) -> int:
             dome_radius_mm=args.dome_radius, options=RenderOptions(blur_sigma_px=args.blur, supersample=args.supersample),
             progress=progress, target=args.target, thread_offsets_mm=offsets, thread_defect=defect,
             quadrant_mount=mount, quadrant_step_mm=step, bladder=bladder or None, plan=plan, video_fps=args.video,
-            seconds_per_view=args.seconds_per_view,
+            seconds_per_view=args.seconds_per_view, lens=args.lens, board_views=args.boards,
         )
     report = {"job": "phantom", "scene": args.scene, "trajectory": seq.trajectory.name, "seed": args.seed,
               "pose_noise_mm": args.pose_noise, **({"scan_plan": scan_plan} if scan_plan else {})}

@@ -28,8 +28,9 @@ import cv2
 import numpy as np
 
 from scope3d.geometry.pose import Pose
-from scope3d.geometry.rotation import SMALL_ANGLE_RAD, matrix_to_rotvec, rotvec_to_matrix
+from scope3d.geometry.rotation import SMALL_ANGLE_RAD, hat, matrix_to_rotvec, rotvec_to_matrix, so3_left_jacobian
 from scope3d.sensor.camera import Camera
+from scope3d.sensor.camera_models import DEFAULT_MODEL
 from scope3d.sensor.pose_tolerance import MeasuredPose
 from scope3d.utils.aot import load_kernels
 
@@ -220,10 +221,13 @@ def refine_pose(camera: Camera, points_world: np.ndarray, pixels: np.ndarray, st
     x[~free] = value[~free]
     points_world = np.ascontiguousarray(points_world, float)
     pixels = np.ascontiguousarray(pixels, float)
-    intrinsics = np.ascontiguousarray(camera.intrinsics, float)
+    radial = camera.model == DEFAULT_MODEL
+    intrinsics = np.ascontiguousarray(camera.intrinsics, float) if radial else None
 
     def normal_equations(x: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
         """Huber cost, Gauss-Newton matrix (6, 6), gradient (6,) of ``(w, C)`` and residual norms (N,) px."""
+        if not radial:  # another lens: its analytic Jacobians in NumPy (the compiled loop is the radial model's)
+            return _lens_normal_equations(camera, points_world, pixels, x, ref_rotation, float(options.loss_scale_px))
         return _kernels.huber_normal_equations(points_world, pixels, x, ref_rotation, intrinsics,
                                                float(options.loss_scale_px), SMALL_ANGLE_RAD)
 
@@ -253,6 +257,26 @@ def refine_pose(camera: Camera, points_world: np.ndarray, pixels: np.ndarray, st
         cov[np.ix_(free, free)] = sigma**2 * np.linalg.pinv(hessian[np.ix_(free, free)])
     rotation = rotvec_to_matrix(x[:3]) @ ref_rotation
     return Pose.from_centre(rotation, x[3:]), cov
+
+
+def _lens_normal_equations(camera: Camera, points_world: np.ndarray, pixels: np.ndarray, x: np.ndarray,
+                           ref_rotation: np.ndarray, loss_scale: float) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`scope3d.estimators.pose_kernels.huber_normal_equations` through any lens model, in NumPy: the
+    pixel's Jacobian with respect to the camera-frame point is the model's analytic one
+    (:meth:`Camera.project_with_jacobians`), then ``d p / d w = -[p]x J_l(w)`` and ``d p / d C = -R`` as in
+    the kernel. Same cost, weights and returns."""
+    rotation = rotvec_to_matrix(x[:3]) @ ref_rotation
+    p = (points_world - x[3:]) @ rotation.T
+    projected, d_cam, _ = camera.project_with_jacobians(p)
+    residual = projected - pixels
+    jac = np.concatenate([-d_cam @ hat(p) @ so3_left_jacobian(x[:3]), -d_cam @ rotation], axis=2)  # (N, 2, 6)
+    norms = np.linalg.norm(residual, axis=1)
+    inside = norms <= loss_scale
+    cost = float(np.sum(np.where(inside, 0.5 * norms**2, loss_scale * norms - 0.5 * loss_scale**2)))
+    weight = np.where(inside, 1.0, loss_scale / np.maximum(norms, 1e-300))
+    hessian = np.einsum("n,nri,nrj->ij", weight, jac, jac)
+    gradient = np.einsum("n,nri,nr->i", weight, jac, residual)
+    return cost, hessian, gradient, norms
 
 
 def estimate_absolute_pose(

@@ -31,6 +31,7 @@ from scipy.spatial import cKDTree
 from scope3d.feature.depth_prior import DepthPrior, _project_ray_ranges, _ray_depth_ranges, window_radius_px
 from scope3d.feature.detection import Features
 from scope3d.sensor.camera import Camera
+from scope3d.sensor.camera_models import DEFAULT_MODEL
 from scope3d.sensor.pose_tolerance import MeasuredPose
 from scope3d.utils.aot import load_kernels
 
@@ -317,6 +318,21 @@ def match_guided(
                              options=options, frame_ids=[i, j])[0]
 
 
+def _epipolar_sag_px(camera: Camera, pose_i, pose_j, ray_range, p0: np.ndarray, p1: np.ndarray) -> np.ndarray:
+    """(N,) how far (px) each feature's epipolar curve bows away from the chord between its ends ``p0``,
+    ``p1``: the distance of its middle (the ray at the harmonic mean of the depth range, the middle in
+    inverse depth, where a curve's image is most even) from the chord. Through a distorting lens the
+    epipolar line is a curve; the search window around the chord is widened by this much (the bow's
+    largest distance is at its middle for a curve bending one way, as a lens's smooth field makes it)."""
+    rays, near, far = ray_range
+    z_mid = 2.0 / (1.0 / near + 1.0 / far)
+    middle = _project_ray_ranges(camera, pose_i, pose_j, rays, z_mid, z_mid)[0]
+    chord = p1 - p0
+    length2 = np.sum(chord * chord, axis=1)
+    t = np.clip(np.sum((middle - p0) * chord, axis=1) / np.where(length2 > 0, length2, 1.0), 0.0, 1.0)
+    return np.linalg.norm(middle - (p0 + t[:, None] * chord), axis=1)
+
+
 def match_guided_many(
     camera: Camera,
     features: list[Features],
@@ -364,7 +380,10 @@ def match_guided_many(
         p0, p1 = _project_ray_ranges(camera, poses[i].pose, poses[j].pose, *ray_ranges[i])
         half = 0.5 * np.linalg.norm(p1 - p0, axis=1)
         mid = 0.5 * (p0 + p1)
-        m = radius + half
+        seg_radius = np.full(len(p0), radius)
+        if camera.model != DEFAULT_MODEL:
+            seg_radius = seg_radius + _epipolar_sag_px(camera, poses[i].pose, poses[j].pose, ray_ranges[i], p0, p1)
+        m = seg_radius + half
         # a segment spanning most of the image carries no information (it would only add look-alike
         # candidates); and the feature must be predicted near frame j's image at all
         valid = np.isfinite(half) & (half < options.max_radius_px)
@@ -375,7 +394,7 @@ def match_guided_many(
         seg["p1"].append(p1[a])
         seg["pair"].append(np.full(len(a), k))
         seg["frame_j"].append(np.full(len(a), j))
-        seg["radius"].append(np.full(len(a), radius))
+        seg["radius"].append(seg_radius[a])
     todo = [k for k in range(len(pairs)) if results[k] is None]
     if todo and sum(len(a) for a in seg["a"]):
         a_loc = np.concatenate(seg["a"]).astype(np.int64)

@@ -82,7 +82,6 @@ def load_dataset(root: str | Path, *, check_images: bool = False) -> Dataset:
         raise InputError(f"{meta_path}: unknown length_unit {unit!r} (use one of {', '.join(LENGTH_UNITS_TO_MM)})")
     scale = LENGTH_UNITS_TO_MM[unit]
     camera = read_camera_json(root / "camera.json")
-    check_jobs_take(camera, root / "camera.json")
     poses_path = root / "poses.csv"
     names, poses, row_numbers = _read_pose_rows(poses_path, scale)
     frames_dir = root / "frames"
@@ -162,13 +161,14 @@ def _check_ground_truth_files(gt: GroundTruth, camera: Camera) -> None:
         gt.surface()
 
 
-def check_jobs_take(camera: Camera, where: str | Path) -> None:
-    """A dataset's camera must be of the model the jobs use: ``pinhole_radial_k1k2``, until the jobs take
-    every model of :mod:`scope3d.sensor.camera_models` (issue 32, second part). An InputError naming
-    ``where`` otherwise, so that a fisheye's parameters are never read as radial ones."""
+def check_jobs_take(camera: Camera, where: str | Path, job: str) -> None:
+    """A job that takes scope3d's radial model only, so far (issue 32: ``map`` takes every model of
+    :mod:`scope3d.sensor.camera_models`; the others follow): an InputError naming ``where`` for a camera of
+    another model, so that a fisheye's parameters are never read as radial ones. Its ``check_dataset`` (or
+    ``run``) calls it before any work."""
     if camera.model != DEFAULT_MODEL:
-        raise InputError(f"{where}: a {camera.model} camera; scope3d's jobs take {DEFAULT_MODEL} cameras only "
-                         "so far (calibrate with --model radial for a dataset's camera.json)")
+        raise InputError(f"{where}: a {camera.model} camera; scope3d {job} takes {DEFAULT_MODEL} cameras only so "
+                         "far (map and localize take every model; calibrate with --model radial for the others)")
 
 
 def write_dataset(
@@ -221,7 +221,6 @@ def write_dataset(
         if items is not None and len(items) != n:
             raise ValueError(f"{n} frames but {len(items)} {label}")
     out_dir = Path(out_dir)
-    check_jobs_take(camera, out_dir)
     with atomic_directory(out_dir) as tmp:
         meta = {"format": "scope3d-dataset", "version": 1, "length_unit": "mm", "name": out_dir.name}
         meta.update(metadata or {})
@@ -330,8 +329,10 @@ class Dataset:
             f"dataset       {self.root} ({self.metadata.get('name', self.root.name)})",
             f"frames        {len(self)} images of {cam.width}x{cam.height} px ({self.names[0]} .. {self.names[-1]})",
             f"camera        fx {cam.fx:.6g} fy {cam.fy:.6g} cx {cam.cx:.6g} cy {cam.cy:.6g} px, "
-            f"k1 {cam.k1:.4g} k2 {cam.k2:.4g}; field of view {cam.fov_deg:.1f} x "
-            f"{fov_from_focal(cam.height, cam.fy):.1f} deg; "
+            + (f"k1 {cam.k1:.4g} k2 {cam.k2:.4g}; field of view {cam.fov_deg:.1f} x "
+               f"{fov_from_focal(cam.height, cam.fy):.1f} deg; " if cam.model == DEFAULT_MODEL else
+               f"{cam.model} " + " ".join(f"{n} {v:.4g}" for n, v in zip(cam.param_names[4:], cam.params[4:]))
+               + f"; field of view {cam.fov_deg:.1f} deg across the width; ")
             + (f"circular mask radius {cam.mask_radius_px:.6g} px" if cam.mask_radius_px else "no circular mask"),
             f"poses         camera centres span {span[0]:.4g} x {span[1]:.4g} x {span[2]:.4g} mm; "
             f"tolerance {_tolerance_summary([m.tolerance for m in self.poses])}",

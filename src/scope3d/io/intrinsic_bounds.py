@@ -10,8 +10,9 @@ reference eq. 6.2 and sec. 6.3, where the field of view was known only as 50-56 
 Only ``lower`` and ``upper`` are required per parameter; a parameter left out is held fixed by the reader's
 caller. Units: pixels for fx, fy, cx, cy; unitless for k1, k2. ``scope3d calibrate --model`` writes the
 bounds of any camera model (``model`` names it, one entry per parameter of
-:mod:`scope3d.sensor.camera_models`); the jobs read the ``pinhole_radial_k1k2`` model's until they take
-every model (issue 32), and refuse another's.
+:mod:`scope3d.sensor.camera_models`). The jobs read the bounds of the six parameters their bundle
+adjustment refines, ``(fx, fy, cx, cy, k1, k2)`` (:func:`scope3d.estimators.bundle.problem.lens_block`:
+k1, k2 of that model), from a file of their camera's model; a model's later parameters are held.
 """
 from __future__ import annotations
 
@@ -42,18 +43,18 @@ def write_intrinsic_bounds(path: str | Path, values: np.ndarray, std: np.ndarray
     write_json(path, data)
 
 
-def read_intrinsic_bounds(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+def read_intrinsic_bounds(path: str | Path, model: str = DEFAULT_MODEL) -> tuple[np.ndarray, np.ndarray]:
     """(lower, upper) (6,) in ``INTRINSIC_NAMES`` order; a missing parameter gives NaN in both (held fixed).
 
+    model : the camera model the bounds are for (the dataset camera's); a file of another model is refused.
     Problems are InputErrors naming the file and the parameter."""
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: intrinsic bounds file is missing")
     data = read_json_object(path)
-    model = data.get("model", DEFAULT_MODEL)
-    if model != DEFAULT_MODEL:
-        raise InputError(f"{path}: bounds of a {model!r} camera; scope3d's jobs take {DEFAULT_MODEL} bounds only "
-                         "so far")
+    found_model = data.get("model", DEFAULT_MODEL)
+    if found_model != model:
+        raise InputError(f"{path}: bounds of a {found_model!r} camera, for a {model} camera")
     lower = np.full(6, np.nan)
     upper = np.full(6, np.nan)
     found = 0

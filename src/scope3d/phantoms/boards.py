@@ -26,6 +26,8 @@ from scope3d.sensor.camera import Camera
 
 _BLACK, _WHITE, _BACKGROUND = 0.08, 0.85, 0.45
 _CHARUCO_TEXELS_PER_SQUARE = 40
+# the lab's checkerboard: odd x even, an unambiguous orientation; 20 x 14 mm fills an endoscope's view at ~25 mm
+LAB_BOARD = BoardSpec(9, 6, 2.0)
 
 
 @dataclass(frozen=True)
@@ -58,6 +60,11 @@ class BoardRenderOptions:
             raise ValueError("supersample must be 1..8")
         if self.blur_sigma_px < 0 or self.noise_grey < 0 or self.margin_px < 0:
             raise ValueError("blur, noise and margin must be non-negative")
+
+
+# how the lab poses its board (the raw recording's calibration and hand-eye views, a dataset's --boards): up
+# to 50 deg of tilt, which the detectors still find and which separates focal length from depth
+LAB_BOARD_OPTIONS = BoardRenderOptions(max_tilt_deg=50)
 
 
 @dataclass
@@ -123,7 +130,7 @@ def render_board_view(camera: Camera, board: BoardSpec, pose: Pose, *, rng: np.r
     if options.blur_sigma_px > 0:
         img = cv2.GaussianBlur(img, (0, 0), options.blur_sigma_px)
     img = img * 255.0 + options.noise_grey * rng.standard_normal(img.shape).astype(np.float32)
-    img[~camera.mask()] = 0.0
+    img[~camera.valid_mask()] = 0.0
     return np.clip(np.round(img), 0, 255).astype(np.uint8)
 
 

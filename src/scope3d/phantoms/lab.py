@@ -15,7 +15,7 @@ exactly (MM, a), so the truth always lies inside the reported box.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -25,20 +25,23 @@ from scope3d.geometry.iso_thread import THREAD_SIZES
 from scope3d.geometry.pose import Pose
 from scope3d.io.dataset import write_dataset
 from scope3d.io.scan_plan import PlanFile
+from scope3d.phantoms.boards import LAB_BOARD, LAB_BOARD_OPTIONS, render_board_views
+from scope3d.phantoms.lenses import ENDOSCOPE_MASK_FRACTION, PINHOLE, lens_named
 from scope3d.phantoms.render import RenderOptions, render_frame, sequence_exposure, supersample_factor
 from scope3d.phantoms.scenes import SCENE_TRAJECTORIES, SCENES, Scene, build_scene
 from scope3d.phantoms.tool import paint_tool, tool_mask
 from scope3d.phantoms.trajectories import TRAJECTORIES, Trajectory, build_trajectory
 from scope3d.scene.mesh import Mesh
+from scope3d.sensor.calibration import CAMERA_MODEL_OF
 from scope3d.sensor.camera import Camera
 from scope3d.sensor.pose_tolerance import MICRO_STAGE, MeasuredPose, perturb_poses_uniform
 from scope3d.utils.progress import Progress, advance, stage
 
 ORIENTATION_NOISE_DEG_PER_MM = 0.5
+BOARDS_FOLDER = "boards"  # checkerboard views through the dataset's lens (generate's board_views); beside dataset.json
 TOOL_MASK_FILE = "tool_mask.png"  # white where the tool hides the scene; beside dataset.json
 SECONDS_PER_PLANNED_VIEW = 600.0 / 529.0  # the reference's 15 mm scan: about 10 min for 529 views (sec. 2.3.2)
 ENDOSCOPE_SIZE_PX = (608, 608)  # scanning fibre endoscope (sec. 3.1)
-ENDOSCOPE_MASK_FRACTION = 300.0 / 608.0  # circular field of ~300 px radius
 BORESCOPE_SIZE_PX = (1280, 1024)  # Stryker rigid scope (sec. 8.3)
 BORESCOPE_FOV_DEG = 60.0
 
@@ -68,6 +71,7 @@ class PhantomSequence:
     scene_info: dict = field(default_factory=dict)
     names: list[str] = field(default_factory=list)
     tool_mask: np.ndarray | None = None  # (H, W) bool, where a tool hides the scene (approach trajectories)
+    boards: list[np.ndarray] = field(default_factory=list)  # (H, W) uint8 checkerboard views through the camera
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -79,19 +83,28 @@ class PhantomSequence:
 
 def default_camera(
     scene: Scene, trajectory: str, *, size: tuple[int, int] | None = None, fov_deg: float | None = None,
-    k1: float = 0.0, k2: float = 0.0,
+    k1: float = 0.0, k2: float = 0.0, lens: str = PINHOLE.name,
 ) -> Camera:
-    """The camera the reference used for this scene and trajectory.
+    """The camera the reference used for this scene and trajectory, through ``lens`` (:mod:`.lenses`).
 
     Endoscope (SFE): 608 x 608, circular field of radius 300 px (scaled with ``size``), FOV 53° for the
     dome and sheet (the dome experiment), 70° elsewhere (sec. 3.1). Borescope for ``quadrants``: 1280 x 1024,
-    60° FOV, no mask (sec. 8.3). size : (width, height) px; fov_deg : across the width.
+    60° FOV, no mask (sec. 8.3). size : (width, height) px; fov_deg : across the width (the pinhole's; a
+    distorting lens has its own field). ValueError for an unknown lens or one given k1, k2 or a FOV.
     """
+    chosen = lens_named(lens)
+    if chosen is not PINHOLE and (k1 or k2 or fov_deg):
+        raise ValueError(f"the {lens} lens has its own distortion and field of view; k1, k2 and the FOV "
+                         "apply to the pinhole")
     if trajectory == "quadrants":
-        return borescope_camera(size=size, fov_deg=fov_deg, k1=k1, k2=k2)
-    w, h = size or ENDOSCOPE_SIZE_PX
-    return Camera.from_fov(w, h, fov_deg or scene.fov_deg, k1=k1, k2=k2,
-                           mask_radius_px=ENDOSCOPE_MASK_FRACTION * min(w, h))
+        camera = borescope_camera(size=size, fov_deg=fov_deg, k1=k1, k2=k2)
+    else:
+        w, h = size or ENDOSCOPE_SIZE_PX
+        camera = Camera.from_fov(w, h, fov_deg or scene.fov_deg, k1=k1, k2=k2,
+                                 mask_radius_px=ENDOSCOPE_MASK_FRACTION * min(w, h))
+    if chosen is PINHOLE:
+        return camera
+    return chosen.camera(camera.width, camera.height, fov_deg=camera.fov_deg, mask_radius_px=camera.mask_radius_px)
 
 
 def borescope_camera(*, size: tuple[int, int] | None = None, fov_deg: float | None = None,
@@ -140,6 +153,8 @@ def generate(
     plan: PlanFile | None = None,
     video_fps: float | None = None,
     seconds_per_view: float = SECONDS_PER_PLANNED_VIEW,
+    lens: str = PINHOLE.name,
+    board_views: int = 0,
 ) -> PhantomSequence:
     """Render ``scene`` along ``trajectory`` (the scene's default when None).
 
@@ -173,7 +188,21 @@ def generate(
         with its field of view unless ``fov_deg`` is given. video_fps : render the continuous path through the
         plan's views at this frame rate, ``seconds_per_view`` apart (poses interpolated; the reference's
         scan took about 10 min for 529 views, 1.1 s each), instead of one frame per view.
+    lens : the lens the scene is seen through (:data:`~scope3d.phantoms.lenses.LENSES`: ``pinhole``,
+        ``fisheye-140``, ``barrel-70``), on the scene's sensor; its vignetting applies unless
+        ``options.vignetting`` is set. The camera written (camera.json) is that lens's model.
+    board_views : also render this many views of the lab's checkerboard (:data:`~scope3d.phantoms.boards.LAB_BOARD`,
+        9 x 6 inner corners, 2 mm squares) through the same camera, for ``scope3d calibrate`` (:func:`write`
+        puts them in ``boards/``); their poses are drawn from ``seed``.
     """
+    try:
+        chosen = lens_named(lens)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    if camera is not None and chosen is not PINHOLE:
+        raise InputError("give either a camera or a lens, not both")
+    if options.vignetting is None:
+        options = replace(options, vignetting=chosen.vignetting)
     if thread not in THREAD_SIZES:
         raise InputError(f"unknown thread size {thread!r} (use one of {', '.join(THREAD_SIZES)})")
     if scene not in SCENES:
@@ -214,9 +243,17 @@ def generate(
             raise InputError(str(exc)) from None
     if camera is None:
         try:
-            camera = default_camera(built, name, size=size, fov_deg=fov_deg)
+            camera = default_camera(built, name, size=size, fov_deg=fov_deg, lens=lens)
         except ValueError as exc:
             raise InputError(str(exc)) from None
+    if board_views < 0:
+        raise InputError(f"the number of board views must be zero or positive, got {board_views}")
+    boards = []
+    if board_views:
+        stage(progress, f"boards through the {lens} lens", board_views)
+        boards = render_board_views(camera, LAB_BOARD, n_views=board_views, seed=seed + 104729,
+                                    options=LAB_BOARD_OPTIONS).images
+        advance(progress, board_views)
     poses = traj.poses
     # a live approach auto-exposes every frame (the light at the tip is 6x brighter at the stop than at the
     # start); a survey keeps one setting
@@ -245,6 +282,7 @@ def generate(
     info.update({
         "trajectory": {"name": name, **traj.params},
         "camera": {"kind": "borescope" if name == "quadrants" else "endoscope (scanning fibre endoscope)",
+                   "lens": lens, "model": camera.model, "params": camera.params.tolist(),
                    "width": camera.width, "height": camera.height, "fov_deg": camera.fov_deg,
                    "mask_radius_px": camera.mask_radius_px,
                    **({"side_view_deg": side_view_deg} if name == "quadrants" else {})},
@@ -257,13 +295,24 @@ def generate(
             else "exact poses reported with the micro-positioning stage tolerance (0.01 mm)",
         },
     })
+    if boards:
+        board = f"{LAB_BOARD.cols}x{LAB_BOARD.rows}"
+        info["boards"] = {"folder": BOARDS_FOLDER, "count": len(boards), "inner_corners": [LAB_BOARD.cols, LAB_BOARD.rows],
+                          "square_mm": LAB_BOARD.square_mm,
+                          "calibrate": f"scope3d calibrate {BOARDS_FOLDER}/*.png --board {board} --square "
+                                       f"{LAB_BOARD.square_mm:g} --model {calibration_model(camera.model)}"}
     if blocked is not None:
         info["tool"] = {"mask": "tool_mask.png", "fraction_of_view": float(blocked[camera.mask()].mean()),
                         "model": "rigid with the scope: the same pixels in every frame (scope3d.phantoms.tool)"}
     return PhantomSequence(
         built, camera, frames, fluo if built.targets else None, list(poses), measured, depths, tids, traj, info,
-        [f"{i:04d}.png" for i in range(len(poses))], blocked,
+        [f"{i:04d}.png" for i in range(len(poses))], blocked, boards,
     )
+
+
+def calibration_model(model: str) -> str:
+    """The ``calibrate --model`` that fits a camera of this model (``radial`` for scope3d's own)."""
+    return next(name for name, fitted in CAMERA_MODEL_OF.items() if fitted == model)
 
 
 def _stage_reported_quadrant_poses(traj: Trajectory, pose_noise_mm: float, seed: int) -> list[MeasuredPose]:
@@ -379,6 +428,12 @@ def _complete(sequence: PhantomSequence, folder: Path, mp4: bool, finish) -> Non
 
         write_json(folder / "quadrants.json", quadrant_layout(sequence.trajectory, sequence.names,
                                                               (sequence.scene_info.get("thread") or {}).get("designation")))
+    if sequence.boards:
+        from scope3d.io.images import write_image
+
+        (folder / BOARDS_FOLDER).mkdir()
+        for i, image in enumerate(sequence.boards):
+            write_image(folder / BOARDS_FOLDER / f"board_{i:02d}.png", image)
     if mp4:
         from scope3d.io.video import write_video
 

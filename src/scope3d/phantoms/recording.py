@@ -38,18 +38,17 @@ from scope3d.io.images import write_image
 from scope3d.io.ply import write_ply
 from scope3d.io.poses_csv import format_poses_csv
 from scope3d.io.video import write_video
-from scope3d.phantoms.boards import BoardRenderOptions, random_board_poses, render_board_view, render_board_views
+from scope3d.phantoms.boards import (LAB_BOARD, LAB_BOARD_OPTIONS, random_board_poses, render_board_view,
+                                     render_board_views)
 from scope3d.phantoms.lab import ORIENTATION_NOISE_DEG_PER_MM, default_camera
 from scope3d.phantoms.render import RenderOptions, render_frame, sequence_exposure
 from scope3d.phantoms.scenes import build_scene
 from scope3d.phantoms.trajectories import grid_trajectory
-from scope3d.sensor.calibration import BoardSpec
 from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance
 from scope3d.utils.atomic import atomic_directory
 from scope3d.utils.jsonio import write_json
 from scope3d.utils.progress import Progress, advance, stage
 
-BOARD = BoardSpec(9, 6, 2.0)  # odd x even: unambiguous orientation; 20 x 14 mm fills an endoscope's view at ~25 mm
 FLANGE_FROM_CAM = Pose.from_rotvec([0.05, -0.1, 1.2], [3.0, -2.0, 40.0])  # a scope 40 mm beyond the flange
 BASE_FROM_BOARD = Pose(Rotation.from_rotvec([np.pi, 0.0, 0.0]).as_matrix() @ Rotation.from_rotvec([0, 0, 0.3]).as_matrix(),
                        np.array([60.0, -40.0, 0.0]))  # face up beside the phantom
@@ -91,20 +90,20 @@ def write_recording(options: RecordingOptions, out_dir: str | Path, *, progress:
     with atomic_directory(Path(out_dir)) as tmp:
         for sub in ("calibration", "hand_eye", "scan", "truth"):
             (tmp / sub).mkdir()
-        board_options = BoardRenderOptions(max_tilt_deg=50)
+        board_options = LAB_BOARD_OPTIONS
         stage(progress, "recording: boards", options.calibration_views + options.hand_eye_views)
-        views = render_board_views(camera, BOARD, n_views=options.calibration_views, seed=options.seed + 1,
+        views = render_board_views(camera, LAB_BOARD, n_views=options.calibration_views, seed=options.seed + 1,
                                    options=board_options)
         for i, image in enumerate(views.images):
             write_image(tmp / "calibration" / f"board_{i:02d}.png", image)
             advance(progress)
         board_rng = np.random.default_rng([options.seed, 41])
-        cam_from_board = random_board_poses(camera, BOARD, options.hand_eye_views, seed=options.seed + 2,
+        cam_from_board = random_board_poses(camera, LAB_BOARD, options.hand_eye_views, seed=options.seed + 2,
                                             options=board_options)
         still_times = []
         for i, pose in enumerate(cam_from_board):
             write_image(tmp / "hand_eye" / f"board_{i:02d}.png",
-                        render_board_view(camera, BOARD, pose, rng=board_rng, options=board_options))
+                        render_board_view(camera, LAB_BOARD, pose, rng=board_rng, options=board_options))
             still_times.append(1.0 + 2.0 * i + 0.5)  # dwell 1 s at each view, 1 s to the next
             advance(progress)
         key_times, key_poses = _dwell_path([c @ BASE_FROM_BOARD.inverse() for c in cam_from_board])

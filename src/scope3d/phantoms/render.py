@@ -25,6 +25,7 @@ import cv2
 import numpy as np
 
 from scope3d.geometry.pose import Pose
+from scope3d.phantoms.lenses import vignetting
 from scope3d.phantoms.scenes import Scene
 from scope3d.sensor.camera import Camera
 from scope3d.utils.aot import load_kernels
@@ -55,6 +56,10 @@ class RenderOptions:
         the ray through the pixel centre (exact geometric truth, as with one ray). 1 = one ray per pixel;
         None = the scene's default (:attr:`~scope3d.phantoms.scenes.Scene.render_supersample`: 2 for the
         thread, 1 elsewhere: one ray per pixel).
+    vignetting : the lens's relative illumination ``cos(theta)^vignetting`` (theta: the pixel ray's angle
+        from the optical axis), applied to the radiance reaching the sensor, reflectance and fluorescence
+        alike (:func:`scope3d.phantoms.lenses.vignetting`); 0 or None: none (None lets
+        :func:`~scope3d.phantoms.lab.generate` take the lens's own).
     """
 
     read_noise: float = 0.008
@@ -67,8 +72,11 @@ class RenderOptions:
     fluorescence_background: float = 0.02
     fluorescence_noise: float = 0.015
     supersample: int | None = None
+    vignetting: float | None = None
 
     def __post_init__(self) -> None:
+        if self.vignetting is not None and not (np.isfinite(self.vignetting) and self.vignetting >= 0):
+            raise ValueError(f"vignetting must be None or a non-negative exponent, got {self.vignetting!r}")
         if self.supersample is not None and not (isinstance(self.supersample, (int, np.integer))
                                                  and 1 <= self.supersample <= 8):
             raise ValueError(f"supersample must be None or an integer from 1 to 8, got {self.supersample!r}")
@@ -183,11 +191,12 @@ def supersample_factor(scene: Scene, *, options: RenderOptions) -> int:
 
 @lru_cache(maxsize=8)
 def _camera_rays(camera: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """What every frame of a camera shares: the valid mask (H, W) bool, the pixel centres inside it
+    """What every frame of a camera shares: the valid mask (H, W) bool (the circular field, and the lens's
+    field: :meth:`~scope3d.sensor.camera.Camera.valid_mask`), the pixel centres inside it
     (M, 2) and their unit rays in the camera frame (M, 3), :meth:`~scope3d.sensor.camera.Camera.unproject`'s.
     A frame only rotates the rays (the same product as ``Camera.pixel_rays_world``, so the same bits):
     undistorting them cost ~20 % of a frame. Cached per camera (a frozen, hashable value; read-only arrays)."""
-    valid = camera.mask()
+    valid = camera.valid_mask()
     pixels = camera.pixel_grid()[valid]
     rays = camera.unproject(pixels)
     for array in (valid, pixels, rays):
@@ -225,6 +234,11 @@ def _radiance(scene: Scene, camera: Camera, pose: Pose, options: RenderOptions) 
             n = len(sub) // (k * k)
             reflect[s0:s0 + n] = r.reshape(n, k * k, 3).mean(axis=1)
             fluor[s0:s0 + n] = f.reshape(n, k * k).mean(axis=1)
+    if options.vignetting:
+        # the lens passes less light off axis: the radiance reaching each pixel, before exposure and noise
+        falloff = vignetting(rays, options.vignetting).astype(np.float32)
+        reflect *= falloff[:, None]
+        fluor *= falloff
     hit = hits.hit
     depth = np.empty(len(pixels))
     _kernels.depth_along(hits.points, np.ascontiguousarray(hit), np.ascontiguousarray(pose.centre, float),
@@ -301,11 +315,12 @@ def sequence_exposure(scene: Scene, camera: Camera, poses: list[Pose], *, option
     """One gain for a whole sequence (a fixed, auto-exposed setting): the median over frames of each frame's
     auto-exposure, measured on a ``probe_px``-wide copy of the camera so that it costs little."""
     scale = min(1.0, probe_px / camera.width)
-    probe = Camera(
-        max(8, int(round(camera.width * scale))), max(8, int(round(camera.height * scale))),
-        camera.fx * scale, camera.fy * scale, (camera.cx + 0.5) * scale - 0.5, (camera.cy + 0.5) * scale - 0.5,
-        camera.k1, camera.k2, None if camera.mask_radius_px is None else camera.mask_radius_px * scale,
-    )
+    # the distortion acts on normalised coordinates: only the focal lengths and principal point scale
+    params = camera.params.copy()
+    params[:4] = [camera.fx * scale, camera.fy * scale, (camera.cx + 0.5) * scale - 0.5, (camera.cy + 0.5) * scale - 0.5]
+    probe = Camera.from_params(max(8, int(round(camera.width * scale))), max(8, int(round(camera.height * scale))),
+                               camera.model, params,
+                               mask_radius_px=None if camera.mask_radius_px is None else camera.mask_radius_px * scale)
     gains = []
     for pose in poses:
         rad = _radiance(scene, probe, pose, options)

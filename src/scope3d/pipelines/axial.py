@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from scope3d.errors import InputError
-from scope3d.io.dataset import Dataset
+from scope3d.io.dataset import Dataset, check_jobs_take
 from scope3d.io.ply import write_ply
 from scope3d.mvs.axial import PolarGridOptions
 from scope3d.mvs.confidence import ConfidenceOptions
@@ -128,6 +128,7 @@ def _check_frame(dataset: Dataset, index: int) -> int:
 
 def check_dataset(options: AxialOptions, dataset: Dataset) -> None:
     """What the job refuses before any work (``scope3d check --for axial`` runs it too): raises InputError."""
+    check_jobs_take(dataset.camera, dataset.root / "camera.json", "axial")
     _poses(dataset, options.use_true_poses)
     if options.method in ("sgm", "sad"):
         if len(dataset) < 2:

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from scope3d.errors import InputError
-from scope3d.io.dataset import Dataset
+from scope3d.io.dataset import Dataset, check_jobs_take
 from scope3d.io.images import write_image
 from scope3d.registration import mosaic as mos
 from scope3d.registration.mosaic import Mosaic, MosaicOptions
@@ -84,6 +84,8 @@ def run(options: MosaicOptions, datasets: list[Dataset], out_dir: str | Path, *,
     """
     t0, c0 = time.perf_counter(), time.process_time()
     frames, cameras, sections, owner, true_poses = [], [], [], [], []
+    for ds in datasets:
+        check_jobs_take(ds.camera, ds.root / "camera.json", "mosaic")
     for k, ds in enumerate(datasets):
         frames += [ds.frame(i) for i in range(len(ds))]
         cameras += [ds.camera] * len(ds)

@@ -29,7 +29,7 @@ from scope3d.errors import InputError
 from scope3d.feature.detection import FeatureOptions, Features
 from scope3d.feature.matching import MatchOptions
 from scope3d.io.colmap import SparseModel, write_colmap_text
-from scope3d.io.dataset import Dataset
+from scope3d.io.dataset import Dataset, check_jobs_take
 from scope3d.io.obj import write_textured_obj
 from scope3d.io.ply import write_ply
 from scope3d.metrology.evaluation import errors_after_similarity, true_track_points
@@ -232,6 +232,7 @@ def save_panorama_png(path: Path, cavity: CavityMap, distances: np.ndarray | Non
 def check_dataset(options: Panorama3dOptions, dataset: Dataset) -> None:
     """What :func:`run` refuses before any work (``scope3d check --for panorama`` runs it too): raises
     InputError."""
+    check_jobs_take(dataset.camera, dataset.root / "camera.json", "panorama")
     if len(dataset) < 2:
         raise InputError(f"{dataset.root}: need at least 2 frames for a panorama, found {len(dataset)}")
     if options.stars is not None and dataset.fluorescence_paths is None:

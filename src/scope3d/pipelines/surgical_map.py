@@ -81,7 +81,7 @@ from scope3d.phantoms.lab import true_targets
 from scope3d.scene.mesh import Mesh, PointCloud, SampledSurface
 from scope3d.scene.surface import Surface, SurfaceOptions, enlarge_raster, fit_surface, save_depth_map_png, texture
 from scope3d.scene.tracks import Tracks
-from scope3d.sensor.camera import INTRINSIC_NAMES, Camera
+from scope3d.sensor.camera import Camera
 from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance
 from scope3d.sfm.coarse_poses import CoarseOptions, CoarseResult, coarse_poses
 from scope3d.sfm.depth_priors import box_depth_prior, estimate_depth_prior, surface_depth_prior
@@ -639,7 +639,7 @@ def write_outputs(
         "mean_track_length": float(tr.n_observations / max(tr.n_tracks, 1)),
         "mean_reprojection_error_px": float(np.mean(err)), "median_reprojection_error_px": float(np.median(err)),
         "bundle": [_bundle_summary(r) for r in sparse.bundle_results],
-        "camera_adjusted": {"intrinsics": dict(zip(INTRINSIC_NAMES, sparse.camera.intrinsics.tolist())),
+        "camera_adjusted": {"intrinsics": dict(zip(sparse.camera.param_names, sparse.camera.params.tolist())),
                             "fov_deg": sparse.camera.fov_deg, "fov_deg_dataset": dataset.camera.fov_deg},
         "model_checks": check_model(dataset.names, dataset.poses, sparse.poses, tr).as_dict(),
     }

@@ -46,7 +46,7 @@ import numpy as np
 from scope3d.errors import InputError
 from scope3d.geometry.iso_thread import THREAD_SIZES
 from scope3d.geometry.pose import Pose
-from scope3d.io.dataset import Dataset
+from scope3d.io.dataset import Dataset, check_jobs_take
 from scope3d.io.ply import write_ply
 from scope3d.io.quadrants import read_quadrant_thread, read_quadrants
 from scope3d.metrology.thread_gauge import GaugeOptions, GaugeResult, gauge_thread
@@ -206,6 +206,7 @@ def check_dataset(options: ThreadScanOptions, dataset: Dataset) -> None:
     """What the job refuses before any work (``scope3d check --for thread-scan`` runs it too): the quadrants'
     layout (quadrants.json) and each quadrant's scan read off its poses, as :func:`run` reads them first.
     Raises InputError."""
+    check_jobs_take(dataset.camera, dataset.root / "camera.json", "thread-scan")
     quadrant_scans(options, dataset)
 
 

@@ -17,6 +17,7 @@ from scope3d.geometry.pose import Pose
 from scope3d.io.ply import read_ply
 from scope3d.scene.mesh import Mesh, SampledSurface
 from scope3d.sensor.camera import Camera
+from scope3d.sensor.camera_models import DEFAULT_MODEL
 
 # The geometry files a job may leave, in the order the view lists them; ``texture_from`` names a file
 # holding the same vertices coloured by reflectance only (the map's mesh.ply carries the fluorescence
@@ -195,11 +196,37 @@ def _height_axis(points: np.ndarray, centres: np.ndarray) -> np.ndarray:
     return -n if np.dot(n, towards) < 0 else n
 
 
+# a frustum's edge is drawn to a z-depth: a wide lens's corner ray is cut at this angle from the axis
+_FRUSTUM_MAX_ANGLE_RAD = np.deg2rad(75.0)
+
+
+def _corners_in_field(camera: Camera, corners_px: np.ndarray) -> np.ndarray:
+    """Each corner pulled towards the principal point until the lens sees through it and its ray lies within
+    75 deg of the axis (a fisheye's image corners lie past its field, or past 90 deg, where a z-depth has
+    no point): bisection along the diagonal, to 1e-6 of its length."""
+    centre = np.array([camera.cx, camera.cy])
+
+    def inside(px: np.ndarray) -> np.ndarray:
+        rays = camera.unproject(px)
+        return camera.sees_pixels(px) & (rays[:, 2] >= np.cos(_FRUSTUM_MAX_ANGLE_RAD))
+
+    lo, hi = np.zeros(len(corners_px)), np.ones(len(corners_px))
+    ok = inside(corners_px)
+    hi[ok] = lo[ok] = 1.0
+    for _ in range(20):
+        mid = 0.5 * (lo + hi)
+        good = inside(centre + mid[:, None] * (corners_px - centre))
+        lo, hi = np.where(good, mid, lo), np.where(good, hi, mid)
+    return centre + lo[:, None] * (corners_px - centre)
+
+
 def camera_frusta(camera: Camera, poses: list[Pose], depth_mm: float) -> np.ndarray:
     """(8 M, 2, 3) mm line segments: each camera's four edges from its centre to the image corners at
     z-depth ``depth_mm``, and the four edges of that far rectangle."""
     corners_px = np.array([[-0.5, -0.5], [camera.width - 0.5, -0.5], [camera.width - 0.5, camera.height - 0.5],
                            [-0.5, camera.height - 0.5]])
+    if camera.model != DEFAULT_MODEL:
+        corners_px = _corners_in_field(camera, corners_px)
     corners_cam = camera.unproject(corners_px, np.full(4, depth_mm))
     segments = []
     for pose in poses:
@@ -479,6 +506,8 @@ def explorer_payload(scene: ViewScene, centre: np.ndarray) -> dict | None:
             "data:image/jpeg;base64," + base64.b64encode(frame.thumbnail).decode(),
         })
     return {"camera": {"width": camera.width, "height": camera.height, "fx": camera.fx, "fy": camera.fy,
-                       "cx": camera.cx, "cy": camera.cy, "k1": camera.k1, "k2": camera.k2,
+                       "cx": camera.cx, "cy": camera.cy, "model": camera.model,
+                       "param_names": list(camera.param_names), "params": camera.params.tolist(),
+                       "fisheye": camera.lens.is_fisheye, "max_half_angle_rad": camera.max_half_angle_rad,
                        "mask_radius_px": camera.mask_radius_px},
             "frames": frames, "inside": scene.inside, "centre_mm": centre.tolist()}

@@ -36,6 +36,7 @@ from scope3d.geometry.pose import Pose
 from scope3d.scene.mesh import Mesh
 from scope3d.scene.thin_plate import ThinPlateSpline
 from scope3d.sensor.camera import Camera
+from scope3d.sensor.camera_models import DEFAULT_MODEL, PINHOLE_HALF_ANGLE_LIMIT
 from scope3d.utils.robust import MAD_TO_SIGMA, robust_sigma
 
 #: Passes of :func:`off_surface_points`: gross errors (2 mm) first, then ~3 sigma of a two-view point's depth.
@@ -398,7 +399,7 @@ def best_views(
     centre_px = np.array([(camera.width - 1) / 2.0, (camera.height - 1) / 2.0])
     r_img = camera.mask_radius_px or 0.5 * np.hypot(camera.width, camera.height)
     order, starts, cell_centres, cell_radii = _point_cells(points)
-    half_angle = np.arctan(_viewing_cone_tangent(camera))
+    half_angle = _viewing_cone_half_angle(camera)
     for k, pose in enumerate(poses):  # per-frame loop
         sel = order[_cone_cells(pose, cell_centres, cell_radii, half_angle, starts)]
         if len(sel) == 0:
@@ -444,6 +445,23 @@ def _point_cells(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray
     radii = np.zeros(len(counts))
     np.maximum.at(radii, key.ravel(), dist)
     return order, starts, centres, radii
+
+
+def _viewing_cone_half_angle(camera: Camera) -> float:
+    """Half-angle (rad) about the optical axis of a cone holding every point that :meth:`Camera.project` can
+    put inside the image. scope3d's radial model: :func:`_viewing_cone_tangent`. Another model whose radial
+    map increases over its whole field (a fisheye up to its fold, beyond which it projects nothing; a
+    pinhole family without a fold): the ray of the image's farthest corner. A pinhole family that folds
+    back: every point in front of the camera."""
+    if camera.model == DEFAULT_MODEL:
+        return float(np.arctan(_viewing_cone_tangent(camera)))
+    # no fold: the field reaches the pinhole's limit (to the bisection's 1e-12 rad)
+    if camera.lens.is_fisheye or camera.max_half_angle_rad >= PINHOLE_HALF_ANGLE_LIMIT - 1e-9:
+        corners = np.array([[-0.5, -0.5], [camera.width - 0.5, camera.height - 0.5],
+                            [-0.5, camera.height - 0.5], [camera.width - 0.5, -0.5]])
+        rays = camera.unproject(corners)
+        return float(np.max(np.arccos(np.clip(rays[:, 2], -1.0, 1.0)))) * (1.0 + 1e-9)  # the ray's own rounding
+    return np.pi / 2
 
 
 def _viewing_cone_tangent(camera: Camera) -> float:

@@ -59,8 +59,10 @@ _FISHEYE_ITERATIONS = 60
 # ratio of two) in r or theta, whose derivative changes sign at most a few times; 4000 steps over 90 or
 # 180 deg place the fold within 0.05 deg, and a bisection then pins it to 1e-12 rad.
 _FIELD_SAMPLES = 4000
+#: A pinhole model's field ends here at the widest (rad): its fold, when it has none before (89.9 deg).
+PINHOLE_HALF_ANGLE_LIMIT = float(np.deg2rad(89.9))
 # Largest normalised radius searched for a pinhole model's fold: tan(89.9 deg).
-_PINHOLE_R_MAX = float(np.tan(np.deg2rad(89.9)))
+_PINHOLE_R_MAX = float(np.tan(PINHOLE_HALF_ANGLE_LIMIT))
 
 
 def _col(params: np.ndarray, i: int) -> np.ndarray:

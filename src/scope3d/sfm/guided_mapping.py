@@ -21,6 +21,7 @@ import numpy as np
 from scope3d.errors import InputError
 from scope3d.estimators.bundle import BundleProblem, BundleResult, SolverOptions, solve
 from scope3d.estimators.bundle.covariance import pairwise_pose_covariances, reduced_camera_system
+from scope3d.estimators.bundle.problem import camera_from_block, lens_block
 from scope3d.estimators.gauge import align_gauge
 from scope3d.estimators.triangulation import TrackOptions, reprojection_errors, triangulate_tracks
 from scope3d.feature.depth_prior import DepthPrior, pose_error_px
@@ -119,7 +120,9 @@ def bundle_problem(mode: str, measured: list[MeasuredPose], camera: Camera, trac
     base = [m.pose for m in measured] if mode == "fixed" or start is None else start
     rot = np.stack([p.rotation for p in base])
     trans = np.stack([p.translation for p in base])
-    problem = BundleProblem(tracks.pixels, tracks.frame, tracks.track, rot, trans, pts, camera.intrinsics)
+    block, model, extra = lens_block(camera)
+    problem = BundleProblem(tracks.pixels, tracks.frame, tracks.track, rot, trans, pts, block, model=model,
+                            extra=extra)
     if not refine_intrinsics:
         problem.fix("intrinsics")
     if mode == "fixed":
@@ -243,7 +246,7 @@ def adjust_map(mode: str, measured: list[MeasuredPose], camera: Camera, tracks: 
         if movable and options.align_gauge and not exact:
             poses = align_gauge(poses, measured, bounded=mode == "bounded")
         if options.refine_intrinsics:
-            camera = camera.with_intrinsics(result.intrinsics[0])
+            camera = camera_from_block(camera, result.intrinsics[0])
         tracks = keep_on_surface(triangulate_tracks(camera, poses, tracks.untriangulated(), track_options),
                                  gross_only=True)
         if tracks.n_tracks == 0:

@@ -36,6 +36,7 @@ from types import ModuleType
 #: Every kernel module of the package (dotted names; setup.py compiles each, :func:`warm_up` warms each).
 KERNEL_MODULES = (
     "scope3d.estimators.bundle.kernels",
+    "scope3d.estimators.bundle.lens_kernels",
     "scope3d.estimators.pose_kernels",
     "scope3d.feature.descriptor_kernels",
     "scope3d.mvs.axial_kernels",

@@ -15,7 +15,11 @@ Parameters (every scalar is fixed, free, or bounded by a box ``[lower, upper]``,
 * **Intrinsics** ``(fx, fy, cx, cy, k1, k2)`` of each intrinsic group (pixels, pixels, pixels, pixels,
   unitless, unitless); one group shared by all cameras, or one per camera, or any mapping
   ``intrinsics_index``. With ``square_pixels=True`` fy is tied to fx (the BAL and COLMAP RADIAL model)
-  and fy is held fixed and ignored.
+  and fy is held fixed and ignored. The lens ``model`` (:mod:`scope3d.sensor.camera_models`, default
+  scope3d's radial ``pinhole_radial_k1k2``) decides what k1, k2 mean: radial for the pinhole family, the
+  fisheye's first two for ``OPENCV_FISHEYE``; the model's parameters after k2 (``extra``: OPENCV's p1, p2,
+  FULL_OPENCV's k3..k6, the fisheye's k3, k4) enter the projection and are held at their (calibrated)
+  values (:func:`lens_block`); a ``PINHOLE`` camera's k1, k2 are fixed at 0.
 * **Points**, 3 scalars each, in one of two parameterisations chosen per point:
 
   - linear (default): ``X = o + Q y`` with an origin ``o`` and an orthonormal frame ``Q``. With
@@ -45,6 +49,7 @@ from scope3d.errors import InputError
 from scope3d.geometry.pose import Pose
 from scope3d.geometry.rotation import matrix_to_rotvec, rotvec_to_matrix, so3_left_jacobian
 from scope3d.sensor.camera import INTRINSIC_NAMES, Camera
+from scope3d.sensor.camera_models import DEFAULT_MODEL, lens_model
 from scope3d.sensor.pose_tolerance import MeasuredPose
 
 POSE_NAMES = ("wx", "wy", "wz", "px", "py", "pz")
@@ -72,6 +77,49 @@ class BundleParameters:
     def camera_vector(self) -> np.ndarray:
         """(6 (m + g),) the camera side of the parameter vector: poses then intrinsics."""
         return np.concatenate([self.pose.ravel(), self.intrinsics.ravel()])
+
+
+# the fixed parameters after k2 that each family's kernel takes (scope3d.estimators.bundle.lens_kernels)
+_PINHOLE_EXTRA = ("p1", "p2", "k3", "k4", "k5", "k6")
+_FISHEYE_EXTRA = ("k3", "k4")
+
+
+def lens_block(camera: Camera) -> tuple[np.ndarray, str, np.ndarray]:
+    """The bundle adjuster's view of a camera: its intrinsic block ``(fx, fy, cx, cy, k1, k2)`` (6,), its model's
+    name and the model's fixed parameters after k2 (E,) in the kernels' layout (the pinhole family's
+    ``(p1, p2, k3, k4, k5, k6)`` with zeros for terms the model lacks, the fisheye's ``(k3, k4)``; empty for
+    the default model)."""
+    values = dict(zip(camera.param_names, camera.params))
+    block = np.array([values[n] if n in values else 0.0 for n in INTRINSIC_NAMES])
+    if camera.model == DEFAULT_MODEL:
+        return block, camera.model, np.zeros(0)
+    names = _FISHEYE_EXTRA if camera.lens.is_fisheye else _PINHOLE_EXTRA
+    return block, camera.model, np.array([values.get(n, 0.0) for n in names])
+
+
+def camera_from_block(camera: Camera, block: np.ndarray) -> Camera:
+    """``camera`` with its intrinsic block replaced by an adjusted one (its other parameters as they were)."""
+    params = camera.params.copy()
+    n = min(6, len(params))
+    params[:n] = np.asarray(block, dtype=float)[:n]
+    return camera.with_params(params)
+
+
+def _extra_block(model: str, extra, groups: int) -> np.ndarray:
+    """(g, E) the fixed parameters of ``groups`` intrinsic groups (E = 0 for the default model)."""
+    lens = lens_model(model)  # ValueError naming the known models
+    if model == DEFAULT_MODEL:
+        size = 0
+    else:
+        size = len(_FISHEYE_EXTRA if lens.is_fisheye else _PINHOLE_EXTRA)
+    if extra is None:
+        return np.zeros((groups, size))
+    out = np.atleast_2d(np.asarray(extra, dtype=float)).reshape(-1, size) if size else np.zeros((groups, 0))
+    if out.shape[0] == 1:
+        out = np.repeat(out, groups, axis=0)
+    if out.shape != (groups, size) or not np.all(np.isfinite(out)):
+        raise InputError(f"{model}: extra parameters must be {size} finite values per intrinsic group")
+    return np.ascontiguousarray(out)
 
 
 def _as_index_list(items, count: int, what: str) -> np.ndarray:
@@ -114,6 +162,8 @@ class BundleProblem:
         one group per camera when it has m rows.
     position_parameter : "centre" (camera centre C, mm, world axes) or "translation" (t of cam_from_world).
     square_pixels : bool, tie fy to fx.
+    model : the lens model's name; extra : (E,) or (g, E) its fixed parameters in :func:`lens_block`'s
+        layout (None: zeros), for a model other than the default.
 
     Every parameter starts free. Use :meth:`fix`, :meth:`set_bounds` and the convenience methods to
     constrain them, or :meth:`from_measured_poses` to build the reference's BCBA problem.
@@ -132,6 +182,8 @@ class BundleProblem:
         intrinsics_index: np.ndarray | None = None,
         position_parameter: str = "centre",
         square_pixels: bool = False,
+        model: str = DEFAULT_MODEL,
+        extra: np.ndarray | None = None,
     ) -> None:
         obs = np.asarray(observations_px, dtype=float)
         cam = np.asarray(camera_index)
@@ -197,6 +249,8 @@ class BundleProblem:
         self.point_index = np.ascontiguousarray(pt[order], dtype=np.int64)
         self.point_ptr = np.concatenate([[0], np.cumsum(np.bincount(self.point_index, minlength=n))]).astype(np.int64)
         self.intrinsics_index = intr_idx
+        self.model = model
+        self.extra = _extra_block(model, extra, g)
         self.position_parameter = position_parameter
         self.square_pixels = bool(square_pixels)
         self.reference_rotations = rot.copy()
@@ -218,6 +272,8 @@ class BundleProblem:
         self.intrinsics_fixed = np.zeros((g, 6), dtype=bool)
         if self.square_pixels:
             self.intrinsics_fixed[:, 1] = True
+        if model == "PINHOLE":
+            self.intrinsics_fixed[:, 4:] = True
         self.point_lower = np.full((n, 3), -np.inf)
         self.point_upper = np.full((n, 3), np.inf)
         self.point_fixed = np.zeros((n, 3), dtype=bool)
@@ -246,7 +302,8 @@ class BundleProblem:
         ``|w_i| <= tolerance.orientation_rad[i]``; a zero tolerance fixes the scalar, an infinite one
         leaves it free. One intrinsic group is shared by all frames (a single scope).
 
-        measured_poses : m MeasuredPose. camera : Camera or (6,) intrinsics.
+        measured_poses : m MeasuredPose. camera : Camera of any model (:func:`lens_block`) or (6,) radial
+        intrinsics.
         points_world : (n, 3) mm initial points. observations_px : (K, 2). camera_index, point_index : (K,).
         refine_intrinsics : True (all six), False, or names from ``("fx", ..., "k2")`` to refine.
         intrinsics_lower, intrinsics_upper : (6,) optional box on the intrinsics (e.g. from an FOV range).
@@ -255,9 +312,13 @@ class BundleProblem:
             raise InputError("the problem is empty: there are no cameras")
         rotations = np.stack([mp.pose.rotation for mp in measured_poses])
         translations = np.stack([mp.pose.translation for mp in measured_poses])
-        intr = camera.intrinsics if isinstance(camera, Camera) else np.asarray(camera, dtype=float)
+        model, extra = DEFAULT_MODEL, None
+        if isinstance(camera, Camera):
+            intr, model, extra = lens_block(camera)
+        else:
+            intr = np.asarray(camera, dtype=float)
         problem = cls(observations_px, camera_index, point_index, rotations, translations, points_world, intr,
-                      position_parameter="centre")
+                      position_parameter="centre", model=model, extra=extra)
         for c, mp in enumerate(measured_poses):
             half = np.concatenate([mp.tolerance.orientation_rad, mp.tolerance.position_mm])
             value = problem.initial.pose[c]

@@ -40,12 +40,14 @@ import scipy.sparse.linalg
 from scope3d.errors import InputError
 from scope3d.estimators.bundle.losses import LOSS_NAMES, loss_rho, loss_weight
 from scope3d.estimators.bundle.problem import BundleParameters, BundleProblem
+from scope3d.sensor.camera_models import DEFAULT_MODEL, lens_model
 from scope3d.utils.aot import is_compiled, load_kernels
 from scope3d.utils.blas import blas_threads
 from scope3d.utils.threads import available_cores
 
 # compiled at install (scope3d.utils.aot) or, failing that, by numba on first use; the same functions
 kernels = load_kernels("scope3d.estimators.bundle.kernels")
+lens_kernels = load_kernels("scope3d.estimators.bundle.lens_kernels")
 
 LINEAR_SOLVERS = ("auto", "dense", "sparse", "pcg")
 TERMINATIONS = (
@@ -301,11 +303,19 @@ def _linearise(problem, pose, intrinsics, points, r, jc, jp, ranges: _Ranges | N
              problem.position_parameter == "centre", np.ascontiguousarray(world), np.ascontiguousarray(point_jac),
              np.ascontiguousarray(intrinsics), bool(problem.square_pixels))
     intr_obs = problem.intrinsics_index[problem.camera_index]
+    if problem.model != DEFAULT_MODEL:  # another lens: its kernel, the model's fixed parameters after k2
+        fisheye = lens_model(problem.model).is_fisheye
+        state = state[:7] + (np.ascontiguousarray(problem.extra),) + state[7:]
 
-    def run(_pa, _pb, oa, ob):
-        kernels.residuals_and_jacobians(
-            problem.observations_px[oa:ob], problem.camera_index[oa:ob], problem.point_index[oa:ob],
-            intr_obs[oa:ob], *state, r[oa:ob], jc[oa:ob], jp[oa:ob])
+        def run(_pa, _pb, oa, ob):
+            lens_kernels.residuals_and_jacobians(
+                fisheye, problem.observations_px[oa:ob], problem.camera_index[oa:ob], problem.point_index[oa:ob],
+                intr_obs[oa:ob], *state, r[oa:ob], jc[oa:ob], jp[oa:ob])
+    else:
+        def run(_pa, _pb, oa, ob):
+            kernels.residuals_and_jacobians(
+                problem.observations_px[oa:ob], problem.camera_index[oa:ob], problem.point_index[oa:ob],
+                intr_obs[oa:ob], *state, r[oa:ob], jc[oa:ob], jp[oa:ob])
 
     (ranges or _Ranges(problem.point_ptr)).map(run)
 
@@ -315,9 +325,17 @@ def _squared_residuals(problem, pose, intrinsics, points, intr_obs, out, ranges:
     state = (np.ascontiguousarray(rot), np.ascontiguousarray(trans), np.ascontiguousarray(problem.points_world(points)),
              np.ascontiguousarray(intrinsics), bool(problem.square_pixels))
 
-    def run(_pa, _pb, oa, ob):
-        kernels.squared_residuals(problem.observations_px[oa:ob], problem.camera_index[oa:ob],
-                                  problem.point_index[oa:ob], intr_obs[oa:ob], *state, out[oa:ob])
+    if problem.model != DEFAULT_MODEL:
+        fisheye = lens_model(problem.model).is_fisheye
+        state = state[:4] + (np.ascontiguousarray(problem.extra),) + state[4:]
+
+        def run(_pa, _pb, oa, ob):
+            lens_kernels.squared_residuals(fisheye, problem.observations_px[oa:ob], problem.camera_index[oa:ob],
+                                           problem.point_index[oa:ob], intr_obs[oa:ob], *state, out[oa:ob])
+    else:
+        def run(_pa, _pb, oa, ob):
+            kernels.squared_residuals(problem.observations_px[oa:ob], problem.camera_index[oa:ob],
+                                      problem.point_index[oa:ob], intr_obs[oa:ob], *state, out[oa:ob])
 
     (ranges or _Ranges(problem.point_ptr)).map(run)
     return out

@@ -444,7 +444,30 @@
         return layer.visible && layer.faces && blocks(layer, from, d, (1 - 1e-3) * distance);
       });
     }
-    // Frames whose image holds the spot (pinhole with k1, k2, circular field), whose centre lies on the
+    // A camera-frame point's pixel through the dataset's lens (scope3d.sensor.camera_models: the pinhole
+    // family with OpenCV's radial, tangential and rational terms, or the Kannala-Brandt fisheye), or null
+    // where the lens does not see it (behind a pinhole; past the fisheye's field).
+    function projectPoint(c, x, y, z) {
+      var p = {}, a, b;
+      c.param_names.forEach(function (name, i) { p[name] = c.params[i]; });
+      if (c.fisheye) {
+        var rho = Math.sqrt(x * x + y * y), theta = Math.atan2(rho, z);
+        if (!(theta < c.max_half_angle_rad) || rho === 0) return rho === 0 && z > 0 ? [p.cx, p.cy] : null;
+        var t2 = theta * theta;
+        var td = theta * (1 + t2 * (p.k1 + t2 * (p.k2 + t2 * (p.k3 + t2 * p.k4))));
+        a = td * x / rho; b = td * y / rho;
+      } else {
+        if (!(z > 0)) return null;
+        var xn = x / z, yn = y / z, r2 = xn * xn + yn * yn;
+        var num = 1 + (p.k1 || 0) * r2 + (p.k2 || 0) * r2 * r2 + (p.k3 || 0) * r2 * r2 * r2;
+        var den = 1 + (p.k4 || 0) * r2 + (p.k5 || 0) * r2 * r2 + (p.k6 || 0) * r2 * r2 * r2;
+        var radial = num / den, p1 = p.p1 || 0, p2 = p.p2 || 0;
+        a = xn * radial + 2 * p1 * xn * yn + p2 * (r2 + 2 * xn * xn);
+        b = yn * radial + p1 * (r2 + 2 * yn * yn) + 2 * p2 * xn * yn;
+      }
+      return [p.fx * a + p.cx, p.fy * b + p.cy];
+    }
+    // Frames whose image holds the spot (through the lens, inside the circular field), whose centre lies on the
     // side of the surface the normal points to (the normal turned towards the cameras' centroid) and
     // whose view of it no drawn mesh blocks.
     function framesSeeing(p, normal) {
@@ -455,9 +478,9 @@
         var x = R[0] * p[0] + R[1] * p[1] + R[2] * p[2] + t[0];
         var y = R[3] * p[0] + R[4] * p[1] + R[5] * p[2] + t[1];
         var z = R[6] * p[0] + R[7] * p[1] + R[8] * p[2] + t[2];
-        if (!(z > 0)) return;
-        var a = x / z, b = y / z, r2 = a * a + b * b, d = 1 + c.k1 * r2 + c.k2 * r2 * r2;
-        var u = c.fx * a * d + c.cx, v = c.fy * b * d + c.cy;
+        var uv = projectPoint(c, x, y, z);
+        if (uv === null) return;
+        var u = uv[0], v = uv[1];
         if (u < -0.5 || v < -0.5 || u > c.width - 0.5 || v > c.height - 0.5) return;
         if (c.mask_radius_px !== null) {
           var du = u - (c.width - 1) / 2, dv = v - (c.height - 1) / 2;
