@@ -166,5 +166,8 @@ def test_self_check_warns_when_the_two_maps_disagree_by_more_than_half_the_radiu
         choice = {"kept": "all pairs", "reason": "test", "disagreement": map_disagreement(tracks, _tracks(other, frame))}
         cavity = CavityMap(tracks, poses, centre, radius, np.ones(N_FRAMES, bool), [], [], 0, [], False, {},
                            None, choice)
-        check = self_check(cavity, CavityOptions(), scaled=False)
-        assert check["passed"] and bool(check["warnings"]) == warns and check["map_choice"] == choice
+        check = self_check(cavity, CavityOptions(), scaled=False, camera=Camera.from_fov(608, 608, 70.0))
+        # the disagreement's warning (this map's pixels are no views of its points: the frames' depth test,
+        # tests/test_depth_consistency.py, has nothing to judge here)
+        disagree = [w for w in check["warnings"] if "image-only maps disagree" in w]
+        assert check["passed"] and bool(disagree) == warns and check["map_choice"] == choice

@@ -324,6 +324,9 @@ def test_the_anatomical_shell_keeps_the_near_wall_of_an_elongated_cavity_despite
     assert np.linalg.norm(algebraic_centre) > 20.0 and not cut[:len(wall)].all()
 
 
+CAMERA_608 = Camera.from_fov(608, 608, 70.0)  # the phantom's frames
+
+
 def _cavity_map(points, centres, radius_scale=1.0):
     """A CavityMap of ``points`` (N, 3) seen by cameras at ``centres`` (n, 3), each observation of a point by
     frame 0 (only the points and poses matter to the self-check)."""
@@ -369,15 +372,15 @@ def test_self_check_flags_cameras_off_centre_and_a_radius_outside_the_anatomical
     from scope3d.pipelines.panorama import self_check
     wall, cap, cameras = _wall_and_cap()
     options = CavityOptions()
-    good = self_check(_cavity_map(wall, cameras), options, scaled=True)
+    good = self_check(_cavity_map(wall, cameras), options, scaled=True, camera=CAMERA_608)
     assert good["passed"] and not good["problems"] and 32.0 < good["wall_radius_mm"] < 45.0
-    bad = self_check(_cavity_map(cap, cameras), options, scaled=True)
+    bad = self_check(_cavity_map(cap, cameras), options, scaled=True, camera=CAMERA_608)
     assert not bad["passed"] and len(bad["problems"]) == 2  # off centre, and 131 mm > 70 mm
     # without a physical scale only the cameras' place is checked
-    unscaled = self_check(_cavity_map(cap, cameras), options, scaled=False)
+    unscaled = self_check(_cavity_map(cap, cameras), options, scaled=False, camera=CAMERA_608)
     assert unscaled["wall_radius_mm"] is None and len(unscaled["problems"]) == 1
     # a right shape at a wrong scale (stars 3x off) is flagged by the anatomical radius alone
-    big = self_check(_cavity_map(wall, cameras, radius_scale=3.0), options, scaled=True)
+    big = self_check(_cavity_map(wall, cameras, radius_scale=3.0), options, scaled=True, camera=CAMERA_608)
     assert not big["passed"] and "anatomical" in big["problems"][0]
 
 
