@@ -187,7 +187,7 @@ def main() -> None:
             _print_row("temple", results["temple"][-1])
         results["dome_ring"] = []
         for ds in dome_rings(tmp):
-            results["dome_ring"].append(compare(ds, {"scope3d": PHOTOGRAPH, "scope3d_fixed4": PHOTOGRAPH_FIXED4}, tmp / f"w_ring{n}"))
+            results["dome_ring"].append(compare(ds, {"scope3d": PHOTOGRAPH, "scope3d_fixed4": PHOTOGRAPH_FIXED4}, tmp / f"w_ring{len(ds)}"))
             _print_row("dome ring", results["dome_ring"][-1])
         results["dome_grid"] = []
         for trajectory in ("grid5x6", "grid7x8"):
