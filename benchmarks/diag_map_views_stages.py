@@ -18,12 +18,10 @@ from pathlib import Path
 
 import numpy as np
 from bench_map_views import PAR, PHOTOGRAPH, dome_rings, ring_subset
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
 from scope3d.cli.main import main as cli
 from scope3d.feature.pairs import PairOptions
-from scope3d.feature.tracks import build_tracks
+from scope3d.feature.tracks import build_tracks, match_components
 from scope3d.io.dataset import load_dataset
 from scope3d.pipelines.surgical_map import detect_features, match_frames, reconstruct
 
@@ -44,20 +42,10 @@ def stage_counts(ds, options) -> dict:
     frames = [ds.frame(k) for k in range(len(ds))]
     features = detect_features(options, ds, frames)
     matching = match_frames(options, ds, features)
-    offsets = np.concatenate([[0], np.cumsum([len(f) for f in features])])
-    src = np.concatenate([offsets[m.i] + m.idx_i for m in matching.matches if len(m)])
-    dst = np.concatenate([offsets[m.j] + m.idx_j for m in matching.matches if len(m)])
-    graph = coo_matrix((np.ones(len(src), np.int8), (src, dst)), shape=(offsets[-1], offsets[-1]))
-    _, label = connected_components(graph, directed=False)
-    node = np.unique(np.concatenate([src, dst]))
-    frame = np.searchsorted(offsets, node, side="right") - 1
-    lab = label[node]
-    key = lab.astype(np.int64) * len(features) + frame
-    _, inv, cnt = np.unique(key, return_inverse=True, return_counts=True)
-    bad = np.isin(lab, np.unique(lab[cnt[inv] > 1]))
+    node, _, lab, bad = match_components(features, matching.matches)
     tracks = build_tracks(features, matching.matches, min_track_length=options.tracks.min_track_length)
     sparse = reconstruct(options, ds, features, matching)
-    return {"n_views": len(ds), "features": int(offsets[-1]), "pairs": len(matching.pairs),
+    return {"n_views": len(ds), "features": int(sum(len(f) for f in features)), "pairs": len(matching.pairs),
             "matches": matching.n_matches, "matched_features": int(len(node)),
             "components": int(len(np.unique(lab))), "conflicted_components": int(len(np.unique(lab[bad]))),
             "features_in_conflicted_components": int(bad.sum()), "tracks": tracks.n_tracks,
