@@ -371,10 +371,13 @@ def fit_surface(points: np.ndarray, *, options: SurfaceOptions = SurfaceOptions(
     t = np.arange(lo[1], hi[1] + step, step)
     ss, tt = np.meshgrid(s, t)
     grid = np.column_stack([ss.ravel(), tt.ravel()])
-    near = cKDTree(stn[:, :2]).query(grid, distance_upper_bound=options.max_extrapolation_mm)[0] < np.inf
+    # a grid coarsened for memory reaches at least one step from the points (else few vertices, if any,
+    # would lie within the extrapolation distance of a point)
+    reach = max(options.max_extrapolation_mm, step)
+    near = cKDTree(stn[:, :2]).query(grid, distance_upper_bound=reach)[0] < np.inf
     # fill holes smaller than the extrapolation distance (closing), so the mesh has no pin-holes
     near = near.reshape(ss.shape)
-    k = max(1, int(round(options.max_extrapolation_mm / step)))
+    k = max(1, int(round(reach / step)))
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * k + 1, 2 * k + 1))
     near = cv2.morphologyEx(near.astype(np.uint8), cv2.MORPH_CLOSE, kernel).astype(bool)
     # and fill every hole enclosed by the surveyed region: a fluorescent film or a specular patch has
