@@ -145,19 +145,3 @@ def test_datasets_take_the_radial_model_only_until_the_jobs_take_every_model(tmp
     with pytest.raises(InputError, match="OPENCV_FISHEYE camera; scope3d's jobs take pinhole_radial_k1k2"):
         write_dataset(tmp_path / "ds", CAMERAS[-1], [np.zeros((256, 256), np.uint8)], [None])
     assert not (tmp_path / "ds").exists()
-
-
-@pytest.mark.parametrize("skew, refused", [(60.0 * 8e-8, False), (0.5, True)])
-def test_camera_info_skew_is_zero_within_rounding_and_refused_beyond(skew, refused):
-    """A camera holds no skew: 8e-8 fx (a decomposed projection matrix's rounding) moves no pixel of the
-    64 x 48 image by more than skew * 24 / 60 = 2e-6 px and is dropped; 0.5 px moves the corners by
-    0.5 * 24 / 60 = 0.2 px, more than SAME_CALIBRATION_PX: refused in one line (issue 34; it was dropped)."""
-    message = SimpleNamespace(width=64, height=48, k=[60.0, skew, 31.5, 0, 60.0, 23.5, 0, 0, 1],
-                              distortion_model="plumb_bob", d=[0.1, 0.02, 0.0, 0.0, 0.0])
-    if not refused:
-        assert camera_from_info(message, "b") == Camera(64, 48, 60.0, 60.0, 31.5, 23.5, 0.1, 0.02)
-        return
-    with pytest.raises(InputError) as info:
-        camera_from_info(message, "scope.bag: /info")
-    text = str(info.value)
-    assert text.startswith("scope.bag: /info: ") and "no skew" in text and "0.2 px" in text and "\n" not in text
