@@ -279,3 +279,28 @@ def test_import_colmap_refuses_two_different_cameras(tmp_path):
     write_colmap_text(_model(), tmp_path / "sparse")
     with pytest.raises(InputError, match="2 different cameras"):
         import_colmap(tmp_path / "sparse", tmp_path, tmp_path / "ds")
+
+
+@pytest.mark.parametrize("shift_px, accepted", [(0.002, True), (0.05, False)])
+def test_import_colmap_takes_cameras_differing_by_the_rounding_of_k_as_one(tmp_path, shift_px, accepted):
+    """Per-image cameras of one physical camera, each K from a decomposed projection matrix, differ by
+    rounding: principal points 0.002 px apart in x and y move every pixel by 0.002 sqrt(2) = 0.0028 px, under
+    SAME_CALIBRATION_PX (one camera, the first one's K, the shift recorded); 0.05 px apart is another camera,
+    refused in one line naming cameras.txt (issue 34)."""
+    from scope3d.sensor.camera import SAME_CALIBRATION_PX
+
+    model = _colmap_set(tmp_path)
+    cam = model.cameras[0]
+    twin = Camera(cam.width, cam.height, cam.fx, cam.fy, cam.cx + shift_px, cam.cy - shift_px, cam.k1, cam.k2)
+    model = SparseModel([cam, twin], model.image_names, model.poses, np.array([0, 1, 0, 1]), model.points3d,
+                        model.colors, model.errors, model.keypoints, model.tracks)
+    write_colmap_text(model, tmp_path / "sparse")
+    if not accepted:
+        with pytest.raises(InputError, match=r"cameras.txt: camera #2 \(in the file's order\) differs from #1 .*K by 0.0707 px") as info:
+            import_colmap(tmp_path / "sparse", tmp_path / "images", tmp_path / "ds")
+        assert "\n" not in str(info.value) and not (tmp_path / "ds").exists()
+        return
+    ds = load_dataset(import_colmap(tmp_path / "sparse", tmp_path / "images", tmp_path / "ds"))
+    _same_camera(ds.camera, cam)
+    recorded = ds.metadata["source"]["camera_k_shift_max_px"]
+    assert recorded == pytest.approx(shift_px * np.sqrt(2.0), rel=1e-9) and recorded < SAME_CALIBRATION_PX

@@ -113,6 +113,68 @@ def test_bad_par_file(tmp_path, edit, fragments):
     assert not (tmp_path / "out").exists()
 
 
+# --- K decomposed from projection matrices (issue 34) --------------------------------------------------
+# A line's K tokens: fx (1), skew (2), cx (3), fy (5), cy (6). The temple's 640 x 480 image seen through
+# fx 1520.4, fy 1525.9, cx 302.32, cy 246.87: normalised x within [-0.199, 0.222], y within [-0.162, 0.153].
+X_MAX, Y_MAX, Y_BOTTOM = (640 - 0.5 - 302.32) / 1520.4, (246.87 + 0.5) / 1525.9, (480 - 0.5 - 246.87) / 1525.9
+
+
+def _decomposed(skew_px: float, per_view_px: float):
+    """An edit giving every K the skew ``skew_px`` and each view's K its own rounding: fx, fy, cx, cy of
+    line i moved by +-``per_view_px`` (signs alternating with i), as decomposing each view's printed
+    projection matrix leaves them."""
+    def edit(lines):
+        for i in range(1, len(lines)):
+            tokens = lines[i].split()
+            sign = 1.0 if i % 2 else -1.0
+            tokens[2] = f"{skew_px:.17g}"
+            for j in (1, 3, 5, 6):
+                tokens[j] = f"{float(tokens[j]) + sign * per_view_px:.17g}"
+            lines[i] = " ".join(tokens)
+    return edit
+
+
+def test_k_with_rounding_skew_and_per_view_rounding_is_one_camera(tmp_path):
+    """The issue's robot-arm files: skew 8e-8 of fx (1.2e-4 px here) and per-view K within 0.004 px of each
+    other. The skew moves a pixel by skew * |y| <= 2e-5 px and the per-view K by 0.004 |(1 + |x|, 1 + |y|)|
+    <= 0.007 px, both
+    under SAME_CALIBRATION_PX: imported as one camera, the first view's K without skew, and the provenance
+    says what was accepted."""
+    from scope3d.sensor.camera import SAME_CALIBRATION_PX
+
+    (tmp_path / "in").mkdir()
+    skew = 8e-8 * 1520.4
+    ds = load_dataset(import_middlebury(_par_copy(tmp_path / "in", _decomposed(skew, 0.002)), tmp_path / "out"))
+    cam = ds.camera
+    np.testing.assert_allclose([cam.fx, cam.fy, cam.cx, cam.cy], np.array([1520.4, 1525.9, 302.32, 246.87]) + 0.002,
+                               rtol=0, atol=1e-12)
+    accepted = ds.metadata["source"]["intrinsics_rounding"]
+    assert accepted["tolerance_px"] == SAME_CALIBRATION_PX
+    assert accepted["skew_max_px"] == pytest.approx(skew, rel=1e-12)
+    # skew * |y| at the worst corner
+    assert accepted["skew_and_third_row_shift_max_px"] == pytest.approx(skew * Y_MAX, rel=1e-3)
+    # views 2, 4, ... are 0.004 px off in cx, cy and fx, fy: 0.004 (1 + x, 1 + y), largest at the bottom right
+    corner = 0.004 * np.hypot(1 + X_MAX, 1 + Y_BOTTOM)
+    assert accepted["per_view_k_shift_max_px"] == pytest.approx(corner, rel=1e-3)
+    assert accepted["per_view_k_shift_max_px"] < SAME_CALIBRATION_PX
+
+
+@pytest.mark.parametrize("skew_px, per_view_px, fragments", [
+    # a skew of 0.5 px moves the corner pixels by 0.5 * 0.162 = 0.08 px: a real skew
+    (0.5, 0.0, ["line 2", "no skew", "0.0811 px"]),
+    # per-view fx, fy, cx, cy 0.1 px apart: 0.1 |(1 + x, 1 + y)| = 0.168 px at a corner, another camera
+    (0.0, 0.05, ["image templeSR0002.png", "different K", "0.168 px"]),
+])
+def test_a_real_skew_or_k_difference_is_refused_in_one_line(tmp_path, skew_px, per_view_px, fragments):
+    (tmp_path / "in").mkdir()
+    with pytest.raises(InputError) as info:
+        import_middlebury(_par_copy(tmp_path / "in", _decomposed(skew_px, per_view_px)), tmp_path / "out")
+    assert "\n" not in str(info.value)
+    for f in fragments:
+        assert f in str(info.value), str(info.value)
+    assert not (tmp_path / "out").exists()
+
+
 # --- rotations printed with few digits ---------------------------------------------------------------
 # A line's tokens: name, K (1-9), R (10-18), t (19-21). Printed to d significant digits, an entry |r| <= 1
 # is off by at most 0.5e-d, and any number x by at most 0.5e(1-d) |x|.

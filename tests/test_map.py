@@ -391,6 +391,31 @@ def test_frames_without_texture_fail_in_one_line(dome_dir, tmp_path, capsys):
     assert err.startswith("scope3d map: error:") and "\n" not in err and "too few features" in err
 
 
+def test_a_surface_stage_that_cannot_run_says_so_in_one_line_and_the_map_is_written(dome_dir, tmp_path, capsys):
+    """A map whose adjustment keeps fewer than 10 points (the dome's, cut to its first 6) cannot carry a
+    surface: the map is still written, report.json names the stage and why, the CLI exits 0 with it in
+    one line of its summary, and no traceback (issue 34)."""
+    from scope3d.pipelines import surgical_map
+
+    real = surgical_map.reconstruct
+
+    def six_points(*args, **kwargs):
+        sparse = real(*args, **kwargs)
+        return replace(sparse, tracks=sparse.tracks.subset(sparse.tracks.track < 6))
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(surgical_map, "reconstruct", six_points)
+        assert main(["map", str(dome_dir), "--out", str(tmp_path / "few"), "--pose-mode", "fixed",
+                     "--no-progress", "--no-figures"]) == 0
+    out, err = capsys.readouterr()
+    report = json.loads((tmp_path / "few" / "report.json").read_text())
+    assert report["n_points"] == 6 and "surface" not in report
+    assert report["stages_skipped"] == {"surface": "surface: 6 points, a surface needs at least 10"}
+    assert "surface: 6 points, a surface needs at least 10 (stage skipped)" in out.splitlines()
+    assert "Traceback" not in err and (tmp_path / "few" / "points.ply").is_file()
+    assert not (tmp_path / "few" / "mesh.ply").exists()
+
+
 def test_cli_rejects_unknown_pose_mode(dome_dir, tmp_path):
     with pytest.raises(SystemExit) as exc:
         main(["map", str(dome_dir), "--out", str(tmp_path / "y"), "--pose-mode", "sideways"])

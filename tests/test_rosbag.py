@@ -243,3 +243,24 @@ def test_raw_image_encodings_decode_to_the_same_pixels():
         decode_image(msg("32FC1", bytes(140), 28), "sensor_msgs/msg/Image", "t")
     with pytest.raises(InputError, match="shorter"):
         decode_image(msg("rgb8", bytes(50), 21), "sensor_msgs/msg/Image", "t")
+
+
+@pytest.mark.parametrize("skew, refused", [(60.0 * 8e-8, False), (0.5, True)])
+def test_camera_info_skew_is_zero_within_rounding_and_refused_beyond(skew, refused):
+    """A camera holds no skew: 8e-8 fx (a decomposed projection matrix's rounding) moves no pixel of the
+    64 x 48 image by more than skew * 24 / 60 = 2e-6 px and is dropped; 0.5 px moves the corners by
+    0.5 * 24 / 60 = 0.2 px, more than SAME_CALIBRATION_PX: refused in one line (issue 34; it was dropped)."""
+    from types import SimpleNamespace
+
+    from scope3d.io.rosbag import camera_from_info
+    from scope3d.sensor.camera import Camera
+
+    message = SimpleNamespace(width=64, height=48, k=[60.0, skew, 31.5, 0, 60.0, 23.5, 0, 0, 1],
+                              distortion_model="plumb_bob", d=[0.1, 0.02, 0.0, 0.0, 0.0])
+    if not refused:
+        assert camera_from_info(message, "b") == Camera(64, 48, 60.0, 60.0, 31.5, 23.5, 0.1, 0.02)
+        return
+    with pytest.raises(InputError) as info:
+        camera_from_info(message, "scope.bag: /info")
+    text = str(info.value)
+    assert text.startswith("scope.bag: /info: ") and "no skew" in text and "0.2 px" in text and "\n" not in text

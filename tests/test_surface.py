@@ -245,3 +245,69 @@ def test_off_surface_points_catches_wrong_depths_and_spares_a_crease():
     assert flagged[~is_wrong].mean() < 0.02
     near_rim = np.abs(np.sqrt(r2) - np.sqrt(rim2)) < 1.0
     assert flagged[near_rim & ~is_wrong].mean() < 0.05
+
+
+def test_far_wrong_points_neither_tilt_the_plane_nor_stretch_the_grid():
+    """A cluster of five wrong points 1.5 m away (each within 1 mm of the others, so the support test keeps
+    them) set the plane's principal axis and a 1.8 m grid before (issue 34: a ring's map died texturing it).
+    The surface must be the one fitted without them, its grid spanning the 26 mm cap plus the extrapolation."""
+    pts = _cap_points()
+    far = np.array([1500.0, 900.0, 3.0]) + np.random.default_rng(5).normal(0, 0.2, (5, 3))
+    clean = fit_surface(pts, towards=np.array([0, 0, 1.0]))
+    s = fit_surface(np.vstack([pts, far]), towards=np.array([0, 0, 1.0]))
+    assert s.axes[2] @ [0, 0, 1] > 0.99
+    assert s.height.shape == clean.height.shape
+    np.testing.assert_array_equal(s.valid, clean.valid)
+    np.testing.assert_allclose(s.vertices()[s.valid], clean.vertices()[clean.valid], atol=1e-9)
+
+
+def test_a_field_larger_than_the_memory_budget_is_gridded_coarser_within_it():
+    pts = _cap_points()
+    s = fit_surface(pts, options=SurfaceOptions(max_grid_vertices=10_000), towards=np.array([0, 0, 1.0]))
+    # the least step that fits, not a coarser one: the search raises the step 1 % at a time, which removes
+    # ~2 % of a square grid's vertices, and whole rows and columns (1 % each on a 100 x 100 grid) come and go
+    # with the floor: the grid holds at least 96 % of the budget
+    assert 0.96 * 10_000 <= s.height.size <= 10_000
+    assert s.step_mm > SurfaceOptions().grid_step_mm
+
+
+def test_a_grid_coarsened_for_memory_keeps_a_vertex_near_every_point():
+    """Clusters of 4 points (0.2 mm apart: each supported by the others) every 20 mm over a 400 mm field,
+    on a budget that forces a step of ~8 mm, beyond the 1.5 mm extrapolation distance: the mesh must still
+    hold a vertex within one step of every cluster (before, a vertex had to lie within 1.5 mm of a point,
+    and most clusters had none: a 20 m facade's map kept 183 of 2 million vertices)."""
+    rng = np.random.default_rng(4)
+    centres = np.stack(np.meshgrid(np.arange(-200, 201, 20.0), np.arange(-200, 201, 20.0)), axis=-1).reshape(-1, 2)
+    centres += rng.uniform(-3, 3, centres.shape)
+    xy = np.repeat(centres, 4, axis=0) + rng.normal(0, 0.1, (4 * len(centres), 2))
+    pts = np.column_stack([xy, 0.001 * xy[:, 0]])
+    s = fit_surface(pts, options=SurfaceOptions(max_grid_vertices=2500), towards=np.array([0, 0, 1.0]))
+    assert s.step_mm > 5 * SurfaceOptions().max_extrapolation_mm
+    ss, tt = np.meshgrid(s.s, s.t)
+    kept = np.column_stack([ss[s.valid], tt[s.valid]])
+    cluster_in_plane = s.to_plane(np.column_stack([centres, 0.001 * centres[:, 0]]))[:, :2]
+    nearest = np.min(np.linalg.norm(cluster_in_plane[:, None] - kept[None], axis=2), axis=1)
+    # within one step, plus the clusters' 0.1 mm spread about their centres
+    assert np.all(nearest <= s.step_mm + 0.5)
+    with pytest.raises(ValueError):
+        SurfaceOptions(max_grid_vertices=3)
+
+
+def test_sample_images_takes_more_samples_per_frame_than_remap_can_map_in_one_column():
+    """cv2.remap asserts its maps are under SHRT_MAX = 32767 in each dimension: 100,000 samples of one
+    frame failed as one column. Each sample is the bilinear interpolation of its four pixels."""
+    from scope3d.scene.surface import sample_images
+
+    rng = np.random.default_rng(2)
+    img = rng.integers(0, 256, (60, 80)).astype(np.uint8)
+    pix = rng.uniform(0, 1, (100_000, 2)) * [78.999, 58.999]
+    got = sample_images([img], np.zeros(len(pix), np.int64), pix)[:, 0]
+    x0, y0 = np.floor(pix).astype(int).T
+    fx, fy = (pix - np.floor(pix)).T
+    a = img.astype(float)
+    y0 = np.minimum(y0, 58)
+    fy = np.minimum(pix[:, 1] - y0, 1.0)
+    want = ((1 - fx) * (1 - fy) * a[y0, x0] + fx * (1 - fy) * a[y0, x0 + 1] + (1 - fx) * fy * a[y0 + 1, x0]
+            + fx * fy * a[y0 + 1, x0 + 1])
+    # remap's fixed-point weights are 1/32 of a pixel (INTER_TAB_SIZE): at most 255 / 32 off in value
+    assert np.max(np.abs(got - want)) <= 255 / 32

@@ -73,10 +73,15 @@ class FeatureOptions:
 
 #: Named presets. ``dim_endoscope``: CLAHE on and a lower contrast threshold for frames taken far from
 #: tissue or with weak illumination (fluorescence mode uses only the blue laser for reflectance).
+#: ``photograph``: sharp calibrated photographs, no circular field; contrast threshold 0.02, half OpenCV's,
+#: because the features were what bound a known-pose map's points: at 0.04 OpenCV found 840-890 per
+#: 320 px frame of the dome ring where COLMAP's SIFT finds 1,950-2,080, and 79 % of them were already
+#: matched and 95 % of those triangulated (benchmarks/diag_map_views_stages.py, docs/surgical_map.md);
+#: at 0.02 it finds 1,680-1,830 and the rings' points double (2.2x on the ring of 8 to 2.1x on 48).
 FEATURE_PRESETS: dict[str, FeatureOptions] = {
     "default": FeatureOptions(),
     "dim_endoscope": FeatureOptions(contrast_threshold=0.02, clahe_clip_limit=2.0),
-    "photograph": FeatureOptions(max_features=8000, mask_margin_px=0.0),
+    "photograph": FeatureOptions(max_features=8000, contrast_threshold=0.02, mask_margin_px=0.0),
 }
 
 

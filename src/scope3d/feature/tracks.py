@@ -15,16 +15,17 @@ from scope3d.feature.matching import PairMatches
 from scope3d.scene.tracks import Tracks
 
 
-def build_tracks(features: list[Features], matches: list[PairMatches], *, min_track_length: int = 2) -> Tracks:
-    """Tracks = connected components (scipy.sparse.csgraph) of the match graph; components with two
-    features in one frame are dropped, and so are those shorter than ``min_track_length``."""
+def match_components(features: list[Features], matches: list[PairMatches]) -> tuple[np.ndarray, ...]:
+    """The match graph's connected components (scipy.sparse.csgraph). Returns, for every matched feature,
+    its node (M,) (offset of its frame's first feature + its index), frame (M,), component label (M,) and
+    whether its component is inconsistent (M,) bool: holds two features of one frame."""
     offsets = np.concatenate([[0], np.cumsum([len(f) for f in features])])
     n_nodes = int(offsets[-1])
     src = [offsets[m.i] + m.idx_i for m in matches if len(m)]
     dst = [offsets[m.j] + m.idx_j for m in matches if len(m)]
     if not src:
         e = np.zeros(0, np.int64)
-        return Tracks(e, e, e, np.zeros((0, 2)), np.zeros((0, 3), np.uint8), np.zeros((0, 3)))
+        return e, e, e, np.zeros(0, bool)
     src, dst = np.concatenate(src), np.concatenate(dst)
     graph = coo_matrix((np.ones(len(src), np.int8), (src, dst)), shape=(n_nodes, n_nodes))
     _, label = connected_components(graph, directed=False)
@@ -34,9 +35,19 @@ def build_tracks(features: list[Features], matches: list[PairMatches], *, min_tr
     # inconsistent components: a (label, frame) key seen twice
     key = lab.astype(np.int64) * len(features) + frame
     _, inv, cnt = np.unique(key, return_inverse=True, return_counts=True)
-    bad_labels = np.unique(lab[cnt[inv] > 1])
+    return node, frame, lab, np.isin(lab, np.unique(lab[cnt[inv] > 1]))
+
+
+def build_tracks(features: list[Features], matches: list[PairMatches], *, min_track_length: int = 2) -> Tracks:
+    """Tracks = connected components of the match graph (:func:`match_components`); components with two
+    features in one frame are dropped, and so are those shorter than ``min_track_length``."""
+    offsets = np.concatenate([[0], np.cumsum([len(f) for f in features])])
+    node, frame, lab, conflicted = match_components(features, matches)
+    if len(node) == 0:
+        e = np.zeros(0, np.int64)
+        return Tracks(e, e, e, np.zeros((0, 2)), np.zeros((0, 3), np.uint8), np.zeros((0, 3)))
     size = np.bincount(lab)
-    ok = ~np.isin(lab, bad_labels) & (size[lab] >= min_track_length)
+    ok = ~conflicted & (size[lab] >= min_track_length)
     node, frame, lab = node[ok], frame[ok], lab[ok]
     order = np.lexsort((frame, lab))
     node, frame, lab = node[order], frame[order], lab[order]

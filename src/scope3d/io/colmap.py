@@ -27,7 +27,7 @@ scope3d's:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -37,7 +37,7 @@ from scope3d.geometry.pose import Pose
 from scope3d.geometry.rotation import matrix_to_quaternion, normalised_quaternion, quaternion_to_matrix
 from scope3d.io.dataset import write_dataset
 from scope3d.io.images import read_image
-from scope3d.sensor.camera import Camera
+from scope3d.sensor.camera import SAME_CALIBRATION_PX, Camera, calibration_shift_px
 from scope3d.sensor.camera_models import DEFAULT_MODEL, MODELS
 from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance
 from scope3d.utils.atomic import atomic_directory
@@ -486,10 +486,18 @@ def import_colmap(
     model, normalised = _read_model(model_dir, length_scale_to_mm)
     used = sorted(set(model.image_cameras.tolist()))
     camera = model.cameras[used[0]]
+    # cameras that differ only by the rounding of K (per-image cameras of one physical camera, each from a
+    # decomposed projection matrix) are one: within SAME_CALIBRATION_PX at every pixel, the first one's K
+    k_shift = 0.0
     for c in used[1:]:
-        if model.cameras[c] != camera:
-            raise InputError(f"{model_dir / 'cameras.txt'}: the images use {len(used)} different cameras; "
-                             "a scope3d dataset has one")
+        other = model.cameras[c]
+        shift = calibration_shift_px(other.K, camera.K, camera.width, camera.height)
+        if replace(other, fx=camera.fx, fy=camera.fy, cx=camera.cx, cy=camera.cy) != camera \
+                or not shift <= SAME_CALIBRATION_PX:
+            raise InputError(f"{model_dir / 'cameras.txt'}: camera #{c + 1} (in the file's order) differs from #{used[0] + 1} "
+                             f"(model, size, distortion, or K by {shift:.3g} px, rounding {SAME_CALIBRATION_PX} px "
+                             f"at most); the images use {len(used)} different cameras, a scope3d dataset has one")
+        k_shift = max(k_shift, shift)
     tolerance = PoseTolerance.exact() if tolerance is None else tolerance
     sources, names = [], []
     seen = {}
@@ -515,6 +523,7 @@ def import_colmap(
             "length_scale_to_mm": length_scale_to_mm,
             "num_points3D": int(len(model.points3d)),
             "quaternion_normalised_max": normalised,
+            "camera_k_shift_max_px": k_shift,
             "original_names": list(model.image_names),
         }
     }

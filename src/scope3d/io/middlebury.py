@@ -14,6 +14,12 @@ Published par files print R with anything from ~7 to ~20 digits, so ``R`` is a r
 printing's rounding: each R is replaced by the nearest rotation (:func:`scope3d.geometry.rotation.nearest_rotation`,
 which refuses matrices farther from every rotation than rounding explains), and ``dataset.json`` records
 the largest correction (``source.rotation_orthonormalised_max``, Frobenius norm).
+
+K is taken the same way: a K decomposed from a printed projection matrix keeps a skew (and a third row
+off [0 0 1]) of the printing's order, and one camera's per-view K differ by as little. A skew that moves
+no pixel by more than :data:`scope3d.sensor.camera.SAME_CALIBRATION_PX` (0.01 px) is zero, and per-view
+K that put every pixel within that of the first view's are one camera (whose K is the first view's);
+``source.intrinsics_rounding`` records the largest of each. More is refused, naming the line or image.
 """
 from __future__ import annotations
 
@@ -29,13 +35,10 @@ from scope3d.geometry.pose import Pose
 from scope3d.geometry.rotation import nearest_rotation
 from scope3d.io.dataset import write_dataset
 from scope3d.io.images import read_image
-from scope3d.sensor.camera import Camera
+from scope3d.sensor.camera import SAME_CALIBRATION_PX, Camera, calibration_shift_px, without_skew
 from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance
 
 MM_PER_M = 1000.0
-# K's structural zeros and ones print exactly at any precision, and one K printed by one program gives the
-# same text on every line: this tolerance catches a different camera model or calibration, not rounding.
-_INTRINSICS_TOLERANCE = 1e-9
 
 
 def read_middlebury_par(par_path: str | Path) -> tuple[list[str], list[np.ndarray], list[Pose], list[float]]:
@@ -75,9 +78,13 @@ def read_middlebury_par(par_path: str | Path) -> tuple[list[str], list[np.ndarra
         if not np.all(np.isfinite(values)):
             raise InputError(f"{where}: NaN or infinite value")
         k, r, t = values[:9].reshape(3, 3), values[9:18].reshape(3, 3), values[18:]
-        if abs(k[0, 1]) > _INTRINSICS_TOLERANCE or np.abs(k[1:, 0]).max() > _INTRINSICS_TOLERANCE \
-                or np.abs(k[2] - [0, 0, 1]).max() > _INTRINSICS_TOLERANCE:
-            raise InputError(f"{where}: K must be [[fx 0 cx] [0 fy cy] [0 0 1]] (no skew)")
+        # the file has no image size: the image the principal point is the centre of stands for it (the
+        # import measures again with the real size)
+        shift = calibration_shift_px(k, without_skew(k), 2 * abs(k[0, 2]) + 1, 2 * abs(k[1, 2]) + 1) \
+            if k[0, 0] > 0 and k[1, 1] > 0 else float("inf")
+        if not shift <= SAME_CALIBRATION_PX:
+            raise InputError(f"{where}: K must be [[fx 0 cx] [0 fy cy] [0 0 1]] (no skew): its skew and third "
+                             f"row move pixels by up to {shift:.3g} px, rounding by at most {SAME_CALIBRATION_PX} px")
         try:
             rotation, correction = nearest_rotation(r)
         except ValueError as exc:
@@ -106,18 +113,14 @@ def import_middlebury(
     finish : see :func:`scope3d.io.dataset.write_dataset`.
 
     tolerance : reported with every pose; default exact (0), since the gantry calibration is the
-    reference. All images must share one K and one size. ``dataset.json`` records the provenance
-    (file, its SHA-256, the scope3d version, the largest correction that made a printed R a rotation)
-    and, when ``README.txt`` gives it, the object's bounding box in mm. Written atomically: on any
-    error ``out_dir`` is left as it was.
+    reference. All images must share one K (within :data:`scope3d.sensor.camera.SAME_CALIBRATION_PX` at
+    every pixel: the module docstring) and one size. ``dataset.json`` records the provenance (file, its
+    SHA-256, the scope3d version, the largest correction that made a printed R a rotation, the skew zeroed
+    and the per-view K spread accepted as rounding) and, when ``README.txt`` gives it, the object's
+    bounding box in mm. Written atomically: on any error ``out_dir`` is left as it was.
     """
     par_path = Path(par_path)
     names, ks, poses, corrections = read_middlebury_par(par_path)
-    k0 = ks[0]
-    for name, k in zip(names[1:], ks[1:]):
-        if np.abs(k - k0).max() > _INTRINSICS_TOLERANCE * max(1.0, np.abs(k0).max()):
-            raise InputError(f"{par_path}: image {name} has a different K from {names[0]}; "
-                             "a scope3d dataset has one camera")
     sources = [par_path.parent / n for n in names]
     size = None
     for source in sources:
@@ -126,6 +129,17 @@ def import_middlebury(
             size = img.shape[:2]
         elif img.shape[:2] != size:
             raise InputError(f"{source}: image is {img.shape[1]}x{img.shape[0]}, {names[0]} is {size[1]}x{size[0]}")
+    k0 = without_skew(ks[0])
+    zeroed = [calibration_shift_px(k, without_skew(k), size[1], size[0]) for k in ks]
+    spread = [calibration_shift_px(without_skew(k), k0, size[1], size[0]) for k in ks]
+    for name, skew_px, shift_px in zip(names, zeroed, spread):
+        if not skew_px <= SAME_CALIBRATION_PX:  # the reader's check, with the image's real size
+            raise InputError(f"{par_path}: image {name}: K's skew and third row move pixels by up to {skew_px:.3g} px, "
+                             f"rounding by at most {SAME_CALIBRATION_PX} px")
+        if not shift_px <= SAME_CALIBRATION_PX:
+            raise InputError(f"{par_path}: image {name} has a different K from {names[0]} (pixels up to "
+                             f"{shift_px:.3g} px apart, rounding {SAME_CALIBRATION_PX} px at most); "
+                             "a scope3d dataset has one camera")
     camera = Camera(size[1], size[0], k0[0, 0], k0[1, 1], k0[0, 2], k0[1, 2])
     tolerance = PoseTolerance.exact() if tolerance is None else tolerance
     metadata = {
@@ -136,6 +150,10 @@ def import_middlebury(
             "world_unit": "m",
             "scale_to_mm": MM_PER_M,
             "rotation_orthonormalised_max": max(corrections),
+            "intrinsics_rounding": {"tolerance_px": SAME_CALIBRATION_PX,
+                                    "skew_max_px": float(max(abs(k[0, 1]) for k in ks)),
+                                    "skew_and_third_row_shift_max_px": max(zeroed),
+                                    "per_view_k_shift_max_px": max(spread)},
             "imported_by": f"scope3d {__version__}",
             "reference": "Seitz, Curless, Diebel, Scharstein, Szeliski: A comparison and evaluation of "
                          "multi-view stereo reconstruction algorithms, CVPR 2006",

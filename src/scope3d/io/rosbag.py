@@ -25,7 +25,7 @@ from scope3d.errors import InputError
 from scope3d.geometry.pose import Pose
 from scope3d.geometry.rotation import quaternion_to_matrix
 from scope3d.io.images import decode_image_data
-from scope3d.sensor.camera import Camera
+from scope3d.sensor.camera import SAME_CALIBRATION_PX, Camera, calibration_shift_px, without_skew
 from scope3d.sensor.camera_models import DEFAULT_MODEL, lens_model
 from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance
 
@@ -180,6 +180,15 @@ def camera_from_info(msg, where: str) -> Camera:
         raise InputError(f"{where}: camera info's K or D has NaN or infinite values")
     if not k[0, 0] > 0 or not k[1, 1] > 0:
         raise InputError(f"{where}: camera info has no focal length (uncalibrated camera)")
+    # a camera holds no skew: one that moves pixels by more than rounding is refused, not dropped
+    try:
+        size = int(msg.width), int(msg.height)
+    except (TypeError, ValueError):
+        size = (0, 0)  # no image size: refused below as no camera
+    skew_px = calibration_shift_px(k, without_skew(k), *size) if min(size) > 0 else 0.0
+    if not skew_px <= SAME_CALIBRATION_PX:
+        raise InputError(f"{where}: camera info's K must be [[fx 0 cx] [0 fy cy] [0 0 1]] (no skew): its skew and "
+                         f"third row move pixels by up to {skew_px:.3g} px, rounding by at most {SAME_CALIBRATION_PX} px")
     name = str(getattr(msg, "distortion_model", "") or "")
     if not name:
         name = "rational_polynomial" if len(d) == 8 else "plumb_bob"

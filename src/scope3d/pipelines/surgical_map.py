@@ -366,6 +366,9 @@ class MapResult:
                  f"mean reprojection error {r['mean_reprojection_error_px']:.3f} px, {r['time_s']:.2f} s"]
         if "model_checks" in r:
             lines.append(model_checks_summary(r["model_checks"]))
+        lines += [f"{why} (stage skipped)" for why in r.get("stages_skipped", {}).values()]
+        if "note" in r.get("surface", {}):
+            lines.append(f"surface: {r['surface']['note']}")
         if "surface_error_mm" in r:
             d, i = r["surface_error_mm"]["direct"], r["surface_error_mm"]["after_icp"]
             lines.append(f"surface error: direct mean {d['mean']:.3f} mm ({100 * d['within_1mm_fraction']:.1f} % "
@@ -551,10 +554,18 @@ def check_reported_poses(options: MapOptions, dataset: Dataset, matching: Matchi
 # --- 4. surface -------------------------------------------------------------------------------
 
 
+class StageSkipped(Exception):
+    """A stage that cannot run on this input; its message is the one-line reason (report.json's
+    ``stages_skipped``, the summary): the map is written without what the stage would have added."""
+
+
 def build_surface(options: MapOptions, dataset: Dataset, sparse: SparseResult, frames: list[np.ndarray]) -> SurfaceResult:
-    """Thin-plate-spline surface through the points, textured from each vertex's best view."""
+    """Thin-plate-spline surface through the points, textured from each vertex's best view. Raises
+    :class:`StageSkipped` when the points cannot carry a surface (fewer than 10)."""
     t0 = time.perf_counter()
     towards = -np.mean([p.optical_axis for p in sparse.poses], axis=0)
+    if sparse.tracks.n_tracks < 10:
+        raise StageSkipped(f"surface: {sparse.tracks.n_tracks} points, a surface needs at least 10")
     surface = fit_surface(sparse.tracks.points, options=options.surface or SurfaceOptions(), towards=towards)
     colors, view_map = texture(surface, sparse.camera, sparse.poses, frames)
     return SurfaceResult(surface, colors, view_map, time.perf_counter() - t0)
@@ -605,12 +616,13 @@ def write_outputs(
     options: MapOptions, dataset: Dataset, out_dir: Path, frames: list[np.ndarray], features: list[Features],
     matching: MatchingResult, sparse: SparseResult, surface: SurfaceResult | None, targets: TargetResult | None,
     evaluation: dict, timings: dict, pose_check: PoseCheck | None = None, *,
-    background: BackgroundCalls | None = None, figure_pair: dict | None = None,
+    background: BackgroundCalls | None = None, figure_pair: dict | None = None, skipped: dict | None = None,
 ) -> dict:
     """Write every output file into ``out_dir`` (already a temporary folder) and return the report.
 
     background : where the figures that need the evaluation are drawn (default: here); it is waited for
     before the report is written. figure_pair : what :func:`draw_figures` returned, for the report.
+    skipped : stage name -> why it could not run (:class:`StageSkipped`), the report's ``stages_skipped``.
     """
     t0 = time.perf_counter()
     background = background or BackgroundCalls(enabled=False)
@@ -645,6 +657,8 @@ def write_outputs(
     }
     if pose_check is not None:
         report["model_checks"]["reported_pose_test"] = pose_check.as_dict(dataset.names, dataset.poses)
+    if skipped:
+        report["stages_skipped"] = dict(skipped)
     fl = options.fluorescence or FluorescenceOptions()
     if surface is not None:
         s = surface.surface
@@ -659,6 +673,10 @@ def write_outputs(
                              "flatness_rms_mm": plane_rms(s.vertices()[s.valid]),
                              "points_flatness_rms_mm": plane_rms(tr.points),
                              "points_flatness_median_mm": float(np.median(np.abs(plane_residuals(tr.points))))}
+        requested = (options.surface or SurfaceOptions()).grid_step_mm
+        if s.step_mm > requested * (1 + 1e-9):
+            report["surface"]["note"] = (f"grid step raised from {requested:g} to {s.step_mm:.3g} mm to keep the grid "
+                                         f"within {(options.surface or SurfaceOptions()).max_grid_vertices:,} vertices")
         if options.figures:
             write_image(out_dir / "texture_mosaic.png", enlarge_raster(surface.colors))
     if targets is not None:
@@ -792,7 +810,12 @@ def _run_stages(options: MapOptions, dataset: Dataset, out_dir: str | Path, prog
         sparse = reconstruct(options, released, features, matching)
     if pose_check is not None:
         lap("pose check")
-    surface = build_surface(options, dataset, sparse, frames) if options.surface is not None else None
+    surface, skipped = None, {}
+    if options.surface is not None:
+        try:
+            surface = build_surface(options, dataset, sparse, frames)
+        except StageSkipped as why:
+            skipped["surface"] = str(why)
     lap("surface")
     # matplotlib holds the GIL: the figures are drawn in a child process while the targets and the
     # evaluation are computed (the child's ~3 s of drawing outlast the evaluation alone)
@@ -807,5 +830,5 @@ def _run_stages(options: MapOptions, dataset: Dataset, out_dir: str | Path, prog
         lap("evaluation")
         stage(progress, "writing outputs")
         report = write_outputs(options, dataset, tmp, frames, features, matching, sparse, surface, targets, evaluation,
-                               timings, pose_check, background=background, figure_pair=figure_pair)
+                               timings, pose_check, background=background, figure_pair=figure_pair, skipped=skipped)
     return MapResult(report, Path(out_dir), features, matching, sparse, surface, targets, list(dataset.names))

@@ -60,6 +60,9 @@ class SurfaceOptions:
     max_extrapolation_mm : float, grid vertices farther than this from every point are left out of
         the mesh (default 1.5 mm).
     robust_passes : int, refits after dropping control points far from the spline (default 2).
+    max_grid_vertices : int, memory budget of the grid (default 2,000,000 vertices, a 280 mm square at
+        0.2 mm: fitting and texturing a 300 mm field of 400k points peaked at 160 B per grid vertex, so
+        ~0.3 GB): a larger field is sampled at the coarser step that fits it (``Surface.step_mm`` says which).
     min_neighbours : int, support_radius_mm : float, points with fewer than ``min_neighbours`` other
         points within ``support_radius_mm`` in the plane are ignored (default 3 within 1 mm).
     local_neighbours : int, control points are checked against the plane of this many neighbours
@@ -79,6 +82,7 @@ class SurfaceOptions:
     local_passes: int = 2
     outlier_floor_mm: float = 0.15
     support_radius_mm: float = 1.0
+    max_grid_vertices: int = 2_000_000
 
     def __post_init__(self) -> None:
         for name in ("grid_step_mm", "control_cell_mm", "outlier_mad", "max_extrapolation_mm"):
@@ -86,6 +90,8 @@ class SurfaceOptions:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
         if self.smoothing < 0 or self.max_control_points < 10:
             raise ValueError("smoothing must be >= 0 and max_control_points >= 10")
+        if self.max_grid_vertices < 4:
+            raise ValueError(f"max_grid_vertices must be >= 4, got {self.max_grid_vertices}")
 
 
 @dataclass
@@ -321,8 +327,16 @@ def fit_surface(points: np.ndarray, *, options: SurfaceOptions = SurfaceOptions(
     pts = pts[np.all(np.isfinite(pts), axis=1)]
     if len(pts) < 10:
         raise ValueError(f"need at least 10 points to fit a surface, got {len(pts)}")
+    # a few far wrong points (a ring's background, a bad track) would tilt the plane and stretch the grid
+    # over metres of nothing: the plane and the grid are fitted to the extent the bulk of the points fill
+    inside = _within_robust_extent(pts)
+    if inside.sum() >= 10:
+        pts = pts[inside]
     origin, axes = fit_plane(pts, towards)
     stn = (pts - origin) @ axes.T
+    inside = _within_robust_extent(stn[:, :2])
+    if inside.sum() >= 10:
+        stn = stn[inside]
     # an isolated point cannot be checked against neighbours (the spline would bend to it): keep points
     # with at least ``min_neighbours`` others within ``support_radius_mm`` in the plane
     if options.min_neighbours > 0:
@@ -351,17 +365,20 @@ def fit_surface(points: np.ndarray, *, options: SurfaceOptions = SurfaceOptions(
             break
         ctrl = ctrl[keep]
         tps = ThinPlateSpline.fit(ctrl[:, :2], ctrl[:, 2], options.smoothing)
-    step = options.grid_step_mm
     lo = stn[:, :2].min(axis=0)
     hi = stn[:, :2].max(axis=0)
+    step = _grid_step(hi - lo, options.grid_step_mm, options.max_grid_vertices)
     s = np.arange(lo[0], hi[0] + step, step)
     t = np.arange(lo[1], hi[1] + step, step)
     ss, tt = np.meshgrid(s, t)
     grid = np.column_stack([ss.ravel(), tt.ravel()])
-    near = cKDTree(stn[:, :2]).query(grid, distance_upper_bound=options.max_extrapolation_mm)[0] < np.inf
+    # a grid coarsened for memory reaches at least one step from the points (else few vertices, if any,
+    # would lie within the extrapolation distance of a point)
+    reach = max(options.max_extrapolation_mm, step)
+    near = cKDTree(stn[:, :2]).query(grid, distance_upper_bound=reach)[0] < np.inf
     # fill holes smaller than the extrapolation distance (closing), so the mesh has no pin-holes
     near = near.reshape(ss.shape)
-    k = max(1, int(round(options.max_extrapolation_mm / step)))
+    k = max(1, int(round(reach / step)))
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * k + 1, 2 * k + 1))
     near = cv2.morphologyEx(near.astype(np.uint8), cv2.MORPH_CLOSE, kernel).astype(bool)
     # and fill every hole enclosed by the surveyed region: a fluorescent film or a specular patch has
@@ -374,6 +391,37 @@ def fit_surface(points: np.ndarray, *, options: SurfaceOptions = SurfaceOptions(
     # near centres exactly, the far ones' smooth sum on a 0.8 mm lattice (ThinPlateSpline.tiled: ~0.2 um)
     height[near] = tps.tiled(grid[near.ravel()])
     return Surface(origin, axes, s, t, height)
+
+
+#: :func:`_within_robust_extent`: the percentiles that bound the bulk of the points, and how far beyond
+#: them (a fraction of their span) the grid still reaches.
+_EXTENT_QUANTILES = (0.01, 0.99)
+_EXTENT_MARGIN = 0.25
+
+
+def _within_robust_extent(x: np.ndarray) -> np.ndarray:
+    """(N,) bool: the points (N, D) inside the box the data supports, per coordinate its 1st to 99th
+    percentile widened on each side by a quarter of that span. A surveyed field's points fill it whole
+    (a uniform field's edge lies 1 % of the span beyond its percentile, a uniform disc's 3.5 %, a Gaussian
+    cloud's 3.5 sigma past its centre), so only points far outside the bulk are left out, and however far
+    they lie they cannot set the box: the percentiles ignore the farthest 1 % on each side."""
+    lo, hi = np.quantile(x, _EXTENT_QUANTILES, axis=0)
+    pad = _EXTENT_MARGIN * (hi - lo)
+    return np.all((x >= lo - pad) & (x <= hi + pad), axis=1)
+
+
+def _grid_step(span: np.ndarray, step: float, max_vertices: int) -> float:
+    """The grid step (mm): ``step``, or the least coarser one whose grid over ``span`` (2,) mm has at most
+    ``max_vertices`` vertices (np.arange over [lo, hi + step) holds at most span / step + 2 values)."""
+    def count(h):
+        return (np.floor(span[0] / h) + 2) * (np.floor(span[1] / h) + 2)
+
+    if count(step) <= max_vertices:
+        return step
+    step = max(step, float(np.sqrt(span[0] * span[1] / max_vertices)))
+    while count(step) > max_vertices:
+        step *= 1.01
+    return step
 
 
 def best_views(
@@ -514,11 +562,29 @@ def sample_images(images, view: np.ndarray, pixels: np.ndarray) -> np.ndarray:
             img = img[..., None]
         if out is None:
             out = np.zeros((len(view), img.shape[2]), dtype=float)
-        mx = pixels[sel, 0].astype(np.float32).reshape(-1, 1)
-        my = pixels[sel, 1].astype(np.float32).reshape(-1, 1)
-        s = cv2.remap(img.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        out[sel] = s.reshape(-1, img.shape[2])
+        src = img.astype(np.float32)
+        xy = pixels[sel].astype(np.float32)
+        samples = np.empty((len(xy), img.shape[2]), dtype=np.float32)
+        # cv2.remap asserts that its maps are under SHRT_MAX (32767) in each dimension: the samples are laid
+        # out in rows of _REMAP_COLS, at most _REMAP_ROWS rows per call (a frame that is the best view of
+        # more than 32767 vertices, any large grid, failed as one column)
+        block = _REMAP_COLS * _REMAP_ROWS
+        for start in range(0, len(xy), block):
+            part = xy[start:start + block]
+            cols = min(len(part), _REMAP_COLS)
+            rows = -(-len(part) // cols)
+            grid = np.zeros((rows * cols, 2), np.float32)
+            grid[:len(part)] = part
+            s = cv2.remap(src, grid[:, 0].reshape(rows, cols), grid[:, 1].reshape(rows, cols), cv2.INTER_LINEAR,
+                          borderMode=cv2.BORDER_REPLICATE)
+            samples[start:start + len(part)] = s.reshape(rows * cols, -1)[:len(part)]
+        out[sel] = samples
     return out if out is not None else np.zeros((len(view), 1))
+
+
+#: Layout of :func:`sample_images`' remap calls: both under cv2.remap's SHRT_MAX limit.
+_REMAP_COLS = 4096
+_REMAP_ROWS = 4096
 
 
 def texture(surface: Surface, camera: Camera, poses: list[Pose], images) -> tuple[np.ndarray, np.ndarray]:
