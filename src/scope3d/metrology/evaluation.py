@@ -97,6 +97,39 @@ def distance_summary(distances: np.ndarray) -> dict:
     }
 
 
+def visible_true_points(camera: Camera, true_poses: list[Pose], depth_of, *, max_points: int = 20000,
+                        seed: int = 0) -> np.ndarray:
+    """The true surface the frames see: every frame's true depth pixels (inside the field) as world points,
+    a seeded subsample of at most ``max_points``. depth_of : frame index -> (H, W) true z-depth (mm, NaN where
+    no surface). -> (N, 3) mm."""
+    valid = camera.mask()
+    grid = camera.pixel_grid()
+    pts = []
+    for k, pose in enumerate(true_poses):
+        z = np.asarray(depth_of(k), float)
+        sel = valid & np.isfinite(z)
+        pts.append(pose.inverse().transform(camera.unproject(grid[sel], z[sel])))
+    pts = np.concatenate(pts) if pts else np.zeros((0, 3))
+    if len(pts) > max_points:
+        pts = pts[np.sort(np.random.default_rng(seed).choice(len(pts), max_points, replace=False))]
+    return pts
+
+
+def mesh_errors(mesh: Mesh, truth: SampledSurface, visible_points: np.ndarray, *, within_mm: float = 0.1) -> dict:
+    """A reconstructed surface measured as the dense-MVS benchmarks do (DTU style, direct: no alignment):
+    accuracy, the distances from the mesh's vertices to the true surface (:func:`distance_summary`), and
+    completeness, the fraction of the visible true surface (``visible_points``, :func:`visible_true_points`)
+    whose closest point on the mesh lies within ``within_mm``."""
+    import trimesh
+
+    accuracy = distance_summary(truth.distances(mesh.vertices)) if len(mesh.vertices) else {"n": 0}
+    if len(mesh.faces) == 0 or len(visible_points) == 0:
+        return {"accuracy": accuracy, "completeness": 0.0, "within_mm": within_mm}
+    _, dist, _ = trimesh.proximity.closest_point(mesh.to_trimesh(), visible_points)
+    return {"accuracy": accuracy, "completeness": float(np.mean(dist <= within_mm)), "within_mm": within_mm,
+            "completeness_distance_mm": distance_summary(dist)}
+
+
 def icp_from_initial_poses(points: np.ndarray, target: SampledSurface, *,
                            options: EvaluationOptions = EvaluationOptions()) -> tuple[IcpResult, list[float]]:
     """ICP from eight starting poses around the reconstruction (reference sec. 4.5): the configured
