@@ -25,6 +25,7 @@ Units: mm; poses are ``cam_from_world``.
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import cv2
@@ -35,6 +36,7 @@ from scope3d.mvs.plane_sweep import PlaneSweepOptions, sweep
 from scope3d.scene.mesh import Mesh, PointCloud
 from scope3d.sensor.camera import Camera
 from scope3d.utils.progress import Progress, advance, stage
+from scope3d.utils.threads import check_threads, resolve_threads
 
 
 @dataclass(frozen=True)
@@ -54,6 +56,8 @@ class DenseOptions:
     min_sigma_mm : floor of a depth's standard deviation (default 0.01 mm: reading a depth map at a
         projected point interpolates between pixels, off by the surface's curvature there).
     merge_mm : fused points closer than this are merged (default 0.03 mm, about a pixel's footprint at 608 px).
+    threads : frames swept at once (default 0: every available core, :mod:`scope3d.utils.threads`; OpenCV
+        and NumPy's large array operations release the interpreter; the results do not depend on it).
     poisson_depth : octree depth of the Poisson surface (default 9: 512 cells across the cloud's extent,
         0.08 mm over the dome's 40 mm plate). trim_mm : mesh vertices farther than this from every fused
         point are dropped (default 0.2 mm: a few fused points' spacing).
@@ -72,6 +76,7 @@ class DenseOptions:
     merge_mm: float = 0.03
     poisson_depth: int = 9
     trim_mm: float = 0.2
+    threads: int = 0
 
     def __post_init__(self) -> None:
         lo, hi = self.angle_range_deg
@@ -81,6 +86,7 @@ class DenseOptions:
             raise ValueError("need min_overlap in [0, 1], depth_margin in (0, 0.9), consistency_sigmas > 0")
         if self.min_consistent_views < 1 or self.min_sigma_mm <= 0 or self.merge_mm < 0:
             raise ValueError("need min_consistent_views >= 1, min_sigma_mm > 0 and merge_mm >= 0")
+        check_threads(self.threads)
         if not 5 <= self.poisson_depth <= 12 or self.trim_mm <= 0:
             raise ValueError("need poisson_depth in 5-12 and trim_mm > 0")
 
@@ -160,22 +166,26 @@ def frame_depths(camera: Camera, images: list[np.ndarray], poses: list[Pose], po
     images : reflectance frames; poses : adjusted ``cam_from_world``; points : (N, 3) mm world, the sparse map."""
     neighbours = select_neighbours(camera, poses, points, options=options)
     stage(progress, "dense depth", len(images))
-    out: list[FrameDepth | None] = []
-    for i, sources in enumerate(neighbours):
+
+    def one(i: int) -> FrameDepth | None:
+        sources = neighbours[i]
         seen, z = _visible(camera, poses[i], points)
         z = z[seen]
         if len(sources) < options.sweep.min_sources or len(z) < 10:
-            out.append(None)
-            advance(progress)
-            continue
+            return None
         lo, mid, hi = np.percentile(z, [1, 50, 99])
         near, far = max(lo - options.depth_margin * mid, 0.1 * mid), hi + options.depth_margin * mid
         d = sweep(camera, images[i], poses[i], [images[k] for k in sources], [poses[k] for k in sources],
                   (near, far), options=options.sweep)
         depth = np.where(camera.mask(), d.depth_mm, np.nan)
-        out.append(FrameDepth(depth, np.maximum(d.sigma_mm, options.min_sigma_mm), d.score, sources,
-                              (float(near), float(far))))
-        advance(progress)
+        return FrameDepth(depth, np.maximum(d.sigma_mm, options.min_sigma_mm), d.score, sources,
+                          (float(near), float(far)))
+
+    out: list[FrameDepth | None] = [None] * len(images)
+    with ThreadPoolExecutor(max_workers=resolve_threads(options.threads, len(images))) as pool:
+        for i, depth in zip(range(len(images)), pool.map(one, range(len(images)))):
+            out[i] = depth
+            advance(progress)
     return out
 
 
