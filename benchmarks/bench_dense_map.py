@@ -117,11 +117,16 @@ def main() -> int:
             for noise in args.noise:
                 r = one(scene, noise, args.size, Path(tmp))
                 runs.append(r)
-                d, s = r["dense_error_mm"], r["spline_error_mm"]
-                print(f"{scene} ±{noise:g} mm: dense acc {d['accuracy']['mean']:.4f} (p95 {d['accuracy']['p95']:.3f}) "
-                      f"compl {d['completeness']:.3f} | spline acc {s['accuracy']['mean']:.4f} "
-                      f"(p95 {s['accuracy']['p95']:.3f}) compl {s['completeness']:.3f} | dense "
-                      f"{r['timings_s']['dense']:.1f} s, sparse {r['sparse_map_s']:.1f} s", flush=True)
+                for when in ("direct", "after_icp"):
+                    d, s = r["dense_error_mm"], r["spline_error_mm"]
+                    if when == "after_icp":
+                        d, s = d["after_icp"], s["after_icp"]
+                    print(f"{scene} ±{noise:g} mm {when}: dense acc {d['accuracy']['mean']:.4f} "
+                          f"(p95 {d['accuracy']['p95']:.3f}) compl {d['completeness']:.3f} "
+                          f"({d['completeness_seen_by_3']:.3f} of what 3 frames see) | spline acc "
+                          f"{s['accuracy']['mean']:.4f} (p95 {s['accuracy']['p95']:.3f}) compl {s['completeness']:.3f} "
+                          f"({s['completeness_seen_by_3']:.3f})", flush=True)
+                print(f"  dense {r['timings_s']['dense']:.1f} s, sparse map {r['sparse_map_s']:.1f} s", flush=True)
     Path(args.results).parent.mkdir(parents=True, exist_ok=True)
     Path(args.results).write_text(json.dumps({
         "machine": "2 cores shared with other jobs (load 10-13 during the run)",

@@ -65,6 +65,7 @@ from scope3d.io.ply import write_ply
 from scope3d.io.poses_csv import format_poses_csv
 from scope3d.metrology.evaluation import (
     EvaluationOptions,
+    icp_from_initial_poses,
     mesh_errors,
     pose_errors,
     save_error_histogram_png,
@@ -658,6 +659,12 @@ def evaluate_map(options: MapOptions, dataset: Dataset, sparse: SparseResult, ta
             for key, mesh in meshes.items():
                 out[key] = mesh_errors(mesh, truth, visible)
                 out[key]["completeness_seen_by_3"] = mesh_errors(mesh, truth, multi)["completeness"]
+                # and after a rigid ICP of the mesh's vertices to the truth (as the sparse points): a common
+                # offset of all the poses is unobservable from the images and stays in the direct error
+                best, _ = icp_from_initial_poses(mesh.vertices, truth, options=options.evaluation)
+                moved = Mesh(best.apply(mesh.vertices), mesh.faces)
+                out[key]["after_icp"] = mesh_errors(moved, truth, visible)
+                out[key]["after_icp"]["completeness_seen_by_3"] = mesh_errors(moved, truth, multi)["completeness"]
     if targets is not None and true_targets(gt.scene):
         out["targets_vs_truth"] = match_targets(targets.targets, true_targets(gt.scene))
     out["time_s"] = time.perf_counter() - t0
