@@ -121,17 +121,10 @@ def visible_true_points(camera: Camera, true_poses: list[Pose], depth_of, *, max
         z = np.asarray(depth_of(k), float)
         gy, gx = np.gradient(z)
         slack = 0.05 + np.hypot(gx, gy)
-        q = pose.transform(pts)
-        front = q[:, 2] > 0
-        uv = np.full((len(pts), 2), -1.0)
-        uv[front] = camera.project(q[front])
-        inside = front & camera.in_image(uv)
-        ij = np.rint(uv[inside]).astype(int)
-        ij[:, 0] = np.clip(ij[:, 0], 0, camera.width - 1)
-        ij[:, 1] = np.clip(ij[:, 1], 0, camera.height - 1)
+        idx, ij, depth = camera.nearest_pixels(pose, pts)
         nearest = z[ij[:, 1], ij[:, 0]]
-        seen = np.isfinite(nearest) & (q[inside, 2] <= nearest + slack[ij[:, 1], ij[:, 0]])
-        views[np.flatnonzero(inside)[seen]] += 1
+        seen = np.isfinite(nearest) & (depth <= nearest + slack[ij[:, 1], ij[:, 0]])
+        views[idx[seen]] += 1
     return pts[views >= min_views]
 
 

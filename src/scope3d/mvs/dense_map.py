@@ -121,13 +121,11 @@ class FusedDepths:
 
 
 def _visible(camera: Camera, pose: Pose, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(N,) bool: the points project into the camera's field, and their (N,) z-depths."""
-    p = pose.transform(points)
-    z = p[:, 2]
-    ok = z > 1e-6
-    uv = np.full((len(points), 2), -1.0)
-    uv[ok] = camera.project(p[ok])
-    return ok & camera.in_image(uv) & camera.sees_pixels(uv), z
+    """(N,) bool: the points fall inside the camera's image; and the z-depths (M,) of those that do."""
+    idx, _, z = camera.nearest_pixels(pose, points)
+    seen = np.zeros(len(points), bool)
+    seen[idx] = True
+    return seen, z
 
 
 def select_neighbours(camera: Camera, poses: list[Pose], points: np.ndarray, *,
@@ -169,8 +167,7 @@ def frame_depths(camera: Camera, images: list[np.ndarray], poses: list[Pose], po
 
     def one(i: int) -> FrameDepth | None:
         sources = neighbours[i]
-        seen, z = _visible(camera, poses[i], points)
-        z = z[seen]
+        _, z = _visible(camera, poses[i], points)
         if len(sources) < options.sweep.min_sources or len(z) < 10:
             return None
         lo, mid, hi = np.percentile(z, [1, 50, 99])

@@ -199,6 +199,17 @@ def _revolution(radius: np.ndarray, z: np.ndarray, normal_rz: np.ndarray, n_thet
     return v.reshape(-1, 3), grid_faces(len(z), n_theta, wrap=True), n.reshape(-1, 3)
 
 
+def _triplanar(texs: list[TextureMap], points: np.ndarray, normals: np.ndarray, footprint_mm: np.ndarray) -> np.ndarray:
+    """Triplanar mapping: three planar projections (along x, y, z) blended by how squarely the surface faces
+    each axis. -> (N, 3) float32."""
+    w = np.abs(normals) ** 4
+    w /= w.sum(axis=1, keepdims=True)
+    out = texs[0].sample(points[:, [1, 2]], footprint_mm) * w[:, 0:1].astype(np.float32)
+    out += texs[1].sample(points[:, [0, 2]], footprint_mm) * w[:, 1:2].astype(np.float32)
+    out += texs[2].sample(points[:, [0, 1]], footprint_mm) * w[:, 2:3].astype(np.float32)
+    return out
+
+
 # --- targets -----------------------------------------------------------------------------------
 
 
@@ -463,13 +474,7 @@ def build_bladder(*, texture_seed: int = 0, mm_per_texel: float = 0.05, semi_axe
                        (-size / 2, -size / 2), mm_per_texel) for k in range(3)]
 
     def albedo(points, normals, footprint_mm):
-        # Triplanar mapping: blend three planar projections by how squarely the surface faces each axis.
-        w = np.abs(normals) ** 4
-        w /= w.sum(axis=1, keepdims=True)
-        out = texs[0].sample(points[:, [1, 2]], footprint_mm) * w[:, 0:1].astype(np.float32)
-        out += texs[1].sample(points[:, [0, 2]], footprint_mm) * w[:, 1:2].astype(np.float32)
-        out += texs[2].sample(points[:, [0, 1]], footprint_mm) * w[:, 2:3].astype(np.float32)
-        return out
+        return _triplanar(texs, points, normals, footprint_mm)
 
     material = WET_MATERIAL if wet else Material(specular=0.06, shininess=25.0)
     scene = Scene("bladder", mesh, albedo, material, (), SCENE_TRAJECTORIES["bladder"],
@@ -672,13 +677,9 @@ def build_cavity(*, texture_seed: int = 0, mm_per_texel: float = 0.015) -> Scene
                        mm_per_texel) for k in range(3)]
 
     def albedo(points, normals, footprint_mm):
-        # Triplanar mapping (as the bladder's): the walls, steep or undercut, get a texture of their own
-        # instead of a planar projection's streaks.
-        w = np.abs(normals) ** 4
-        w /= w.sum(axis=1, keepdims=True)
-        out = texs[0].sample(points[:, [1, 2]], footprint_mm) * w[:, 0:1].astype(np.float32)
-        out += texs[1].sample(points[:, [0, 2]], footprint_mm) * w[:, 1:2].astype(np.float32)
-        out += texs[2].sample(points[:, [0, 1]], footprint_mm) * w[:, 2:3].astype(np.float32)
+        # Triplanar (as the bladder's): the walls, steep or undercut, get a texture of their own instead of
+        # a planar projection's streaks.
+        out = _triplanar(texs, points, normals, footprint_mm)
         cover, colour = _vessel_bundle(points, np.asarray(footprint_mm, dtype=float))
         return (out * (1 - cover)[:, None] + colour * cover[:, None]).astype(np.float32)
 

@@ -596,18 +596,10 @@ def dense_fluorescence(dataset: Dataset, sparse: SparseResult, dense: DenseMap, 
         if depth is None:
             continue
         mask = segment(dataset.fluorescence_frame(k), threshold, options=options, mask=camera.mask())
-        p = sparse.poses[k].transform(v)
-        front = p[:, 2] > 1e-6
-        uv = np.full((len(v), 2), -1.0)
-        uv[front] = camera.project(p[front])
-        inside = front & camera.in_image(uv)
-        ij = np.rint(uv[inside]).astype(int)
-        ij[:, 0] = np.clip(ij[:, 0], 0, camera.width - 1)
-        ij[:, 1] = np.clip(ij[:, 1], 0, camera.height - 1)
-        idx = np.flatnonzero(inside)
+        idx, ij, z_vertex = camera.nearest_pixels(sparse.poses[k], v)
         z = np.where(dense.fused.consistent[k], depth.depth_mm, np.nan)[ij[:, 1], ij[:, 0]]
         s = depth.sigma_mm[ij[:, 1], ij[:, 0]]
-        ok = np.isfinite(z) & (np.abs(z - p[idx, 2]) <= 3.0 * s + _POISSON_SMOOTHING_MM)
+        ok = np.isfinite(z) & (np.abs(z - z_vertex) <= 3.0 * s + _POISSON_SMOOTHING_MM)
         seen[idx[ok]] += 1
         lit[idx[ok]] += mask[ij[ok, 1], ij[ok, 0]]
     return (seen >= 2) & (2 * lit >= seen)
