@@ -108,7 +108,6 @@ def test_bad_intrinsics_raise(kwargs):
 
 
 def test_nearest_pixels_keeps_the_points_in_view():
-
     camera = Camera.from_fov(64, 48, 60.0)
     pose = Pose.identity()
     inside = camera.unproject(np.array([[10.2, 20.7], [0.0, 0.0]]), 5.0)

@@ -281,7 +281,8 @@ class MapResult:
     :meth:`save` writes them (and the tracks, the camera and the surface grid) to one ``.npz`` that
     :meth:`load` reads back; the stages' intermediates (features, matches, bundle logs, fluorescence rasters)
     are not saved: a loaded result has ``features == []``, ``matching is None``, ``targets is None`` (the
-    targets are in its report and in targets.csv). The whole result also pickles.
+    targets are in its report and in targets.csv), and ``dense is None`` (the dense map, with ``MapOptions.dense``,
+    is in dense.ply and mesh.ply). The whole result also pickles.
     """
 
     report: dict
