@@ -105,3 +105,15 @@ def test_bad_intrinsics_raise(kwargs):
     base.update(kwargs)
     with pytest.raises(ValueError):
         Camera(**base)
+
+
+def test_nearest_pixels_keeps_the_points_in_view():
+    camera = Camera.from_fov(64, 48, 60.0)
+    pose = Pose.identity()
+    inside = camera.unproject(np.array([[10.2, 20.7], [0.0, 0.0]]), 5.0)
+    behind = np.array([[0.0, 0.0, -5.0]])
+    outside = camera.unproject(np.array([[80.0, 20.0]]), 5.0)
+    idx, ij, z = camera.nearest_pixels(pose, np.concatenate([inside, behind, outside]))
+    np.testing.assert_array_equal(idx, [0, 1])
+    np.testing.assert_array_equal(ij, [[10, 21], [0, 0]])
+    np.testing.assert_allclose(z, 5.0)

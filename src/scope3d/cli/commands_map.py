@@ -43,6 +43,10 @@ def register(subparsers) -> None:
                         "(default 0: trust every report; measured on the dome: no clean map of 12 or 30 frames "
                         "flagged, glitches of 2 mm and more mostly found, 0.1-0.2 s CPU per 12-frame map and "
                         "0.5-1.2 s per 30-frame map; see docs/reliability.md)")
+    p.add_argument("--surface", choices=("spline", "dense"), default="spline",
+                   help="spline: the thin-plate-spline height field through the points (default); dense: also a "
+                        "depth map per frame, fused where the views agree (dense.ply), and a mesh of it that "
+                        "follows overhangs (mesh.ply; the spline's is then mesh_spline.ply)")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     add_job_arguments(p)
     p.set_defaults(func=run)
@@ -61,6 +65,10 @@ def run(args) -> int:
     dataset = load_dataset(args.dataset)
     options = replace(MAP_PRESETS[args.preset], pose_mode=args.pose_mode, matcher=args.matcher,
                       figures=not args.no_figures)
+    if args.surface == "dense":
+        from scope3d.mvs.dense_map import DenseOptions
+
+        options = replace(options, dense=DenseOptions())
     if args.pose_false_alarm_rate == 0.0:
         options = replace(options, pose_check=None)
     else:

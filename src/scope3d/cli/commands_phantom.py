@@ -33,7 +33,7 @@ def _floats(text: str, n: int, option: str, form: str) -> tuple[float, ...]:
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "phantom",
-        help="render a phantom (dome, sheet, bladder, thread) with exact ground truth",
+        help="render a phantom (dome, sheet, bladder, thread, cavity) with exact ground truth",
         description="Render an image sequence of a phantom with exact ground truth (true poses, surface mesh, "
                     "depth maps, scene.json; lengths in mm) and write it as a scope3d dataset folder, plus "
                     "contact_sheet.png, report.json and report.html.",
@@ -140,7 +140,7 @@ def run(args) -> int:
         print(catalogue())
         return 0
     if not args.scene:
-        raise InputError("name a scene (dome, sheet, bladder, thread) or use --list")
+        raise InputError("name a scene (dome, sheet, bladder, thread, cavity) or use --list")
     if not args.out:
         raise InputError("--out DIR is required")
     if args.raw_recording:

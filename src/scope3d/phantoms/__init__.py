@@ -1,7 +1,8 @@
 """The phantom lab: image sequences of the reference's phantoms with exact ground truth, in millimetres.
 
 Scenes (:mod:`.scenes`): ``dome`` (brain-tumour cavity with fluorescent targets), ``sheet`` (flat print),
-``bladder`` (closed cavity with star markers), ``thread`` (ISO internal thread in a blind hole).
+``bladder`` (closed cavity with star markers), ``thread`` (ISO internal thread in a blind hole), ``cavity`` (a
+resection cavity with an overhanging lip, issue 35).
 Trajectories (:mod:`.trajectories`): ``grid5x6``, ``grid7x8``, ``axial``, ``quadrants``, ``spiral``, ``approach``.
 Rendering (:mod:`.render`, compiled :mod:`.render_kernels`): Embree ray casting refined in double precision
 (:mod:`.raycast`, :mod:`.raycast_kernels`), procedural textures (:mod:`.textures`), light at the scope tip,

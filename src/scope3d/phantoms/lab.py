@@ -256,8 +256,9 @@ def generate(
         advance(progress, board_views)
     poses = traj.poses
     # a live approach auto-exposes every frame (the light at the tip is 6x brighter at the stop than at the
-    # start); a survey keeps one setting
-    exposure = None if name == "approach" else sequence_exposure(built, camera, poses, options=options)
+    # start), and so does a survey of a deep cavity (Scene.auto_exposure); other surveys keep one setting
+    exposure = (None if name == "approach" or built.auto_exposure
+                else sequence_exposure(built, camera, poses, options=options))
     frames, fluo, depths, tids = [], [], [], []
     stage(progress, f"phantom {scene}/{name}", len(poses))
     for i, pose in enumerate(poses):

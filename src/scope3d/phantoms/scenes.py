@@ -11,6 +11,10 @@ World frame of every scene: z up, lengths in mm.
   seen from inside, with four 6 mm star markers (sec. 2.2, Fig. 2.3).
 * ``thread``: an ISO 68-1 internal thread in a blind hole in shiny aluminium (ch. 7–8): axis = z,
   opening at z = 0, hole towards -z.
+* ``cavity``: a resection cavity as a surgeon leaves it after debulking (issue 35; the reference's ch. 9.3.1
+  asks for a map that follows such tissue): an irregular pit 6–15 mm deep in the 40 mm plate, an
+  overhanging lip on one side (not a height field), creases where the wall meets the plate and the floor, a
+  2 mm step onto a shelf, a bundle of vessels crossing it, wet highlights, the 8 fluorescent targets.
 
 A :class:`Scene` holds the mesh (with vertex normals; creases are split so that shading stays sharp
 there), a world-anchored albedo function, a material, the fluorescent targets and ``info``, the
@@ -44,6 +48,7 @@ SCENE_TRAJECTORIES = {
     "sheet": ("grid5x6", "grid7x8"),
     "bladder": ("spiral",),
     "thread": ("axial", "quadrants"),
+    "cavity": ("grid5x6", "grid7x8", "approach"),
 }
 
 # Mesh resolution. Chord errors of the tessellation stay below 1 µm (sagitta = edge² / 8R).
@@ -125,6 +130,8 @@ class Scene:
         ``supersample`` at None. 1 for the painted and printed phantoms (their textures are mip-mapped and
         their edges soft); 2 for the machined thread, whose sharp crests and specular edges alias badly
         with one ray per pixel.
+    auto_exposure : the scope re-exposes every frame instead of keeping one setting for the sequence: the
+        resection cavity's floor, 13 mm below the plate, is 3-4x darker than the plate at the scope's light.
     """
 
     name: str
@@ -137,6 +144,7 @@ class Scene:
     fov_deg: float
     info: dict = field(default_factory=dict)
     render_supersample: int = 1
+    auto_exposure: bool = False
     _caster: RayCaster | None = field(default=None, repr=False)
 
     @property
@@ -170,7 +178,7 @@ def _assemble(parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> Mesh:
 
 
 def _square_annulus(r_inner: float, half_width: float, z: float, n_theta: int, n_rings: int, normal_z: float = 1.0):
-    """Flat annulus at height z from a circle of radius ``r_inner`` out to a square of half-width
+    """Flat annulus at height z from a circle of radius ``r_inner`` (or a curve: one radius per azimuth) out to a square of half-width
     ``half_width``; ``n_theta`` must be a multiple of 8 so that the square's corners are vertices."""
     theta = np.arange(n_theta) * 2 * np.pi / n_theta
     r_square = half_width / np.maximum(np.abs(np.cos(theta)), np.abs(np.sin(theta)))
@@ -189,6 +197,17 @@ def _revolution(radius: np.ndarray, z: np.ndarray, normal_rz: np.ndarray, n_thet
     n = np.stack([normal_rz[:, 0:1] * c, normal_rz[:, 0:1] * s,
                   np.broadcast_to(normal_rz[:, 1:2], (len(z), n_theta))], -1)
     return v.reshape(-1, 3), grid_faces(len(z), n_theta, wrap=True), n.reshape(-1, 3)
+
+
+def _triplanar(texs: list[TextureMap], points: np.ndarray, normals: np.ndarray, footprint_mm: np.ndarray) -> np.ndarray:
+    """Triplanar mapping: three planar projections (along x, y, z) blended by how squarely the surface faces
+    each axis. -> (N, 3) float32."""
+    w = np.abs(normals) ** 4
+    w /= w.sum(axis=1, keepdims=True)
+    out = texs[0].sample(points[:, [1, 2]], footprint_mm) * w[:, 0:1].astype(np.float32)
+    out += texs[1].sample(points[:, [0, 2]], footprint_mm) * w[:, 1:2].astype(np.float32)
+    out += texs[2].sample(points[:, [0, 1]], footprint_mm) * w[:, 2:3].astype(np.float32)
+    return out
 
 
 # --- targets -----------------------------------------------------------------------------------
@@ -455,13 +474,7 @@ def build_bladder(*, texture_seed: int = 0, mm_per_texel: float = 0.05, semi_axe
                        (-size / 2, -size / 2), mm_per_texel) for k in range(3)]
 
     def albedo(points, normals, footprint_mm):
-        # Triplanar mapping: blend three planar projections by how squarely the surface faces each axis.
-        w = np.abs(normals) ** 4
-        w /= w.sum(axis=1, keepdims=True)
-        out = texs[0].sample(points[:, [1, 2]], footprint_mm) * w[:, 0:1].astype(np.float32)
-        out += texs[1].sample(points[:, [0, 2]], footprint_mm) * w[:, 1:2].astype(np.float32)
-        out += texs[2].sample(points[:, [0, 1]], footprint_mm) * w[:, 2:3].astype(np.float32)
-        return out
+        return _triplanar(texs, points, normals, footprint_mm)
 
     material = WET_MATERIAL if wet else Material(specular=0.06, shininess=25.0)
     scene = Scene("bladder", mesh, albedo, material, (), SCENE_TRAJECTORIES["bladder"],
@@ -493,6 +506,227 @@ def build_bladder(*, texture_seed: int = 0, mm_per_texel: float = 0.05, semi_axe
                                  "kind": "wet mucosa" if wet else "latex"},
                     "extent_mm": (verts.max(0) - verts.min(0)).tolist()},
         "texture": {"kind": "tissue (vessels), triplanar projection", "seed": texture_seed,
+                    "mm_per_texel": mm_per_texel},
+        "targets": [target_ground_truth(scene.caster, t) for t in targets],
+    }
+    return scene
+
+
+# --- resection cavity ----------------------------------------------------------------------------
+
+# The cavity's shape, all in the plate's polar coordinates (theta about +z from +x, mm). Wall, floor and step
+# are parametric, so the mesh's vertices lie exactly on the surface these functions define.
+CAVITY_STEP_MM = 2.0  # the shelf's edge: a vertical drop of 2 mm (issue 35)
+CAVITY_STEP_FRACTION = 0.55  # the step's radius as a fraction of the floor's (theta-dependent) radius
+CAVITY_LIP_AZIMUTH_DEG = 0.0
+CAVITY_LIP_HALF_WIDTH_DEG = 50.0
+CAVITY_LIP_OVERHANG_MM = 1.6  # amplitude of the lip's undercut (the overhang reaches about 1 mm)
+CAVITY_LIP_LEAN_DEPTH_MM = 11.8  # the undercut grows as sin(pi d / (2 this)): 12° past vertical at the rim
+CAVITY_SHELF_AZIMUTH_DEG = 200.0
+CAVITY_SHELF_HALF_WIDTH_DEG = (40.0, 55.0)  # full height within the first, tapering to nothing at the second
+_CAVITY_N_THETA = 720
+_CAVITY_ROWS = {"wall": 90, "outer_floor": 30, "step": 14, "inner_floor": 40}
+# The targets (id, shape, size mm, azimuth deg, spin deg): the star in the middle of the floor, the others on
+# the floor ring between the step and the wall, away from the lip (a film projected from above must not fall
+# on it).
+_CAVITY_TARGETS = [
+    (1, "disc", 2.5, 50.0, 0.0),
+    (2, "square", 2.0, 93.0, 20.0),
+    (3, "disc", 2.0, 137.0, 0.0),
+    (4, "star", 6.0, None, 10.0),
+    (5, "disc", 2.5, 180.0, 0.0),
+    (6, "square", 2.0, 223.0, 35.0),
+    (7, "triangle", 2.5, 267.0, 15.0),
+    (8, "triangle", 2.5, 310.0, 50.0),
+]
+_CAVITY_TARGET_RING = 0.775  # of the floor's radius: midway between the step (0.55) and the wall (1)
+
+
+def _wrapped_deg(theta: np.ndarray, centre_deg: float) -> np.ndarray:
+    """|theta - centre| in degrees, wrapped to [0, 180]."""
+    return np.abs(np.rad2deg(np.angle(np.exp(1j * (np.asarray(theta) - np.deg2rad(centre_deg))))))
+
+
+def cavity_rim_radius(theta: np.ndarray) -> np.ndarray:
+    """Radius (mm) of the cavity's opening in the plate at azimuth theta (rad): 9.3 mm at the lip, 12.5 opposite."""
+    theta = np.asarray(theta, dtype=float)
+    return 10.5 - 1.5 * np.cos(theta) + 0.4 * np.sin(2 * theta + 0.5) + 0.25 * np.cos(3 * theta - 1.0)
+
+
+def cavity_lip_weight(theta: np.ndarray) -> np.ndarray:
+    """How much of the lip's undercut applies at azimuth theta: 1 at its middle, cos² to 0 at its ends."""
+    off = _wrapped_deg(theta, CAVITY_LIP_AZIMUTH_DEG)
+    return np.where(off < CAVITY_LIP_HALF_WIDTH_DEG, np.cos(0.5 * np.pi * off / CAVITY_LIP_HALF_WIDTH_DEG) ** 2, 0.0)
+
+
+def cavity_shelf_weight(theta: np.ndarray) -> np.ndarray:
+    """Fraction of the 2 mm the shelf is raised at azimuth theta: 1 on its middle, a cos² taper at its ends."""
+    off = _wrapped_deg(theta, CAVITY_SHELF_AZIMUTH_DEG)
+    flat, end = CAVITY_SHELF_HALF_WIDTH_DEG
+    taper = 0.5 * (1.0 + np.cos(np.pi * np.clip((off - flat) / (end - flat), 0.0, 1.0)))
+    return np.where(off <= flat, 1.0, taper)
+
+
+def cavity_floor_depth(theta: np.ndarray, rho: np.ndarray) -> np.ndarray:
+    """Depth (mm, below the plate) of the floor before the shelf is raised, at azimuth theta and rho, the
+    fraction of the floor's radius (0 in the middle, 1 where the wall starts): 13 mm in the middle, a dip to
+    about 14.6, rising to 8-12 at the wall."""
+    theta, rho = np.asarray(theta, dtype=float), np.asarray(rho, dtype=float)
+    tilt = -3.0 - 2.0 * np.cos(theta - np.deg2rad(CAVITY_SHELF_AZIMUTH_DEG)) + 0.6 * np.sin(2 * theta + 1.0)
+    px, py = rho * np.cos(theta), rho * np.sin(theta)
+    dip = 1.8 * np.exp(-((px + 0.2) ** 2 + (py + 0.15) ** 2) / (2 * 0.18**2))
+    return 13.0 + rho**2 * tilt + dip
+
+
+def cavity_wall_depth(theta: np.ndarray) -> np.ndarray:
+    """Height (mm) of the wall at azimuth theta: the floor's depth at its edge less the raised shelf."""
+    return cavity_floor_depth(theta, np.ones_like(np.asarray(theta, dtype=float))) - CAVITY_STEP_MM * cavity_shelf_weight(theta)
+
+
+def cavity_wall_radius(theta: np.ndarray, depth_mm: np.ndarray) -> np.ndarray:
+    """Radius (mm) of the wall at azimuth theta, ``depth_mm`` below the plate (0 to :func:`cavity_wall_depth`).
+
+    The wall is vertical at the rim and draws in by ``k d² / wall depth`` (k = 0.25: 2-3 mm at the floor);
+    under the lip k drops to 0.05 and the wall leans out by ``overhang sin(pi d / (2 lean depth))``, which
+    carries it up to about 1 mm beyond the rim: an undercut the plate's edge overhangs.
+    """
+    theta, d = np.asarray(theta, dtype=float), np.asarray(depth_mm, dtype=float)
+    lip = cavity_lip_weight(theta)
+    k = 0.25 * (1.0 - 0.8 * lip)
+    lean = CAVITY_LIP_OVERHANG_MM * lip * np.sin(0.5 * np.pi * d / CAVITY_LIP_LEAN_DEPTH_MM)
+    return cavity_rim_radius(theta) - k * d**2 / cavity_wall_depth(theta) + lean
+
+
+def cavity_floor_radius(theta: np.ndarray) -> np.ndarray:
+    """Radius (mm) of the floor's edge (the wall's foot) at azimuth theta."""
+    return cavity_wall_radius(theta, cavity_wall_depth(theta))
+
+
+def _grid_normals(v: np.ndarray, fallback: np.ndarray) -> np.ndarray:
+    """Normals (rows, cols, 3) of a grid (rows, cols, 3) that wraps along its columns: column tangent x row
+    tangent (the faces' winding, see :func:`~scope3d.geometry.grid.grid_faces`). Where the grid collapses
+    (the floor's middle, a step of no height) ``fallback`` (3,) or (rows, cols, 3)."""
+    along_col = np.roll(v, -1, axis=1) - np.roll(v, 1, axis=1)
+    along_row = np.gradient(v, axis=0)
+    n = np.cross(along_col, along_row)
+    length = np.linalg.norm(n, axis=-1, keepdims=True)
+    fallback = np.broadcast_to(fallback, v.shape)
+    return np.where(length > 1e-12, n / np.maximum(length, 1e-300), fallback)
+
+
+def _polar_grid(radius: np.ndarray, z: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    return np.stack([radius * np.cos(theta), radius * np.sin(theta), z], axis=-1)
+
+
+def _vessel_bundle(points: np.ndarray, footprint_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Coverage (N,) in [0, 1] and colour (N, 3) of three vessels crossing the cavity along x, painted as seen
+    from above: centre lines y = 1.5 sin(0.2 x + 0.4) - 0.08 x + offset; edges soft over a pixel's footprint."""
+    x, y = points[:, 0], points[:, 1]
+    centre = 1.5 * np.sin(0.2 * x + 0.4) - 0.08 * x
+    slope = 0.3 * np.cos(0.2 * x + 0.4) - 0.08
+    cover = np.zeros(len(points))
+    colour = np.zeros((len(points), 3))
+    for offset, width, rgb in ((-0.8, 0.5, (0.62, 0.10, 0.10)), (0.0, 0.35, (0.70, 0.16, 0.14)),
+                               (0.7, 0.45, (0.34, 0.12, 0.26))):
+        dist = np.abs(y - centre - offset) / np.sqrt(1.0 + slope**2)
+        a = np.clip((0.5 * width - dist) / np.maximum(footprint_mm, 0.02) + 0.5, 0.0, 1.0)
+        colour = colour * (1 - a)[:, None] + np.asarray(rgb) * a[:, None]
+        cover = np.maximum(cover, a)
+    return cover, colour
+
+
+def build_cavity(*, texture_seed: int = 0, mm_per_texel: float = 0.015) -> Scene:
+    """A resection cavity in a 40 mm plate (top face z = 0): see the module docstring and the ``cavity_*``
+    functions, which define every part. The mesh is five parametric grids over the azimuth (wall from the rim
+    down, floor ring, the step's face, inner floor, plate); rows meet at the creases with separate vertices,
+    so the shading stays sharp there."""
+    n_th = _CAVITY_N_THETA
+    theta = np.arange(n_th) * 2 * np.pi / n_th
+    rim = cavity_rim_radius(theta)
+    wall_depth = cavity_wall_depth(theta)
+    shelf = CAVITY_STEP_MM * cavity_shelf_weight(theta)
+    inward = -np.stack([np.cos(theta), np.sin(theta), np.zeros(n_th)], -1)
+    parts = []
+    rows = _CAVITY_ROWS
+
+    u = np.linspace(0.0, 1.0, rows["wall"] + 1)[:, None]
+    d = u * wall_depth[None, :]
+    wall = _polar_grid(cavity_wall_radius(theta[None, :], d), -d, theta[None, :])
+    parts.append(wall)
+    foot = cavity_floor_radius(theta)
+    rho = np.linspace(1.0, CAVITY_STEP_FRACTION, rows["outer_floor"] + 1)[:, None]
+    parts.append(_polar_grid(rho * foot, -(cavity_floor_depth(theta[None, :], rho) - shelf), theta[None, :]))
+    step_top = cavity_floor_depth(theta, CAVITY_STEP_FRACTION) - shelf
+    s = np.linspace(0.0, 1.0, rows["step"] + 1)[:, None]
+    parts.append(_polar_grid(np.broadcast_to(CAVITY_STEP_FRACTION * foot, (len(s), n_th)),
+                             -(step_top + s * shelf), theta[None, :]))
+    rho = np.linspace(CAVITY_STEP_FRACTION, 0.0, rows["inner_floor"] + 1)[:, None]
+    parts.append(_polar_grid(rho * foot, -cavity_floor_depth(theta[None, :], rho), theta[None, :]))
+    grids = []
+    for k, v in enumerate(parts):
+        fallback = np.array([0.0, 0.0, 1.0]) if k in (1, 3) else inward[None]
+        n = _grid_normals(v, fallback)
+        if k == 3:  # the floor's middle collapses to a point: its normal is the next row's mean
+            n[-1] = n[-2].mean(axis=0) / np.linalg.norm(n[-2].mean(axis=0))
+        grids.append((v.reshape(-1, 3), grid_faces(len(v), n_th, wrap=True), n.reshape(-1, 3)))
+    pv, pf, pn = _square_annulus(rim, DOME_PLATE_MM / 2, 0.0, n_th, 24)
+    mesh = _assemble([*grids, (pv, pf[:, ::-1], pn)])  # its rows run outwards: reversed, it winds as its normals
+
+    size = DOME_PLATE_MM + 2.0
+    texs = [TextureMap(tissue_texture((size, size), mm_per_texel, texture_seed + 30 + k), (-size / 2, -size / 2),
+                       mm_per_texel) for k in range(3)]
+
+    def albedo(points, normals, footprint_mm):
+        # Triplanar (as the bladder's): the walls, steep or undercut, get a texture of their own instead of
+        # a planar projection's streaks.
+        out = _triplanar(texs, points, normals, footprint_mm)
+        cover, colour = _vessel_bundle(points, np.asarray(footprint_mm, dtype=float))
+        return (out * (1 - cover)[:, None] + colour * cover[:, None]).astype(np.float32)
+
+    scene = Scene("cavity", mesh, albedo, WET_MATERIAL, (), SCENE_TRAJECTORIES["cavity"], "endoscope", 53.0,
+                  auto_exposure=True)
+    targets = []
+    for tid, shape, size_mm, az, spin in _CAVITY_TARGETS:
+        outline, sizes = target_outline(shape, size_mm)
+        if az is None:
+            xy = np.zeros(2)
+        else:
+            a = np.deg2rad(az)
+            xy = _CAVITY_TARGET_RING * float(cavity_floor_radius(a)) * np.array([np.cos(a), np.sin(a)])
+        origin = np.array([xy[0], xy[1], 1.0])
+        frame = _frame_from_normal(np.array([0.0, 0.0, 1.0]), np.deg2rad(spin))
+        targets.append(TrueTarget(tid, shape, sizes, origin, frame, outline, depth_range_mm=17.0))
+    scene.targets = tuple(targets)
+    overhang = wall[..., :2]
+    beyond = np.linalg.norm(overhang, axis=-1) - rim[None, :]
+    floor_z = np.concatenate([parts[1][..., 2].ravel(), parts[3][..., 2].ravel()])
+    scene.info = {
+        "name": "cavity",
+        "description": "resection cavity after debulking: irregular pit 6-15 mm deep, an overhanging lip, creases, "
+                       "a 2 mm step, a bundle of vessels crossing it, wet tissue, 8 fluorescent targets (issue 35)",
+        "units": "mm",
+        "world_frame": "z up; plate top face z = 0; the pit's opening around the z axis",
+        "cavity": {
+            "plate_size_mm": DOME_PLATE_MM,
+            "rim_radius_mm": "10.5 - 1.5 cos t + 0.4 sin(2t + 0.5) + 0.25 cos(3t - 1) at azimuth t from +x",
+            "rim_radius_range_mm": [float(rim.min()), float(rim.max())],
+            "floor_depth_mm": "13 + rho^2 (-3 - 2 cos(t - 200°) + 0.6 sin(2t + 1)) + 1.8 exp(-|rho (cos t, sin t) "
+                              "- (-0.2, -0.15)|^2 / (2 0.18^2)), rho = fraction of the floor radius",
+            "depth_range_mm": [float(-floor_z.max()), float(-floor_z.min())],
+            "lip": {"azimuth_deg": CAVITY_LIP_AZIMUTH_DEG, "half_width_deg": CAVITY_LIP_HALF_WIDTH_DEG,
+                    "max_overhang_mm": float(beyond.max()),
+                    "max_overhang_depth_mm": float(-wall[..., 2].ravel()[np.argmax(beyond)]),
+                    "undercut_at_rim_deg": float(np.degrees(np.arctan(
+                        CAVITY_LIP_OVERHANG_MM * 0.5 * np.pi / CAVITY_LIP_LEAN_DEPTH_MM)))},
+            "step": {"height_mm": CAVITY_STEP_MM, "radius_fraction_of_floor": CAVITY_STEP_FRACTION,
+                     "azimuth_deg": CAVITY_SHELF_AZIMUTH_DEG, "full_height_half_width_deg": CAVITY_SHELF_HALF_WIDTH_DEG[0],
+                     "taper_to_deg": CAVITY_SHELF_HALF_WIDTH_DEG[1], "face": "vertical, facing the axis"},
+            "creases": ["rim: plate to wall (vertical or undercut)", "wall foot: wall to floor",
+                        "step: shelf to step face and step face to inner floor"],
+            "vessels": "three vessels (0.35-0.5 mm) crossing the pit along x, painted as seen from above",
+            "material": {"specular": WET_MATERIAL.specular, "shininess": WET_MATERIAL.shininess, "kind": "wet tissue"},
+        },
+        "texture": {"kind": "tissue (vessels, capillary dots), triplanar projection", "seed": texture_seed,
                     "mm_per_texel": mm_per_texel},
         "targets": [target_ground_truth(scene.caster, t) for t in targets],
     }
@@ -672,6 +906,8 @@ SCENES = {
     "sheet": "flat printed sheet, 60 mm square, z = 0",
     "bladder": "irregular ellipsoidal cavity ~90 x 76 x 64 mm seen from inside, 4 star markers of 6 mm",
     "thread": "ISO internal thread in a blind hole (M6x1, M8x1.25, M10x1.5), shiny aluminium",
+    "cavity": "resection cavity 6-15 mm deep with an overhanging lip, creases, a 2 mm step, vessels, wet tissue, "
+              "8 fluorescent targets",
 }
 
 
@@ -687,6 +923,8 @@ def build_scene(name: str, *, thread: str = "M8x1.25", dome_radius_mm: float = 1
         return build_dome(dome_radius_mm, texture_seed=texture_seed)
     if name == "sheet":
         return build_sheet(texture_seed=texture_seed)
+    if name == "cavity":
+        return build_cavity(texture_seed=texture_seed)
     if name == "bladder":
         return build_bladder(texture_seed=texture_seed, **dict(bladder))
     if name == "thread":

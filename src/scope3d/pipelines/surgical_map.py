@@ -16,7 +16,10 @@ Method (reference chapters 3, 4 and 6), one stage per function, run top to botto
    and the adjustment is repeated once. Points that stand off their neighbours' surface (wrong matches
    along the epipolar line) are dropped, gross ones before every adjustment.
 4. :func:`build_surface` — a thin-plate-spline height field through the points, meshed on a grid and
-   textured from each vertex's best view.
+   textured from each vertex's best view. With ``MapOptions.dense`` (``map --surface dense``) also
+   :func:`build_dense` — a depth map per frame from its best neighbours with the adjusted poses, fused
+   where the views agree, and a Poisson mesh of the fused points that follows overhangs
+   (:mod:`scope3d.mvs.dense_map`); its mesh is then the map's mesh.ply, the spline's is mesh_spline.ply.
 5. :func:`locate_targets` — fluorescence thresholded and cleaned per frame, voted onto the surface,
    labelled and measured (centroid, area, star edge or disc diameter).
    :func:`check_reported_poses` — in ``bounded`` mode after the coarse pass, each reported pose tested
@@ -62,10 +65,13 @@ from scope3d.io.ply import write_ply
 from scope3d.io.poses_csv import format_poses_csv
 from scope3d.metrology.evaluation import (
     EvaluationOptions,
+    icp_from_initial_poses,
+    mesh_errors,
     pose_errors,
     save_error_histogram_png,
     save_error_map_png,
     surface_errors,
+    visible_true_points,
 )
 from scope3d.metrology.fluorescence import (
     FluorescenceOptions,
@@ -77,6 +83,7 @@ from scope3d.metrology.fluorescence import (
     targets_on_surface,
     write_targets,
 )
+from scope3d.mvs.dense_map import DenseMap, DenseOptions, build_dense_map
 from scope3d.phantoms.lab import true_targets
 from scope3d.scene.mesh import Mesh, PointCloud, SampledSurface
 from scope3d.scene.surface import Surface, SurfaceOptions, enlarge_raster, fit_surface, save_depth_map_png, texture
@@ -129,6 +136,8 @@ class MapOptions:
         and poses from the images first (the coarse pass, ``coarse``), adjust the poses by BCBA on its
         matches and predict the fine pass with them (:func:`match_with_image_poses`; default True).
         False: the measured poses guide matching whatever their tolerance (the baseline).
+    dense : DenseOptions or None, the dense stage (default None: none; ``map --surface dense``). It needs the
+        surface stage's camera and poses only, and writes dense.ply; its mesh becomes mesh.ply.
     pose_check : PoseCheckOptions or None, in ``bounded`` mode, when the reports' tolerance was wide enough
         for the coarse pass to run, test every reported pose against the images and the other reports
         after the adjustment, and map again with the reports found wrong replaced by what the images say
@@ -159,6 +168,7 @@ class MapOptions:
     bounding_box_margin_mm: float = 5.0
     refine_poses_for_matching: bool = True
     pose_check: PoseCheckOptions | None = None
+    dense: DenseOptions | None = None
 
     def __post_init__(self) -> None:
         if self.pose_mode not in POSE_MODES:
@@ -271,7 +281,8 @@ class MapResult:
     :meth:`save` writes them (and the tracks, the camera and the surface grid) to one ``.npz`` that
     :meth:`load` reads back; the stages' intermediates (features, matches, bundle logs, fluorescence rasters)
     are not saved: a loaded result has ``features == []``, ``matching is None``, ``targets is None`` (the
-    targets are in its report and in targets.csv). The whole result also pickles.
+    targets are in its report and in targets.csv), and ``dense is None`` (the dense map, with ``MapOptions.dense``,
+    is in dense.ply and mesh.ply). The whole result also pickles.
     """
 
     report: dict
@@ -282,6 +293,7 @@ class MapResult:
     surface: SurfaceResult | None
     targets: TargetResult | None
     names: list[str] = field(default_factory=list)
+    dense: DenseMap | None = None
 
     @property
     def points(self) -> np.ndarray:
@@ -571,6 +583,40 @@ def build_surface(options: MapOptions, dataset: Dataset, sparse: SparseResult, f
     return SurfaceResult(surface, colors, view_map, time.perf_counter() - t0)
 
 
+def build_dense(options: MapOptions, sparse: SparseResult, frames: list[np.ndarray], *,
+                progress: Progress | None = None) -> DenseMap:
+    """The dense map (:mod:`scope3d.mvs.dense_map`) from the adjusted camera, poses and points."""
+    return build_dense_map(sparse.camera, frames, sparse.poses, sparse.tracks.points,
+                           options=options.dense or DenseOptions(), progress=progress)
+
+
+# What a mesh vertex may stand off a frame's depth beyond the depth's own error: the Poisson surface smooths
+# over about one octree cell (0.08 mm over the 40 mm plate at the default depth 9).
+_POISSON_SMOOTHING_MM = 0.1
+
+
+def dense_fluorescence(dataset: Dataset, sparse: SparseResult, dense: DenseMap, threshold: int, *,
+                       options: FluorescenceOptions) -> np.ndarray:
+    """(V,) bool: the dense mesh's vertices that glow. A vertex votes in each frame whose consistent depth at
+    its projection lies within ``3 x`` the depth's standard deviation of it (the frame sees it, not what
+    hides it); it glows when at least half of at least two such votes fall in the frame's segmented mask."""
+    v = dense.mesh.vertices
+    seen = np.zeros(len(v), int)
+    lit = np.zeros(len(v), int)
+    camera = sparse.camera
+    for k, depth in enumerate(dense.depths):
+        if depth is None:
+            continue
+        mask = segment(dataset.fluorescence_frame(k), threshold, options=options, mask=camera.mask())
+        idx, ij, z_vertex = camera.nearest_pixels(sparse.poses[k], v)
+        z = np.where(dense.fused.consistent[k], depth.depth_mm, np.nan)[ij[:, 1], ij[:, 0]]
+        s = depth.sigma_mm[ij[:, 1], ij[:, 0]]
+        ok = np.isfinite(z) & (np.abs(z - z_vertex) <= 3.0 * s + _POISSON_SMOOTHING_MM)
+        seen[idx[ok]] += 1
+        lit[idx[ok]] += mask[ij[ok, 1], ij[ok, 0]]
+    return (seen >= 2) & (2 * lit >= seen)
+
+
 # --- 5. fluorescence --------------------------------------------------------------------------
 
 
@@ -589,8 +635,11 @@ def locate_targets(options: MapOptions, dataset: Dataset, sparse: SparseResult, 
 # --- 6. evaluation ----------------------------------------------------------------------------
 
 
-def evaluate_map(options: MapOptions, dataset: Dataset, sparse: SparseResult, targets: TargetResult | None) -> dict:
-    """Accuracy against the dataset's ground truth (empty dict when it has none)."""
+def evaluate_map(options: MapOptions, dataset: Dataset, sparse: SparseResult, targets: TargetResult | None,
+                 dense: DenseMap | None = None, surface: SurfaceResult | None = None) -> dict:
+    """Accuracy against the dataset's ground truth (empty dict when it has none). With a dense map and the
+    true depth maps, its mesh and the spline's are both measured (:func:`mesh_errors`: accuracy and
+    completeness, direct)."""
     gt = dataset.ground_truth
     out: dict = {}
     if gt is None:
@@ -603,6 +652,23 @@ def evaluate_map(options: MapOptions, dataset: Dataset, sparse: SparseResult, ta
         summary, direct, aligned = surface_errors(sparse.tracks.points, truth, options=options.evaluation)
         out["surface_error_mm"] = summary
         out["_distances"] = (direct, aligned)
+        if dense is not None and gt.depth_paths and gt.poses is not None:
+            # completeness over all the surface the frames see, and over what three frames see (the dense
+            # stage needs a frame and two others that agree)
+            visible = visible_true_points(dataset.camera, gt.poses, gt.depth)
+            multi = visible_true_points(dataset.camera, gt.poses, gt.depth, min_views=3)
+            meshes = {"dense_error_mm": dense.mesh}
+            if surface is not None:
+                meshes["spline_error_mm"] = surface.surface.mesh(surface.colors)
+            for key, mesh in meshes.items():
+                out[key] = mesh_errors(mesh, truth, visible)
+                out[key]["completeness_seen_by_3"] = mesh_errors(mesh, truth, multi)["completeness"]
+                # and after a rigid ICP of the mesh's vertices to the truth (as the sparse points): a common
+                # offset of all the poses is unobservable from the images and stays in the direct error
+                best, _ = icp_from_initial_poses(mesh.vertices, truth, options=options.evaluation)
+                moved = Mesh(best.apply(mesh.vertices), mesh.faces)
+                out[key]["after_icp"] = mesh_errors(moved, truth, visible)
+                out[key]["after_icp"]["completeness_seen_by_3"] = mesh_errors(moved, truth, multi)["completeness"]
     if targets is not None and true_targets(gt.scene):
         out["targets_vs_truth"] = match_targets(targets.targets, true_targets(gt.scene))
     out["time_s"] = time.perf_counter() - t0
@@ -617,6 +683,7 @@ def write_outputs(
     matching: MatchingResult, sparse: SparseResult, surface: SurfaceResult | None, targets: TargetResult | None,
     evaluation: dict, timings: dict, pose_check: PoseCheck | None = None, *,
     background: BackgroundCalls | None = None, figure_pair: dict | None = None, skipped: dict | None = None,
+    dense: DenseMap | None = None, dense_glow: np.ndarray | None = None,
 ) -> dict:
     """Write every output file into ``out_dir`` (already a temporary folder) and return the report.
 
@@ -665,8 +732,10 @@ def write_outputs(
         colors = surface.colors
         if targets is not None:
             colors = overlay(colors, targets.fluorescent, None, options=fl, draw_outlines=False)
-        write_ply(out_dir / "mesh.ply", s.mesh(colors))
-        write_ply(out_dir / "mesh_reflectance.ply", s.mesh(surface.colors))
+        spline = "mesh_spline.ply" if dense is not None else "mesh.ply"
+        write_ply(out_dir / spline, s.mesh(colors))
+        if dense is None:
+            write_ply(out_dir / "mesh_reflectance.ply", s.mesh(surface.colors))
         d = s.height[s.valid]
         report["surface"] = {"grid": list(s.height.shape), "step_mm": s.step_mm, "n_vertices": int(s.valid.sum()),
                              "height_range_mm": float(np.ptp(d)),
@@ -679,6 +748,15 @@ def write_outputs(
                                          f"within {(options.surface or SurfaceOptions()).max_grid_vertices:,} vertices")
         if options.figures:
             write_image(out_dir / "texture_mosaic.png", enlarge_raster(surface.colors))
+    if dense is not None:
+        write_ply(out_dir / "dense.ply", dense.fused.cloud)
+        m = dense.mesh
+        colors = m.vertex_colors
+        if dense_glow is not None and colors is not None:
+            colors = np.where(dense_glow[:, None], np.array([40, 255, 40], np.uint8), colors)
+        write_ply(out_dir / "mesh.ply", Mesh(m.vertices, m.faces, colors, m.vertex_normals))
+        write_ply(out_dir / "mesh_reflectance.ply", m)
+        report["dense"] = {**dense.summary(), "glowing_vertices": None if dense_glow is None else int(dense_glow.sum())}
     if targets is not None:
         report["fluorescence_threshold"] = targets.threshold
         report["targets"] = [t.as_dict() for t in targets.targets]
@@ -817,6 +895,10 @@ def _run_stages(options: MapOptions, dataset: Dataset, out_dir: str | Path, prog
         except StageSkipped as why:
             skipped["surface"] = str(why)
     lap("surface")
+    dense = None
+    if options.dense is not None:
+        dense = build_dense(options, sparse, frames, progress=progress)
+        lap("dense")
     # matplotlib holds the GIL: the figures are drawn in a child process while the targets and the
     # evaluation are computed (the child's ~3 s of drawing outlast the evaluation alone)
     with atomic_directory(Path(out_dir)) as tmp, BackgroundCalls(enabled=options.figures) as background:
@@ -825,10 +907,15 @@ def _run_stages(options: MapOptions, dataset: Dataset, out_dir: str | Path, prog
         targets = None
         if options.fluorescence is not None and surface is not None and dataset.fluorescence_paths:
             targets = locate_targets(options, dataset, sparse, surface)
+        dense_glow = None
+        if targets is not None and dense is not None:
+            dense_glow = dense_fluorescence(dataset, sparse, dense, targets.threshold,
+                                            options=options.fluorescence or FluorescenceOptions())
         lap("fluorescence")
-        evaluation = evaluate_map(options, dataset, sparse, targets)
+        evaluation = evaluate_map(options, dataset, sparse, targets, dense, surface)
         lap("evaluation")
         stage(progress, "writing outputs")
         report = write_outputs(options, dataset, tmp, frames, features, matching, sparse, surface, targets, evaluation,
-                               timings, pose_check, background=background, figure_pair=figure_pair, skipped=skipped)
-    return MapResult(report, Path(out_dir), features, matching, sparse, surface, targets, list(dataset.names))
+                               timings, pose_check, background=background, figure_pair=figure_pair, skipped=skipped,
+                               dense=dense, dense_glow=dense_glow)
+    return MapResult(report, Path(out_dir), features, matching, sparse, surface, targets, list(dataset.names), dense)

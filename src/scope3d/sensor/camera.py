@@ -255,6 +255,20 @@ class Camera:
             back = self.lens.project(self.params, np.where(inside[..., None], rays, np.nan))
             return inside & (np.linalg.norm(back - uv, axis=-1) <= _ROUND_TRIP_PX)
 
+    def nearest_pixels(self, pose: Pose, points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Where world points (N, 3) mm fall in the frame taken from ``pose`` (``cam_from_world``): the indices
+        (M,) of those in front of the camera and inside the image (and mask), their nearest pixels (M, 2) int
+        (column, row) and their z-depths (M,) mm."""
+        p = pose.transform(np.asarray(points_world, float).reshape(-1, 3))
+        front = p[:, 2] > 1e-6
+        uv = np.full((len(p), 2), -1.0)
+        uv[front] = self.project(p[front])
+        idx = np.flatnonzero(front & self.in_image(uv))
+        ij = np.rint(uv[idx]).astype(int)
+        ij[:, 0] = np.clip(ij[:, 0], 0, self.width - 1)
+        ij[:, 1] = np.clip(ij[:, 1], 0, self.height - 1)
+        return idx, ij, p[idx, 2]
+
     def in_image(self, pixels: np.ndarray, margin_px: float = 0.0) -> np.ndarray:
         """(N,) bool: pixel inside the frame (and the circular mask), at least ``margin_px`` from its edge."""
         uv = np.asarray(pixels, dtype=float)
