@@ -48,6 +48,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from scope3d.errors import InputError
+from scope3d.estimators.clock_offset import ClockOffset, estimate_clock_offset
 from scope3d.estimators.triangulation import TrackOptions, reprojection_errors
 from scope3d.feature.depth_prior import DepthPrior, window_radius_px
 from scope3d.feature.detection import FEATURE_PRESETS, FeatureOptions, Features, detect
@@ -385,6 +386,8 @@ class MapResult:
             d, i = r["surface_error_mm"]["direct"], r["surface_error_mm"]["after_icp"]
             lines.append(f"surface error: direct mean {d['mean']:.3f} mm ({100 * d['within_1mm_fraction']:.1f} % "
                          f"within 1 mm), after ICP mean {i['mean']:.3f} mm ({100 * i['within_1mm_fraction']:.1f} %)")
+        if r.get("clock_offset", {}).get("significant"):
+            lines.append(clock_offset_summary(r["clock_offset"]))
         if "targets" in r:  # an empty fluorescence channel (no residual tumour) is a result, not an error
             lines.append(f"targets: {len(r['targets'])} found" if r["targets"] else
                          f"targets: no targets (no fluorescence above {r['fluorescence_threshold']})")
@@ -722,6 +725,9 @@ def write_outputs(
                             "fov_deg": sparse.camera.fov_deg, "fov_deg_dataset": dataset.camera.fov_deg},
         "model_checks": check_model(dataset.names, dataset.poses, sparse.poses, tr).as_dict(),
     }
+    clock = clock_offset_report(dataset, sparse)
+    if clock is not None:
+        report["clock_offset"] = clock
     if pose_check is not None:
         report["model_checks"]["reported_pose_test"] = pose_check.as_dict(dataset.names, dataset.poses)
     if skipped:
@@ -781,6 +787,46 @@ def write_outputs(
     report["time_s"] = round(sum(v for k, v in timings.items() if k != "evaluation"), 4)
     write_json(out_dir / "report.json", report)
     return report
+
+
+def clock_offset_report(dataset: Dataset, sparse: SparseResult) -> dict | None:
+    """report.json's ``clock_offset`` when the dataset records its frames' times on the robot's clock
+    (``scope3d import frames``: dataset.json's ``source.frame_times_s``), else None.
+
+    ``s``, ``sigma_s``: :func:`scope3d.estimators.clock_offset.estimate_clock_offset` (None with ``reason``
+    when it cannot be told). ``significant``: beyond 3 sigma *and* the shift it implies (``|s|`` times the
+    median speed) beyond the map's own pose precision (the median adjusted centre's 3D sigma), so that an
+    offset too small to move a pose past what the map knows of it is not reported as a fault.
+    ``clock_offset_s_used``: what the import added to the frame times; ``clock_offset_s_corrected`` what to add
+    instead."""
+    source = dataset.metadata.get("source")
+    times = source.get("frame_times_s") if isinstance(source, dict) else None
+    if not isinstance(times, dict):
+        return None
+    keep = [k for k, n in enumerate(dataset.names) if n in times]
+    measured = np.array([dataset.poses[k].pose.centre for k in keep]).reshape(-1, 3)
+    adjusted = np.array([sparse.poses[k].centre for k in keep]).reshape(-1, 3)
+    fit = estimate_clock_offset(measured, adjusted, np.array([times[dataset.names[k]] for k in keep], dtype=float))
+    if not isinstance(fit, ClockOffset):
+        return {"s": None, "sigma_s": None, "significant": False, "reason": fit}
+    used = (source.get("frame_times") or {}).get("clock_offset_s") or 0.0
+    precision = (None if sparse.pose_sigmas is None else
+                 float(np.median(np.linalg.norm(sparse.pose_sigmas[keep, 3:], axis=1))))
+    shift = abs(fit.offset_s) * fit.speed_mm_s
+    significant = abs(fit.offset_s) > 3.0 * fit.sigma_s and (precision is None or shift > precision)
+    return {"s": fit.offset_s, "sigma_s": fit.sigma_s, "significant": bool(significant),
+            "implied_shift_mm": shift, "pose_precision_mm": precision, "median_speed_mm_s": fit.speed_mm_s,
+            "residual_mm": fit.residual_mm, "n_frames": fit.n_frames,
+            "clock_offset_s_used": float(used), "clock_offset_s_corrected": float(used) - fit.offset_s}
+
+
+def clock_offset_summary(clock: dict) -> str:
+    """The summary's line for a significant clock offset (:func:`clock_offset_report`)."""
+    late = "late" if clock["s"] > 0 else "early"
+    return (f"clock offset: the camera and robot clocks disagree by {1e3 * clock['s']:+.2f} ms "
+            f"(sigma {1e3 * clock['sigma_s']:.2f} ms; the frame times run {late}, each pose "
+            f"{clock['implied_shift_mm']:.3g} mm off along the scan): re-import with `scope3d import frames ... "
+            f"--clock-offset {clock['clock_offset_s_corrected']:.6g}`")
 
 
 def write_refined_poses(path: Path, names: list[str], sparse: SparseResult) -> None:
