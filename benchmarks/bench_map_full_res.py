@@ -43,7 +43,7 @@ from scope3d.sensor.pose_tolerance import perturb_poses_uniform
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_localize_real import strecha  # noqa: E402  (the Strecha loader)
-from bench_map_middlebury import _known_pose_reconstruction  # noqa: E402  (the known-pose COLMAP map)
+from bench_map_middlebury import colmap_known_pose_map  # noqa: E402  (the known-pose COLMAP map)
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "results"
@@ -107,23 +107,7 @@ def colmap(ds, work: Path, priors_mm: float | None) -> dict:
     import pycolmap
 
     pycolmap.logging.minloglevel = 2
-    work.mkdir(parents=True, exist_ok=True)
-    db_path = work / "database.db"
-    cam = ds.camera
-    reader = pycolmap.ImageReaderOptions()
-    reader.camera_model = "OPENCV"
-    # COLMAP's pixel origin is the image corner: principal point + 0.5
-    reader.camera_params = ",".join(str(v) for v in (cam.fx, cam.fy, cam.cx + 0.5, cam.cy + 0.5, 0, 0, 0, 0))
-    t0 = time.perf_counter()
-    pycolmap.extract_features(db_path, ds.root / "frames", image_names=ds.names,
-                              camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader)
-    t1 = time.perf_counter()
-    pycolmap.match_exhaustive(db_path)
-    t2 = time.perf_counter()
-    rec = _known_pose_reconstruction(pycolmap, db_path, {n: m.pose for n, m in zip(ds.names, ds.poses)})
-    (work / "sparse").mkdir(exist_ok=True)
-    rec = pycolmap.triangulate_points(rec, db_path, ds.root / "frames", work / "sparse")
-    t3 = time.perf_counter()
+    rec, _, (t0, t1, t2, t3) = colmap_known_pose_map(pycolmap, ds, work)
     row = {"extract_s": round(t1 - t0, 2), "match_s": round(t2 - t1, 2), "triangulate_s": round(t3 - t2, 2)}
     if priors_mm is not None:
         options = pycolmap.BundleAdjustmentOptions()
@@ -173,6 +157,7 @@ def perturbed(ds, work: Path, depth_mm: float):
 
 def scene(name: str, scale: float, work: Path) -> dict:
     ds = strecha(work, SCENES[name], scale)
+    work = work / ds.root.name  # one folder per scene and scale
     out = {"scene": SCENES[name], "scale": scale, "camera": f"{ds.camera.width}x{ds.camera.height}", "n_views": len(ds)}
     s3 = in_child(scope3d, ds, work / f"{name}_s3")
     cm = in_child(colmap, ds, work / f"{name}_colmap", None)
