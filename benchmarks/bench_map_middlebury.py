@@ -56,27 +56,9 @@ def scope3d_run(ds, out: Path, options=None) -> dict:
 def colmap_run(ds, work: Path) -> dict:
     import pycolmap
 
-    pose_of = {n: m.pose for n, m in zip(ds.names, ds.poses)}
-    cam = ds.camera
     best = None
     for k in range(REPEATS):
-        run_dir = work / f"colmap{k}"
-        run_dir.mkdir(parents=True)
-        db_path = run_dir / "database.db"
-        reader = pycolmap.ImageReaderOptions()
-        reader.camera_model = "OPENCV"
-        # COLMAP's pixel origin is the image corner: principal point + 0.5
-        reader.camera_params = ",".join(str(v) for v in (cam.fx, cam.fy, cam.cx + 0.5, cam.cy + 0.5, 0, 0, 0, 0))
-        t0 = time.perf_counter()
-        pycolmap.extract_features(db_path, ds.root / "frames", image_names=ds.names,
-                                  camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader)
-        t1 = time.perf_counter()
-        pycolmap.match_exhaustive(db_path)
-        t2 = time.perf_counter()
-        rec = _known_pose_reconstruction(pycolmap, db_path, pose_of)
-        (run_dir / "sparse").mkdir()
-        rec = pycolmap.triangulate_points(rec, db_path, ds.root / "frames", run_dir / "sparse")
-        t3 = time.perf_counter()
+        rec, _, (t0, t1, t2, t3) = colmap_known_pose_map(pycolmap, ds, work / f"colmap{k}")
         row = {"time_s": round(t3 - t0, 3), "extract_s": round(t1 - t0, 3), "match_s": round(t2 - t1, 3),
                "triangulate_s": round(t3 - t2, 3), "n_points": rec.num_points3D(),
                "n_observations": int(sum(p.track.length() for p in rec.points3D.values())),
@@ -84,6 +66,29 @@ def colmap_run(ds, work: Path) -> dict:
         if best is None or row["time_s"] < best["time_s"]:
             best = row
     return best
+
+
+def colmap_known_pose_map(pycolmap, ds, run_dir: Path):
+    """COLMAP's SIFT extraction, exhaustive matching and ``triangulate_points`` on ``ds``'s poses, in
+    ``run_dir``. Returns the reconstruction, the database path and the times before and after each step."""
+    run_dir.mkdir(parents=True, exist_ok=True)
+    db_path = run_dir / "database.db"
+    db_path.unlink(missing_ok=True)  # COLMAP would skip the images an old database holds
+    cam = ds.camera
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = "OPENCV"
+    # COLMAP's pixel origin is the image corner: principal point + 0.5
+    reader.camera_params = ",".join(str(v) for v in (cam.fx, cam.fy, cam.cx + 0.5, cam.cy + 0.5, 0, 0, 0, 0))
+    t0 = time.perf_counter()
+    pycolmap.extract_features(db_path, ds.root / "frames", image_names=ds.names,
+                              camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader)
+    t1 = time.perf_counter()
+    pycolmap.match_exhaustive(db_path)
+    t2 = time.perf_counter()
+    rec = _known_pose_reconstruction(pycolmap, db_path, {n: m.pose for n, m in zip(ds.names, ds.poses)})
+    (run_dir / "sparse").mkdir(exist_ok=True)
+    rec = pycolmap.triangulate_points(rec, db_path, ds.root / "frames", run_dir / "sparse")
+    return rec, db_path, (t0, t1, t2, time.perf_counter())
 
 
 def _known_pose_reconstruction(pycolmap, db_path: Path, pose_of: dict):

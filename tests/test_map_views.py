@@ -43,8 +43,10 @@ def _pair_set(pairs) -> set:
     return {(i, j) for i, j, _ in pairs}
 
 
-@pytest.mark.parametrize("n", [12, 24, 48])
+@pytest.mark.parametrize("n", [8, 12, 24, 48])
 def test_one_partner_per_direction_pairs_ring_neighbours(n):
+    # 8 views are 45 deg apart, beyond the preset's 35 deg view-angle limit: the limit must not isolate a
+    # view (before issue 34 it left the sparse ring without pairs), its neighbours on either side are kept
     camera = Camera.from_fov(640, 480, 24.0)
     poses = ring_poses(n, tilt_deg=90.0, distance_mm=560.0)
     depth = DepthPrior(500.0, 620.0)

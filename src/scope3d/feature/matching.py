@@ -10,7 +10,10 @@
   at depth ``z`` by ``f dp / z`` px and an orientation error of ``dw`` rad by about ``f dw`` px. The
   ratio test (0.8) is applied among the candidates inside the window only, which is why prediction
   finds *more* matches than exhaustive search: look-alike features elsewhere in the image no longer
-  spoil the ratio.
+  spoil the ratio. A long segment (a deep prior across a wide baseline, or a high resolution: on the
+  Strecha photographs at 3072 x 2048, every one) is still a thin strip of the image and is searched by
+  brute force along it; only a strip wider than a sixteenth of the image falls back, for that feature, to
+  descriptor matching against the whole frame with the prediction as a gate (:func:`_long_segment_matches`).
 * :func:`match_exhaustive` — the conventional baseline: every feature against every feature, ratio
   test 0.8.
 
@@ -68,6 +71,8 @@ class MatchOptions:
         sixteenth of the image: beyond it every feature has a sixteenth of the other frame's features or
         more as candidates, so the windowed search holds ~N^2/16 candidates per pair in memory (on a
         30-frame survey with 1 mm-wide windows, 271 million) for what brute force does in place.
+        Segments longer than ``2 max_radius_px`` are not sampled but searched by brute force along
+        their strip, and the same sixteenth of the image bounds the strip (:func:`_long_segment_matches`).
     mutual : bool, keep a match only if it is also the best for the feature in the other frame.
     threads : int, threads for the per-pair RANSAC of the guided matcher (default 0: every available core,
         :mod:`scope3d.utils.threads`).
@@ -243,6 +248,76 @@ def _on_segment(q: np.ndarray, p0: np.ndarray, p1: np.ndarray, rad: np.ndarray, 
     return keep
 
 
+# (features x keypoints) point-to-segment distances computed at once by _long_segment_matches: ~32 MB a temporary
+_STRIP_BLOCK_ENTRIES = 1 << 22
+
+
+def _segment_d2(q: np.ndarray, p0: np.ndarray, p1: np.ndarray) -> np.ndarray:
+    """Squared distances of points q (..., 2) to segments (p0, p1) (..., 2), broadcast."""
+    d = p1 - p0
+    off = q - p0
+    t = np.clip((off * d).sum(-1) / np.maximum((d * d).sum(-1), 1e-12), 0.0, 1.0)
+    off = off - t[..., None] * d
+    return (off * off).sum(-1)
+
+
+def _long_segment_matches(camera: Camera, features: list[Features], i_frames: np.ndarray, offsets: np.ndarray,
+                          a_loc: np.ndarray, p0: np.ndarray, p1: np.ndarray, rad: np.ndarray, pair_of: np.ndarray,
+                          frame_j: np.ndarray, long: np.ndarray, ratio: float):
+    """Guided matching of the segments too long to sample (``long``, indices into the segment arrays).
+
+    A long segment's search region is the strip within its radius of the segment, ``2 r L + pi r^2`` px^2.
+    * While that strip covers at most a sixteenth of the image (the bound that caps a window's radius,
+      :class:`MatchOptions`), its candidates are frame j's keypoints inside it, found by brute-force distance
+      to the segment; they are returned as (segment, global keypoint) pairs for the ratio test among each
+      segment's candidates, as the sampled segments' are.
+    * A wider strip would hold ~N/16 candidates or more per feature and carries little information about
+      where the match is: the feature is matched by descriptor against every keypoint of j (ratio test
+      among all of them, as :func:`match_exhaustive`), and the known poses then gate the match — kept only
+      if the matched keypoint lies inside the strip. Returned as matches (segment, global keypoint, d2).
+    The strip's length is the unclipped segment's (a segment reaching outside the image counts as longer
+    than what it covers: the rule errs towards descriptor matching, never towards a strip too wide).
+    """
+    empty = np.zeros(0, np.int64)
+    strip_s, strip_b, wide_s, wide_b, wide_d2 = [empty], [empty], [empty], [empty], [np.zeros(0, np.float32)]
+    if len(long) == 0:
+        return empty, empty, empty, empty, np.zeros(0, np.float32)
+    length = np.linalg.norm(p1[long] - p0[long], axis=1)
+    strip = 2.0 * rad[long] * length + np.pi * rad[long] ** 2
+    narrow = strip <= camera.width * camera.height / 16.0
+    key = pair_of[long]
+    for k in np.unique(key):  # per pair: one frame i, one frame j
+        sel = long[key == k]
+        nar = narrow[key == k]
+        fi, fj = int(i_frames[k]), int(frame_j[sel[0]])
+        kp_j = features[fj].keypoints
+        if len(kp_j) < 2:
+            continue
+        s_n = sel[nar]
+        rows = max(1, _STRIP_BLOCK_ENTRIES // len(kp_j))
+        for lo in range(0, len(s_n), rows):
+            s = s_n[lo:lo + rows]
+            # distance to the segment's line first (one matrix product: a keypoint within r of the segment is
+            # within r of its line), then the exact distance to the segment for those few
+            d = p1[s] - p0[s]
+            normal = np.stack([-d[:, 1], d[:, 0]], axis=1) / np.maximum(np.linalg.norm(d, axis=1), 1e-12)[:, None]
+            to_line = kp_j @ normal.T - np.einsum("sk,sk->s", normal, p0[s])
+            b, r = np.nonzero(np.abs(to_line) <= rad[s])
+            keep = _segment_d2(kp_j[b], p0[s[r]], p1[s[r]]) <= rad[s[r]] ** 2
+            strip_s.append(s[r[keep]])
+            strip_b.append(offsets[fj] + b[keep])
+        s_w = sel[~nar]
+        if len(s_w):
+            nearest, best, second = _two_nearest(features[fi].descriptors[a_loc[s_w]], features[fj].descriptors)
+            d_seg = _segment_d2(kp_j[nearest], p0[s_w], p1[s_w])
+            keep = (best < ratio * second) & (d_seg <= rad[s_w] ** 2)
+            wide_s.append(s_w[keep])
+            wide_b.append(offsets[fj] + nearest[keep])
+            wide_d2.append((best[keep].astype(np.float32)) ** 2)
+    return (np.concatenate(strip_s), np.concatenate(strip_b), np.concatenate(wide_s), np.concatenate(wide_b),
+            np.concatenate(wide_d2))
+
+
 def _verify(
     camera: Camera, kp_i: np.ndarray, kp_j: np.ndarray, a: np.ndarray, b: np.ndarray, options: MatchOptions
 ) -> np.ndarray:
@@ -384,9 +459,8 @@ def match_guided_many(
         if camera.model != DEFAULT_MODEL:
             seg_radius = seg_radius + _epipolar_sag_px(camera, poses[i].pose, poses[j].pose, ray_ranges[i], p0, p1)
         m = seg_radius + half
-        # a segment spanning most of the image carries no information (it would only add look-alike
-        # candidates); and the feature must be predicted near frame j's image at all
-        valid = np.isfinite(half) & (half < options.max_radius_px)
+        # the feature must be predicted near frame j's image at all
+        valid = np.isfinite(half)
         valid &= (mid[:, 0] > -m) & (mid[:, 0] < camera.width + m) & (mid[:, 1] > -m) & (mid[:, 1] < camera.height + m)
         a = np.flatnonzero(valid)
         seg["a"].append(a)
@@ -403,8 +477,13 @@ def match_guided_many(
         pair_of = np.concatenate(seg["pair"]).astype(np.int64)
         frame_j = np.concatenate(seg["frame_j"]).astype(np.int64)
         rad = np.concatenate(seg["radius"])
+        length = np.linalg.norm(p1 - p0, axis=1)
+        # a segment longer than 2 max_radius_px (a deep prior seen across a wide baseline, or a high
+        # resolution) is searched by brute force (_long_segment_matches), not sampled: it would take
+        # length / (4 radii) samples, thousands per feature at full resolution
+        sampled = length < 2.0 * options.max_radius_px
         # samples along every segment (fewer samples, larger query: 4 radii measured fastest)
-        n_samples = np.ceil(np.linalg.norm(p1 - p0, axis=1) / (_SAMPLE_SPACING * rad)).astype(np.int64) + 1
+        n_samples = np.where(sampled, np.ceil(length / (_SAMPLE_SPACING * rad)).astype(np.int64) + 1, 0)
         owner = np.repeat(np.arange(len(a_loc)), n_samples)
         first = np.repeat(np.cumsum(n_samples) - n_samples, n_samples)
         sample_k = np.arange(len(owner)) - first
@@ -417,7 +496,7 @@ def match_guided_many(
         group = frame_j * 64 + np.ceil(np.log2(np.maximum(rad, 1.0))).astype(np.int64)
         sample_group = group[owner]
         order_s = np.argsort(sample_group, kind="stable")
-        starts = np.flatnonzero(np.r_[True, np.diff(sample_group[order_s]) != 0])
+        starts = np.flatnonzero(np.r_[True, np.diff(sample_group[order_s]) != 0]) if len(order_s) else order_s
         # the tree search returns every keypoint within the query radius of a sample, several times the
         # candidates that survive the exact distance test (neighbouring samples' discs overlap, and the
         # group's widest window sets the radius); those hits, each with a dozen temporaries, were what
@@ -446,14 +525,24 @@ def match_guided_many(
         b_glob = np.concatenate(b_parts) if b_parts else np.zeros(0, np.int64)
         order_h = np.argsort(si, kind="stable")  # grouped by sample, hence by segment
         sg, b_glob = owner[si[order_h]], b_glob[order_h]
-        pair_c = pair_of[sg]
         i_frames = np.array([pairs[k][0] for k in range(len(pairs))], np.int64)
-        a_glob = offsets[i_frames[pair_c]] + a_loc[sg]
         desc_all = np.concatenate([f.descriptors for f in features])
+        long_strip, long_b, wide_seg, wide_b, wide_d2 = _long_segment_matches(
+            camera, features, i_frames, offsets, a_loc, p0, p1, rad, pair_of, frame_j, np.flatnonzero(~sampled),
+            options.ratio)
+        if len(long_strip):  # the brute-force strips' candidates join the sampled ones, grouped by segment
+            sg, b_glob = np.r_[sg, long_strip], np.r_[b_glob, long_b]
+            order_h = np.argsort(sg, kind="stable")
+            sg, b_glob = sg[order_h], b_glob[order_h]
+        pair_c = pair_of[sg]
+        a_glob = offsets[i_frames[pair_c]] + a_loc[sg]
         d2 = pair_squared_distances(desc_all, desc_all, a_glob, b_glob)
         n_cand = np.bincount(pair_c, minlength=len(pairs))
+        n_cand += np.bincount(pair_of[wide_seg], weights=[len(features[f]) for f in frame_j[wide_seg]],
+                              minlength=len(pairs)).astype(np.int64)
         # ratio test among each segment's candidates (sg is sorted: candidates grouped by segment)
         g_seg, g_b, g_d2 = _ratio_select_grouped(sg, b_glob, d2, options.ratio)
+        g_seg, g_b, g_d2 = np.r_[g_seg, wide_seg], np.r_[g_b, wide_b], np.r_[g_d2, wide_d2]
         n_put = np.bincount(pair_of[g_seg], minlength=len(pairs))
         g_pair = pair_of[g_seg]
         if options.mutual and len(g_seg):
