@@ -73,10 +73,12 @@ def test_resection_cuts_the_stated_pit():
         before - truth["sphere_centre_mm"], axis=1) - 17.5) < 1e-6), atol=1e-9)
     assert moved.max() == pytest.approx(1.2, abs=0.01)  # a vertex within 0.15 mm of the centre
     centre = np.asarray(truth["centre_mm"])
-    assert np.hypot(*centre[:2] - [3.0, -4.0]) < 1e-12 and np.all(moved[np.linalg.norm(before - centre, axis=1) >= 2.5] == 0)
+    assert np.hypot(*centre[:2] - [3.0, -4.0]) < 1e-12
+    assert np.all(moved[np.linalg.norm(before - centre, axis=1) >= 2.5] == 0)
     # drawn from the seed: the same place for the same seed, inside half the opening radius
     a = resect(dome, Resection(1.0), seed=5)[1]["centre_mm"]
-    assert a == resect(dome, Resection(1.0), seed=5)[1]["centre_mm"] != resect(dome, Resection(1.0), seed=6)[1]["centre_mm"]
+    assert a == resect(dome, Resection(1.0), seed=5)[1]["centre_mm"]
+    assert a != resect(dome, Resection(1.0), seed=6)[1]["centre_mm"]
     assert np.hypot(*a[:2]) <= 0.5 * dome.info["dome"]["opening_radius_mm"]
     with pytest.raises(InputError, match="past its rim"):
         resect(dome, Resection(1.0, radius_mm=3.0, centre_xy_mm=(14.0, 0.0)), seed=0)
@@ -102,7 +104,8 @@ def test_resected_video_sees_the_pit_from_its_time_on(tmp_path):
     out = write(seq, tmp_path / "cut")
     data = load_dataset(out)
     assert data.ground_truth.scene["resection"]["first_frame"] == 5
-    assert (out / "ground_truth" / "surface_resected.ply").is_file() and (out / "ground_truth" / "surface.ply").is_file()
+    assert (out / "ground_truth" / "surface_resected.ply").is_file()
+    assert (out / "ground_truth" / "surface.ply").is_file()
 
 
 def _phantom(*args):

@@ -94,17 +94,6 @@ def register(subparsers) -> None:
     bl = p.add_argument_group("bladder and scan plans (reference ch. 2)")
     bl.add_argument("--plan", metavar="PLAN_JSON", help="render the views of a scan plan (scope3d plan-scan) "
                     "instead of a trajectory, with its field of view unless --fov is given")
-    bl.add_argument("--video", type=float, metavar="FPS", help="render a continuous path at FPS frames per second "
-                    "(poses interpolated; poses.csv gets each frame's time_s, frame i at i / FPS): with --plan the "
-                    "path through the planned views; without, a grid survey (dome, sheet, cavity) flown from stop "
-                    "to stop at --scan-speed (grid5x6 at 10 mm/s: 436 frames at 30 fps); --frames keeps the first N")
-    bl.add_argument("--mp4", action="store_true", help="with --video: also write the frames as DIR/video.mp4 "
-                    "(MPEG-4, at FPS), a real video file for `scope3d import video`")
-    bl.add_argument("--resect", metavar="T_S[:RADIUS_MM:DEPTH_MM[:X_MM:Y_MM]]",
-                    help="dome with --video: from T seconds on, a pit is cut into the dome's wall (default radius 3 mm, "
-                         "depth 1.5 mm, centred on the wall below (X, Y), drawn from --seed unless given); "
-                         "ground_truth/ holds the surface before (surface.ply) and after (surface_resected.ply), "
-                         "scene.json the pit, its time and first frame (docs/phantoms.md)")
     bl.add_argument("--seconds-per-view", type=float, default=600.0 / 529.0, metavar="S",
                     help="with --video: time from one planned view to the next (default 1.13 s, the reference's "
                          "10 min for 529 views)")
@@ -114,6 +103,18 @@ def register(subparsers) -> None:
     bl.add_argument("--vessel-density", type=float, default=1.0, metavar="F",
                     help="bladder vessels and capillary dots as a fraction of the default (1); 0.25 is pale")
     bl.add_argument("--wet", action="store_true", help="bladder: specular glints of wet mucosa at the tip's light")
+    vid = p.add_argument_group("videos: a continuous path with frame times, tissue that changes (docs/phantoms.md)")
+    vid.add_argument("--video", type=float, metavar="FPS", help="render a continuous path at FPS frames per second "
+                     "(poses interpolated; poses.csv gets each frame's time_s, frame i at i / FPS): with --plan the "
+                     "path through the planned views; without, a grid survey (dome, sheet, cavity) flown from stop "
+                     "to stop at --scan-speed (grid5x6 at 10 mm/s: 436 frames at 30 fps); --frames keeps the first N")
+    vid.add_argument("--mp4", action="store_true", help="with --video: also write the frames as DIR/video.mp4 "
+                     "(MPEG-4, at FPS), a real video file for `scope3d import video`")
+    vid.add_argument("--resect", metavar="T_S[:RADIUS_MM:DEPTH_MM[:X_MM:Y_MM]]",
+                     help="dome with --video: from T seconds on, a pit is cut into the dome's wall (default radius "
+                          "3 mm, depth 1.5 mm, centred on the wall below (X, Y), drawn from --seed unless given); "
+                          "ground_truth/ holds the surface before (surface.ply) and after (surface_resected.ply), "
+                          "scene.json the pit, its time and first frame (docs/phantoms.md)")
     raw = p.add_argument_group("a lab's raw recording (docs/own_data.md)")
     raw.add_argument("--raw-recording", action="store_true",
                      help="dome only: write what a lab would bring instead of a dataset: checkerboard views, "

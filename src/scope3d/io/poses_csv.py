@@ -89,8 +89,9 @@ def _read_pose_rows(path: Path, length_scale_to_mm: float
     missing = [c for c in POSE_COLUMNS if c not in header]
     if missing:
         raise InputError(f"{path} row 1: missing column(s) {', '.join(missing)}")
-    col = {name: header.index(name) for name in POSE_COLUMNS}
-    time_col = header.index(TIME_COLUMN) if TIME_COLUMN in header else None
+    timed = TIME_COLUMN in header
+    number_columns = POSE_COLUMNS[1:] + ((TIME_COLUMN,) if timed else ())
+    col = {name: header.index(name) for name in POSE_COLUMNS + number_columns}
     names, poses, row_numbers, times = [], [], [], []
     first_row_of = {}
     for row_number, row in enumerate(rows[1:], start=2):
@@ -108,7 +109,7 @@ def _read_pose_rows(path: Path, length_scale_to_mm: float
             raise InputError(f"{where}: image {name} is listed twice (also on row {first_row_of[name]})")
         first_row_of[name] = row_number
         values = {}
-        for column in POSE_COLUMNS[1:]:
+        for column in number_columns:
             text = row[col[column]].strip()
             try:
                 values[column] = float(text)
@@ -134,21 +135,15 @@ def _read_pose_rows(path: Path, length_scale_to_mm: float
             pose = Pose.from_centre(world_from_cam.T, centre)
         except ValueError as exc:  # finite in the file's unit, beyond float64 in mm
             raise InputError(f"{where}: position in mm: {exc}") from None
-        if time_col is not None:
-            text = row[time_col].strip()
-            try:
-                t = float(text)
-            except ValueError:
-                raise InputError(f"{where}: {TIME_COLUMN} = {text!r} is not a number") from None
-            if not math.isfinite(t):
-                raise InputError(f"{where}: {TIME_COLUMN} is {text} (NaN or infinite)")
+        if timed:
+            t = values[TIME_COLUMN]
             if times and not t > times[-1]:
-                raise InputError(f"{where}: {TIME_COLUMN} = {text} is not after the row above's {times[-1]:.9g} "
-                                 "(frames are listed in time order)")
+                raise InputError(f"{where}: {TIME_COLUMN} = {row[col[TIME_COLUMN]].strip()} is not after the row "
+                                 f"above's {times[-1]:.9g} (frames are listed in time order)")
             times.append(t)
         names.append(name)
         poses.append(MeasuredPose(pose, tolerance))
         row_numbers.append(row_number)
     if not poses:
         raise InputError(f"{path}: pose file has a header but no rows")
-    return names, poses, row_numbers, (np.array(times) if time_col is not None else None)
+    return names, poses, row_numbers, (np.array(times) if timed else None)

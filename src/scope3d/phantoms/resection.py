@@ -47,7 +47,8 @@ class Resection:
     def __post_init__(self) -> None:
         if not np.isfinite(self.time_s) or self.time_s < 0:
             raise InputError(f"the resection's time must be a non-negative number of seconds, got {self.time_s}")
-        if not (np.isfinite(self.radius_mm) and self.radius_mm > 0 and np.isfinite(self.depth_mm) and self.depth_mm > 0):
+        sizes = (self.radius_mm, self.depth_mm)
+        if not all(np.isfinite(v) and v > 0 for v in sizes):
             raise InputError(f"the pit needs a positive radius and depth, got {self.radius_mm} and {self.depth_mm} mm")
         if self.centre_xy_mm is not None and not all(np.isfinite(v) for v in self.centre_xy_mm):
             raise InputError(f"the pit's centre must be finite, got {self.centre_xy_mm}")
