@@ -12,17 +12,26 @@ follow one distribution whose scale the models only approximate (the sweep's ``m
 measured on another texture; a map's sigma comes from its own noise model), so the scale is measured on
 the data: the robust standard deviation (MAD) of every observation's normalised residual, about zero, the
 *noise factor* (a variance factor: 1 when the models are right). Changed tissue is a minority of the
-observations, so the MAD sees the unchanged part. A point is changed when it is observed in at least
+observations, so the MAD sees the unchanged part. A point is flagged when it is observed in at least
 ``min_views`` frames and the median over them of its absolute normalised residual exceeds ``n_sigma``
 noise factors (a Gaussian exceeds 3 sigma with probability 0.27 %, and the median of several views
-still less often; a stray wrong sweep depth in one view does not move the median).
+still less often; a stray wrong sweep depth in one view does not move the median). The sweep's errors
+have heavier tails than that (on the dome, 1.8 % of the points on unchanged wall are flagged), but they
+are scattered, while tissue is removed or moved as a region: a flagged point stays changed only when at
+least half of its ``vote_neighbours`` nearest judged map points are flagged too (a majority of 16
+independent false alarms at 2 % each has a probability below 1e-9; the change must span more than that
+neighbourhood, 0.26 mm on a dense map, a few mm on a sparse one).
 
 The region to map again in a reference frame: its pixels whose measured depth departs by more than the
 same threshold from the map's surface there (the least-squares plane, depth against pixel, through the
 ``neighbours`` nearest map points in that image, as ``sfm.depth_consistency`` fits it; its error that
 of a three-parameter fit, ``sqrt(3 / k)`` times the neighbours' RMS sigma), among the pixels the map
-covers (the nearest map point within twice the map's median point spacing in that image); a 3 x 3 median
-on the sweep's grid removes isolated pixels. The test is two-sided: tissue moved towards the scope is a
+covers (the nearest map point within twice the map's median point spacing in that image) and near a
+changed point (as close): the points' decision rests on several views, a pixel's on one sweep, whose
+stray depths would otherwise mark isolated specks all over the view; a 3 x 3 median on the sweep's grid
+removes the isolated pixels left. To these the changed points' own footprint is added (the pixels within
+twice the spacing of their projections): where this frame's sweep kept no depth, other views found the
+change. The test is two-sided: tissue moved towards the scope is a
 change too. A view in which other tissue hides a map point would flag it; the dome and a cavity seen from
 inside hide none of their own wall.
 
@@ -54,6 +63,8 @@ class SurfaceChangeOptions:
     min_views : reference frames a point must be observed in to be judged (default 2).
     neighbours : map points through which the map's local depth plane is fitted (default 8, as
         ``sfm.depth_consistency``: three parameters leave five degrees of freedom).
+    vote_neighbours : a point stays changed only when at least half of this many nearest judged map
+        points (in 3-D) are changed too (default 16; the module docstring).
     """
 
     sweep: PlaneSweepOptions = field(default_factory=PlaneSweepOptions)
@@ -62,12 +73,13 @@ class SurfaceChangeOptions:
     n_sigma: float = 3.0
     min_views: int = 2
     neighbours: int = 8
+    vote_neighbours: int = 16
 
     def __post_init__(self) -> None:
         if not (self.baseline_ratio > 0 and 0 < self.depth_margin < 1 and self.n_sigma > 0):
             raise ValueError("need baseline_ratio > 0, depth_margin in (0, 1) and n_sigma > 0")
-        if self.min_views < 1 or self.neighbours < 3:
-            raise ValueError("need min_views >= 1 and neighbours >= 3")
+        if self.min_views < 1 or self.neighbours < 3 or self.vote_neighbours < 1:
+            raise ValueError("need min_views >= 1, neighbours >= 3 and vote_neighbours >= 1")
 
 
 @dataclass
@@ -129,17 +141,33 @@ def detect_surface_change(camera: Camera, map_points: np.ndarray, map_sigma_mm: 
         ids = np.flatnonzero(seen)[ok]
         for i, z in zip(ids, (z_obs[ok] - z_map[ids]) / np.hypot(s_obs[ok], sigma_map[ids])):
             observations[i].append(z)
-        per_frame.append((measured, px[seen], z_map[seen], sigma_map[seen]))
+        per_frame.append((measured, px[seen], z_map[seen], sigma_map[seen], np.flatnonzero(seen)))
     flat = np.concatenate([np.asarray(o) for o in observations if o] or [np.zeros(0)])
     noise = robust_sigma(flat, about=0.0) if len(flat) else float("nan")
     n_views = np.array([len(o) for o in observations])
     score = np.full(len(points), np.nan)
     judged = n_views >= options.min_views
     score[judged] = [np.median(np.abs(observations[i])) / noise for i in np.flatnonzero(judged)]
-    changed = np.nan_to_num(score, nan=0.0) > options.n_sigma
+    changed = _vote(points, judged, np.nan_to_num(score, nan=0.0) > options.n_sigma, options.vote_neighbours)
     regions = [np.zeros(field_mask.shape, bool) if f is None else
-               _region(camera, *f, noise * options.n_sigma, options) for f in per_frame]
+               _region(camera, *f[:4], changed[f[4]], noise * options.n_sigma, options) for f in per_frame]
     return SurfaceChange(changed, score, n_views, refs, regions, noise)
+
+
+def _vote(points: np.ndarray, judged: np.ndarray, flagged: np.ndarray, k: int) -> np.ndarray:
+    """The flagged points at least half of whose ``k`` nearest judged points (themselves excluded) are
+    flagged too."""
+    ids = np.flatnonzero(judged)
+    out = np.zeros(len(points), bool)
+    if len(ids) < 2:
+        return out
+    k = min(k, len(ids) - 1)
+    candidates = ids[flagged[ids]]
+    if len(candidates) == 0:
+        return out
+    _, nb = cKDTree(points[ids]).query(points[candidates], k + 1)
+    out[candidates] = flagged[ids[nb[:, 1:]]].mean(axis=1) >= 0.5
+    return out
 
 
 def _project(camera: Camera, pose: Pose, points: np.ndarray, field_mask: np.ndarray):
@@ -156,14 +184,17 @@ def _project(camera: Camera, pose: Pose, points: np.ndarray, field_mask: np.ndar
 
 
 def _region(camera: Camera, measured, px_map: np.ndarray, z_map: np.ndarray, sigma_map: np.ndarray,
-            threshold: float, options: SurfaceChangeOptions) -> np.ndarray:
-    """(H, W) bool: the pixels whose measured depth departs from the map's local plane by more than
-    ``threshold`` of its error (module docstring)."""
+            changed: np.ndarray, threshold: float, options: SurfaceChangeOptions) -> np.ndarray:
+    """(H, W) bool: the pixels near a changed map point whose measured depth departs from the map's local
+    plane by more than ``threshold`` of its error (module docstring)."""
     k = options.neighbours
     tree = cKDTree(px_map)
     spacing = float(np.median(tree.query(px_map, 2)[0][:, 1]))
+    if not changed.any():
+        return np.zeros((camera.height, camera.width), bool)
+    near_change = cKDTree(px_map[changed]).query(measured.pixels, 1)[0] <= 2.0 * spacing
     dist, nb = tree.query(measured.pixels, k)
-    covered = dist[:, 0] <= 2.0 * spacing
+    covered = (dist[:, 0] <= 2.0 * spacing) & near_change
     q = measured.pixels[covered]
     nb = nb[covered]
     # the plane in pixel offsets from the query: its depth there is the constant term (pseudo-inverse:
@@ -180,4 +211,9 @@ def _region(camera: Camera, measured, px_map: np.ndarray, z_map: np.ndarray, sig
     grid[ij[off, 1] // stride, ij[off, 0] // stride] = 255
     grid = cv2.medianBlur(grid, 3)
     full = np.repeat(np.repeat(grid, stride, axis=0), stride, axis=1)[:camera.height, :camera.width] > 0
-    return full & camera.mask()
+    # and the changed points' own footprint: where the sweep kept no depth they still say what changed
+    seeds = np.full((camera.height, camera.width), 255, np.uint8)
+    ij = np.round(px_map[changed]).astype(int)
+    seeds[ij[:, 1], ij[:, 0]] = 0
+    footprint = cv2.distanceTransform(seeds, cv2.DIST_L2, 5) <= 2.0 * spacing
+    return (full | footprint) & camera.mask()
