@@ -46,6 +46,7 @@ def test_dome_video_writes_times_in_poses_csv(tmp_path):
     centres = np.array([m.pose.centre for m in data.poses])
     np.testing.assert_allclose(np.linalg.norm(np.diff(centres, axis=0), axis=1), 0.8, atol=1e-9)
     assert data.ground_truth.scene["trajectory"]["speed_mm_s"] == 20.0
+    assert data.ground_truth.scene["trajectory"]["frames_used"] == 12
     # a still survey has no times
     still = write(generate("dome", size=SMALL, n_frames=2), tmp_path / "still")
     assert load_dataset(still).times_s is None

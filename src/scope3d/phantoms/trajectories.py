@@ -56,8 +56,9 @@ class Trajectory:
         return len(self.poses)
 
     def first(self, n: int) -> Trajectory:
-        """The first ``n`` frames (all when there are fewer)."""
-        return Trajectory(self.name, self.poses[:n], self.params, None if self.times_s is None else self.times_s[:n])
+        """The first ``n`` frames (all when there are fewer), recorded as ``params["frames_used"]``."""
+        return Trajectory(self.name, self.poses[:n], {**self.params, "frames_used": min(n, len(self))},
+                          None if self.times_s is None else self.times_s[:n])
 
 
 def poses_at(key_times: np.ndarray, key_poses: list[Pose], times: np.ndarray) -> list[Pose]:
