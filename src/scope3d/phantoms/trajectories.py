@@ -297,7 +297,7 @@ def build_trajectory(name: str, *, n_frames: int | None = None, side_view_deg: f
         cols, rows = (int(v) for v in name[4:].split("x"))
         traj = grid_trajectory(rows, cols)
         if n_frames is not None:
-            traj = Trajectory(traj.name, traj.poses[:n_frames], {**traj.params, "frames_used": min(n_frames, len(traj))})
+            traj = traj.first(n_frames)
         return traj
     if name == "axial":
         return axial_trajectory(n, axis_offset_mm=axis_offset_mm, axis_tilt_deg=axis_tilt_deg)
