@@ -31,7 +31,9 @@ changed point (as close): the points' decision rests on several views, a pixel's
 stray depths would otherwise mark isolated specks all over the view; a 3 x 3 median on the sweep's grid
 removes the isolated pixels left. To these the changed points' own footprint is added (the pixels within
 twice the spacing of their projections): where this frame's sweep kept no depth, other views found the
-change. The test is two-sided: tissue moved towards the scope is a
+change; and a morphological closing fills the gaps narrower than the vote's neighbourhood in the image (the
+median distance of a map point's ``vote_neighbours``-th neighbour there), which a change found by that
+vote spans anyway. The test is two-sided: tissue moved towards the scope is a
 change too. A view in which other tissue hides a map point would flag it; the dome and a cavity seen from
 inside hide none of their own wall.
 
@@ -224,4 +226,9 @@ def _region(camera: Camera, measured, px_map: np.ndarray, z_map: np.ndarray, sig
     ij = np.round(px_map[changed]).astype(int)
     seeds[ij[:, 1], ij[:, 0]] = 0
     footprint = cv2.distanceTransform(seeds, cv2.DIST_L2, 5) <= 2.0 * spacing
-    return (full | footprint) & camera.mask()
+    region = (full | footprint).astype(np.uint8)
+    # close gaps narrower than the vote's neighbourhood (a change spans at least that much)
+    reach = float(np.median(tree.query(px_map, options.vote_neighbours + 1)[0][:, -1]))
+    size = 2 * int(np.ceil(reach)) + 1
+    region = cv2.morphologyEx(region, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size)))
+    return (region > 0) & camera.mask()
