@@ -58,6 +58,7 @@ def test_plan_video_interpolates_between_planned_views():
     video = plan_trajectory(plan, video_fps=10.0, seconds_per_view=0.5)
     assert len(video) == 2 * 5 + 1  # 5 frames from each view to the next, plus the last view
     assert video.params["sections"] == [0] * 10 + [1]
+    np.testing.assert_allclose(video.times_s, np.arange(11) / 10.0)  # poses.csv's time_s column
     for k, pose in enumerate(traj.poses):
         assert np.allclose(video.poses[5 * k].matrix, pose.matrix)
 

@@ -94,10 +94,6 @@ def register(subparsers) -> None:
     bl = p.add_argument_group("bladder and scan plans (reference ch. 2)")
     bl.add_argument("--plan", metavar="PLAN_JSON", help="render the views of a scan plan (scope3d plan-scan) "
                     "instead of a trajectory, with its field of view unless --fov is given")
-    bl.add_argument("--video", type=float, metavar="FPS", help="with --plan: render the continuous path through "
-                    "the planned views at FPS frames per second (poses interpolated)")
-    bl.add_argument("--mp4", action="store_true", help="with --video: also write the frames as DIR/video.mp4 "
-                    "(MPEG-4, at FPS), a real video file for `scope3d import video`")
     bl.add_argument("--seconds-per-view", type=float, default=600.0 / 529.0, metavar="S",
                     help="with --video: time from one planned view to the next (default 1.13 s, the reference's "
                          "10 min for 529 views)")
@@ -107,13 +103,26 @@ def register(subparsers) -> None:
     bl.add_argument("--vessel-density", type=float, default=1.0, metavar="F",
                     help="bladder vessels and capillary dots as a fraction of the default (1); 0.25 is pale")
     bl.add_argument("--wet", action="store_true", help="bladder: specular glints of wet mucosa at the tip's light")
+    vid = p.add_argument_group("videos: a continuous path with frame times, tissue that changes (docs/phantoms.md)")
+    vid.add_argument("--video", type=float, metavar="FPS", help="render a continuous path at FPS frames per second "
+                     "(poses interpolated; poses.csv gets each frame's time_s, frame i at i / FPS): with --plan the "
+                     "path through the planned views; without, a grid survey (dome, sheet, cavity) flown from stop "
+                     "to stop at --scan-speed (grid5x6 at 10 mm/s: 436 frames at 30 fps); --frames keeps the first N")
+    vid.add_argument("--mp4", action="store_true", help="with --video: also write the frames as DIR/video.mp4 "
+                     "(MPEG-4, at FPS), a real video file for `scope3d import video`")
+    vid.add_argument("--resect", metavar="T_S[:RADIUS_MM:DEPTH_MM[:X_MM:Y_MM]]",
+                     help="dome with --video: from T seconds on, a pit is cut into the dome's wall (default radius "
+                          "3 mm, depth 1.5 mm, centred on the wall below (X, Y), drawn from --seed unless given); "
+                          "ground_truth/ holds the surface before (surface.ply) and after (surface_resected.ply), "
+                          "scene.json the pit, its time and first frame (docs/phantoms.md)")
     raw = p.add_argument_group("a lab's raw recording (docs/own_data.md)")
     raw.add_argument("--raw-recording", action="store_true",
                      help="dome only: write what a lab would bring instead of a dataset: checkerboard views, "
                           "hand-eye stills with the robot's log, a scan video with its 250 Hz robot log (metres, "
                           "x-y-z-w quaternions, the robot's own clock) and the hidden truth (--size, --seed apply)")
-    raw.add_argument("--scan-speed", type=float, default=25.0, metavar="MM_S",
-                     help="with --raw-recording: the scan's speed between raster points (default 25 mm/s)")
+    raw.add_argument("--scan-speed", type=float, metavar="MM_S",
+                     help="with --raw-recording or a grid --video: the scan's speed between raster points (default "
+                          "25 mm/s for a raw recording, 10 mm/s for a video)")
     raw.add_argument("--robot-error", type=float, default=0.2, metavar="MM",
                      help="with --raw-recording: the controller's smooth pose error along the path, at most MM "
                           "per axis and MM x 0.5 deg (default 0.2; 0 = an exact robot)")
@@ -176,10 +185,22 @@ def run(args) -> int:
         from scope3d.io.scan_plan import read_scan_plan
 
         plan = read_scan_plan(args.plan)
-    elif args.video is not None:
-        raise InputError("--video needs --plan")
     if args.mp4 and args.video is None:
         raise InputError("--mp4 needs --video FPS")
+    if args.scan_speed is not None and (args.video is None or args.plan):
+        raise InputError("--scan-speed applies to --raw-recording and to a grid survey's --video")
+    resection = None
+    if args.resect:
+        from scope3d.phantoms.resection import Resection
+
+        if args.video is None:
+            raise InputError("--resect needs --video FPS (the pit is cut at a time)")
+        form = "T_S[:RADIUS_MM:DEPTH_MM[:X_MM:Y_MM]]"
+        n = args.resect.count(":") + 1
+        if n not in (1, 3, 5):
+            raise InputError(f"--resect must be {form}, got {args.resect!r}")
+        values = _floats(args.resect, n, "--resect", form)
+        resection = Resection(values[0], *values[1:3], **({"centre_xy_mm": values[3:5]} if n == 5 else {}))
     n_frames, step, scan_plan = args.frames, args.quadrant_step, None
     if args.scene == "thread" and args.trajectory == "quadrants" and not args.plan:
         n_frames, step, scan_plan = _planned_quadrant_scan(args)
@@ -193,6 +214,8 @@ def run(args) -> int:
             progress=progress, target=args.target, thread_offsets_mm=offsets, thread_defect=defect,
             quadrant_mount=mount, quadrant_step_mm=step, bladder=bladder or None, plan=plan, video_fps=args.video,
             seconds_per_view=args.seconds_per_view, lens=args.lens, board_views=args.boards,
+            resection=resection,
+            **({"scan_speed_mm_s": args.scan_speed} if args.scan_speed is not None else {}),
         )
     report = {"job": "phantom", "scene": args.scene, "trajectory": seq.trajectory.name, "seed": args.seed,
               "pose_noise_mm": args.pose_noise, **({"scan_plan": scan_plan} if scan_plan else {})}
@@ -243,7 +266,8 @@ def _run_raw_recording(args) -> int:
 
     if args.scene != "dome":
         raise InputError(f"--raw-recording renders the dome phantom, not {args.scene!r}")
-    if not args.scan_speed > 0:
+    speed = RecordingOptions.speed_mm_s if args.scan_speed is None else args.scan_speed
+    if not speed > 0:
         raise InputError(f"--scan-speed must be positive, got {args.scan_speed}")
     if not args.robot_error >= 0:
         raise InputError(f"--robot-error must be zero or positive, got {args.robot_error}")
@@ -252,7 +276,7 @@ def _run_raw_recording(args) -> int:
         raise InputError(f"{out}: exists and is not a recording; choose another --out")
     started = time.perf_counter()
     with progress_bar(show_progress(args), "image") as progress:
-        write_recording(RecordingOptions(size=args.size, speed_mm_s=args.scan_speed, seed=args.seed,
+        write_recording(RecordingOptions(size=args.size, speed_mm_s=speed, seed=args.seed,
                                          robot_error_mm=args.robot_error), out,
                         progress=progress)
     report = {"job": "phantom", "scene": "dome", "raw_recording": str(out), "seed": args.seed,

@@ -28,7 +28,8 @@ axis; ``tol_r*_deg`` bound a small rotation about the camera's own x, y, z axes 
 R_measured`` for ``cam_from_world``). Tolerance 0 means exact, ``inf`` means unknown; NaN is an error
 everywhere. ``dataset.json``'s ``length_unit`` may be ``mm``, ``cm``, ``m`` or ``um``; lengths (positions
 and position tolerances) are converted to mm when loading. Pixels: origin at the centre of the top-left
-pixel, u right, v down (:mod:`scope3d.sensor.camera`).
+pixel, u right, v down (:mod:`scope3d.sensor.camera`). An optional last column ``time_s`` gives each
+frame's time in seconds, strictly increasing (a video's frames: :attr:`Dataset.times_s`).
 """
 from __future__ import annotations
 
@@ -83,7 +84,7 @@ def load_dataset(root: str | Path, *, check_images: bool = False) -> Dataset:
     scale = LENGTH_UNITS_TO_MM[unit]
     camera = read_camera_json(root / "camera.json")
     poses_path = root / "poses.csv"
-    names, poses, row_numbers = _read_pose_rows(poses_path, scale)
+    names, poses, row_numbers, times_s = _read_pose_rows(poses_path, scale)
     frames_dir = root / "frames"
     if not frames_dir.is_dir():
         raise InputError(f"{frames_dir}: frames folder is missing")
@@ -111,7 +112,7 @@ def load_dataset(root: str | Path, *, check_images: bool = False) -> Dataset:
             _check_size(p, read_image(p), camera)
         if ground_truth is not None:
             _check_ground_truth_files(ground_truth, camera)
-    return Dataset(root, camera, frame_paths, poses, fluorescence_paths, ground_truth, metadata)
+    return Dataset(root, camera, frame_paths, poses, fluorescence_paths, ground_truth, metadata, times_s)
 
 
 def _check_size(path: Path, image: np.ndarray, camera: Camera) -> np.ndarray:
@@ -187,6 +188,7 @@ def write_dataset(
     extra_images: dict[str, np.ndarray] | None = None,
     finish: Callable[[Path], None] | None = None,
     move_frames: bool = False,
+    times_s: Sequence[float] | None = None,
 ) -> Path:
     """Write a dataset folder atomically (built beside ``out_dir``, then renamed into place).
 
@@ -203,6 +205,8 @@ def write_dataset(
     move_frames : frames given as paths of the caller's own temporary files, just written whole in the
         name's format: moved into the dataset, neither copied nor decoded again to check them (an import's
         own PNGs; a user's files are always copied and checked).
+    times_s : each frame's time, seconds, strictly increasing: ``poses.csv``'s ``time_s`` column (a video's
+        frames), in the ground truth's poses.csv too.
 
     If anything fails, ``out_dir`` is left as it was (absent, or the previous dataset).
     """
@@ -217,7 +221,12 @@ def write_dataset(
     bad = [name for name in names if not name or "/" in name or "\\" in name or name.startswith(".")]
     if bad:
         raise ValueError(f"frame name {bad[0]!r} must be a plain file name")
-    for label, items in (("fluorescence frames", fluorescence), ("true poses", true_poses), ("depth maps", true_depths)):
+    if times_s is not None:
+        times_s = np.asarray(times_s, dtype=float)
+        if not (np.all(np.isfinite(times_s)) and np.all(np.diff(times_s) > 0)):
+            raise ValueError("frame times must be finite and strictly increasing")
+    for label, items in (("fluorescence frames", fluorescence), ("true poses", true_poses), ("depth maps", true_depths),
+                         ("frame times", times_s)):
         if items is not None and len(items) != n:
             raise ValueError(f"{n} frames but {len(items)} {label}")
     out_dir = Path(out_dir)
@@ -228,7 +237,7 @@ def write_dataset(
             meta["scene"] = scene.get("name", "custom")
         write_json(tmp / "dataset.json", meta)
         write_json(tmp / "camera.json", camera_to_dict(camera))
-        (tmp / "poses.csv").write_text(format_poses_csv(names, poses))
+        (tmp / "poses.csv").write_text(format_poses_csv(names, poses, times_s=times_s))
         (tmp / "frames").mkdir()
         for name, img in zip(names, frames):
             if move_frames and isinstance(img, (str, Path)) and Path(img).suffix.lower() == Path(name).suffix.lower():
@@ -244,7 +253,7 @@ def write_dataset(
             gt.mkdir()
             if true_poses is not None:
                 exact = [MeasuredPose(p, PoseTolerance.exact()) for p in true_poses]
-                (gt / "poses.csv").write_text(format_poses_csv(names, exact))
+                (gt / "poses.csv").write_text(format_poses_csv(names, exact, times_s=times_s))
             if true_surface is not None:
                 write_ply(gt / "surface.ply", true_surface)
             if true_depths is not None:
@@ -297,7 +306,8 @@ class GroundTruth:
 
 @dataclass(frozen=True)
 class Dataset:
-    """A loaded dataset. Images are read on demand with :meth:`frame` and :meth:`fluorescence_frame`."""
+    """A loaded dataset. Images are read on demand with :meth:`frame` and :meth:`fluorescence_frame`.
+    times_s : (n,) each frame's time in seconds (``poses.csv``'s ``time_s`` column), or None without one."""
 
     root: Path
     camera: Camera
@@ -306,6 +316,7 @@ class Dataset:
     fluorescence_paths: list[Path] | None = None
     ground_truth: GroundTruth | None = None
     metadata: dict = field(default_factory=dict)
+    times_s: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.frame_paths)

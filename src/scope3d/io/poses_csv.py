@@ -19,18 +19,26 @@ POSE_COLUMNS = (
 )
 
 
+#: Optional column: each frame's time in seconds on the recording's clock, strictly increasing down the file
+#: (a video's frames; the phantom lab writes it for every video-rate trajectory). Readers that do not need
+#: it ignore it, as every reader ignores columns it does not know.
+TIME_COLUMN = "time_s"
+
 #: Extra columns of a map's ``poses_refined.csv``: each adjusted pose's remaining standard deviation (the
 #: tolerance columns there hold 3 of them); :func:`read_poses_csv` reads such a file as any poses.csv.
 SIGMA_COLUMNS = ("sigma_x_mm", "sigma_y_mm", "sigma_z_mm", "sigma_rx_deg", "sigma_ry_deg", "sigma_rz_deg")
 
 
-def format_poses_csv(names: list[str], poses: list[MeasuredPose], sigmas: np.ndarray | None = None) -> str:
+def format_poses_csv(names: list[str], poses: list[MeasuredPose], sigmas: np.ndarray | None = None,
+                     times_s: np.ndarray | None = None) -> str:
     """``poses.csv`` text. sigmas : optional (m, 6) standard deviations (rotation rad, centre mm, in the order
     of :attr:`PoseTolerance.orientation_rad`, :attr:`PoseTolerance.position_mm`) written as
-    :data:`SIGMA_COLUMNS` after the tolerance columns."""
+    :data:`SIGMA_COLUMNS` after the tolerance columns. times_s : optional (m,) frame times, seconds,
+    written as :data:`TIME_COLUMN` after those."""
     out = io.StringIO()
     writer = csv.writer(out, lineterminator="\n")
-    writer.writerow(POSE_COLUMNS + (SIGMA_COLUMNS if sigmas is not None else ()))
+    writer.writerow(POSE_COLUMNS + (SIGMA_COLUMNS if sigmas is not None else ())
+                    + ((TIME_COLUMN,) if times_s is not None else ()))
     for k, (name, measured) in enumerate(zip(names, poses)):
         c = measured.pose.centre
         q = matrix_to_quaternion(measured.pose.rotation.T)  # world_from_cam, (x, y, z, w)
@@ -41,6 +49,7 @@ def format_poses_csv(names: list[str], poses: list[MeasuredPose], sigmas: np.nda
             + [f"{v:.9g}" for v in tol.position_mm]
             + [f"{v:.9g}" for v in tol.orientation_deg]
             + extra
+            + ([] if times_s is None else [f"{float(times_s[k]):.9g}"])
         )
     return out.getvalue()
 
@@ -51,12 +60,21 @@ def read_poses_csv(path: str | Path, length_scale_to_mm: float = 1.0) -> tuple[l
     length_scale_to_mm : the file's length unit in mm (1 for mm, 1000 for m); positions and position
     tolerances are returned in mm. Returns the image names and the measured ``cam_from_world`` poses.
     """
-    names, poses, _ = _read_pose_rows(Path(path), length_scale_to_mm)
+    names, poses, _, _ = _read_pose_rows(Path(path), length_scale_to_mm)
     return names, poses
 
 
-def _read_pose_rows(path: Path, length_scale_to_mm: float) -> tuple[list[str], list[MeasuredPose], list[int]]:
-    """:func:`read_poses_csv`, also returning each pose's row number in the file (for error messages)."""
+def read_pose_times(path: str | Path) -> np.ndarray | None:
+    """The :data:`TIME_COLUMN` of a ``poses.csv`` (seconds, one per frame), or None when it has none. An
+    InputError names the file and row of a time that is no number, not finite, or not after the row
+    above's."""
+    return _read_pose_rows(Path(path), 1.0)[3]
+
+
+def _read_pose_rows(path: Path, length_scale_to_mm: float
+                    ) -> tuple[list[str], list[MeasuredPose], list[int], np.ndarray | None]:
+    """:func:`read_poses_csv`, also returning each pose's row number in the file (for error messages) and
+    the frame times (:func:`read_pose_times`)."""
     if not path.is_file():
         raise InputError(f"{path}: pose file is missing")
     try:
@@ -71,8 +89,10 @@ def _read_pose_rows(path: Path, length_scale_to_mm: float) -> tuple[list[str], l
     missing = [c for c in POSE_COLUMNS if c not in header]
     if missing:
         raise InputError(f"{path} row 1: missing column(s) {', '.join(missing)}")
-    col = {name: header.index(name) for name in POSE_COLUMNS}
-    names, poses, row_numbers = [], [], []
+    timed = TIME_COLUMN in header
+    number_columns = POSE_COLUMNS[1:] + ((TIME_COLUMN,) if timed else ())
+    col = {name: header.index(name) for name in POSE_COLUMNS + number_columns}
+    names, poses, row_numbers, times = [], [], [], []
     first_row_of = {}
     for row_number, row in enumerate(rows[1:], start=2):
         if not row or all(not cell.strip() for cell in row):
@@ -89,7 +109,7 @@ def _read_pose_rows(path: Path, length_scale_to_mm: float) -> tuple[list[str], l
             raise InputError(f"{where}: image {name} is listed twice (also on row {first_row_of[name]})")
         first_row_of[name] = row_number
         values = {}
-        for column in POSE_COLUMNS[1:]:
+        for column in number_columns:
             text = row[col[column]].strip()
             try:
                 values[column] = float(text)
@@ -115,9 +135,15 @@ def _read_pose_rows(path: Path, length_scale_to_mm: float) -> tuple[list[str], l
             pose = Pose.from_centre(world_from_cam.T, centre)
         except ValueError as exc:  # finite in the file's unit, beyond float64 in mm
             raise InputError(f"{where}: position in mm: {exc}") from None
+        if timed:
+            t = values[TIME_COLUMN]
+            if times and not t > times[-1]:
+                raise InputError(f"{where}: {TIME_COLUMN} = {row[col[TIME_COLUMN]].strip()} is not after the row "
+                                 f"above's {times[-1]:.9g} (frames are listed in time order)")
+            times.append(t)
         names.append(name)
         poses.append(MeasuredPose(pose, tolerance))
         row_numbers.append(row_number)
     if not poses:
         raise InputError(f"{path}: pose file has a header but no rows")
-    return names, poses, row_numbers
+    return names, poses, row_numbers, (np.array(times) if timed else None)

@@ -28,9 +28,11 @@ from scope3d.io.scan_plan import PlanFile
 from scope3d.phantoms.boards import LAB_BOARD, LAB_BOARD_OPTIONS, render_board_views
 from scope3d.phantoms.lenses import ENDOSCOPE_MASK_FRACTION, PINHOLE, lens_named
 from scope3d.phantoms.render import RenderOptions, render_frame, sequence_exposure, supersample_factor
+from scope3d.phantoms.resection import Resection, resect
 from scope3d.phantoms.scenes import SCENE_TRAJECTORIES, SCENES, Scene, build_scene
 from scope3d.phantoms.tool import paint_tool, tool_mask
-from scope3d.phantoms.trajectories import TRAJECTORIES, Trajectory, build_trajectory
+from scope3d.phantoms.trajectories import (SURVEY_VIDEO_SPEED_MM_S, TRAJECTORIES, Trajectory, build_trajectory,
+                                           survey_video)
 from scope3d.scene.mesh import Mesh
 from scope3d.sensor.calibration import CAMERA_MODEL_OF
 from scope3d.sensor.camera import Camera
@@ -38,6 +40,7 @@ from scope3d.sensor.pose_tolerance import MICRO_STAGE, MeasuredPose, perturb_pos
 from scope3d.utils.progress import Progress, advance, stage
 
 ORIENTATION_NOISE_DEG_PER_MM = 0.5
+RESECTED_SURFACE_FILE = "surface_resected.ply"  # the true surface from the resection on; in ground_truth/
 BOARDS_FOLDER = "boards"  # checkerboard views through the dataset's lens (generate's board_views); beside dataset.json
 TOOL_MASK_FILE = "tool_mask.png"  # white where the tool hides the scene; beside dataset.json
 SECONDS_PER_PLANNED_VIEW = 600.0 / 529.0  # the reference's 15 mm scan: about 10 min for 529 views (sec. 2.3.2)
@@ -72,13 +75,20 @@ class PhantomSequence:
     names: list[str] = field(default_factory=list)
     tool_mask: np.ndarray | None = None  # (H, W) bool, where a tool hides the scene (approach trajectories)
     boards: list[np.ndarray] = field(default_factory=list)  # (H, W) uint8 checkerboard views through the camera
+    resected: Scene | None = None  # the scene from the resection's time on (scene_info["resection"]), or None
 
     def __len__(self) -> int:
         return len(self.frames)
 
     @property
     def surface(self) -> Mesh:
+        """The true surface as the sequence starts (before any resection)."""
         return self.scene.mesh
+
+    @property
+    def times_s(self) -> np.ndarray | None:
+        """(n,) each frame's time in seconds for a video, None for stills."""
+        return self.trajectory.times_s
 
 
 def default_camera(
@@ -155,6 +165,8 @@ def generate(
     seconds_per_view: float = SECONDS_PER_PLANNED_VIEW,
     lens: str = PINHOLE.name,
     board_views: int = 0,
+    scan_speed_mm_s: float = SURVEY_VIDEO_SPEED_MM_S,
+    resection: Resection | None = None,
 ) -> PhantomSequence:
     """Render ``scene`` along ``trajectory`` (the scene's default when None).
 
@@ -187,7 +199,14 @@ def generate(
     plan : a scan plan (:func:`scope3d.io.scan_plan.read_scan_plan`) rendered instead of a named trajectory,
         with its field of view unless ``fov_deg`` is given. video_fps : render the continuous path through the
         plan's views at this frame rate, ``seconds_per_view`` apart (poses interpolated; the reference's
-        scan took about 10 min for 529 views, 1.1 s each), instead of one frame per view.
+        scan took about 10 min for 529 views, 1.1 s each), instead of one frame per view; without a plan,
+        a grid survey's stops flown at ``scan_speed_mm_s`` (:func:`~scope3d.phantoms.trajectories.survey_video`),
+        ``n_frames`` then keeping the video's first frames. Either way each frame's time (i / video_fps) is
+        the trajectory's ``times_s``, written as ``poses.csv``'s ``time_s`` column.
+    resection : the dome only, with a video: from ``resection.time_s`` on the frames see a pit cut into the
+        wall (:mod:`scope3d.phantoms.resection`, placed from ``seed`` unless given); the depth maps are of
+        the surface each frame saw, ``scene_info["resection"]`` holds the pit and its time and the frames
+        from it, and :func:`write` adds the surface after it as ``ground_truth/surface_resected.ply``.
     lens : the lens the scene is seen through (:data:`~scope3d.phantoms.lenses.LENSES`: ``pinhole``,
         ``fisheye-140``, ``barrel-70``), on the scene's sensor; its vignetting applies unless
         ``options.vignetting`` is set. The camera written (camera.json) is that lens's model.
@@ -221,9 +240,9 @@ def generate(
         name = traj.name
         fov_deg = fov_deg or plan.fov_deg
     else:
-        if video_fps is not None:
-            raise InputError("a video path needs a plan (--plan) to run through")
         name = trajectory or built.default_trajectory
+        if video_fps is not None and not name.startswith("grid"):
+            raise InputError(f"a video runs along a grid survey or a plan (--plan), not the {name!r} trajectory")
         if name not in TRAJECTORIES:
             raise InputError(f"unknown trajectory {name!r} (use one of {', '.join(TRAJECTORIES)})")
         if name not in built.trajectories:
@@ -241,6 +260,23 @@ def generate(
                                     quadrant_mount=quadrant_mount, quadrant_step_mm=quadrant_step_mm)
         except ValueError as exc:
             raise InputError(str(exc)) from None
+        if video_fps is not None:
+            # the video flies the whole survey; n_frames keeps its first frames, not the first stops
+            traj = survey_video(build_trajectory(name), video_fps, speed_mm_s=scan_speed_mm_s)
+            if n_frames is not None:
+                traj = traj.first(n_frames)
+            name = traj.name
+    resected, change = None, None
+    if resection is not None:
+        if traj.times_s is None:
+            raise InputError("a resection happens at a time: it needs a video (--video FPS)")
+        resected, change = resect(built, resection, seed=seed)
+        after = np.flatnonzero(traj.times_s >= resection.time_s)
+        if len(after) == 0:
+            raise InputError(f"the resection at {resection.time_s:g} s comes after the video's last frame "
+                             f"({traj.times_s[-1]:.3f} s)")
+        change.update({"first_frame": int(after[0]), "surface": f"ground_truth/{RESECTED_SURFACE_FILE}",
+                       "surface_before": "ground_truth/surface.ply"})
     if camera is None:
         try:
             camera = default_camera(built, name, size=size, fov_deg=fov_deg, lens=lens)
@@ -262,7 +298,8 @@ def generate(
     frames, fluo, depths, tids = [], [], [], []
     stage(progress, f"phantom {scene}/{name}", len(poses))
     for i, pose in enumerate(poses):
-        out = render_frame(built, camera, pose, seed=seed, frame_index=i, exposure=exposure, options=options)
+        seen = resected if resected is not None and i >= change["first_frame"] else built
+        out = render_frame(seen, camera, pose, seed=seed, frame_index=i, exposure=exposure, options=options)
         advance(progress)
         frames.append(out.image)
         fluo.append(out.fluorescence)
@@ -296,6 +333,8 @@ def generate(
             else "exact poses reported with the micro-positioning stage tolerance (0.01 mm)",
         },
     })
+    if change is not None:
+        info["resection"] = change
     if boards:
         board = f"{LAB_BOARD.cols}x{LAB_BOARD.rows}"
         info["boards"] = {"folder": BOARDS_FOLDER, "count": len(boards), "inner_corners": [LAB_BOARD.cols, LAB_BOARD.rows],
@@ -307,7 +346,7 @@ def generate(
                         "model": "rigid with the scope: the same pixels in every frame (scope3d.phantoms.tool)"}
     return PhantomSequence(
         built, camera, frames, fluo if built.targets else None, list(poses), measured, depths, tids, traj, info,
-        [f"{i:04d}.png" for i in range(len(poses))], blocked, boards,
+        [f"{i:04d}.png" for i in range(len(poses))], blocked, boards, resected,
     )
 
 
@@ -369,7 +408,8 @@ def plan_trajectory(plan: PlanFile, *, video_fps: float | None = None,
     if n_frames is not None:
         poses, sections = poses[:n_frames], sections[:n_frames]
     params["sections"] = sections
-    return Trajectory("plan" if video_fps is None else "plan_video", poses, params)
+    times = None if video_fps is None else np.arange(len(poses)) / float(video_fps)
+    return Trajectory("plan" if video_fps is None else "plan_video", poses, params, times)
 
 
 def contact_sheet(images: list[np.ndarray], *, columns: int | None = None, thumb_px: int = 160,
@@ -402,7 +442,7 @@ def write(sequence: PhantomSequence, out_dir: str | Path, *, contact_sheet_px: i
     mp4 : also write the frames as ``video.mp4`` at the trajectory's frame rate (a plan video's).
     finish : see :func:`scope3d.io.dataset.write_dataset` (a job's report, written with the dataset)."""
     if mp4 and "fps" not in sequence.trajectory.params:
-        raise InputError("an MP4 needs a video-rate trajectory (a plan rendered with a frame rate)")
+        raise InputError("an MP4 needs a video-rate trajectory (a plan or a grid survey rendered with a frame rate)")
     out_dir = Path(out_dir)
     # the contact sheets go into the dataset's atomic write: a kill never leaves a dataset without them
     sheets = {"contact_sheet.png": contact_sheet(sequence.frames, thumb_px=contact_sheet_px)}
@@ -417,18 +457,24 @@ def write(sequence: PhantomSequence, out_dir: str | Path, *, contact_sheet_px: i
         metadata={"source": "scope3d phantom lab", "scene_name": sequence.scene.name,
                   "trajectory": sequence.trajectory.name},
         extra_images=sheets, finish=lambda folder: _complete(sequence, folder, mp4, finish),
+        times_s=sequence.times_s,
     )
     return out_dir
 
 
 def _complete(sequence: PhantomSequence, folder: Path, mp4: bool, finish) -> None:
     """The files beside the dataset proper, written into the folder being built (a kill never leaves a
-    thread dataset without its quadrant layout): quadrants.json, video.mp4, then the caller's ``finish``."""
+    thread dataset without its quadrant layout): quadrants.json, the surface after a resection, the
+    boards, video.mp4, then the caller's ``finish``."""
     if sequence.trajectory.params.get("kind") == "quadrants":
         from scope3d.utils.jsonio import write_json
 
         write_json(folder / "quadrants.json", quadrant_layout(sequence.trajectory, sequence.names,
                                                               (sequence.scene_info.get("thread") or {}).get("designation")))
+    if sequence.resected is not None:
+        from scope3d.io.ply import write_ply
+
+        write_ply(folder / "ground_truth" / RESECTED_SURFACE_FILE, sequence.resected.mesh)
     if sequence.boards:
         from scope3d.io.images import write_image
 

@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
+from scipy.spatial.transform import Rotation
 
 from scope3d.geometry.pose import Pose
 from scope3d.io.camera_json import camera_to_dict
@@ -43,7 +43,7 @@ from scope3d.phantoms.boards import (LAB_BOARD, LAB_BOARD_OPTIONS, random_board_
 from scope3d.phantoms.lab import ORIENTATION_NOISE_DEG_PER_MM, default_camera
 from scope3d.phantoms.render import RenderOptions, render_frame, sequence_exposure
 from scope3d.phantoms.scenes import build_scene
-from scope3d.phantoms.trajectories import grid_trajectory
+from scope3d.phantoms.trajectories import grid_trajectory, poses_at, survey_video
 from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance
 from scope3d.utils.atomic import atomic_directory
 from scope3d.utils.jsonio import write_json
@@ -108,7 +108,7 @@ def write_recording(options: RecordingOptions, out_dir: str | Path, *, progress:
             advance(progress)
         key_times, key_poses = _dwell_path([c @ BASE_FROM_BOARD.inverse() for c in cam_from_board])
         log_times = np.arange(key_times[0] - 0.5, key_times[-1] + 0.5, 1.0 / options.log_hz)
-        _write_log(tmp / "hand_eye" / "robot_log.csv", log_times, _path_at(key_times, key_poses, log_times), error,
+        _write_log(tmp / "hand_eye" / "robot_log.csv", log_times, poses_at(key_times, key_poses, log_times), error,
                    options)
         _write_frame_times(tmp / "hand_eye" / "frame_times.csv",
                            [f"board_{i:02d}.png" for i in range(len(cam_from_board))], still_times, options)
@@ -124,7 +124,7 @@ def write_recording(options: RecordingOptions, out_dir: str | Path, *, progress:
         # the controller's ticks fall anywhere between the camera's
         phase = np.random.default_rng([options.seed, 42]).uniform(0.0, 1.0 / options.log_hz)
         log_times = np.arange(scan_times[0] - 0.5 + phase, scan_times[-1] + 0.5, 1.0 / options.log_hz)
-        _write_log(tmp / "scan" / "robot_log.csv", log_times, _path_at(scan_times, scan_poses, log_times), error,
+        _write_log(tmp / "scan" / "robot_log.csv", log_times, poses_at(scan_times, scan_poses, log_times), error,
                    options)
         _write_frame_times(tmp / "scan" / "frame_times.csv", [str(i) for i in range(len(frames))], scan_times,
                            options)
@@ -145,12 +145,8 @@ def _scan_path(options: RecordingOptions) -> tuple[np.ndarray, list[Pose]]:
     """Camera times (s, camera clock) and true cam_from_world of every video frame: the raster's points
     joined by straight moves at ``speed_mm_s``, one frame every ``1 / fps``."""
     rows, cols = options.grid
-    stops = grid_trajectory(rows, cols).poses
-    centres = np.array([p.centre for p in stops])
-    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(centres, axis=0), axis=1))])
-    stop_times = arc / options.speed_mm_s
-    times = np.arange(0.0, stop_times[-1] + 1e-9, 1.0 / options.fps)
-    return times, _path_at(stop_times, stops, times)
+    video = survey_video(grid_trajectory(rows, cols), options.fps, speed_mm_s=options.speed_mm_s)
+    return video.times_s, video.poses
 
 
 def _dwell_path(cam_from_world: list[Pose]) -> tuple[np.ndarray, list[Pose]]:
@@ -160,15 +156,6 @@ def _dwell_path(cam_from_world: list[Pose]) -> tuple[np.ndarray, list[Pose]]:
         key_times += [1.0 + 2.0 * i, 2.0 + 2.0 * i]
         key_poses += [pose, pose]
     return np.array(key_times), key_poses
-
-
-def _path_at(key_times: np.ndarray, key_poses: list[Pose], times: np.ndarray) -> list[Pose]:
-    """Poses at ``times`` along keys joined by straight moves (centres linear, orientation slerp)."""
-    times = np.clip(times, key_times[0], key_times[-1])
-    centres = np.array([p.centre for p in key_poses])
-    centre = np.stack([np.interp(times, key_times, centres[:, k]) for k in range(3)], axis=1)
-    rotation = Slerp(np.asarray(key_times, dtype=float), Rotation.from_matrix([p.rotation for p in key_poses]))(times).as_matrix()
-    return [Pose.from_centre(r, c) for r, c in zip(rotation, centre)]
 
 
 class _RobotError:
