@@ -166,6 +166,23 @@ def test_build_tracks_joins_chains_and_drops_inconsistent_components():
     assert t.colors.tolist() == [[100, 100, 100]]
 
 
+def test_split_inconsistent_keeps_both_tracks_a_wrong_match_glued():
+    # two points, A (feature 0 in every frame) and B (feature 1), seen in 3 frames; one wrong match ties A in
+    # frame 0 to B in frame 2: dropped whole, the component loses both points; split, the wrong match, the
+    # least similar link, is refused and both tracks come back whole
+    rng = np.random.default_rng(0)
+    desc_a, desc_b = rng.uniform(0, 50, (2, 128)).astype(np.float32)
+    feats = [Features(np.zeros((2, 2)), np.stack([desc_a, desc_b]) + rng.normal(0, 1, (2, 128)).astype(np.float32),
+                      np.ones(2, np.float32), np.full((2, 3), 100, np.uint8)) for _ in range(3)]
+    a = np.array
+    matches = [PairMatches(0, 1, a([0, 1]), a([0, 1])), PairMatches(1, 2, a([0, 1]), a([0, 1])),
+               PairMatches(0, 2, a([0, 1, 0]), a([0, 1, 1]))]  # the last: frame 0's A -> frame 2's B, wrong
+    assert build_tracks(feats, matches).n_tracks == 0
+    t = build_tracks(feats, matches, split_inconsistent=True)
+    assert t.n_tracks == 2 and t.lengths().tolist() == [3, 3]
+    assert sorted(tuple(np.unique(t.feature[t.track == k])) for k in range(2)) == [(0,), (1,)]
+
+
 def test_strongest_keeps_the_longest_then_the_highest_priority():
     a = np.array
     # tracks 0 (3 views), 1, 2, 3 (2 views each)

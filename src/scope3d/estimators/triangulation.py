@@ -32,6 +32,8 @@ class TrackOptions:
         15 mm working distance a 0.5 px error then moves the point by < 0.3 mm in depth).
     min_track_length : int, observations per track (default 2).
     max_refine_rounds : int, rounds of dropping each bad track's worst observation (default 3).
+    split_inconsistent : bool, the map splits a component of the match graph that holds two features of one
+        frame into consistent tracks instead of dropping it (:func:`scope3d.feature.tracks.split_components`).
     """
 
     method: str = "midpoint"
@@ -39,6 +41,7 @@ class TrackOptions:
     min_angle_deg: float = 1.0
     min_track_length: int = 2
     max_refine_rounds: int = 3
+    split_inconsistent: bool = True
 
     def __post_init__(self) -> None:
         if self.method not in ("midpoint", "dlt"):
