@@ -47,6 +47,30 @@ def test_triangulation_is_exact_on_noise_free_data_with_distortion(method):
     np.testing.assert_allclose(Y, X, atol=1e-9)
 
 
+# an equidistant fisheye that sees 200 deg across (100 deg from its axis at the circle's edge)
+WIDE = Camera.from_params(608, 608, "OPENCV_FISHEYE", [170.0, 170.0, 303.5, 303.5, 0.0, 0.0, 0.0, 0.0],
+                          mask_radius_px=300.0)
+
+
+@pytest.mark.parametrize("method", ["midpoint", "dlt"])
+def test_points_seen_past_90_deg_from_the_axis_triangulate(method):
+    # the cameras look down -z; the points lie beside and slightly behind them, 95-100 deg off their axes
+    poses = [Pose.from_centre(look_at(np.array([x, 0.0, 0.0]), np.array([x, 0.0, -10.0])), [x, 0.0, 0.0])
+             for x in (-3.0, 0.0, 3.0)]
+    X = np.array([[0.0, 20.0, 2.0], [4.0, -20.0, 3.0], [-2.0, 15.0, 2.5]])
+    angle = np.degrees(np.stack([WIDE.lens.half_angle(p.transform(X)) for p in poses]))
+    assert angle.min() > 95.0 and angle.max() < 100.0
+    m = len(poses)
+    track, frame = np.repeat(np.arange(len(X)), m), np.tile(np.arange(m), len(X))
+    px = np.stack([WIDE.project_world(p, X) for p in poses], axis=1).reshape(-1, 2)
+    assert np.all(np.isfinite(px)) and np.all(WIDE.in_image(px))
+    np.testing.assert_allclose(triangulate_observations(WIDE, poses, track, frame, px, len(X), method), X, atol=1e-9)
+    # and the filters keep them: in front along their rays although behind the camera planes (z < 0)
+    t = Tracks(track, frame, np.arange(len(track)), px, np.zeros((len(X), 3), np.uint8))
+    out = triangulate_tracks(WIDE, poses, t, TrackOptions(method=method))
+    assert out.n_tracks == len(X) and reprojection_errors(WIDE, poses, out).max() < 1e-6
+
+
 def test_triangulate_tracks_keeps_everything_good_and_reprojects_to_zero():
     X, poses = _scene()
     out = triangulate_tracks(CAM, poses, _tracks_from(X, poses))
@@ -164,6 +188,23 @@ def test_build_tracks_joins_chains_and_drops_inconsistent_components():
     assert t.n_tracks == 1 and lengths.tolist() == [3]
     assert sorted(zip(t.frame.tolist(), t.feature.tolist())) == [(0, 1), (1, 1), (2, 4)]
     assert t.colors.tolist() == [[100, 100, 100]]
+
+
+def test_split_inconsistent_keeps_both_tracks_a_wrong_match_glued():
+    # two points, A (feature 0 in every frame) and B (feature 1), seen in 3 frames; one wrong match ties A in
+    # frame 0 to B in frame 2: dropped whole, the component loses both points; split, the wrong match, the
+    # least similar link, is refused and both tracks come back whole
+    rng = np.random.default_rng(0)
+    desc_a, desc_b = rng.uniform(0, 50, (2, 128)).astype(np.float32)
+    feats = [Features(np.zeros((2, 2)), np.stack([desc_a, desc_b]) + rng.normal(0, 1, (2, 128)).astype(np.float32),
+                      np.ones(2, np.float32), np.full((2, 3), 100, np.uint8)) for _ in range(3)]
+    a = np.array
+    matches = [PairMatches(0, 1, a([0, 1]), a([0, 1])), PairMatches(1, 2, a([0, 1]), a([0, 1])),
+               PairMatches(0, 2, a([0, 1, 0]), a([0, 1, 1]))]  # the last: frame 0's A -> frame 2's B, wrong
+    assert build_tracks(feats, matches).n_tracks == 0
+    t = build_tracks(feats, matches, split_inconsistent=True)
+    assert t.n_tracks == 2 and t.lengths().tolist() == [3, 3]
+    assert sorted(tuple(np.unique(t.feature[t.track == k])) for k in range(2)) == [(0,), (1,)]
 
 
 def test_strongest_keeps_the_longest_then_the_highest_priority():

@@ -5,7 +5,9 @@ constrained bundle adjustment to solely recover pose information since the 3D sc
 were known"):
 
 1. :func:`estimate_absolute_pose` runs OpenCV's ``solvePnPRansac`` (EPnP minimal solver, USAC loop with a
-   seeded random state) on undistorted pixels;
+   seeded random state) on undistorted pixels, i.e. on the correspondences whose rays lie in front of the
+   camera plane (a fisheye's rays past 90 deg from the axis have no undistorted pixel; the minimal solver
+   needs only some of the rays);
 2. :func:`refine_pose` refines it with every point and the intrinsics held fixed, Huber loss, and — when
    the frame comes with a reported pose — every pose scalar kept inside the reported
    :class:`~scope3d.sensor.pose_tolerance.PoseTolerance` box (BCBA, eq. 6.2, with the points fixed). An
@@ -16,6 +18,10 @@ A frame is never given a pose it cannot support: too few correspondences, too fe
 bunched in a small patch of the image (rotation and translation trade off there) or all on one line, a
 RANSAC pose that the reported box cannot hold, and a pose its own covariance fixes no better than a stated
 fraction of its depth (``"imprecise"``), each return a status other than ``"ok"`` and no pose.
+
+Every test after the minimal solver is made through the lens model itself (its projection and analytic
+Jacobians), so a point a fisheye sees past 90 deg from its axis counts as an inlier and holds the pose like
+any other.
 
 Units: mm and radians; pixels with their origin at the top-left pixel's centre.
 """
@@ -176,13 +182,14 @@ def _ransac_pnp(camera: Camera, points_world: np.ndarray, pixels_ud: np.ndarray,
 
 
 def _reprojection(camera: Camera, pose: Pose, points_world: np.ndarray, pixels: np.ndarray) -> np.ndarray:
-    """(N,) reprojection error (px, observed image); inf behind the camera."""
+    """(N,) reprojection error (px, observed image); inf where the lens cannot see the point (behind the
+    camera plane for the pinhole family, beyond the field's half-angle for a fisheye, past 90 deg too)."""
     cam = pose.transform(points_world)
     err = np.full(len(points_world), np.inf)
-    front = cam[:, 2] > 1e-6
-    if np.any(front):
-        err[front] = np.linalg.norm(camera.project(cam[front]) - pixels[front], axis=1)
-    return err
+    seen = camera.lens.in_field(camera.params, cam) if camera.lens.is_fisheye else cam[:, 2] > 1e-6
+    if np.any(seen):
+        err[seen] = np.linalg.norm(camera.project(cam[seen]) - pixels[seen], axis=1)
+    return np.where(np.isfinite(err), err, np.inf)
 
 
 def _spread_px(pixels: np.ndarray) -> float:
@@ -310,7 +317,10 @@ def estimate_absolute_pose(
 
     if n < options.min_inliers:
         return fail("too_few_matches")
-    start, ransac_inliers = _ransac_pnp(camera, points_world, undistorted_pixels(camera, pixels), options)
+    ahead = camera.unproject(pixels)[:, 2] > 0  # rays with an undistorted pixel (all of a pinhole's)
+    start, inliers_ahead = _ransac_pnp(camera, points_world[ahead], undistorted_pixels(camera, pixels[ahead]), options)
+    ransac_inliers = np.zeros(n, bool)
+    ransac_inliers[ahead] = inliers_ahead
     if start is None or ransac_inliers.sum() < options.min_inliers:
         return fail("too_few_inliers")
     if _spread_px(pixels[ransac_inliers]) < options.min_spread_fraction * min(camera.width, camera.height):
@@ -338,7 +348,9 @@ def estimate_absolute_pose(
         return fail("too_few_inliers", inliers)
     if _spread_px(pixels[inliers]) < options.min_spread_fraction * min(camera.width, camera.height):
         return fail("degenerate", inliers)
-    depth = float(np.median(pose.transform(points_world[inliers])[:, 2]))
+    seen = pose.transform(points_world[inliers])
+    # the scale of the scene: the z-depth, or the range where the lens sees past 90 deg (z changes sign there)
+    depth = float(np.median(np.linalg.norm(seen, axis=1) if camera.max_half_angle_rad > np.pi / 2 else seen[:, 2]))
     worst_sigma = float(np.sqrt(max(np.linalg.eigvalsh(cov[3:, 3:])[-1], 0.0)))
     if 3.0 * worst_sigma > options.max_centre_sigma_fraction * depth:
         # the inliers agree with the pose but fix it too loosely to be used (few, or bunched in depth)

@@ -3,9 +3,10 @@
 * :func:`triangulate_tracks` — multi-view triangulation, vectorised over all tracks at once:
   ``"midpoint"`` minimises the sum of squared distances from the point to every observation ray
   (a 3x3 linear system per track), ``"dlt"`` is the homogeneous direct linear transform (the 4x4
-  normal matrix's smallest eigenvector per track; Hartley & Zisserman 12.2). Both work on undistorted
-  normalised rays. Then reprojection error, triangulation angle and cheirality (in front of every
-  camera) checks; bad observations are dropped and the point re-triangulated once.
+  normal matrix's smallest eigenvector per track; Hartley & Zisserman 12.2). Both work on the lens's unit
+  bearing vectors, so a fisheye's rays past 90 deg from the axis triangulate too. Then reprojection error,
+  triangulation angle and cheirality (ahead along every observation's ray) checks; bad observations are
+  dropped and the point re-triangulated once.
 
 With exact poses and noise-free observations both methods are exact (tested).
 """
@@ -32,6 +33,8 @@ class TrackOptions:
         15 mm working distance a 0.5 px error then moves the point by < 0.3 mm in depth).
     min_track_length : int, observations per track (default 2).
     max_refine_rounds : int, rounds of dropping each bad track's worst observation (default 3).
+    split_inconsistent : bool, the map splits a component of the match graph that holds two features of one
+        frame into consistent tracks instead of dropping it (:func:`scope3d.feature.tracks.split_components`).
     """
 
     method: str = "midpoint"
@@ -39,6 +42,7 @@ class TrackOptions:
     min_angle_deg: float = 1.0
     min_track_length: int = 2
     max_refine_rounds: int = 3
+    split_inconsistent: bool = True
 
     def __post_init__(self) -> None:
         if self.method not in ("midpoint", "dlt"):
@@ -53,13 +57,20 @@ class TrackOptions:
 
 
 def _rays_world(camera: Camera, poses: list[Pose], frame: np.ndarray, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Origins (M, 3) mm and unit directions (M, 3) in the world of each observation's ray."""
+    """Origins (M, 3) mm and unit directions (M, 3) in the world of each observation's ray: the lens's unit
+    bearing vectors (:meth:`Camera.unproject`), so a fisheye's rays past 90 deg from the axis keep their
+    direction (a normalised ``(x, y, 1)`` cannot hold them)."""
     rot = np.stack([p.rotation for p in poses])[frame]
     centres = np.stack([p.centre for p in poses])[frame]
-    xy = camera.pixel_to_normalised(pixels)
-    d_cam = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
-    d_world = np.einsum("mji,mj->mi", rot, d_cam)
+    d_world = np.einsum("mji,mj->mi", rot, camera.unproject(pixels))
     return centres, d_world / np.linalg.norm(d_world, axis=1, keepdims=True)
+
+
+def _in_front(camera: Camera, poses: list[Pose], frame: np.ndarray, pixels: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """(M,) bool: each observation's point lies ahead along its own ray (positive range), the test that
+    holds at any angle from the axis; for rays in front of the camera plane it is the positive z-depth."""
+    centres, d = _rays_world(camera, poses, frame, pixels)
+    return np.einsum("mi,mi->m", X - centres, d) > 0
 
 
 def triangulate_observations(
@@ -75,11 +86,18 @@ def triangulate_observations(
         c, d = _rays_world(camera, poses, frame, pixels)
         return triangulate_midpoint(c, d, track, n_tracks)
     if method == "dlt":
-        # rows x P3 - P1, y P3 - P2 on normalised coordinates; A^T A summed per track
-        xy = camera.pixel_to_normalised(pixels)
+        # rows of b x (P X) = 0 for the unit bearing b: the two that hold b's largest component (on
+        # normalised coordinates, b_z largest: x P3 - P1 and y P3 - P2 up to scale), well conditioned at any
+        # angle from the axis, past 90 deg too; A^T A summed per track
+        b = camera.unproject(pixels)
         P = np.stack([np.hstack([p.rotation, p.translation[:, None]]) for p in poses])[frame]  # (M, 3, 4)
-        r1 = xy[:, 0:1] * P[:, 2] - P[:, 0]
-        r2 = xy[:, 1:2] * P[:, 2] - P[:, 1]
+        rows = (b[:, 1:2] * P[:, 2] - b[:, 2:3] * P[:, 1],   # (b x PX)_x
+                b[:, 2:3] * P[:, 0] - b[:, 0:1] * P[:, 2],   # (b x PX)_y
+                b[:, 0:1] * P[:, 1] - b[:, 1:2] * P[:, 0])   # (b x PX)_z
+        largest = np.argmax(np.abs(b), axis=1)[:, None]
+        # b_z largest: rows y, x; b_x largest: rows y, z; b_y largest: rows x, z
+        r1 = np.where(largest == 0, rows[1], rows[0])
+        r2 = np.where(largest == 2, rows[1], rows[2])
         r1 /= np.linalg.norm(r1, axis=1, keepdims=True)
         r2 /= np.linalg.norm(r2, axis=1, keepdims=True)
         M = np.zeros((n_tracks, 4, 4))
@@ -131,10 +149,8 @@ def triangulate_tracks(camera: Camera, poses: list[Pose], tracks: Tracks, option
         X = triangulate_observations(camera, poses, current.track, current.frame, current.pixels, current.n_tracks, options.method)
         current = Tracks(current.track, current.frame, current.feature, current.pixels, current.colors, X)
         err = reprojection_errors(camera, poses, current)
-        depth = np.einsum(
-            "mi,mi->m", np.stack([p.rotation[2] for p in poses])[current.frame], X[current.track]
-        ) + np.stack([p.translation[2] for p in poses])[current.frame]
-        err = np.where(np.isfinite(err) & (depth > 0), err, np.inf)
+        ahead = _in_front(camera, poses, current.frame, current.pixels, X[current.track])
+        err = np.where(np.isfinite(err) & ahead, err, np.inf)
         # one wrong observation pulls its point and so raises the others' errors too: drop only the
         # worst observation of each bad track per round, then re-triangulate
         worst = np.full(current.n_tracks, -1.0)

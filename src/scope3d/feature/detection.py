@@ -46,6 +46,15 @@ class FeatureOptions:
     precise_upscale : bool, OpenCV's exact 2x upsampling of the first octave (default False: meant to
         remove a sub-pixel shift of the finest-scale keypoints, it did not lower the reprojection error on
         the Middlebury temple, 0.351 vs 0.335 px).
+    wide_field_deg, wide_field_clahe_clip_limit : a lens whose field across the image is wider than
+        ``wide_field_deg`` (:attr:`Camera.fov_deg`; default 120 deg, a fisheye) gets CLAHE at this clip
+        limit (default 2.0) when ``clahe_clip_limit`` is 0. Such a lens passes less light off its axis (a
+        relative illumination ``cos(theta)^n`` is 0.5 or less beyond 60 deg for any n >= 1) and squeezes the
+        periphery's texture into fewer pixels, so SIFT's absolute contrast threshold finds little there:
+        on the dome through the 140 deg fisheye (seed 5) 375 features per frame and 68 in a corner frame,
+        which then could not be mapped, and holes in the surface over half the targets; with CLAHE 1,750 per
+        frame, every frame mapped and every target found (benchmarks/results/map_lenses*.json). The
+        scene's 53 deg pinhole and the 70 deg barrel lens stay as they were.
     """
 
     max_features: int = 4000
@@ -57,6 +66,8 @@ class FeatureOptions:
     clahe_tile_grid: int = 8
     mask_margin_px: float = 8.0
     precise_upscale: bool = False
+    wide_field_deg: float = 120.0
+    wide_field_clahe_clip_limit: float = 2.0
 
     def __post_init__(self) -> None:
         if self.max_features < 0:
@@ -65,8 +76,10 @@ class FeatureOptions:
             raise ValueError("contrast_threshold, edge_threshold and sigma must be positive")
         if self.n_octave_layers < 1:
             raise ValueError(f"n_octave_layers must be >= 1, got {self.n_octave_layers}")
-        if self.clahe_clip_limit < 0 or self.clahe_tile_grid < 1:
-            raise ValueError("clahe_clip_limit must be >= 0 and clahe_tile_grid >= 1")
+        if self.clahe_clip_limit < 0 or self.clahe_tile_grid < 1 or self.wide_field_clahe_clip_limit < 0:
+            raise ValueError("clahe_clip_limit, wide_field_clahe_clip_limit must be >= 0 and clahe_tile_grid >= 1")
+        if not 0 < self.wide_field_deg <= 360:
+            raise ValueError(f"wide_field_deg must be in (0, 360], got {self.wide_field_deg}")
         if self.mask_margin_px < 0:
             raise ValueError(f"mask_margin_px must be >= 0, got {self.mask_margin_px}")
 
@@ -106,6 +119,14 @@ class Features:
     @classmethod
     def empty(cls) -> "Features":
         return cls(np.zeros((0, 2)), np.zeros((0, 128), np.float32), np.zeros(0, np.float32), np.zeros((0, 3), np.uint8))
+
+
+def clahe_clip_limit(camera: Camera | None, options: FeatureOptions) -> float:
+    """The CLAHE clip limit detection uses on this camera's frames (0: none): ``options.clahe_clip_limit``,
+    or for a lens wider than ``options.wide_field_deg`` its ``wide_field_clahe_clip_limit``."""
+    if options.clahe_clip_limit > 0 or camera is None:
+        return options.clahe_clip_limit
+    return options.wide_field_clahe_clip_limit if camera.fov_deg > options.wide_field_deg else 0.0
 
 
 def detection_mask(camera: Camera, margin_px: float) -> np.ndarray:
@@ -150,8 +171,9 @@ def detect(image: np.ndarray, camera: Camera | None = None, *, options: FeatureO
     grey = to_grey(img)
     if camera is not None and grey.shape != (camera.height, camera.width):
         raise ValueError(f"image is {grey.shape[1]}x{grey.shape[0]} but camera is {camera.width}x{camera.height}")
-    if options.clahe_clip_limit > 0:
-        clahe = cv2.createCLAHE(clipLimit=options.clahe_clip_limit, tileGridSize=(options.clahe_tile_grid,) * 2)
+    clip = clahe_clip_limit(camera, options)
+    if clip > 0:
+        clahe = cv2.createCLAHE(clipLimit=clip, tileGridSize=(options.clahe_tile_grid,) * 2)
         grey = clahe.apply(grey)
     mask = detection_mask(camera, options.mask_margin_px) if camera is not None else None
     sift = cv2.SIFT_create(

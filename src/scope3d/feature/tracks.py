@@ -2,7 +2,8 @@
 
 :func:`build_tracks` joins pairwise matches into tracks as connected components of the graph whose nodes
 are (frame, feature) and whose edges are matches. A component that holds two different features of the
-same frame is inconsistent (a wrong match somewhere along it) and is dropped whole, as COLMAP does.
+same frame is inconsistent (a wrong match somewhere along it) and is dropped whole, as COLMAP does, or
+split into consistent tracks (:func:`split_components`, what the map does: ``TrackOptions.split_inconsistent``).
 """
 from __future__ import annotations
 
@@ -38,14 +39,20 @@ def match_components(features: list[Features], matches: list[PairMatches]) -> tu
     return node, frame, lab, np.isin(lab, np.unique(lab[cnt[inv] > 1]))
 
 
-def build_tracks(features: list[Features], matches: list[PairMatches], *, min_track_length: int = 2) -> Tracks:
+def build_tracks(features: list[Features], matches: list[PairMatches], *, min_track_length: int = 2,
+                 split_inconsistent: bool = False) -> Tracks:
     """Tracks = connected components of the match graph (:func:`match_components`); components with two
-    features in one frame are dropped, and so are those shorter than ``min_track_length``."""
+    features in one frame are dropped (or, with ``split_inconsistent``, split: :func:`split_components`), and
+    so are those shorter than ``min_track_length``."""
     offsets = np.concatenate([[0], np.cumsum([len(f) for f in features])])
     node, frame, lab, conflicted = match_components(features, matches)
     if len(node) == 0:
         e = np.zeros(0, np.int64)
         return Tracks(e, e, e, np.zeros((0, 2)), np.zeros((0, 3), np.uint8), np.zeros((0, 3)))
+    if split_inconsistent and conflicted.any():
+        lab = lab.copy()
+        lab[conflicted] = int(lab.max()) + 1 + split_components(features, matches, node[conflicted])
+        conflicted = np.zeros_like(conflicted)
     size = np.bincount(lab)
     ok = ~conflicted & (size[lab] >= min_track_length)
     node, frame, lab = node[ok], frame[ok], lab[ok]
@@ -64,6 +71,53 @@ def build_tracks(features: list[Features], matches: list[PairMatches], *, min_tr
     colors = np.stack([np.bincount(track, col[:, c], n_tracks) for c in range(3)], axis=1) / np.maximum(counts, 1)
     return Tracks(track.astype(np.int64), frame.astype(np.int64), feature.astype(np.int64), pixels,
                   np.clip(np.rint(colors), 0, 255).astype(np.uint8))
+
+
+def split_components(features: list[Features], matches: list[PairMatches], nodes: np.ndarray) -> np.ndarray:
+    """Consistent tracks out of inconsistent components: the matches among ``nodes`` (M,) (sorted, as
+    :func:`match_components` numbers them) joined greedily, most similar descriptors first, each join refused
+    when it would put two features of one frame into one track. Returns a label (M,) per node, 0-based.
+
+    Why: a component is inconsistent when a wrong match glues two tracks, and the longer the tracks the more
+    likely that is. Dropping it whole loses the best-observed points: through a wide lens, where every frame
+    sees most of the scene, 39 % of the matched features of the 30-frame dome (seed 5, 140 deg fisheye) sat
+    in such components, holding its longest tracks (up to 89 features). A wrong match is the least similar
+    link between two right tracks, so it comes last and is refused."""
+    offsets = np.concatenate([[0], np.cumsum([len(f) for f in features])])
+    frame_of = np.searchsorted(offsets, nodes, side="right") - 1
+    src, dst, dist = [], [], []
+    for m in matches:
+        if not len(m):
+            continue
+        a, b = offsets[m.i] + m.idx_i, offsets[m.j] + m.idx_j
+        keep = np.isin(a, nodes)  # both ends lie in one component: one end in ``nodes`` is enough
+        if keep.any():
+            src.append(a[keep])
+            dst.append(b[keep])
+            diff = features[m.i].descriptors[m.idx_i[keep]] - features[m.j].descriptors[m.idx_j[keep]]
+            dist.append(np.einsum("ij,ij->i", diff, diff))
+    parent = np.arange(len(nodes))
+    frames: list[set] = [{int(f)} for f in frame_of]
+
+    def root(k: int) -> int:
+        while parent[k] != k:
+            parent[k] = parent[parent[k]]
+            k = parent[k]
+        return k
+
+    if src:
+        src_i = np.searchsorted(nodes, np.concatenate(src))
+        dst_i = np.searchsorted(nodes, np.concatenate(dst))
+        for e in np.argsort(np.concatenate(dist), kind="stable"):  # per-match loop, most similar first
+            ra, rb = root(int(src_i[e])), root(int(dst_i[e]))
+            if ra == rb or not frames[ra].isdisjoint(frames[rb]):
+                continue
+            if len(frames[ra]) < len(frames[rb]):
+                ra, rb = rb, ra
+            parent[rb] = ra
+            frames[ra] |= frames[rb]
+    roots = np.array([root(k) for k in range(len(nodes))])
+    return np.unique(roots, return_inverse=True)[1]
 
 
 #: Observations whose descriptors are gathered at once by :func:`track_descriptors` (8 MB of float32).

@@ -536,7 +536,8 @@ def reconstruct(options: MapOptions, dataset: Dataset, features: list[Features],
     are always the measured boxes.
     """
     t0 = time.perf_counter()
-    tracks = build_tracks(features, matching.matches, min_track_length=options.tracks.min_track_length)
+    tracks = build_tracks(features, matching.matches, min_track_length=options.tracks.min_track_length,
+                          split_inconsistent=options.tracks.split_inconsistent)
     if tracks.n_tracks == 0:
         raise InputError(f"{dataset.root}: no feature could be matched between frames (do they overlap?)")
     movable = options.pose_mode != "fixed"
