@@ -115,8 +115,36 @@ def test_panorama_from_planned_exact_poses_registers_every_frame_near_the_true_w
     assert abs(report["scale_error_fraction"]) < 0.01
     # the scale's own uncertainty is reported, and an error of ~1 % lies within a few of it
     assert 0 < report["scale_uncertainty_fraction"] < 0.01
-    for name in ("points.ply", "mesh.ply", "panorama_3d.png", "sparse/images.txt", "report.html"):
+    for name in ("points.ply", "mesh.ply", "panorama_3d.png", "sparse/images.txt", "report.html", "organ_map.png",
+                 "organ_coverage.png"):
         assert (out / name).stat().st_size > 0
+    # the organ map of one turn of the spiral: every frame on it, against the truth within the issue's
+    # targets (1 px p95, coverage within 1 %), and its section in the page
+    organ = report["organ_map"]
+    assert organ["n_frames_on_map"] == report["n_frames"]
+    assert organ["alignment"]["p95_px"] <= 1.0
+    assert abs(organ["coverage_error_fraction"]) <= 0.01
+    assert 'id="organ-map"' in (out / "report.html").read_text()
+
+
+def test_two_videos_of_one_cavity_share_one_organ_map(bladder, tmp_path, capsys):
+    # the turn split in two "videos" (frames 0-7 and 6-13, planned poses): on one map each covers part of the
+    # wall, together what the turn covers, both against the truth within the issue's targets
+    first = _subset(bladder, tmp_path / "a", set(range(0, 8)))
+    second = _subset(bladder, tmp_path / "b", set(range(6, 14)))
+    out = tmp_path / "both"
+    assert main(["panorama", str(first), str(second), "--no-scale", "--out", str(out), "--quiet"]) == 0
+    organ = json.loads((out / "report.json").read_text())["organ_map"]
+    alone = [v["coverage_fraction"] for v in organ["videos"]]
+    assert [v["n_registered"] for v in organ["videos"]] == [8, 8]
+    assert max(alone) < organ["coverage_fraction"] <= alone[0] + alone[1]
+    assert abs(organ["coverage_error_fraction"]) <= 0.01  # the truth: both videos' true poses
+    assert organ["alignment"]["p95_px"] <= 1.0 and organ["n_frames_on_map"] == 16
+    # images only, two videos' maps have no common frame: refused before any work, in one line
+    assert main(["panorama", str(first), str(second), "--no-scale", "--ignore-poses", "--out",
+                 str(tmp_path / "refused"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "planned poses" in err and "Traceback" not in err and not (tmp_path / "refused").exists()
 
 
 def test_frames_without_overlap_are_refused(bladder, tmp_path, capsys):

@@ -90,10 +90,10 @@ def test_options_are_validated():
 def test_a_frame_with_no_texel_to_give_is_sampled_as_nothing():
     """Found on an unseen wet cavity (shape seed 11, images only): a frame that sees a face but none of its
     texels reached cv2.remap with an empty map, which OpenCV refuses with an assertion."""
-    from scope3d.mvs.texturing import _sample
+    from scope3d.mvs.texturing import sample_image
 
     image = np.zeros((8, 8, 3), np.uint8)
-    assert _sample(image, np.zeros((0, 2), np.float32)).shape == (0, 3)
+    assert sample_image(image, np.zeros((0, 2), np.float32)).shape == (0, 3)
 
 
 def test_every_texel_inside_a_face_belongs_to_that_face():

@@ -88,9 +88,16 @@ def register_panorama(subparsers) -> None:
                     "also choose the pairs they say overlap, and start and bound the poses. The physical scale comes from the 6 mm star targets in the fluorescence frames. "
                     "Writes DIR/report.json (n_frames, n_registered, n_points, time_s; with ground truth "
                     "scale_error_fraction and surface_error_mm.after_similarity), sparse/ (COLMAP text), "
-                    "points.ply, mesh.ply (closed wall), wall.obj/.mtl/.png (the wall textured from the frames), panorama_3d.png.",
+                    "points.ply, mesh.ply (closed wall), wall.obj/.mtl/.png (the wall textured from the frames), "
+                    "panorama_3d.png, and the 2-D map of the whole cavity: organ_map.png (the frames on the fitted "
+                    "ellipsoid, unwrapped, with the scope's path and the uncovered regions), organ_coverage.png "
+                    "(the coverage mask) and report.json organ_map (coverage_fraction, uncovered_regions; with ground truth alignment and "
+                    "true_coverage_fraction).",
     )
-    p.add_argument("dataset", type=Path, metavar="DATASET", help="dataset folder")
+    p.add_argument("datasets", type=Path, nargs="+", metavar="DATASET",
+                   help="dataset folder; further folders: other videos of the same cavity (e.g. a 15 mm and a 30 mm "
+                        "scan), each mapped on its own and drawn on one organ map with the first (planned poses "
+                        "only: their plans share one frame); the 3-D files are the first's")
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder (replaced atomically)")
     p.add_argument("--no-scale", action="store_true",
                    help="no star targets: an unscaled model (scale_source none) or the plan's scale")
@@ -128,9 +135,10 @@ def _run_panorama(args) -> int:
         raise InputError(str(exc)) from None
     options = Panorama3dOptions(stars=stars, use_planned_poses=not args.ignore_poses, texture=texture,
                                 refuse_implausible=not args.keep_implausible)
-    dataset = load_dataset(args.dataset)
+    dataset, *more = [load_dataset(d) for d in args.datasets]
     with job_folder(args.out) as staged, progress_bar(show_progress(args), "frame") as progress:
-        result = run(options, dataset, staged, progress=progress)
+        result = run(options, dataset, staged, progress=progress, more=more)
     lines = [result.summary()]
-    lines.append(f"wrote {args.out}/ (report.json, sparse/, points.ply, mesh.ply, wall.obj, panorama_3d.png)")
+    lines.append(f"wrote {args.out}/ (report.json, sparse/, points.ply, mesh.ply, wall.obj, organ_map.png, "
+                 "panorama_3d.png)")
     return finish_job(args, args.out, result.report, lines)

@@ -317,7 +317,7 @@ def faces_towards(mesh: Mesh, centre: np.ndarray) -> Mesh:
 # --- filling the texels -------------------------------------------------------------------------------
 
 
-def _sample(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
+def sample_image(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """Bilinear samples (N, 3) float32 of an RGB image at pixel coordinates uv (N, 2)."""
     n = len(uv)
     if n == 0:  # a frame that sees a face but none of its texels (cv2.remap refuses an empty map)
@@ -331,7 +331,7 @@ def _sample(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return out.reshape(-1, image.shape[2])[:n].astype(np.float32)
 
 
-def _field_margin(camera: Camera, uv: np.ndarray) -> np.ndarray:
+def field_margin(camera: Camera, uv: np.ndarray) -> np.ndarray:
     """Pixels from uv (N, 2) to the edge of the field (the circular mask, else the image's border)."""
     border = np.minimum.reduce([uv[:, 0] + 0.5, uv[:, 1] + 0.5, camera.width - 0.5 - uv[:, 0],
                                 camera.height - 0.5 - uv[:, 1]])
@@ -394,7 +394,7 @@ def _view_terms(texels: _Texels, rows: np.ndarray, camera: Camera, pose: Pose, o
     in_camera = np.einsum("ij,kj->ik", -to_camera, pose.rotation)
     uv = camera.project(in_camera)
     # a bilinear read reaches one pixel out: within 1.5 px of the field's edge it would mix in the black mask
-    margin = _field_margin(camera, uv) - 1.5
+    margin = field_margin(camera, uv) - 1.5
     keep = (cos >= options.min_cos) & (margin > 0) & (in_camera[:, 2] > 0)
     feather = np.clip(margin / options.feather_px, 0.0, 1.0) if options.feather_px > 0 else np.ones(len(rows))
     score = cos * math.sqrt(camera.fx * camera.fy) / d * feather
@@ -410,7 +410,7 @@ def _face_scores(mesh: Mesh, faces: np.ndarray, camera: Camera, pose: Pose, opti
     to_camera = pose.centre - p
     d = np.linalg.norm(to_camera, axis=1)
     cos = np.einsum("ij,ij->i", n, to_camera) / np.maximum(d, 1e-300)
-    margin = _field_margin(camera, camera.project_world(pose, p)) - 1.5
+    margin = field_margin(camera, camera.project_world(pose, p)) - 1.5
     feather = np.clip(margin / options.feather_px, 0.0, 1.0) if options.feather_px > 0 else (margin > 0) * 1.0
     return np.where((cos >= options.min_cos) & (margin > 0), cos * math.sqrt(camera.fx * camera.fy) / d * feather, 0.0)
 
@@ -465,7 +465,7 @@ def texture_mesh(mesh: Mesh, centre: np.ndarray, camera: Camera, poses: Sequence
         for k in used:
             rows = texels.rows(np.flatnonzero(visible[:, k] & seen))
             rows, uv, _, light = _view_terms(texels, rows[rows % subsample == 0], camera, poses[k], options)
-            value = _sample(frame(k), uv).mean(axis=1)
+            value = sample_image(frame(k), uv).mean(axis=1)
             ok = value > 2.0  # black: outside the field or under-exposed
             scale = light if options.compensate_light else 1.0
             log = np.log(np.maximum(value, 1e-3) / scale)
@@ -492,7 +492,7 @@ def texture_mesh(mesh: Mesh, centre: np.ndarray, camera: Camera, poses: Sequence
         top = np.maximum(best[rows], score)
         rescale = (best[rows] / top) ** options.blend_power
         w = (score / top) ** options.blend_power
-        colour = _sample(frame(k), uv) / gains[k]
+        colour = sample_image(frame(k), uv) / gains[k]
         if options.compensate_light:
             colour /= light[:, None]
         total[rows] = total[rows] * rescale[:, None] + w[:, None] * colour
@@ -564,4 +564,4 @@ def sample_texture(textured: TexturedMesh, faces: np.ndarray, barycentric: np.nd
     uv = np.einsum("ij,ijk->ik", barycentric, textured.uv[textured.face_uv[faces]])
     h, w = textured.image.shape[:2]
     pixels = np.stack([uv[:, 0] * w - 0.5, (1.0 - uv[:, 1]) * h - 0.5], axis=1)
-    return _sample(textured.image, pixels)
+    return sample_image(textured.image, pixels)

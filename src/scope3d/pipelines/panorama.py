@@ -11,16 +11,22 @@
     wall      <- a star-shaped cavity mesh: the convex hull of the points' directions from the cavity's centre,
                  textured from the registered frames (mvs.texturing: a cube-map atlas, each texel from the
                  frames that see it best, seams blended, the tip light divided out)
+    organ map <- the 2-D map of the whole cavity (mvs.organ_map): the ellipsoid the points describe (or the
+                 cameras' centroid sphere where it is ill-conditioned) with a smooth radial correction, every
+                 frame projected onto it and unwrapped (equirectangular), blended; coverage, uncovered
+                 regions and the scope's path
     truth     <- where the dataset has it: the wall error after a 7-DoF similarity fitted to the tracks'
-                 true positions, and the scale error of the stars
+                 true positions, the scale error of the stars, and the organ map's alignment (atlas px, against
+                 the true poses and depths) and true coverage
     files     <- report.json, sparse/ (COLMAP text), points.ply, mesh.ply, wall.obj/.mtl/.png (the textured
-                 wall), panorama_3d.png (atomic folder)
+                 wall), organ_map.png and organ_coverage.png, panorama_3d.png (atomic folder)
 """
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 from scipy.spatial import ConvexHull
@@ -30,16 +36,20 @@ from scope3d.feature.detection import FeatureOptions, Features
 from scope3d.feature.matching import MatchOptions
 from scope3d.io.colmap import SparseModel, write_colmap_text
 from scope3d.io.dataset import Dataset, check_jobs_take
+from scope3d.io.images import write_image
 from scope3d.io.obj import write_textured_obj
 from scope3d.io.ply import write_ply
 from scope3d.metrology.evaluation import errors_after_similarity, true_track_points
 from scope3d.metrology.star_scale import StarScaleOptions, star_scale
+from scope3d.mvs.organ_map import (OrganMap, OrganMapOptions, alignment_error, draw_organ_map, fit_cavity_surface,
+                                   organ_map)
 from scope3d.mvs.texturing import TextureOptions, texture_mesh
 from scope3d.pipelines.surgical_map import MapOptions, detect_features
 from scope3d.scene.mesh import Mesh, PointCloud, SampledSurface
 from scope3d.sensor.camera import Camera
 from scope3d.sfm.cavity_map_choice import MAX_OFF_CENTRE, cameras_off_centre
-from scope3d.sfm.cavity_mapping import CavityMap, CavityOptions, map_cavity
+from scope3d.sfm.cavity_mapping import CavityMap, CavityOptions, knows_poses, map_cavity
+from scope3d.sfm.scan_planning import coverage
 from scope3d.sfm.depth_consistency import MAX_INCONSISTENT_FRACTION, N_SIGMA, frame_depth_inconsistency, inconsistent_frames
 from scope3d.utils.atomic import atomic_directory
 from scope3d.utils.figures import new_figure, save_figure
@@ -58,7 +68,8 @@ class Panorama3dOptions:
     (image-only). evaluation_step_mm : sample spacing of the true surface for the wall error (default 0.25).
     figures : write panorama_3d.png (default True). texture : the textured wall's options, or None for no
     wall.obj. refuse_implausible : a map failing :func:`self_check` raises InputError instead of being
-    written (default True); False writes it with the check's problems in report.json."""
+    written (default True); False writes it with the check's problems in report.json. organ_map : the 2-D
+    map of the whole cavity's options, or None for no organ_map.png."""
 
     features: FeatureOptions = field(default_factory=FeatureOptions)
     pale_features: FeatureOptions | None = field(
@@ -72,6 +83,7 @@ class Panorama3dOptions:
     figures: bool = True
     texture: TextureOptions | None = field(default_factory=TextureOptions)
     refuse_implausible: bool = True
+    organ_map: OrganMapOptions | None = field(default_factory=OrganMapOptions)
 
     def __post_init__(self) -> None:
         if self.evaluation_step_mm <= 0 or self.min_median_features < 0:
@@ -120,6 +132,15 @@ class Panorama3dResult:
             lines.append(f"textured wall: {r['texture_texel_mm']:.3f} mm per texel, atlas "
                          f"{r['texture_atlas_px'][0]} x {r['texture_atlas_px'][1]} px, "
                          f"{r['textured_fraction']:.0%} of the wall seen")
+        organ = r.get("organ_map")
+        if organ:
+            line = (f"organ map: {organ['coverage_fraction']:.1%} of the wall covered, "
+                    f"{len(organ['uncovered_regions'])} uncovered region(s), on the {organ['surface']['kind']}")
+            if organ.get("alignment"):
+                line += (f"; alignment against the truth {organ['alignment']['mean_px']:.2f} px mean, "
+                         f"{organ['alignment']['p95_px']:.2f} px p95, true coverage "
+                         f"{organ['true_coverage_fraction']:.1%}")
+            lines.append(line)
         lines += [f"self-check WARNING: {w}" for w in r["self_check"]["warnings"]]
         if not r["self_check"]["passed"]:
             lines.append("self-check FAILED, the map is kept as asked: " + "; ".join(r["self_check"]["problems"]))
@@ -168,7 +189,66 @@ def evaluate(dataset: Dataset, cavity: CavityMap, step_mm: float) -> dict:
     true_points = true_track_points(dataset.camera, gt.poses, gt.depth, tr.frame, tr.track, tr.pixels, tr.n_tracks)
     summary, distances, sim = errors_after_similarity(tr.points, true_points, SampledSurface(gt.surface(), step_mm))
     return {"surface_error_mm": {"after_similarity": summary}, "scale_error_fraction": summary["scale"] - 1.0,
-            "_distances": distances}
+            "_distances": distances, "_similarity": sim}
+
+
+def build_organ_map(options: OrganMapOptions, videos: Sequence[tuple[Dataset, CavityMap]]) -> OrganMap:
+    """The whole cavity's 2-D map from the registered frames of one or more videos' maps in one frame
+    (:mod:`scope3d.mvs.organ_map`; each video's own coverage in ``group_coverage``); the surface fitted to all
+    their points, the pole towards the wall the first registered frame looks at."""
+    poses, cameras, frames, groups, points = [], [], [], [], []
+    for g, (dataset, cavity) in enumerate(videos):
+        poses += [p if ok else None for p, ok in zip(cavity.poses, cavity.registered)]
+        cameras += [dataset.camera] * len(dataset)
+        frames += [(dataset, k) for k in range(len(dataset))]
+        groups += [g] * len(dataset)
+        points.append(cavity.tracks.points)
+    first = next(p for p in poses if p is not None)
+    centres = np.stack([p.centre for p in poses if p is not None])
+    surface = fit_cavity_surface(np.concatenate(points), centres,
+                                 first.centre + videos[0][1].radius_mm * first.optical_axis, options=options)
+    return organ_map(surface, cameras, poses, lambda k: frames[k][0].frame(frames[k][1]), options=options,
+                     groups=groups)
+
+
+def evaluate_organ_map(videos: Sequence[tuple[Dataset, CavityMap, object]], organ: OrganMap) -> dict:
+    """The organ map against the truth, for videos (dataset, map, the similarity from the map's frame to the
+    truth's: the wall error's gauge) with ground truth: ``alignment`` (atlas px over every video's frames;
+    :func:`scope3d.mvs.organ_map.alignment_error`) and the true covered fraction of the first video's true wall
+    (the true poses of every frame taken, :func:`scope3d.sfm.scan_planning.coverage`: the same rule as the
+    map's). {} when a video has no ground truth."""
+    parts = []
+    for dataset, cavity, truth_from_map in videos:
+        gt = dataset.ground_truth
+        if gt is None or gt.poses is None or gt.surface_path is None or not gt.depth_paths or truth_from_map is None:
+            return {}
+        poses = [p if ok else None for p, ok in zip(cavity.poses, cavity.registered)]
+        parts.append(alignment_error(organ.surface, dataset.camera, poses, gt.poses, gt.depth, truth_from_map,
+                                     organ.width, organ.height))
+    alignment = parts[0] if len(parts) == 1 else _pooled_alignment(parts)
+    wall = videos[0][0].ground_truth.surface()
+    seen = np.zeros(len(wall.faces), bool)
+    for dataset, _, _ in videos:
+        seen |= coverage(wall, dataset.camera, dataset.ground_truth.poses).seen_faces
+    tri = wall.vertices[wall.faces]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    true_fraction = float(area[seen].sum() / area.sum())
+    return {"alignment": alignment, "true_coverage_fraction": true_fraction,
+            "coverage_error_fraction": organ.coverage_fraction - true_fraction}
+
+
+def _pooled_alignment(parts: list[dict]) -> dict:
+    """Several videos' alignment figures as one: means weighted by their pixels, the worst p95 and max (a pooled
+    percentile needs the pixels themselves), each video's own figures kept."""
+    parts = [p for p in parts if p]
+    if not parts:
+        return {}
+    n = np.array([p["n_pixels"] for p in parts], float)
+    return {"mean_px": float(np.average([p["mean_px"] for p in parts], weights=n)),
+            "p95_px": max(p["p95_px"] for p in parts), "max_px": max(p["max_px"] for p in parts),
+            "on_wall_mean": float(np.average([p["on_wall_mean"] for p in parts], weights=n)),
+            "on_wall_p95": max(p["on_wall_p95"] for p in parts), "n_pixels": int(n.sum()),
+            "p95_is": "the worst video's", "videos": parts}
 
 
 def self_check(cavity: CavityMap, options: CavityOptions, scaled: bool, camera: Camera) -> dict:
@@ -259,11 +339,44 @@ def check_dataset(options: Panorama3dOptions, dataset: Dataset) -> None:
                          "(use --no-scale for an unscaled model)")
 
 
+def check_videos(options: Panorama3dOptions, datasets: Sequence[Dataset]) -> None:
+    """Several videos share one organ map only in the frame their planned poses share: raises InputError
+    naming the first dataset without planned poses (or when they are ignored), or with fewer than 2 frames."""
+    for ds in datasets:
+        check_jobs_take(ds.camera, ds.root / "camera.json", "panorama")
+        if len(ds) < 2:
+            raise InputError(f"{ds.root}: need at least 2 frames for a panorama, found {len(ds)}")
+        if not (options.use_planned_poses and knows_poses(ds.poses)):
+            raise InputError(f"{ds.root}: several videos go on one organ map only in the frame their planned poses "
+                             "share (finite tolerances in poses.csv, without --ignore-poses): images-only maps of "
+                             "two videos are not registered to each other")
+
+
+def map_video(options: Panorama3dOptions, dataset: Dataset, scale: float, *,
+              progress: Progress | None = None) -> CavityMap:
+    """A further video's map for the combined organ map: its planned poses bound it in the plan's frame, scaled
+    by the first video's star scale (the same factor about the same origin keeps both in one frame). A map
+    failing :func:`self_check` raises InputError unless ``options.refuse_implausible`` is off."""
+    stage(progress, f"panorama: features of {dataset.root.name}", len(dataset))
+    features = panorama_features(options, dataset, progress=progress)
+    cavity = map_cavity(dataset.camera, features, dataset.poses, options.cavity, options.matching,
+                        where=str(dataset.root), progress=progress).scaled(scale)
+    check = self_check(cavity, options.cavity, True, dataset.camera)
+    if options.refuse_implausible and not check["passed"]:
+        raise InputError(f"{dataset.root}: the map is no cavity seen from inside, so it is not combined: "
+                         + "; ".join(check["problems"]) + " (keep it anyway with --keep-implausible)")
+    return cavity
+
+
 def run(options: Panorama3dOptions, dataset: Dataset, out_dir: str | Path, *,
-        progress: Progress | None = None) -> Panorama3dResult:
-    """The 3-D panorama of ``dataset`` into ``out_dir`` (written atomically)."""
+        progress: Progress | None = None, more: Sequence[Dataset] = ()) -> Panorama3dResult:
+    """The 3-D panorama of ``dataset`` into ``out_dir`` (written atomically). more : further videos of the same
+    cavity (planned poses, like ``dataset``'s, see :func:`check_videos`), mapped each on its own and drawn with
+    ``dataset`` on one organ map; the 3-D files are ``dataset``'s."""
     t0, c0 = time.perf_counter(), time.process_time()
     check_dataset(options, dataset)
+    if more:
+        check_videos(options, [dataset, *more])
     n = len(dataset)
     timings, cpu = {}, {}  # wall and CPU seconds per stage (CPU: every thread of the process)
     stage(progress, "panorama: features", n)
@@ -291,6 +404,7 @@ def run(options: Panorama3dOptions, dataset: Dataset, out_dir: str | Path, *,
                          + "; ".join(check["problems"]) + " (keep it anyway with --keep-implausible)")
     evaluation = evaluate(dataset, cavity, options.evaluation_step_mm)
     distances = evaluation.pop("_distances", None)
+    truth_from_map = evaluation.pop("_similarity", None)
     if scale_source == "none":
         evaluation.pop("scale_error_fraction", None)
     tr = cavity.tracks
@@ -331,6 +445,22 @@ def run(options: Panorama3dOptions, dataset: Dataset, out_dir: str | Path, *,
                 report.update({"texture_texel_mm": textured.texel_mm, "textured_fraction": textured.textured_fraction,
                                "texture_atlas_px": list(textured.image.shape[1::-1])})
                 timings["texture_s"], cpu["texture_s"] = time.perf_counter() - t1, time.process_time() - c1
+        if options.organ_map is not None and tr.n_tracks >= 9:
+            t1, c1 = time.perf_counter(), time.process_time()
+            videos = [(dataset, cavity, truth_from_map)]
+            for extra in more:
+                video = map_video(options, extra, 1.0 if scale_info is None else scale_info.scale, progress=progress)
+                videos.append((extra, video, evaluate(extra, video, options.evaluation_step_mm).get("_similarity")))
+            organ = build_organ_map(options.organ_map, [(d, m) for d, m, _ in videos])
+            picture, mask = draw_organ_map(organ)
+            write_image(tmp / "organ_map.png", picture)
+            write_image(tmp / "organ_coverage.png", mask)
+            report["organ_map"] = {**organ.summary(), **evaluate_organ_map(videos, organ)}
+            if more:  # each video's own coverage on the same surface: what combining them adds
+                report["organ_map"]["videos"] = [
+                    {"dataset": str(d.root), "n_frames": len(d), "n_registered": int(m.registered.sum()),
+                     "coverage_fraction": f} for (d, m, _), f in zip(videos, organ.group_coverage)]
+            timings["organ_map_s"], cpu["organ_map_s"] = time.perf_counter() - t1, time.process_time() - c1
         model = SparseModel.from_observations(dataset.camera, dataset.names, cavity.poses, tr.points, tr.frame,
                                               tr.track, tr.pixels, colors=tr.colors)
         write_colmap_text(model, tmp / "sparse")

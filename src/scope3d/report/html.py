@@ -73,7 +73,8 @@ def build_page(run: Path, options: ReportOptions = ReportOptions(), *, name: str
         "style-src 'unsafe-inline'; script-src 'unsafe-inline'\">",
         f"<title>{_e(title)}</title><style>{style}</style></head><body>",
         f"<header><h1>{_e(title)}</h1><p>{_e(str(report.get('dataset', '')))}</p></header><main>",
-        _merit_section(report), _view_section(scene), _targets_section(scene, report), _pictures_section(run),
+        _merit_section(report), _organ_map_section(run, report),
+        _view_section(scene), _targets_section(scene, report), _pictures_section(run),
         _files_section(run, scene), _timings_section(report),
         f'</main><script type="application/json" id="scene-data">{payload}</script>',
         f"<script>{script}</script></body></html>",
@@ -257,6 +258,49 @@ def _targets_section(scene: ViewScene, report: dict) -> str:
             + (f" of {len(scene.true_targets)} true" if scene.true_targets else "") + f")</h2>{table}{missed_text}</section>")
 
 
+# The organ map's pictures: shown in their own section (the map) or listed as data (the coverage mask).
+ORGAN_MAP_FILES = ("organ_map.png", "organ_coverage.png")
+
+
+def _organ_map_section(run: Path, report: dict) -> str:
+    """The panorama's 2-D map of the whole cavity (report.json ``organ_map``): the picture, coverage, the
+    uncovered regions and, with ground truth, the alignment."""
+    organ = report.get("organ_map")
+    picture = run / ORGAN_MAP_FILES[0]
+    if not isinstance(organ, dict) or not picture.is_file():
+        return ""
+    data = base64.b64encode(picture.read_bytes()).decode()
+    surface = organ.get("surface", {})
+    text = (f"{organ.get('coverage_fraction', math.nan):.1%} of the wall covered "
+            f"({len(organ.get('uncovered_regions', []))} uncovered regions outlined in yellow, hatched blue; "
+            f"{organ.get('n_small_uncovered_regions', 0)} smaller ones hatched only). Surface: "
+            f"{surface.get('kind', '?')} ({surface.get('reason', '')}). Red: the scope's path (where each "
+            "frame's optical axis meets the wall; further videos orange, magenta), green its start, every fifth "
+            "frame numbered. "
+            "Longitude left to right, latitude top (the first frame's side) to bottom; lines every 30°.")
+    videos = organ.get("videos") or []
+    if videos:
+        text += " Videos: " + "; ".join(f"{Path(v['dataset']).name} alone {v['coverage_fraction']:.1%}"
+                                        for v in videos) + "."
+    alignment = organ.get("alignment")
+    if alignment:
+        text += (f" Against the truth: alignment {alignment['mean_px']:.2f} px mean, {alignment['p95_px']:.2f} px "
+                 f"p95; true covered fraction {organ['true_coverage_fraction']:.1%}.")
+    rows = "".join(
+        f'<tr><td class="num">{i + 1}</td><td class="num">{r["area_mm2"]:.1f}</td><td class="num">'
+        f'{r["fraction"]:.2%}</td><td class="num">{r["centre_lon_deg"]:.0f}</td><td class="num">'
+        f'{r["centre_lat_deg"]:.0f}</td><td>{"yes" if r.get("touches_pole") else ""}</td></tr>'
+        for i, r in enumerate(organ.get("uncovered_regions", [])))
+    table = ('<table><thead><tr><th>uncovered region</th><th>area (mm²)</th><th>of the wall</th><th>longitude (°)'
+             f'</th><th>latitude (°)</th><th>at a pole</th></tr></thead><tbody>{rows}</tbody></table>') if rows else ""
+    check = report.get("self_check") if isinstance(report.get("self_check"), dict) else {}
+    doubts = list(check.get("problems") or []) + list(check.get("warnings") or [])
+    warning = (f'<p class="warning">This map is drawn from a 3-D map its self-check doubts, so frames may sit in '
+               f'the wrong place on it: {_e("; ".join(doubts))}</p>') if doubts else ""
+    return (f'<section id="organ-map"><h2>Map of the whole organ</h2>{warning}<figure><img alt="organ_map.png" '
+            f'src="data:image/png;base64,{data}"><figcaption>{_e(text)}</figcaption></figure>{table}</section>')
+
+
 def texture_files(run: Path) -> set[str]:
     """The images the run's .mtl files name as textures (``map_Kd``): data, not pictures to show."""
     names = set()
@@ -270,7 +314,7 @@ def texture_files(run: Path) -> set[str]:
 def _pictures_section(run: Path) -> str:
     figures = []
     textures = texture_files(run)
-    for png in sorted(p for p in run.glob("*.png") if p.name not in textures):
+    for png in sorted(p for p in run.glob("*.png") if p.name not in textures and p.name not in ORGAN_MAP_FILES):
         data = base64.b64encode(png.read_bytes()).decode()
         figures.append(f'<figure><img alt="{_e(png.name)}" src="data:image/png;base64,{data}">'
                        f"<figcaption>{_e(png.name)}</figcaption></figure>")
@@ -282,6 +326,7 @@ def _pictures_section(run: Path) -> str:
 def _files_section(run: Path, scene: ViewScene) -> str:
     textures = texture_files(run)
     files = sorted(p for p in run.iterdir() if p.is_file() and not p.name.startswith(".") and
-                   (p.suffix in (".ply", ".json", ".csv", ".obj", ".mtl") or p.name in textures))
+                   (p.suffix in (".ply", ".json", ".csv", ".obj", ".mtl") or p.name in textures
+                    or p.name == ORGAN_MAP_FILES[1]))
     items = "".join(f'<li><a href="{_e(p.name)}">{_e(p.name)}</a> ({p.stat().st_size / 1e6:.2f} MB)</li>' for p in files)
     return f'<section id="files"><h2>Full data</h2><ul>{items}</ul></section>'
