@@ -25,6 +25,9 @@ def register(subparsers) -> None:
                    help="replay as fast as possible instead of at the recording's frame rate")
     p.add_argument("--fps", type=float, metavar="FPS",
                    help="the recording's frame rate (default: the phantom video's, from its ground truth)")
+    p.add_argument("--preset", choices=("default", "dim_endoscope"), default="default",
+                   help="dim_endoscope: CLAHE and a lower SIFT threshold, for dark or small frames (as `scope3d map "
+                   "--preset dim_endoscope`)")
     add_job_arguments(p)
     p.set_defaults(func=_run)
 
@@ -34,10 +37,11 @@ def _run(args) -> int:
     from scope3d.errors import InputError
     from scope3d.io.dataset import load_dataset
     from scope3d.pipelines.live import LiveOptions, run
+    from scope3d.sfm.live_mapping import LIVE_PRESETS
 
     dataset = load_dataset(args.dataset)
     try:
-        options = LiveOptions(wait=not args.no_wait, fps=args.fps)
+        options = LiveOptions(LIVE_PRESETS[args.preset], wait=not args.no_wait, fps=args.fps)
     except ValueError as exc:
         raise InputError(f"--fps: {exc}") from None
     with job_folder(args.out) as staged, progress_bar(show_progress(args), "frame") as progress:

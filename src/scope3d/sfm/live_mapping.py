@@ -23,7 +23,8 @@ Per frame, on the caller's thread (the tracking path):
   rule: a wall point stays in about five keyframes), or when tracking holds fewer than
   ``min_inlier_fraction`` of the points the current local map first gave.
 
-Per keyframe, on one worker thread (``concurrent.futures``) while tracking goes on:
+Per keyframe, on a worker while tracking goes on (a child process by default, a thread or inline
+if asked: ``LiveMapperOptions.worker``):
 
 * SIFT on the keyframe, matched against the previous ``local_window - 1`` keyframes with pose-guided
   matching (:func:`~scope3d.feature.matching.match_guided_many`; the windows come from the fused poses'
@@ -50,9 +51,13 @@ Units: mm and radians; ``time`` in seconds on any clock that only goes forward.
 """
 from __future__ import annotations
 
+import multiprocessing
+import queue
+import threading
 import time
-from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass, field
+import traceback
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -60,7 +65,7 @@ from scope3d.errors import InputError
 from scope3d.estimators.kalman import KalmanOptions, PoseKalmanFilter, covariance_to_tolerance
 from scope3d.estimators.triangulation import TrackOptions
 from scope3d.feature.depth_prior import DepthPrior
-from scope3d.feature.detection import FeatureOptions, Features, detect
+from scope3d.feature.detection import FEATURE_PRESETS, FeatureOptions, Features, detect
 from scope3d.feature.keyframes import KeyframeOptions, KeyframeSelector
 from scope3d.feature.matching import MatchOptions, PairMatches, match_exhaustive, match_guided_many
 from scope3d.feature.pairs import PairOptions, select_pairs
@@ -74,6 +79,7 @@ from scope3d.sfm.guided_mapping import BundleStageOptions, adjust_map
 from scope3d.sfm.localization import LocalizationResult, Localizer, LocalizerOptions
 
 LIVE_STATUSES = ("tracked", "keyframe", "relocalized", "lost")
+LIVE_WORKERS = ("process", "thread", "inline")
 
 
 @dataclass(frozen=True)
@@ -89,10 +95,15 @@ class LiveMapperOptions:
         every fifth of the image a wall point is in about five, so the window holds every view of the
         points the newest keyframe sees).
     map_lag_frames : int >= 0, the local BCBA of a keyframe becomes the tracking map this many frames later
-        (default 15, half a second at 30 fps: the worker's budget for SIFT, matching and the adjustment).
+        (default 30, a second at 30 fps: the worker's budget for SIFT, matching and the adjustment, which
+        took 0.3-0.9 s on a loaded 2-core machine with 320 px frames; benchmarks/results/live.json).
         0 computes it inline at the keyframe (the stream waits for it).
-    in_thread : bool, run the keyframe work on a worker thread (default True; False runs it inline when
-        submitted, with the same lag: the results are identical).
+    worker : where the keyframe work runs: ``process`` (default: a spawned child process, which has its own
+        GIL — on a thread the adjustment's Python parts stall tracking, whose every small NumPy call then
+        waits for the GIL), ``thread``, or ``inline`` (when submitted, in the caller's thread). All three
+        apply the result at the same frame, so they give the same output.
+    min_keyframes : int >= 2, the first local map is built once this many keyframes are in (default 3: with
+        the robot's box the only scale, two keyframes a few mm apart leave the scale loose).
     features : SIFT on keyframes (the map's default settings). matching : guided matching of keyframe pairs.
     pairs : the global BCBA's pair choice. tracks : triangulation gates. bundle : the adjustments.
     kalman : the fusion filter's motion model.
@@ -109,8 +120,9 @@ class LiveMapperOptions:
     keyframes: KeyframeOptions = field(default_factory=KeyframeOptions)
     min_inlier_fraction: float = 0.5
     local_window: int = 6
-    map_lag_frames: int = 15
-    in_thread: bool = True
+    map_lag_frames: int = 30
+    worker: str = "process"
+    min_keyframes: int = 3
     features: FeatureOptions = field(default_factory=FeatureOptions)
     matching: MatchOptions = field(default_factory=MatchOptions)
     pairs: PairOptions = field(default_factory=PairOptions)
@@ -126,11 +138,25 @@ class LiveMapperOptions:
             raise ValueError(f"min_inlier_fraction must be in (0, 1), got {self.min_inlier_fraction}")
         if self.local_window < 2:
             raise ValueError(f"local_window must be >= 2, got {self.local_window}")
+        if self.worker not in LIVE_WORKERS:
+            raise ValueError(f"worker must be one of {LIVE_WORKERS}, got {self.worker!r}")
+        if not 2 <= self.min_keyframes <= self.local_window:
+            raise ValueError(f"min_keyframes must be 2..local_window, got {self.min_keyframes}")
         if self.map_lag_frames < 0:
             raise ValueError(f"map_lag_frames must be >= 0, got {self.map_lag_frames}")
         if not (self.guide_sigmas > 0 and self.depth_margin >= 0):
             raise ValueError("need guide_sigmas > 0 and depth_margin >= 0")
         DepthPrior(*self.working_range_mm)  # raises on a wrong range
+
+
+#: Named settings. ``dim_endoscope``: CLAHE and a lower SIFT threshold on keyframes and for tracking (the
+#: map's preset of the same name; on the 320 px dome 1,100 features instead of 200).
+LIVE_PRESETS: dict[str, LiveMapperOptions] = {
+    "default": LiveMapperOptions(),
+    "dim_endoscope": LiveMapperOptions(
+        features=FEATURE_PRESETS["dim_endoscope"],
+        localizer=LocalizerOptions(features=replace(FEATURE_PRESETS["dim_endoscope"], max_features=2000))),
+}
 
 
 @dataclass
@@ -176,15 +202,6 @@ class LiveMap:
 
 
 @dataclass
-class _Keyframe:
-    frame: int
-    image: np.ndarray
-    measured: MeasuredPose  # the robot's report
-    guide: MeasuredPose  # the fused pose with its guide_sigmas box, at the time it was kept
-    features: Features | None = None  # detected by the worker
-
-
-@dataclass
 class _LocalMap:
     """A local BCBA's outcome: its keyframes, their adjusted poses, its tracks and its tracking map."""
 
@@ -194,17 +211,12 @@ class _LocalMap:
     points: MapPoints
 
 
-@dataclass
-class _Pending:
-    due: int  # the frame index at which the outcome is applied
-    outcome: object  # a Future, or the _LocalMap / None itself
-
-
 class LiveMapper:
     """Simultaneous tracking and mapping with the robot's poses (see the module docstring).
 
-    camera : the frames' intrinsics. With ``options.in_thread`` the mapper owns one worker thread: call
-    :meth:`finish` or :meth:`close` (or use it as a context manager) when done.
+    camera : the frames' intrinsics. Unless ``options.worker`` is ``inline`` the mapper owns a worker (a
+    child process or a thread, started here): call :meth:`finish` or :meth:`close` (or use it as a context
+    manager) when done.
     """
 
     def __init__(self, camera: Camera, options: LiveMapperOptions = LiveMapperOptions()):
@@ -213,18 +225,14 @@ class LiveMapper:
         self._filter = PoseKalmanFilter(options.kalman)
         self._selector = KeyframeSelector(options.keyframes, field_radius_px=camera.mask_radius_px)
         self._localizer: Localizer | None = None
-        self._keyframes: list[_Keyframe] = []
-        self._pending: list[_Pending] = []
-        self._executor: ThreadPoolExecutor | None = None
+        self._keyframes: list[_KeyframeInfo] = []
+        self._pending: list[int] = []  # the due frame of each submitted keyframe's local map, in order
+        self._worker = _start_worker(camera, options)
         self._frames = 0
         self._last_time: float | None = None
         self._last_status = "lost"
         self._reference_inliers = 0  # inliers of the first frame tracked on the current local map
         self._local: _LocalMap | None = None
-        # the worker's own state: only the keyframe jobs (run one at a time, in order) touch it
-        self._matches: dict[tuple[int, int], PairMatches] = {}
-        self._adjusted: dict[int, Pose] = {}
-        self._depth_prior: DepthPrior | None = None
         self._final: LiveMap | None = None
 
     # --- the stream -----------------------------------------------------------------------------
@@ -240,34 +248,36 @@ class LiveMapper:
         if self._last_time is not None and not time >= self._last_time:
             raise ValueError(f"frame time {time} s is before the previous frame's {self._last_time} s")
         index = self._frames
-        self._apply_due(index)
+        while self._pending and self._pending[0] <= index:
+            self._pending.pop(0)
+            self._apply(self._worker.result())
         if self._filter.initialised:
             self._filter.predict(time - self._last_time)
         self._filter.update_measured(measured_pose)
         result: LocalizationResult | None = None
         if self._localizer is not None:
             result = self._localizer.localize(image, measured_pose)
+        ok = result is not None and result.ok
         status = "lost"
-        if result is not None and result.ok:
+        if ok:
             self._filter.update(result.pose, result.covariance)
             status = "relocalized" if result.mode == "global" or self._last_status == "lost" else "tracked"
             if self._reference_inliers == 0:
                 self._reference_inliers = result.n_inliers
         decision = self._selector.offer(image)
-        keep = decision.keep or (status != "lost" and self._reference_inliers > 0
-                                 and result.n_inliers < self.options.min_inlier_fraction * self._reference_inliers)
+        keep = decision.keep or (ok and result.n_inliers < self.options.min_inlier_fraction * self._reference_inliers)
         keyframe = None
         if keep:
             keyframe = len(self._keyframes)
             guide = MeasuredPose(self._filter.pose, covariance_to_tolerance(self._filter.pose_covariance,
                                                                              self.options.guide_sigmas))
-            self._keyframes.append(_Keyframe(index, np.ascontiguousarray(image), measured_pose, guide))
-            self._submit(keyframe, index)
+            self._keyframes.append(_KeyframeInfo(index, measured_pose, guide))
+            self._worker.submit(keyframe, np.ascontiguousarray(image), measured_pose, guide)
+            self._pending.append(index + self.options.map_lag_frames)
             status = "keyframe"
         self._frames += 1
         self._last_time = time
-        self._last_status = "lost" if result is None or not result.ok else status
-        ok = result is not None and result.ok
+        self._last_status = status if ok else "lost"
         return LiveFrame(index, float(time), status, self._filter.pose, self._filter.pose_covariance,
                          result.pose if ok else None, result.covariance if ok else None,
                          result.n_inliers if ok else 0, keyframe, 1000.0 * (_clock() - t0))
@@ -278,55 +288,34 @@ class LiveMapper:
         if self._final is not None:
             return self._final
         local = self._local
-        poses = [self._adjusted_pose(k) for k in range(len(self._keyframes))]
-        if local is None:
-            return LiveMap(self._keyframe_frames(), poses, [k.measured for k in self._keyframes], np.zeros((0, 3)),
-                           np.zeros((0, 3), np.uint8), None)
-        return LiveMap(self._keyframe_frames(), poses, [k.measured for k in self._keyframes], local.points.xyz_mm,
-                       local.points.colors, local.tracks)
+        poses = [k.guide.pose for k in self._keyframes]
+        points, colors, tracks = np.zeros((0, 3)), np.zeros((0, 3), np.uint8), None
+        if local is not None:
+            for k, pose in zip(local.keyframes, local.poses):
+                poses[k] = pose
+            points, colors, tracks = local.points.xyz_mm, local.points.colors, local.tracks
+        return LiveMap(self._keyframe_frames(), poses, [k.measured for k in self._keyframes], points, colors, tracks)
 
     def finish(self) -> LiveMap:
         """Wait for the keyframe work, then the global BCBA over every keyframe (see the module docstring).
         Raises InputError when the keyframes hold no consistent point."""
         if self._final is not None:
             return self._final
-        for p in self._pending:
-            self._apply(p)
+        for _ in self._pending:
+            self._apply(self._worker.result())
         self._pending = []
-        self.close()
-        kfs = self._keyframes
-        if len(kfs) < 2:
-            raise InputError(f"{len(kfs)} keyframe(s): the scope did not move enough to map anything")
-        for k in kfs:
-            if k.features is None:
-                k.features = detect(k.image, self.camera, options=self.options.features)
-        guides = [self._guide(k) for k in range(len(kfs))]
-        prior = self._depth_prior
-        if prior is None:
-            raise InputError("no local map was built: the keyframes could not be matched")
-        pairs = select_pairs(self.camera, [g.pose for g in guides], prior, options=self.options.pairs)
-        todo = [(i, j, ov) for i, j, ov in pairs if (i, j) not in self._matches]
-        features = [k.features for k in kfs]
-        for m in match_guided_many(self.camera, features, guides, todo, prior, options=self.options.matching):
-            self._matches[(m.i, m.j)] = m
-        matches = [m for m in self._matches.values() if len(m)]
-        tracks = build_tracks(features, matches, min_track_length=self.options.tracks.min_track_length)
-        if tracks.n_tracks == 0:
-            raise InputError("no feature could be matched between keyframes")
-        adjusted = adjust_map("bounded", [k.measured for k in kfs], self.camera, tracks, guides, prior,
-                              track_options=self.options.tracks, options=self.options.bundle, height_field=True,
-                              where="live map")
-        self._final = LiveMap(self._keyframe_frames(), adjusted.poses, [k.measured for k in kfs],
-                              adjusted.tracks.points, adjusted.tracks.colors, adjusted.tracks, final=True)
-        for k in kfs:
-            k.image = None  # the frames are no longer needed
+        if len(self._keyframes) < 2:
+            self.close()
+            raise InputError(f"{len(self._keyframes)} keyframe(s): the scope did not move enough to map anything")
+        try:
+            self._final = self._worker.finish(self._keyframe_frames())
+        finally:
+            self.close()
         return self._final
 
     def close(self) -> None:
-        """Stop the worker thread (pending keyframe work is finished first)."""
-        if self._executor is not None:
-            self._executor.shutdown(wait=True)
-            self._executor = None
+        """Stop the worker (work under way is finished first)."""
+        self._worker.close()
 
     def __enter__(self) -> "LiveMapper":
         return self
@@ -338,100 +327,273 @@ class LiveMapper:
     def n_keyframes(self) -> int:
         return len(self._keyframes)
 
-    # --- keyframe work ----------------------------------------------------------------------------
-    def _submit(self, keyframe: int, index: int) -> None:
-        due = index + self.options.map_lag_frames
-        if not self.options.in_thread:
-            self._pending.append(_Pending(due, self._local_map(keyframe)))
-            return
-        if self._executor is None:
-            self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="scope3d-live")
-        self._pending.append(_Pending(due, self._executor.submit(self._local_map, keyframe)))
-
-    def _apply_due(self, index: int) -> None:
-        while self._pending and self._pending[0].due <= index:
-            self._apply(self._pending.pop(0))
-
-    def _apply(self, pending: _Pending) -> None:
-        outcome = pending.outcome.result() if isinstance(pending.outcome, Future) else pending.outcome
+    def _apply(self, outcome: "_LocalMap | None") -> None:
         if outcome is None:
             return
-        self._local = outcome
+        before, self._local = self._local, outcome
         if self._localizer is None:
             self._localizer = Localizer(outcome.points, self.camera, self.options.localizer)
         else:
-            self._localizer.replace_map(outcome.points)
+            self._localizer.replace_map(outcome.points, _new_from_old(before, outcome))
         self._reference_inliers = 0
 
-    def _local_map(self, keyframe: int) -> _LocalMap | None:
-        """The worker's job for a new keyframe: its SIFT, its matches to the window's other keyframes, and
-        the local BCBA over the window. None when the window holds too little to adjust."""
+    def _keyframe_frames(self) -> np.ndarray:
+        return np.array([k.frame for k in self._keyframes], np.int64)
+
+
+@dataclass
+class _KeyframeInfo:
+    frame: int
+    measured: MeasuredPose  # the robot's report
+    guide: MeasuredPose  # the fused pose with its guide_sigmas box, at the time it was kept
+
+
+class _KeyframeWork:
+    """The keyframe work and all it keeps (features, matches, adjusted poses, depth prior): one per mapper,
+    fed one keyframe at a time, in order, wherever it runs (the mapper's thread, a worker thread or a child
+    process)."""
+
+    def __init__(self, camera: Camera, options: LiveMapperOptions):
+        self.camera = camera
+        self.options = options
+        self.measured: list[MeasuredPose] = []
+        self.guides: list[MeasuredPose] = []
+        self.features: list[Features] = []
+        self.matches: dict[tuple[int, int], PairMatches] = {}
+        self.adjusted: dict[int, Pose] = {}
+        self.depth_prior: DepthPrior | None = None
+
+    def add(self, keyframe: int, image: np.ndarray, measured: MeasuredPose, guide: MeasuredPose) -> _LocalMap | None:
+        """A new keyframe: its SIFT, its matches to the window's other keyframes, and the local BCBA over the
+        window. None when the window holds too little to adjust."""
         o = self.options
-        kfs = self._keyframes
-        new = kfs[keyframe]
-        new.features = detect(new.image, self.camera, options=o.features)
+        if keyframe != len(self.features):
+            raise ValueError(f"keyframe {keyframe} out of order (expected {len(self.features)})")
+        self.measured.append(measured)
+        self.guides.append(guide)
+        self.features.append(detect(image, self.camera, options=o.features))
         window = list(range(max(0, keyframe - o.local_window + 1), keyframe + 1))
         for i in window[:-1]:
-            if self._depth_prior is None:
-                m = match_exhaustive(self.camera, kfs[i].features, new.features, o.matching, i=i, j=keyframe)
+            if self.depth_prior is None:
+                m = match_exhaustive(self.camera, self.features[i], self.features[keyframe], o.matching, i=i, j=keyframe)
             else:
-                m = match_guided_many(self.camera, [kfs[i].features, new.features],
-                                      [self._guide(i), self._guide(keyframe)], [(0, 1, 1.0)], self._depth_prior,
+                m = match_guided_many(self.camera, [self.features[i], self.features[keyframe]],
+                                      [self.guide(i), self.guide(keyframe)], [(0, 1, 1.0)], self.depth_prior,
                                       options=o.matching, frame_ids=[i, keyframe])[0]
-            self._matches[(i, keyframe)] = m
-        if len(window) < 2:
+            self.matches[(i, keyframe)] = m
+        if len(window) < o.min_keyframes:
             return None
         local = {k: n for n, k in enumerate(window)}
-        matches = [_renumbered(m, local[m.i], local[m.j]) for (i, j), m in self._matches.items()
+        matches = [_renumbered(m, local[i], local[j]) for (i, j), m in self.matches.items()
                    if i in local and j in local and len(m)]
-        features = [kfs[k].features for k in window]
+        features = [self.features[k] for k in window]
         tracks = build_tracks(features, matches, min_track_length=o.tracks.min_track_length)
         if tracks.n_tracks < o.localizer.pose.min_inliers:
             return None
         try:
-            adjusted = adjust_map("bounded", [kfs[k].measured for k in window], self.camera, tracks,
-                                  [self._guide(k) for k in window],
-                                  self._depth_prior or DepthPrior(*o.working_range_mm), track_options=o.tracks,
-                                  options=o.bundle, height_field=True, where="live map")
+            adjusted = adjust_map("bounded", [self.measured[k] for k in window], self.camera, tracks,
+                                  [self.guide(k) for k in window], self.depth_prior or DepthPrior(*o.working_range_mm),
+                                  track_options=o.tracks, options=o.bundle, height_field=True, where="live map")
         except InputError:
             return None
         t = adjusted.tracks
         if t.n_tracks < o.localizer.pose.min_inliers:
             return None
         for k, pose in zip(window, adjusted.poses):
-            self._adjusted[k] = pose
-        self._depth_prior = self._widened_prior(adjusted.poses, t)
+            self.adjusted[k] = pose
+        self.depth_prior = self._depth_prior(adjusted.poses, t)
         points = MapPoints(t.points, track_descriptors(features, t), t.lengths(), t.colors,
                            observation_descriptors(features, t), t.track.copy())
         return _LocalMap(window, list(adjusted.poses), t, points)
 
-    def _guide(self, keyframe: int) -> MeasuredPose:
-        """A keyframe's pose for guided matching and to start the adjustment: the adjusted one once a local
+    def guide(self, keyframe: int) -> MeasuredPose:
+        """A keyframe's pose for guided matching and to start an adjustment: the adjusted one once a local
         BCBA reached it, with the box its fused covariance gave when it was kept."""
-        k = self._keyframes[keyframe]
-        pose = self._adjusted.get(keyframe)
-        return k.guide if pose is None else MeasuredPose(pose, k.guide.tolerance)
+        pose = self.adjusted.get(keyframe)
+        return self.guides[keyframe] if pose is None else MeasuredPose(pose, self.guides[keyframe].tolerance)
 
-    def _adjusted_pose(self, keyframe: int) -> Pose:
-        local = self._local
-        if local is not None and keyframe in local.keyframes:
-            return local.poses[local.keyframes.index(keyframe)]
-        return self._guide(keyframe).pose
+    def finish(self, frames: np.ndarray) -> LiveMap:
+        """The global BCBA over every keyframe (see the module docstring)."""
+        n = len(self.features)
+        prior = self.depth_prior
+        if prior is None:
+            raise InputError("no local map was built: the keyframes could not be matched")
+        guides = [self.guide(k) for k in range(n)]
+        pairs = select_pairs(self.camera, [g.pose for g in guides], prior, options=self.options.pairs)
+        todo = [(i, j, ov) for i, j, ov in pairs if (i, j) not in self.matches]
+        for m in match_guided_many(self.camera, self.features, guides, todo, prior, options=self.options.matching):
+            self.matches[(m.i, m.j)] = m
+        matches = [m for m in self.matches.values() if len(m)]
+        tracks = build_tracks(self.features, matches, min_track_length=self.options.tracks.min_track_length)
+        if tracks.n_tracks == 0:
+            raise InputError("no feature could be matched between keyframes")
+        adjusted = adjust_map("bounded", self.measured, self.camera, tracks, guides, prior,
+                              track_options=self.options.tracks, options=self.options.bundle, height_field=True,
+                              where="live map")
+        return LiveMap(frames, adjusted.poses, list(self.measured), adjusted.tracks.points, adjusted.tracks.colors,
+                       adjusted.tracks, final=True)
 
-    def _widened_prior(self, poses: list[Pose], tracks: Tracks) -> DepthPrior:
-        """The depth range of the adjusted points in their keyframes (2nd-98th percentile, widened), joined
-        with the range known before (the scope may come closer again)."""
+    def _depth_prior(self, poses: list[Pose], tracks: Tracks) -> DepthPrior:
+        """The depth range of the newest local map's points in their keyframes (2nd-98th percentile,
+        widened): the window's own, not joined with older ones (the first windows' scale is the least
+        certain, their range the least right)."""
         depth = np.concatenate([poses[f].transform(tracks.points[tracks.track[tracks.frame == f]])[:, 2]
                                 for f in np.unique(tracks.frame)])
         lo, hi = np.percentile(depth, [2.0, 98.0])
         m = self.options.depth_margin
-        near, far = max(lo * (1 - m), 1e-3), hi * (1 + m)
-        if self._depth_prior is not None:
-            near, far = min(near, self._depth_prior.near_mm), max(far, self._depth_prior.far_mm)
-        return DepthPrior(float(near), float(far))
+        return DepthPrior(float(max(lo * (1 - m), 1e-3)), float(hi * (1 + m)))
 
-    def _keyframe_frames(self) -> np.ndarray:
-        return np.array([k.frame for k in self._keyframes], np.int64)
+
+class _InlineWorker:
+    """The keyframe work done in the caller's thread when submitted; results handed out in order."""
+
+    def __init__(self, camera: Camera, options: LiveMapperOptions):
+        self._work = _KeyframeWork(camera, options)
+        self._results: list = []
+
+    def submit(self, keyframe, image, measured, guide) -> None:
+        self._results.append(self._work.add(keyframe, image, measured, guide))
+
+    def result(self):
+        return self._results.pop(0)
+
+    def finish(self, frames: np.ndarray) -> LiveMap:
+        return self._work.finish(frames)
+
+    def close(self) -> None:
+        pass
+
+
+class _ThreadWorker(_InlineWorker):
+    """The keyframe work on one worker thread (the GIL is shared with tracking: see ``LiveMapperOptions``)."""
+
+    def __init__(self, camera: Camera, options: LiveMapperOptions):
+        super().__init__(camera, options)
+        self._executor: ThreadPoolExecutor | None = ThreadPoolExecutor(max_workers=1, thread_name_prefix="scope3d-live")
+
+    def submit(self, keyframe, image, measured, guide) -> None:
+        self._results.append(self._executor.submit(self._work.add, keyframe, image, measured, guide))
+
+    def result(self):
+        return self._results.pop(0).result()
+
+    def close(self) -> None:
+        if self._executor is not None:
+            self._executor.shutdown(wait=True)
+            self._executor = None
+
+
+class _ProcessWorker:
+    """The keyframe work in a child process (its own GIL): jobs and answers through a pipe, in order. The
+    child is spawned, not forked: a fork copies OpenCV's and the BLAS's thread pools in whatever state the
+    parent's threads left them. A sender and a reader thread move the jobs and the answers, so the stream
+    never blocks on the pipe (a frame and a local map both exceed a pipe's buffer: sent from the stream's
+    thread, a frame waits until the child reads it, a second or more while the child is still starting).
+    The child ends when the pipe closes (the mapper closed, or its process died)."""
+
+    def __init__(self, camera: Camera, options: LiveMapperOptions):
+        context = multiprocessing.get_context("spawn")
+        self._conn, child = context.Pipe(duplex=True)
+        self._process = context.Process(target=_serve, args=(child, camera, options), daemon=True,
+                                        name="scope3d-live")
+        self._process.start()
+        child.close()
+        self._answers: queue.SimpleQueue = queue.SimpleQueue()
+        self._reader = threading.Thread(target=_read_answers, args=(self._conn, self._answers), daemon=True,
+                                        name="scope3d-live-reader")
+        self._reader.start()
+        self._jobs: queue.SimpleQueue = queue.SimpleQueue()
+        self._sender = threading.Thread(target=_send_jobs, args=(self._conn, self._jobs), daemon=True,
+                                        name="scope3d-live-sender")
+        self._sender.start()
+
+    def submit(self, keyframe, image, measured, guide) -> None:
+        self._jobs.put(("add", (keyframe, image, measured, guide)))
+
+    def result(self):
+        return self._answer()
+
+    def finish(self, frames: np.ndarray) -> LiveMap:
+        self._jobs.put(("finish", (frames,)))
+        return self._answer()
+
+    def _answer(self):
+        ok, value = self._answers.get()
+        if not ok:
+            if isinstance(value, InputError):
+                raise value
+            raise RuntimeError(f"the live mapper's worker failed:\n{value}")
+        return value
+
+    def close(self) -> None:
+        if self._process is not None:
+            self._jobs.put(None)  # the child ends its loop, then the sender
+            self._sender.join()
+            self._process.join()
+            self._reader.join()
+            self._conn.close()
+            self._process = None
+
+
+def _send_jobs(conn, jobs: queue.SimpleQueue) -> None:
+    """The parent's sender thread: every job to the child, in order; None (sent too) ends it."""
+    while True:
+        job = jobs.get()
+        try:
+            conn.send(job)
+        except OSError:
+            return
+        if job is None:
+            return
+
+
+def _read_answers(conn, answers: queue.SimpleQueue) -> None:
+    """The parent's reader thread: every answer into ``answers``; the child's end as a failure."""
+    while True:
+        try:
+            answers.put(conn.recv())
+        except (EOFError, OSError):
+            answers.put((False, "the worker process ended"))
+            return
+
+
+def _serve(conn, camera: Camera, options: LiveMapperOptions) -> None:
+    """The child's loop: keyframes in, local maps out, until ``finish`` or the parent's end."""
+    work = _KeyframeWork(camera, options)
+    while True:
+        try:
+            job = conn.recv()
+        except EOFError:
+            return
+        if job is None:
+            conn.close()
+            return
+        what, args = job
+        try:
+            if what == "add":
+                answer = (True, work.add(*args))
+            else:
+                answer = (True, work.finish(*args))
+        except InputError as exc:
+            answer = (False, exc)
+        except Exception:  # noqa: BLE001 - carried to the parent, which raises it
+            answer = (False, traceback.format_exc())
+        conn.send(answer)
+
+
+def _start_worker(camera: Camera, options: LiveMapperOptions):
+    return {"inline": _InlineWorker, "thread": _ThreadWorker, "process": _ProcessWorker}[options.worker](camera, options)
+
+
+def _new_from_old(old: _LocalMap, new: _LocalMap) -> Pose | None:
+    """How the new local map's world sits in the old one's: each adjustment aligns its window to the
+    robot's reports, so the gauge moves by a fraction of the robot's error from one window to the next.
+    Taken at the newest keyframe both adjusted (the one tracking has just followed)."""
+    common = sorted(set(old.keyframes) & set(new.keyframes))
+    if not common:
+        return None
+    k = common[-1]
+    return new.poses[new.keyframes.index(k)].inverse() @ old.poses[old.keyframes.index(k)]
 
 
 def _renumbered(m: PairMatches, i: int, j: int) -> PairMatches:
