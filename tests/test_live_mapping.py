@@ -16,6 +16,7 @@ Bounds from the set-up:
 from __future__ import annotations
 
 import json
+import pickle
 from dataclasses import replace
 
 import numpy as np
@@ -27,6 +28,8 @@ from scope3d.feature.detection import FEATURE_PRESETS
 from scope3d.io.dataset import load_dataset, write_dataset
 from scope3d.io.scan_plan import PlanFile
 from scope3d.phantoms.trajectories import build_trajectory
+from scope3d.pipelines.live import LiveOptions
+from scope3d.pipelines.live import run as run_live
 from scope3d.pipelines.surgical_map import MapOptions
 from scope3d.pipelines.surgical_map import run as run_map
 from scope3d.sfm.live_mapping import LIVE_PRESETS, LIVE_STATUSES, LiveMapper, LiveMapperOptions
@@ -122,9 +125,11 @@ def test_options_refuse_nonsense():
         LiveMapperOptions(min_inlier_fraction=0.0)
 
 
-def test_live_command_writes_its_outputs(video, tmp_path, capsys):
+def test_live_job_writes_its_outputs_and_its_result_pickles(video, tmp_path):
+    """The job as `scope3d live` runs it (worker process, as fast as possible), through the Python API so
+    that its result can be pickled (cluster workers send results back)."""
     out = tmp_path / "live"
-    assert main(["live", str(video.root), "--out", str(out), "--no-wait", "--preset", "dim_endoscope", "--quiet"]) == 0
+    result = run_live(LiveOptions(LIVE_PRESETS["dim_endoscope"], wait=False), video, out)
     report = json.loads((out / "report.json").read_text())
     assert report["n_frames"] == len(video)
     assert set(report["latency_ms"]) >= {"median", "p99"}
@@ -132,6 +137,8 @@ def test_live_command_writes_its_outputs(video, tmp_path, capsys):
     for name in ("poses.csv", "frames.csv", "keyframes.csv", "map.ply", "live.png"):
         assert (out / name).is_file()
     assert len((out / "poses.csv").read_text().splitlines()) == len(video) + 1
+    back = pickle.loads(pickle.dumps(result))
+    assert back.summary() == result.summary()
 
 
 def test_live_command_refuses_bad_input(tmp_path, capsys):

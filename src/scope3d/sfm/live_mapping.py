@@ -167,7 +167,8 @@ class LiveFrame:
         :data:`LIVE_STATUSES`. pose : fused ``cam_from_world`` (mm). covariance : (6, 6) of ``(w rad, C mm)``.
     image_pose, image_covariance : the tracking's own pose before fusion, or None when the image gave none.
     n_inliers : tracking inliers (0 without an image pose). keyframe : the keyframe's number when the frame
-    became one, else None. latency_ms : wall time of :meth:`LiveMapper.add_frame`.
+    became one, else None. latency_ms : wall time of :meth:`LiveMapper.add_frame`. waited_ms : the part of it
+    spent waiting for a local map due at this frame that the worker had not finished (0 when it was ready).
     """
 
     index: int
@@ -180,6 +181,7 @@ class LiveFrame:
     n_inliers: int
     keyframe: int | None
     latency_ms: float
+    waited_ms: float = 0.0
 
 
 @dataclass
@@ -248,9 +250,11 @@ class LiveMapper:
         if self._last_time is not None and not time >= self._last_time:
             raise ValueError(f"frame time {time} s is before the previous frame's {self._last_time} s")
         index = self._frames
+        t_wait = _clock()
         while self._pending and self._pending[0] <= index:
             self._pending.pop(0)
             self._apply(self._worker.result())
+        waited_ms = 1000.0 * (_clock() - t_wait) if self._worker.was_late() else 0.0
         if self._filter.initialised:
             self._filter.predict(time - self._last_time)
         self._filter.update_measured(measured_pose)
@@ -280,7 +284,7 @@ class LiveMapper:
         self._last_status = status if ok else "lost"
         return LiveFrame(index, float(time), status, self._filter.pose, self._filter.pose_covariance,
                          result.pose if ok else None, result.covariance if ok else None,
-                         result.n_inliers if ok else 0, keyframe, 1000.0 * (_clock() - t0))
+                         result.n_inliers if ok else 0, keyframe, 1000.0 * (_clock() - t0), waited_ms)
 
     def current_map(self) -> LiveMap:
         """The map now: every keyframe (adjusted where a local BCBA reached it) and the local map's points;
@@ -457,6 +461,11 @@ class _InlineWorker:
     def result(self):
         return self._results.pop(0)
 
+    def was_late(self) -> bool:
+        """Whether the results taken at this frame had to be waited for (never, inline: the work was done
+        at the keyframe)."""
+        return False
+
     def finish(self, frames: np.ndarray) -> LiveMap:
         return self._work.finish(frames)
 
@@ -470,12 +479,19 @@ class _ThreadWorker(_InlineWorker):
     def __init__(self, camera: Camera, options: LiveMapperOptions):
         super().__init__(camera, options)
         self._executor: ThreadPoolExecutor | None = ThreadPoolExecutor(max_workers=1, thread_name_prefix="scope3d-live")
+        self._late = False
 
     def submit(self, keyframe, image, measured, guide) -> None:
         self._results.append(self._executor.submit(self._work.add, keyframe, image, measured, guide))
 
     def result(self):
-        return self._results.pop(0).result()
+        future = self._results.pop(0)
+        self._late = not future.done()
+        return future.result()
+
+    def was_late(self) -> bool:
+        late, self._late = self._late, False
+        return late
 
     def close(self) -> None:
         if self._executor is not None:
@@ -499,6 +515,7 @@ class _ProcessWorker:
         self._process.start()
         child.close()
         self._answers: queue.SimpleQueue = queue.SimpleQueue()
+        self._late = False
         self._reader = threading.Thread(target=_read_answers, args=(self._conn, self._answers), daemon=True,
                                         name="scope3d-live-reader")
         self._reader.start()
@@ -511,7 +528,12 @@ class _ProcessWorker:
         self._jobs.put(("add", (keyframe, image, measured, guide)))
 
     def result(self):
+        self._late = self._late or self._answers.empty()
         return self._answer()
+
+    def was_late(self) -> bool:
+        late, self._late = self._late, False
+        return late
 
     def finish(self, frames: np.ndarray) -> LiveMap:
         self._jobs.put(("finish", (frames,)))
