@@ -137,6 +137,7 @@ def test_live_job_writes_its_outputs_and_its_result_pickles(video, tmp_path):
     for name in ("poses.csv", "frames.csv", "keyframes.csv", "map.ply", "live.png"):
         assert (out / name).is_file()
     assert len((out / "poses.csv").read_text().splitlines()) == len(video) + 1
+    assert len(list((out / "keyframe_maps").glob("*.ply"))) == report["n_keyframes"]
     back = pickle.loads(pickle.dumps(result))
     assert back.summary() == result.summary()
 

@@ -15,7 +15,7 @@ def register(subparsers) -> None:
         "(scope3d.sfm.live_mapping): each frame tracked against the local map and fused with the robot's pose "
         "by a Kalman filter, keyframes when the view moved, local bounded bundle adjustment on a worker thread, "
         "global bounded bundle adjustment at the end. Writes poses.csv (every frame's fused pose, tolerance 3 "
-        "sigma), frames.csv (status, latency, errors), keyframes.csv, map.ply, report.json (latency_ms median "
+        "sigma), frames.csv (status, latency, errors), keyframes.csv, map.ply, keyframe_maps/, report.json (latency_ms median "
         "and p99; with ground truth tracking_error, pose_error and surface_error_mm) and live.png. See "
         "docs/live.md.",
     )
@@ -48,4 +48,4 @@ def _run(args) -> int:
         result = run(options, dataset, staged, progress=progress)
     return finish_job(args, args.out, result.report,
                       [result.summary(), f"wrote {args.out}/ (poses.csv, frames.csv, keyframes.csv, map.ply, "
-                                         "report.json, live.png)"])
+                                         "keyframe_maps/, report.json, live.png)"])

@@ -12,6 +12,7 @@ Method, one stage per function, run top to bottom by :func:`run`:
    ``scope3d map`` writes.
 4. :func:`write_outputs` — ``poses.csv`` (every frame's fused pose, tolerance 3 sigma of its covariance),
    ``frames.csv`` (status, latency, inliers, errors), ``keyframes.csv`` (adjusted poses), ``map.ply``,
+   ``keyframe_maps/NNN.ply`` (the map as it stood when keyframe NNN was kept),
    ``report.json`` (``latency_ms`` → ``median``, ``p99``, ``max``; statuses; the errors) and ``live.png``
    (error along the trajectory, latency histogram).
 """
@@ -96,11 +97,13 @@ def frame_times(options: LiveOptions, dataset: Dataset) -> np.ndarray:
 
 
 def replay(options: LiveOptions, dataset: Dataset, times: np.ndarray, *,
-           progress: Progress | None = None) -> tuple[list[LiveFrame], LiveMap, float]:
+           progress: Progress | None = None) -> tuple[list[LiveFrame], LiveMap, float, list[LiveMap]]:
     """Every frame through one mapper, at the recorded rate when ``options.wait``; then the global BCBA.
-    Returns the frames, the final map and the global BCBA's wall time (s). A frame is read before its time
-    comes (a live stream delivers decoded frames)."""
+    Returns the frames, the final map, the global BCBA's wall time (s) and the map as it stood at each
+    keyframe (:meth:`~scope3d.sfm.live_mapping.LiveMapper.current_map`, taken after the frame's answer).
+    A frame is read before its time comes (a live stream delivers decoded frames)."""
     frames: list[LiveFrame] = []
+    snapshots: list[LiveMap] = []
     stage(progress, "live", len(dataset))
     with LiveMapper(dataset.camera, options.mapper) as mapper:
         start = time.perf_counter()
@@ -111,10 +114,12 @@ def replay(options: LiveOptions, dataset: Dataset, times: np.ndarray, *,
                 if late > 0:
                     time.sleep(late)
             frames.append(mapper.add_frame(image, dataset.poses[k], float(times[k])))
+            if frames[-1].keyframe is not None:
+                snapshots.append(mapper.current_map())
             advance(progress)
         t0 = time.perf_counter()
         final = mapper.finish()
-    return frames, final, time.perf_counter() - t0
+    return frames, final, time.perf_counter() - t0, snapshots
 
 
 def evaluate(options: LiveOptions, dataset: Dataset, frames: list[LiveFrame], final: LiveMap) -> dict:
@@ -161,8 +166,9 @@ def _error_summary(errors: list[tuple[float, float]]) -> dict:
 
 
 def write_outputs(options: LiveOptions, dataset: Dataset, out_dir: Path, frames: list[LiveFrame], final: LiveMap,
-                  errors: dict, times: np.ndarray, finish_s: float) -> dict:
-    """poses.csv, frames.csv, keyframes.csv, map.ply, report.json and live.png into ``out_dir``."""
+                  errors: dict, times: np.ndarray, finish_s: float, snapshots: list[LiveMap]) -> dict:
+    """poses.csv, frames.csv, keyframes.csv, map.ply, keyframe_maps/NNN.ply, report.json and live.png into
+    ``out_dir``."""
     names = dataset.names
     fused = [MeasuredPose(f.pose, covariance_to_tolerance(f.covariance, options.tolerance_sigmas)) for f in frames]
     (out_dir / "poses.csv").write_text(format_poses_csv([names[f.index] for f in frames], fused))
@@ -176,6 +182,9 @@ def write_outputs(options: LiveOptions, dataset: Dataset, out_dir: Path, frames:
                      f"{f.latency_ms:.3f},{f.waited_ms:.3f},{f.n_inliers},{e}")
     (out_dir / "frames.csv").write_text("\n".join(lines) + "\n")
     write_ply(out_dir / "map.ply", PointCloud(final.points, final.colors))
+    (out_dir / "keyframe_maps").mkdir()
+    for k, snapshot in enumerate(snapshots):  # the local map tracking used when keyframe k was kept
+        write_ply(out_dir / "keyframe_maps" / f"{k:03d}.ply", PointCloud(snapshot.points, snapshot.colors))
     latency = np.array([f.latency_ms for f in frames])
     own = latency - np.array([f.waited_ms for f in frames])
     interval_ms = 1000.0 * float(np.median(np.diff(times))) if len(times) > 1 else float("inf")
@@ -234,10 +243,10 @@ def run(options: LiveOptions, dataset: Dataset, out_dir: str | Path, *, progress
     """Replay ``dataset`` through the live mapper; write ``out_dir`` atomically."""
     t0 = time.perf_counter()
     times = frame_times(options, dataset)
-    frames, final, finish_s = replay(options, dataset, times, progress=progress)
+    frames, final, finish_s, snapshots = replay(options, dataset, times, progress=progress)
     errors = evaluate(options, dataset, frames, final)
     with atomic_directory(Path(out_dir)) as tmp:
-        report = write_outputs(options, dataset, tmp, frames, final, errors, times, finish_s)
+        report = write_outputs(options, dataset, tmp, frames, final, errors, times, finish_s, snapshots)
         report["time_s"] = time.perf_counter() - t0
         write_json(tmp / "report.json", report)
     return LiveResult(report, Path(out_dir), frames, final)
