@@ -147,3 +147,20 @@ def test_live_command_refuses_bad_input(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "missing" in err[0]
     assert not (tmp_path / "out").exists()
+
+
+def test_kalman_change_world_moves_the_estimate_exactly():
+    """A map moved by its adjustment: the filter's pose becomes ``pose @ new_from_old^-1`` to rounding."""
+    from scope3d.estimators.kalman import PoseKalmanFilter
+    from scope3d.geometry.pose import Pose
+    from scope3d.geometry.rotation import rotvec_to_matrix
+
+    kf = PoseKalmanFilter()
+    kf.update(Pose.from_centre(rotvec_to_matrix(np.array([0.1, 0.2, 0.3])), np.array([1.0, 2.0, 3.0])), np.eye(6) * 1e-4)
+    kf.update(Pose.from_centre(rotvec_to_matrix(np.array([0.1, 0.2, 0.31])), np.array([1.1, 2.0, 3.0])), np.eye(6) * 1e-4)
+    kf.predict(0.1)
+    new_from_old = Pose.from_centre(rotvec_to_matrix(np.array([0.05, -0.02, 0.01])), np.array([0.5, -0.3, 0.2]))
+    before, speed = kf.pose, np.linalg.norm(kf.state[9:12])
+    kf.change_world(new_from_old)
+    np.testing.assert_allclose(kf.pose.matrix, (before @ new_from_old.inverse()).matrix, atol=1e-12)
+    assert np.isclose(np.linalg.norm(kf.state[9:12]), speed)  # a rigid move keeps the speed

@@ -338,7 +338,10 @@ class LiveMapper:
         if self._localizer is None:
             self._localizer = Localizer(outcome.points, self.camera, self.options.localizer)
         else:
-            self._localizer.replace_map(outcome.points, _new_from_old(before, outcome))
+            moved = _new_from_old(before, outcome)
+            self._localizer.replace_map(outcome.points, moved)
+            if moved is not None:
+                self._filter.change_world(moved)
         self._reference_inliers = 0
 
     def _keyframe_frames(self) -> np.ndarray:
