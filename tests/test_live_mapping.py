@@ -156,8 +156,9 @@ def test_kalman_change_world_moves_the_estimate_exactly():
     from scope3d.geometry.rotation import rotvec_to_matrix
 
     kf = PoseKalmanFilter()
-    kf.update(Pose.from_centre(rotvec_to_matrix(np.array([0.1, 0.2, 0.3])), np.array([1.0, 2.0, 3.0])), np.eye(6) * 1e-4)
-    kf.update(Pose.from_centre(rotvec_to_matrix(np.array([0.1, 0.2, 0.31])), np.array([1.1, 2.0, 3.0])), np.eye(6) * 1e-4)
+    for w, x in ((0.3, 1.0), (0.31, 1.1)):  # two poses 0.1 mm apart: a velocity to carry over
+        pose = Pose.from_centre(rotvec_to_matrix(np.array([0.1, 0.2, w])), np.array([x, 2.0, 3.0]))
+        kf.update(pose, np.eye(6) * 1e-4)
     kf.predict(0.1)
     new_from_old = Pose.from_centre(rotvec_to_matrix(np.array([0.05, -0.02, 0.01])), np.array([0.5, -0.3, 0.2]))
     before, speed = kf.pose, np.linalg.norm(kf.state[9:12])

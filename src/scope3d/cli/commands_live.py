@@ -13,11 +13,11 @@ def register(subparsers) -> None:
         "the map grown by keyframes",
         description="Replay DATASET's frames with their reported poses through the live mapper "
         "(scope3d.sfm.live_mapping): each frame tracked against the local map and fused with the robot's pose "
-        "by a Kalman filter, keyframes when the view moved, local bounded bundle adjustment on a worker thread, "
+        "by a Kalman filter, keyframes when the view moved, local bounded bundle adjustment in a worker process, "
         "global bounded bundle adjustment at the end. Writes poses.csv (every frame's fused pose, tolerance 3 "
-        "sigma), frames.csv (status, latency, errors), keyframes.csv, map.ply, keyframe_maps/, report.json (latency_ms median "
-        "and p99; with ground truth tracking_error, pose_error and surface_error_mm) and live.png. See "
-        "docs/live.md.",
+        "sigma), frames.csv (status, latency, errors), keyframes.csv, map.ply, keyframe_maps/, report.json "
+        "(latency_ms median and p99; with ground truth tracking_error, pose_error and surface_error_mm) and "
+        "live.png. See docs/live.md.",
     )
     p.add_argument("dataset", type=Path, metavar="DATASET", help="dataset folder of the frames (see docs/datasets.md)")
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder (replaced if it exists)")

@@ -82,7 +82,8 @@ class LiveResult:
                      f"(robot {err['robot']['position_mm_median']:.3f} mm)")
         surf = r.get("surface_error_mm")
         if surf:
-            line += f"; map {surf['direct']['mean']:.3f} mm from the surface ({surf['after_icp']['mean']:.3f} after ICP)"
+            line += (f"; map {surf['direct']['mean']:.3f} mm from the surface "
+                     f"({surf['after_icp']['mean']:.3f} after ICP)")
         return line
 
 

@@ -382,7 +382,8 @@ class _KeyframeWork:
         window = list(range(max(0, keyframe - o.local_window + 1), keyframe + 1))
         for i in window[:-1]:
             if self.depth_prior is None:
-                m = match_exhaustive(self.camera, self.features[i], self.features[keyframe], o.matching, i=i, j=keyframe)
+                m = match_exhaustive(self.camera, self.features[i], self.features[keyframe], o.matching,
+                                     i=i, j=keyframe)
             else:
                 m = match_guided_many(self.camera, [self.features[i], self.features[keyframe]],
                                       [self.guide(i), self.guide(keyframe)], [(0, 1, 1.0)], self.depth_prior,
@@ -607,7 +608,8 @@ def _serve(conn, camera: Camera, options: LiveMapperOptions) -> None:
 
 
 def _start_worker(camera: Camera, options: LiveMapperOptions):
-    return {"inline": _InlineWorker, "thread": _ThreadWorker, "process": _ProcessWorker}[options.worker](camera, options)
+    workers = {"inline": _InlineWorker, "thread": _ThreadWorker, "process": _ProcessWorker}
+    return workers[options.worker](camera, options)
 
 
 def _new_from_old(old: _LocalMap, new: _LocalMap) -> Pose | None:
