@@ -19,7 +19,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 # The commands that do a job and write a report (not `check`, `report`, `phantom --list`...); a space
 # separates a command from its sub-command.
-JOBS = ["map", "bundle-adjust", "axial", "localize", "track-markers", "calibrate", "calibrate-hand-eye",
+JOBS = ["map", "bundle-adjust", "axial", "localize", "live", "track-markers", "calibrate", "calibrate-hand-eye",
         "thread-scan", "mosaic", "panorama", "phantom", "plan-scan", "batch thread-scan", "import video", "import frames", "import rosbag",
         "import middlebury", "import colmap"]
 

@@ -11,6 +11,7 @@ from scope3d import __version__
 from scope3d.cli import commands_axial, commands_bundle, commands_dataset, commands_map, commands_phantom
 from scope3d.cli import (
     commands_calibrate,
+    commands_live,
     commands_localize,
     commands_panorama,
     commands_report,
@@ -21,7 +22,7 @@ from scope3d.cli.job_output import EXIT_CODES
 from scope3d.errors import InputError
 
 COMMAND_MODULES = [commands_phantom, commands_dataset, commands_bundle, commands_axial, commands_map, commands_report,
-                   commands_calibrate, commands_localize, commands_track_markers, commands_thread, commands_panorama]
+                   commands_calibrate, commands_localize, commands_live, commands_track_markers, commands_thread, commands_panorama]
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -139,6 +139,22 @@ class PoseKalmanFilter:
         self.covariance = joseph @ self.covariance @ joseph.T + gain @ covariance[np.ix_(idx, idx)] @ gain.T
         self._absorb_rotation()
 
+    def change_world(self, new_from_old: Pose) -> None:
+        """Express the estimate in another world frame (a live map whose adjustment moved it): the pose becomes
+        ``pose @ new_from_old.inverse()``; the centre and its velocity turn and move with the frame, the
+        rotation error and rate (on the camera's side of the nominal rotation) stay. Without this a moved
+        map's first image pose would read as a jump, and the filter would take it for a velocity."""
+        if not self.initialised:
+            return
+        rt = new_from_old.rotation
+        self._rotation = self._rotation @ rt.T
+        self.state[3:6] = rt @ self.state[3:6] + new_from_old.translation
+        self.state[9:12] = rt @ self.state[9:12]
+        j = np.eye(12)
+        j[3:6, 3:6] = rt
+        j[9:12, 9:12] = rt
+        self.covariance = j @ self.covariance @ j.T
+
     def update_measured(self, measured: MeasuredPose) -> None:
         """Fuse a robot's report: its tolerance box as a uniform error (:func:`tolerance_covariance`)."""
         self.update(measured.pose, tolerance_covariance(measured.tolerance))

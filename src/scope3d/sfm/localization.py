@@ -220,6 +220,24 @@ class Localizer:
         self._anchored = 0  # points the last SIFT association (a SIFT frame or a merged refresh) gave
         self._pending: _PendingRefresh | None = None  # a refresh still running is simply never merged
 
+    def replace_map(self, map_points: MapPoints, new_from_old: Pose | None = None) -> None:
+        """Localize against ``map_points`` from the next frame on (a live map grown or adjusted). The point ids
+        of the old map mean nothing in the new one, so the followed points are dropped, but the last poses
+        are kept, moved into the new map's frame by ``new_from_old`` (the new world from the old, when the
+        adjustment moved the map): the next frame is matched guided by their prediction, not relocalized."""
+        if len(map_points) < self.options.pose.min_inliers:
+            raise ValueError(f"the map holds {len(map_points)} points, fewer than the {self.options.pose.min_inliers} "
+                             "inliers a pose needs")
+        self.map = map_points
+        if new_from_old is not None:
+            old_from_new = new_from_old.inverse()
+            self._poses = [p @ old_from_new for p in self._poses]
+        self._observations = None
+        self._track = None
+        self._since_refresh = 0
+        self._anchored = 0
+        self._pending = None
+
     def close(self) -> None:
         """Stop the refresh thread (if one was started). The localizer stays usable: it starts another."""
         if self._executor is not None:

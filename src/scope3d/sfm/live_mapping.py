@@ -1,0 +1,631 @@
+"""The live surgical map: the map grows while the scope moves, with the robot's poses fused in (reference
+sec. 9.3.2, issue 36).
+
+A :class:`LiveMapper` takes frames one at a time, as a video stream delivers them, each with the robot's
+reported pose and its tolerance box::
+
+    mapper = LiveMapper(camera, LiveMapperOptions())
+    for image, reported, t in stream:
+        frame = mapper.add_frame(image, reported, t)
+        steer(frame.pose, frame.covariance)
+    final = mapper.finish()
+
+Per frame, on the caller's thread (the tracking path):
+
+* **tracking** — the frame is localized against the *local map* (the points of the newest keyframes) by a
+  :class:`~scope3d.sfm.localization.Localizer`: optical flow, guided or global SIFT matching, then PnP and
+  the pose refined inside the robot's box (:func:`~scope3d.estimators.absolute_pose.estimate_absolute_pose`);
+* **fusion** — a :class:`~scope3d.estimators.kalman.PoseKalmanFilter` predicts to the frame's time, then
+  takes the robot's report (its box as a uniform error) and the image pose with its covariance. The fused
+  pose and covariance are the frame's answer;
+* **keyframes** — a frame becomes a keyframe when its view has moved a fifth of the image from the last
+  keyframe's (phase correlation, :class:`~scope3d.feature.keyframes.KeyframeSelector`, the video import's
+  rule: a wall point stays in about five keyframes), or when tracking holds fewer than
+  ``min_inlier_fraction`` of the points the current local map first gave.
+
+Per keyframe, on a worker while tracking goes on (a child process by default, a thread or inline
+if asked: ``LiveMapperOptions.worker``):
+
+* SIFT on the keyframe, matched against the previous ``local_window - 1`` keyframes with pose-guided
+  matching (:func:`~scope3d.feature.matching.match_guided_many`; the windows come from the fused poses'
+  3-sigma boxes, so a frame tracked to 0.05 mm is searched in a few pixels) — the first pairs, before any
+  depth is known, exhaustively;
+* **local BCBA** over the newest ``local_window`` keyframes: tracks, triangulation and bundle adjustment
+  with every keyframe kept inside the robot's box (:func:`~scope3d.sfm.guided_mapping.adjust_map`, the
+  map's own stage), started from the keyframes' live poses. Its points (with their SIFT descriptors)
+  become the tracking map, ``map_lag_frames`` frames after the keyframe: a fixed lag rather than "when
+  done", so the output does not depend on the machine's load (the stream waits when the worker is late).
+
+:meth:`LiveMapper.finish` runs the **global BCBA**: pairs over all keyframes chosen from their adjusted
+poses (:func:`~scope3d.feature.pairs.select_pairs`, which also closes loops: a serpentine survey's
+neighbouring rows, a return to a mapped region), the missing pairs matched guided, then the map's
+tracks-triangulation-bounded-adjustment stage over every keyframe with the robot's boxes. It is the same
+stage ``scope3d map`` runs on the same frames, started from better poses.
+
+Statuses (:data:`LIVE_STATUSES`): ``tracked`` (image pose fused with the robot's), ``keyframe`` (as tracked
+— or the robot's alone before the first map — and the frame was kept), ``relocalized`` (the image pose came
+from global matching, or after a lost frame), ``lost`` (no image pose: the robot's report through the
+filter, the covariance says so).
+
+Units: mm and radians; ``time`` in seconds on any clock that only goes forward.
+"""
+from __future__ import annotations
+
+import multiprocessing
+import queue
+import threading
+import time
+import traceback
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from scope3d.errors import InputError
+from scope3d.estimators.kalman import KalmanOptions, PoseKalmanFilter, covariance_to_tolerance
+from scope3d.estimators.triangulation import TrackOptions
+from scope3d.feature.depth_prior import DepthPrior
+from scope3d.feature.detection import FEATURE_PRESETS, FeatureOptions, Features, detect
+from scope3d.feature.keyframes import KeyframeOptions, KeyframeSelector
+from scope3d.feature.matching import MatchOptions, PairMatches, match_exhaustive, match_guided_many
+from scope3d.feature.pairs import PairOptions, select_pairs
+from scope3d.feature.tracks import build_tracks, observation_descriptors, track_descriptors
+from scope3d.geometry.pose import Pose
+from scope3d.io.map_points import MapPoints
+from scope3d.scene.tracks import Tracks
+from scope3d.sensor.camera import Camera
+from scope3d.sensor.pose_tolerance import MeasuredPose
+from scope3d.sfm.guided_mapping import BundleStageOptions, adjust_map
+from scope3d.sfm.localization import LocalizationResult, Localizer, LocalizerOptions
+
+LIVE_STATUSES = ("tracked", "keyframe", "relocalized", "lost")
+LIVE_WORKERS = ("process", "thread", "inline")
+
+
+@dataclass(frozen=True)
+class LiveMapperOptions:
+    """How the live map is built.
+
+    localizer : tracking against the local map (:class:`~scope3d.sfm.localization.LocalizerOptions`).
+    keyframes : when the view has moved enough (:class:`~scope3d.feature.keyframes.KeyframeOptions`).
+    min_inlier_fraction : float in (0, 1), a frame also becomes a keyframe when its tracking inliers fall
+        below this fraction of what the first frame tracked on the current local map had (default 0.5: the
+        view has left half of the mapped points behind).
+    local_window : int >= 2, keyframes in the local BCBA and in the tracking map (default 6: with a keyframe
+        every fifth of the image a wall point is in about five, so the window holds every view of the
+        points the newest keyframe sees).
+    map_lag_frames : int >= 0, the local BCBA of a keyframe becomes the tracking map this many frames later
+        (default 30, a second at 30 fps: the worker's budget for SIFT, matching and the adjustment, which
+        took 0.3-0.9 s on a loaded 2-core machine with 320 px frames; benchmarks/results/live.json).
+        0 computes it inline at the keyframe (the stream waits for it).
+    worker : where the keyframe work runs: ``process`` (default: a spawned child process, which has its own
+        GIL — on a thread the adjustment's Python parts stall tracking, whose every small NumPy call then
+        waits for the GIL), ``thread``, or ``inline`` (when submitted, in the caller's thread). All three
+        apply the result at the same frame, so they give the same output.
+    min_keyframes : int >= 2, the first local map is built once this many keyframes are in (default 3: with
+        the robot's box the only scale, two keyframes a few mm apart leave the scale loose).
+    features : SIFT on keyframes (the map's default settings). matching : guided matching of keyframe pairs.
+    pairs : the global BCBA's pair choice. tracks : triangulation gates. bundle : the adjustments.
+    kalman : the fusion filter's motion model.
+    guide_sigmas : float, a keyframe's search box for guided matching is this many standard deviations of
+        its fused pose (default 3).
+    depth_margin : float, the depth prior is the local map's 2nd-98th depth percentiles widened by this
+        fraction on each side (default 0.1, as :func:`~scope3d.sfm.depth_priors.estimate_depth_prior`).
+    working_range_mm : (near, far), where the scene may lie before any point is known (default 2-100 mm, an
+        endoscope's depth of field and more). It only widens the first triangulation's gate by what the
+        robot's box can shift a point at ``near``; the first pairs are matched exhaustively and verified.
+    """
+
+    localizer: LocalizerOptions = field(default_factory=LocalizerOptions)
+    keyframes: KeyframeOptions = field(default_factory=KeyframeOptions)
+    min_inlier_fraction: float = 0.5
+    local_window: int = 6
+    map_lag_frames: int = 30
+    worker: str = "process"
+    min_keyframes: int = 3
+    features: FeatureOptions = field(default_factory=FeatureOptions)
+    matching: MatchOptions = field(default_factory=MatchOptions)
+    pairs: PairOptions = field(default_factory=PairOptions)
+    tracks: TrackOptions = field(default_factory=TrackOptions)
+    bundle: BundleStageOptions = field(default_factory=BundleStageOptions)
+    kalman: KalmanOptions = field(default_factory=KalmanOptions)
+    guide_sigmas: float = 3.0
+    depth_margin: float = 0.1
+    working_range_mm: tuple[float, float] = (2.0, 100.0)
+
+    def __post_init__(self) -> None:
+        if not 0 < self.min_inlier_fraction < 1:
+            raise ValueError(f"min_inlier_fraction must be in (0, 1), got {self.min_inlier_fraction}")
+        if self.local_window < 2:
+            raise ValueError(f"local_window must be >= 2, got {self.local_window}")
+        if self.worker not in LIVE_WORKERS:
+            raise ValueError(f"worker must be one of {LIVE_WORKERS}, got {self.worker!r}")
+        if not 2 <= self.min_keyframes <= self.local_window:
+            raise ValueError(f"min_keyframes must be 2..local_window, got {self.min_keyframes}")
+        if self.map_lag_frames < 0:
+            raise ValueError(f"map_lag_frames must be >= 0, got {self.map_lag_frames}")
+        if not (self.guide_sigmas > 0 and self.depth_margin >= 0):
+            raise ValueError("need guide_sigmas > 0 and depth_margin >= 0")
+        DepthPrior(*self.working_range_mm)  # raises on a wrong range
+
+
+#: Named settings. ``dim_endoscope``: CLAHE and a lower SIFT threshold on keyframes and for tracking (the
+#: map's preset of the same name; on the 320 px dome 1,100 features instead of 200).
+LIVE_PRESETS: dict[str, LiveMapperOptions] = {
+    "default": LiveMapperOptions(),
+    "dim_endoscope": LiveMapperOptions(
+        features=FEATURE_PRESETS["dim_endoscope"],
+        localizer=LocalizerOptions(features=replace(FEATURE_PRESETS["dim_endoscope"], max_features=2000))),
+}
+
+
+@dataclass
+class LiveFrame:
+    """One frame's answer.
+
+    index : the frame's number in the stream (from 0). time_s : its time. status : one of
+        :data:`LIVE_STATUSES`. pose : fused ``cam_from_world`` (mm). covariance : (6, 6) of ``(w rad, C mm)``.
+    image_pose, image_covariance : the tracking's own pose before fusion, or None when the image gave none.
+    n_inliers : tracking inliers (0 without an image pose). keyframe : the keyframe's number when the frame
+    became one, else None. latency_ms : wall time of :meth:`LiveMapper.add_frame`. waited_ms : the part of it
+    spent waiting for a local map due at this frame that the worker had not finished (0 when it was ready).
+    """
+
+    index: int
+    time_s: float
+    status: str
+    pose: Pose
+    covariance: np.ndarray
+    image_pose: Pose | None
+    image_covariance: np.ndarray | None
+    n_inliers: int
+    keyframe: int | None
+    latency_ms: float
+    waited_ms: float = 0.0
+
+
+@dataclass
+class LiveMap:
+    """The map as it stands.
+
+    keyframe_frames : (K,) the stream index of each keyframe. keyframe_poses : their adjusted poses (the
+    live fused pose for a keyframe no adjustment has reached yet). measured : the robot's reports for them.
+    points : (N, 3) mm world. colors : (N, 3) uint8. tracks : the observations (frame = keyframe number),
+    None before any adjustment. final : True after the global BCBA.
+    """
+
+    keyframe_frames: np.ndarray
+    keyframe_poses: list[Pose]
+    measured: list[MeasuredPose]
+    points: np.ndarray
+    colors: np.ndarray
+    tracks: Tracks | None
+    final: bool = False
+
+
+@dataclass
+class _LocalMap:
+    """A local BCBA's outcome: its keyframes, their adjusted poses, its tracks and its tracking map."""
+
+    keyframes: list[int]
+    poses: list[Pose]
+    tracks: Tracks
+    points: MapPoints
+
+
+class LiveMapper:
+    """Simultaneous tracking and mapping with the robot's poses (see the module docstring).
+
+    camera : the frames' intrinsics. Unless ``options.worker`` is ``inline`` the mapper owns a worker (a
+    child process or a thread, started here): call :meth:`finish` or :meth:`close` (or use it as a context
+    manager) when done.
+    """
+
+    def __init__(self, camera: Camera, options: LiveMapperOptions = LiveMapperOptions()):
+        self.camera = camera
+        self.options = options
+        self._filter = PoseKalmanFilter(options.kalman)
+        self._selector = KeyframeSelector(options.keyframes, field_radius_px=camera.mask_radius_px)
+        self._localizer: Localizer | None = None
+        self._keyframes: list[_KeyframeInfo] = []
+        self._pending: list[int] = []  # the due frame of each submitted keyframe's local map, in order
+        self._worker = _start_worker(camera, options)
+        self._frames = 0
+        self._last_time: float | None = None
+        self._last_status = "lost"
+        self._reference_inliers = 0  # inliers of the first frame tracked on the current local map
+        self._local: _LocalMap | None = None
+        self._final: LiveMap | None = None
+
+    # --- the stream -----------------------------------------------------------------------------
+    def add_frame(self, image: np.ndarray, measured_pose: MeasuredPose, time: float) -> LiveFrame:
+        """Track one frame, fuse it with the robot's report, keep it as a keyframe when the view moved.
+
+        image : (H, W, 3) uint8 RGB or (H, W) uint8, the camera's size. measured_pose : the robot's pose
+        for this frame with its tolerance box. time : seconds, not before the previous frame's.
+        """
+        t0 = _clock()
+        if self._final is not None:
+            raise ValueError("the live map is finished: start a new LiveMapper")
+        if self._last_time is not None and not time >= self._last_time:
+            raise ValueError(f"frame time {time} s is before the previous frame's {self._last_time} s")
+        index = self._frames
+        t_wait = _clock()
+        while self._pending and self._pending[0] <= index:
+            self._pending.pop(0)
+            self._apply(self._worker.result())
+        waited_ms = 1000.0 * (_clock() - t_wait) if self._worker.was_late() else 0.0
+        if self._filter.initialised:
+            self._filter.predict(time - self._last_time)
+        self._filter.update_measured(measured_pose)
+        result: LocalizationResult | None = None
+        if self._localizer is not None:
+            result = self._localizer.localize(image, measured_pose)
+        ok = result is not None and result.ok
+        status = "lost"
+        if ok:
+            self._filter.update(result.pose, result.covariance)
+            status = "relocalized" if result.mode == "global" or self._last_status == "lost" else "tracked"
+            if self._reference_inliers == 0:
+                self._reference_inliers = result.n_inliers
+        decision = self._selector.offer(image)
+        keep = decision.keep or (ok and result.n_inliers < self.options.min_inlier_fraction * self._reference_inliers)
+        keyframe = None
+        if keep:
+            keyframe = len(self._keyframes)
+            guide = MeasuredPose(self._filter.pose, covariance_to_tolerance(self._filter.pose_covariance,
+                                                                             self.options.guide_sigmas))
+            self._keyframes.append(_KeyframeInfo(index, measured_pose, guide))
+            self._worker.submit(keyframe, np.ascontiguousarray(image), measured_pose, guide)
+            self._pending.append(index + self.options.map_lag_frames)
+            status = "keyframe"
+        self._frames += 1
+        self._last_time = time
+        self._last_status = status if ok else "lost"
+        return LiveFrame(index, float(time), status, self._filter.pose, self._filter.pose_covariance,
+                         result.pose if ok else None, result.covariance if ok else None,
+                         result.n_inliers if ok else 0, keyframe, 1000.0 * (_clock() - t0), waited_ms)
+
+    def current_map(self) -> LiveMap:
+        """The map now: every keyframe (adjusted where a local BCBA reached it) and the local map's points;
+        after :meth:`finish`, the global map."""
+        if self._final is not None:
+            return self._final
+        local = self._local
+        poses = [k.guide.pose for k in self._keyframes]
+        points, colors, tracks = np.zeros((0, 3)), np.zeros((0, 3), np.uint8), None
+        if local is not None:
+            for k, pose in zip(local.keyframes, local.poses):
+                poses[k] = pose
+            points, colors, tracks = local.points.xyz_mm, local.points.colors, local.tracks
+        return LiveMap(self._keyframe_frames(), poses, [k.measured for k in self._keyframes], points, colors, tracks)
+
+    def finish(self) -> LiveMap:
+        """Wait for the keyframe work, then the global BCBA over every keyframe (see the module docstring).
+        Raises InputError when the keyframes hold no consistent point."""
+        if self._final is not None:
+            return self._final
+        for _ in self._pending:
+            self._apply(self._worker.result())
+        self._pending = []
+        if len(self._keyframes) < 2:
+            self.close()
+            raise InputError(f"{len(self._keyframes)} keyframe(s): the scope did not move enough to map anything")
+        try:
+            self._final = self._worker.finish(self._keyframe_frames())
+        finally:
+            self.close()
+        return self._final
+
+    def close(self) -> None:
+        """Stop the worker (work under way is finished first)."""
+        self._worker.close()
+
+    def __enter__(self) -> "LiveMapper":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    @property
+    def n_keyframes(self) -> int:
+        return len(self._keyframes)
+
+    def _apply(self, outcome: "_LocalMap | None") -> None:
+        if outcome is None:
+            return
+        before, self._local = self._local, outcome
+        if self._localizer is None:
+            self._localizer = Localizer(outcome.points, self.camera, self.options.localizer)
+        else:
+            moved = _new_from_old(before, outcome)
+            self._localizer.replace_map(outcome.points, moved)
+            if moved is not None:
+                self._filter.change_world(moved)
+        self._reference_inliers = 0
+
+    def _keyframe_frames(self) -> np.ndarray:
+        return np.array([k.frame for k in self._keyframes], np.int64)
+
+
+@dataclass
+class _KeyframeInfo:
+    frame: int
+    measured: MeasuredPose  # the robot's report
+    guide: MeasuredPose  # the fused pose with its guide_sigmas box, at the time it was kept
+
+
+class _KeyframeWork:
+    """The keyframe work and all it keeps (features, matches, adjusted poses, depth prior): one per mapper,
+    fed one keyframe at a time, in order, wherever it runs (the mapper's thread, a worker thread or a child
+    process)."""
+
+    def __init__(self, camera: Camera, options: LiveMapperOptions):
+        self.camera = camera
+        self.options = options
+        self.measured: list[MeasuredPose] = []
+        self.guides: list[MeasuredPose] = []
+        self.features: list[Features] = []
+        self.matches: dict[tuple[int, int], PairMatches] = {}
+        self.adjusted: dict[int, Pose] = {}
+        self.depth_prior: DepthPrior | None = None
+
+    def add(self, keyframe: int, image: np.ndarray, measured: MeasuredPose, guide: MeasuredPose) -> _LocalMap | None:
+        """A new keyframe: its SIFT, its matches to the window's other keyframes, and the local BCBA over the
+        window. None when the window holds too little to adjust."""
+        o = self.options
+        if keyframe != len(self.features):
+            raise ValueError(f"keyframe {keyframe} out of order (expected {len(self.features)})")
+        self.measured.append(measured)
+        self.guides.append(guide)
+        self.features.append(detect(image, self.camera, options=o.features))
+        window = list(range(max(0, keyframe - o.local_window + 1), keyframe + 1))
+        for i in window[:-1]:
+            if self.depth_prior is None:
+                m = match_exhaustive(self.camera, self.features[i], self.features[keyframe], o.matching,
+                                     i=i, j=keyframe)
+            else:
+                m = match_guided_many(self.camera, [self.features[i], self.features[keyframe]],
+                                      [self.guide(i), self.guide(keyframe)], [(0, 1, 1.0)], self.depth_prior,
+                                      options=o.matching, frame_ids=[i, keyframe])[0]
+            self.matches[(i, keyframe)] = m
+        if len(window) < o.min_keyframes:
+            return None
+        local = {k: n for n, k in enumerate(window)}
+        matches = [_renumbered(m, local[i], local[j]) for (i, j), m in self.matches.items()
+                   if i in local and j in local and len(m)]
+        features = [self.features[k] for k in window]
+        tracks = build_tracks(features, matches, min_track_length=o.tracks.min_track_length)
+        if tracks.n_tracks < o.localizer.pose.min_inliers:
+            return None
+        try:
+            adjusted = adjust_map("bounded", [self.measured[k] for k in window], self.camera, tracks,
+                                  [self.guide(k) for k in window], self.depth_prior or DepthPrior(*o.working_range_mm),
+                                  track_options=o.tracks, options=o.bundle, height_field=True, where="live map")
+        except InputError:
+            return None
+        t = adjusted.tracks
+        if t.n_tracks < o.localizer.pose.min_inliers:
+            return None
+        for k, pose in zip(window, adjusted.poses):
+            self.adjusted[k] = pose
+        self.depth_prior = self._depth_prior(adjusted.poses, t)
+        points = MapPoints(t.points, track_descriptors(features, t), t.lengths(), t.colors,
+                           observation_descriptors(features, t), t.track.copy())
+        return _LocalMap(window, list(adjusted.poses), t, points)
+
+    def guide(self, keyframe: int) -> MeasuredPose:
+        """A keyframe's pose for guided matching and to start an adjustment: the adjusted one once a local
+        BCBA reached it, with the box its fused covariance gave when it was kept."""
+        pose = self.adjusted.get(keyframe)
+        return self.guides[keyframe] if pose is None else MeasuredPose(pose, self.guides[keyframe].tolerance)
+
+    def finish(self, frames: np.ndarray) -> LiveMap:
+        """The global BCBA over every keyframe (see the module docstring)."""
+        n = len(self.features)
+        prior = self.depth_prior
+        if prior is None:
+            raise InputError("no local map was built: the keyframes could not be matched")
+        guides = [self.guide(k) for k in range(n)]
+        pairs = select_pairs(self.camera, [g.pose for g in guides], prior, options=self.options.pairs)
+        todo = [(i, j, ov) for i, j, ov in pairs if (i, j) not in self.matches]
+        for m in match_guided_many(self.camera, self.features, guides, todo, prior, options=self.options.matching):
+            self.matches[(m.i, m.j)] = m
+        matches = [m for m in self.matches.values() if len(m)]
+        tracks = build_tracks(self.features, matches, min_track_length=self.options.tracks.min_track_length)
+        if tracks.n_tracks == 0:
+            raise InputError("no feature could be matched between keyframes")
+        adjusted = adjust_map("bounded", self.measured, self.camera, tracks, guides, prior,
+                              track_options=self.options.tracks, options=self.options.bundle, height_field=True,
+                              where="live map")
+        return LiveMap(frames, adjusted.poses, list(self.measured), adjusted.tracks.points, adjusted.tracks.colors,
+                       adjusted.tracks, final=True)
+
+    def _depth_prior(self, poses: list[Pose], tracks: Tracks) -> DepthPrior:
+        """The depth range of the newest local map's points in their keyframes (2nd-98th percentile,
+        widened): the window's own, not joined with older ones (the first windows' scale is the least
+        certain, their range the least right)."""
+        depth = np.concatenate([poses[f].transform(tracks.points[tracks.track[tracks.frame == f]])[:, 2]
+                                for f in np.unique(tracks.frame)])
+        lo, hi = np.percentile(depth, [2.0, 98.0])
+        m = self.options.depth_margin
+        return DepthPrior(float(max(lo * (1 - m), 1e-3)), float(hi * (1 + m)))
+
+
+class _InlineWorker:
+    """The keyframe work done in the caller's thread when submitted; results handed out in order."""
+
+    def __init__(self, camera: Camera, options: LiveMapperOptions):
+        self._work = _KeyframeWork(camera, options)
+        self._results: list = []
+
+    def submit(self, keyframe, image, measured, guide) -> None:
+        self._results.append(self._work.add(keyframe, image, measured, guide))
+
+    def result(self):
+        return self._results.pop(0)
+
+    def was_late(self) -> bool:
+        """Whether the results taken at this frame had to be waited for (never, inline: the work was done
+        at the keyframe)."""
+        return False
+
+    def finish(self, frames: np.ndarray) -> LiveMap:
+        return self._work.finish(frames)
+
+    def close(self) -> None:
+        pass
+
+
+class _ThreadWorker(_InlineWorker):
+    """The keyframe work on one worker thread (the GIL is shared with tracking: see ``LiveMapperOptions``)."""
+
+    def __init__(self, camera: Camera, options: LiveMapperOptions):
+        super().__init__(camera, options)
+        self._executor: ThreadPoolExecutor | None = ThreadPoolExecutor(max_workers=1, thread_name_prefix="scope3d-live")
+        self._late = False
+
+    def submit(self, keyframe, image, measured, guide) -> None:
+        self._results.append(self._executor.submit(self._work.add, keyframe, image, measured, guide))
+
+    def result(self):
+        future = self._results.pop(0)
+        self._late = not future.done()
+        return future.result()
+
+    def was_late(self) -> bool:
+        late, self._late = self._late, False
+        return late
+
+    def close(self) -> None:
+        if self._executor is not None:
+            self._executor.shutdown(wait=True)
+            self._executor = None
+
+
+class _ProcessWorker:
+    """The keyframe work in a child process (its own GIL): jobs and answers through a pipe, in order. The
+    child is spawned, not forked: a fork copies OpenCV's and the BLAS's thread pools in whatever state the
+    parent's threads left them. A sender and a reader thread move the jobs and the answers, so the stream
+    never blocks on the pipe (a frame and a local map both exceed a pipe's buffer: sent from the stream's
+    thread, a frame waits until the child reads it, a second or more while the child is still starting).
+    The child ends when the pipe closes (the mapper closed, or its process died)."""
+
+    def __init__(self, camera: Camera, options: LiveMapperOptions):
+        context = multiprocessing.get_context("spawn")
+        self._conn, child = context.Pipe(duplex=True)
+        self._process = context.Process(target=_serve, args=(child, camera, options), daemon=True,
+                                        name="scope3d-live")
+        self._process.start()
+        child.close()
+        self._answers: queue.SimpleQueue = queue.SimpleQueue()
+        self._late = False
+        self._reader = threading.Thread(target=_read_answers, args=(self._conn, self._answers), daemon=True,
+                                        name="scope3d-live-reader")
+        self._reader.start()
+        self._jobs: queue.SimpleQueue = queue.SimpleQueue()
+        self._sender = threading.Thread(target=_send_jobs, args=(self._conn, self._jobs), daemon=True,
+                                        name="scope3d-live-sender")
+        self._sender.start()
+
+    def submit(self, keyframe, image, measured, guide) -> None:
+        self._jobs.put(("add", (keyframe, image, measured, guide)))
+
+    def result(self):
+        self._late = self._late or self._answers.empty()
+        return self._answer()
+
+    def was_late(self) -> bool:
+        late, self._late = self._late, False
+        return late
+
+    def finish(self, frames: np.ndarray) -> LiveMap:
+        self._jobs.put(("finish", (frames,)))
+        return self._answer()
+
+    def _answer(self):
+        ok, value = self._answers.get()
+        if not ok:
+            if isinstance(value, InputError):
+                raise value
+            raise RuntimeError(f"the live mapper's worker failed:\n{value}")
+        return value
+
+    def close(self) -> None:
+        if self._process is not None:
+            self._jobs.put(None)  # the child ends its loop, then the sender
+            self._sender.join()
+            self._process.join()
+            self._reader.join()
+            self._conn.close()
+            self._process = None
+
+
+def _send_jobs(conn, jobs: queue.SimpleQueue) -> None:
+    """The parent's sender thread: every job to the child, in order; None (sent too) ends it."""
+    while True:
+        job = jobs.get()
+        try:
+            conn.send(job)
+        except OSError:
+            return
+        if job is None:
+            return
+
+
+def _read_answers(conn, answers: queue.SimpleQueue) -> None:
+    """The parent's reader thread: every answer into ``answers``; the child's end as a failure."""
+    while True:
+        try:
+            answers.put(conn.recv())
+        except (EOFError, OSError):
+            answers.put((False, "the worker process ended"))
+            return
+
+
+def _serve(conn, camera: Camera, options: LiveMapperOptions) -> None:
+    """The child's loop: keyframes in, local maps out, until ``finish`` or the parent's end."""
+    work = _KeyframeWork(camera, options)
+    while True:
+        try:
+            job = conn.recv()
+        except EOFError:
+            return
+        if job is None:
+            conn.close()
+            return
+        what, args = job
+        try:
+            if what == "add":
+                answer = (True, work.add(*args))
+            else:
+                answer = (True, work.finish(*args))
+        except InputError as exc:
+            answer = (False, exc)
+        except Exception:  # noqa: BLE001 - carried to the parent, which raises it
+            answer = (False, traceback.format_exc())
+        conn.send(answer)
+
+
+def _start_worker(camera: Camera, options: LiveMapperOptions):
+    workers = {"inline": _InlineWorker, "thread": _ThreadWorker, "process": _ProcessWorker}
+    return workers[options.worker](camera, options)
+
+
+def _new_from_old(old: _LocalMap, new: _LocalMap) -> Pose | None:
+    """How the new local map's world sits in the old one's: each adjustment aligns its window to the
+    robot's reports, so the gauge moves by a fraction of the robot's error from one window to the next.
+    Taken at the newest keyframe both adjusted (the one tracking has just followed)."""
+    common = sorted(set(old.keyframes) & set(new.keyframes))
+    if not common:
+        return None
+    k = common[-1]
+    return new.poses[new.keyframes.index(k)].inverse() @ old.poses[old.keyframes.index(k)]
+
+
+def _renumbered(m: PairMatches, i: int, j: int) -> PairMatches:
+    return PairMatches(i, j, m.idx_i, m.idx_j)
+
+
+def _clock() -> float:
+    return time.perf_counter()

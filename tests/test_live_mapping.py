@@ -1,0 +1,167 @@
+"""The live map (issue 36) on a short rendered video: the dome's survey path at 30 fps, 320 px frames, the robot
+reporting every frame within +-3 mm / +-1.5 deg (uniform, independent per frame).
+
+Bounds from the set-up:
+
+* the true centre lies within 3 mm of every report per axis, and the tracking's image pose is refined inside
+  the report's box, so within 6 mm of the truth per axis; the fused pose mixes these measurements, so after
+  the filter has settled (the first second) its error per axis stays within 6 mm;
+* fusion must help: the image pose is good to the map's ~0.1-1 mm, the report to 3 mm per axis (median
+  norm ~2.6 mm for a uniform box), so the fused median must be below the robot's median;
+* the final map is the map's own bounded-adjustment stage over the same keyframes with the robot's boxes:
+  its surface error after ICP (which removes the common offset of all poses the images cannot see) is
+  within a factor 1.5 of ``scope3d map``'s on the same keyframes (the issue's benchmark target is 10 %; the
+  factor here guards against a broken map: an unadjusted or wrongly gauged one is 10-30 times worse).
+"""
+from __future__ import annotations
+
+import json
+import pickle
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from scope3d import phantoms
+from scope3d.cli.main import main
+from scope3d.feature.detection import FEATURE_PRESETS
+from scope3d.io.dataset import load_dataset, write_dataset
+from scope3d.io.scan_plan import PlanFile
+from scope3d.phantoms.trajectories import build_trajectory
+from scope3d.pipelines.live import LiveOptions
+from scope3d.pipelines.live import run as run_live
+from scope3d.pipelines.surgical_map import MapOptions
+from scope3d.pipelines.surgical_map import run as run_map
+from scope3d.sfm.live_mapping import LIVE_PRESETS, LIVE_STATUSES, LiveMapper, LiveMapperOptions
+
+SIZE = 320
+N_FRAMES = 100
+ROBOT_MM = 3.0
+
+
+@pytest.fixture(scope="module")
+def video(tmp_path_factory):
+    grid = build_trajectory("grid5x6")
+    camera = phantoms.generate("dome", size=(SIZE, SIZE), n_frames=1).camera
+    plan = PlanFile(list(grid.poses), np.zeros(len(grid.poses), int), camera.fov_deg, {})
+    seq = phantoms.generate("dome", seed=0, pose_noise_mm=ROBOT_MM, size=(SIZE, SIZE), plan=plan, video_fps=30.0,
+                            n_frames=N_FRAMES)
+    return load_dataset(phantoms.write(seq, tmp_path_factory.mktemp("live") / "dome_video"))
+
+
+@pytest.fixture(scope="module")
+def streamed(video):
+    options = replace(LIVE_PRESETS["dim_endoscope"], worker="inline")
+    with LiveMapper(video.camera, options) as mapper:
+        frames = [mapper.add_frame(video.frame(k), video.poses[k], k / 30.0) for k in range(len(video))]
+        during = mapper.current_map()
+        final = mapper.finish()
+    return frames, during, final
+
+
+def test_every_frame_gets_a_fused_pose_within_the_physics(video, streamed):
+    frames, _, _ = streamed
+    truth = video.ground_truth.poses
+    assert [f.index for f in frames] == list(range(len(video)))
+    assert {f.status for f in frames} <= set(LIVE_STATUSES)
+    assert sum(f.image_pose is not None for f in frames) >= len(frames) // 4  # the map is used, not only the robot
+    settled = [f for f in frames if f.time_s >= 1.0]
+    fused = np.array([np.abs(f.pose.centre - truth[f.index].centre) for f in settled])
+    assert fused.max() <= 2 * ROBOT_MM
+    fused_norm = np.linalg.norm(fused, axis=1)
+    robot_norm = np.array([np.linalg.norm(video.poses[f.index].pose.centre - truth[f.index].centre) for f in settled])
+    assert np.median(fused_norm) < np.median(robot_norm)
+    for f in frames:
+        assert f.covariance.shape == (6, 6) and np.all(np.linalg.eigvalsh(f.covariance) > 0)
+        assert f.latency_ms > 0
+
+
+def test_keyframes_are_all_in_the_final_map(streamed):
+    frames, during, final = streamed
+    kept = [f.index for f in frames if f.keyframe is not None]
+    assert [f.keyframe for f in frames if f.keyframe is not None] == list(range(len(kept)))
+    assert len(kept) >= 3 and final.final
+    assert final.keyframe_frames.tolist() == kept
+    assert len(final.keyframe_poses) == len(kept)
+    seen = np.bincount(final.tracks.frame, minlength=len(kept))
+    assert np.all(seen >= 15)  # every keyframe holds points (15: the absolute pose's minimum of inliers)
+    assert len(during.keyframe_frames) == len(kept) and len(during.points) > 0 and not during.final
+
+
+def test_final_map_matches_the_map_on_the_same_keyframes(video, streamed, tmp_path):
+    _, _, final = streamed
+    kf = final.keyframe_frames.tolist()
+    gt = video.ground_truth
+    root = write_dataset(tmp_path / "keyframes", video.camera, [video.frame_paths[k] for k in kf],
+                         [video.poses[k] for k in kf], names=[video.names[k] for k in kf],
+                         true_poses=[gt.poses[k] for k in kf], true_surface=gt.surface(),
+                         true_depths=[gt.depth(k) for k in kf], scene=gt.scene)
+    mapped = run_map(MapOptions(features=FEATURE_PRESETS["dim_endoscope"], figures=False, fluorescence=None),
+                     load_dataset(root), tmp_path / "map")
+    from scope3d.metrology.evaluation import surface_errors
+    from scope3d.scene.mesh import SampledSurface
+
+    live, _, _ = surface_errors(final.points, SampledSurface(gt.surface(), 0.05))
+    reference = mapped.report["surface_error_mm"]
+    assert live["after_icp"]["mean"] <= 1.5 * reference["after_icp"]["mean"]
+
+
+def test_workers_give_the_same_answer(video):
+    """The keyframe work applied at a fixed frame: a worker process, a thread and inline agree exactly."""
+    n = 60
+    poses = {}
+    for worker in ("inline", "process"):
+        with LiveMapper(video.camera, replace(LIVE_PRESETS["dim_endoscope"], worker=worker)) as mapper:
+            poses[worker] = [mapper.add_frame(video.frame(k), video.poses[k], k / 30.0).pose.matrix for k in range(n)]
+    np.testing.assert_array_equal(np.array(poses["inline"]), np.array(poses["process"]))
+
+
+def test_options_refuse_nonsense():
+    with pytest.raises(ValueError):
+        LiveMapperOptions(worker="gpu")
+    with pytest.raises(ValueError):
+        LiveMapperOptions(local_window=1)
+    with pytest.raises(ValueError):
+        LiveMapperOptions(min_inlier_fraction=0.0)
+
+
+def test_live_job_writes_its_outputs_and_its_result_pickles(video, tmp_path):
+    """The job as `scope3d live` runs it (worker process, as fast as possible), through the Python API so
+    that its result can be pickled (cluster workers send results back)."""
+    out = tmp_path / "live"
+    result = run_live(LiveOptions(LIVE_PRESETS["dim_endoscope"], wait=False), video, out)
+    report = json.loads((out / "report.json").read_text())
+    assert report["n_frames"] == len(video)
+    assert set(report["latency_ms"]) >= {"median", "p99"}
+    assert {"surface_error_mm", "pose_error", "tracking_error"} <= set(report)
+    for name in ("poses.csv", "frames.csv", "keyframes.csv", "map.ply", "live.png"):
+        assert (out / name).is_file()
+    assert len((out / "poses.csv").read_text().splitlines()) == len(video) + 1
+    assert len(list((out / "keyframe_maps").glob("*.ply"))) == report["n_keyframes"]
+    back = pickle.loads(pickle.dumps(result))
+    assert back.summary() == result.summary()
+
+
+def test_live_command_refuses_bad_input(tmp_path, capsys):
+    assert main(["live", str(tmp_path / "missing"), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "missing" in err[0]
+    assert not (tmp_path / "out").exists()
+
+
+def test_kalman_change_world_moves_the_estimate_exactly():
+    """A map moved by its adjustment: the filter's pose becomes ``pose @ new_from_old^-1`` to rounding."""
+    from scope3d.estimators.kalman import PoseKalmanFilter
+    from scope3d.geometry.pose import Pose
+    from scope3d.geometry.rotation import rotvec_to_matrix
+
+    kf = PoseKalmanFilter()
+    for w, x in ((0.3, 1.0), (0.31, 1.1)):  # two poses 0.1 mm apart: a velocity to carry over
+        pose = Pose.from_centre(rotvec_to_matrix(np.array([0.1, 0.2, w])), np.array([x, 2.0, 3.0]))
+        kf.update(pose, np.eye(6) * 1e-4)
+    kf.predict(0.1)
+    new_from_old = Pose.from_centre(rotvec_to_matrix(np.array([0.05, -0.02, 0.01])), np.array([0.5, -0.3, 0.2]))
+    before, speed = kf.pose, np.linalg.norm(kf.state[9:12])
+    kf.change_world(new_from_old)
+    np.testing.assert_allclose(kf.pose.matrix, (before @ new_from_old.inverse()).matrix, atol=1e-12)
+    assert np.isclose(np.linalg.norm(kf.state[9:12]), speed)  # a rigid move keeps the speed
