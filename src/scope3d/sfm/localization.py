@@ -44,7 +44,7 @@ from scipy.spatial import cKDTree
 from scope3d.estimators.absolute_pose import AbsolutePoseOptions, AbsolutePoseResult, estimate_absolute_pose
 from scope3d.feature.depth_prior import DepthPrior, pose_error_px
 from scope3d.feature.detection import FeatureOptions, detect, detection_mask, to_grey
-from scope3d.feature.matching import MatchOptions, best_two_per_query, pair_squared_distances
+from scope3d.feature.matching import MatchOptions, best_two_per_query, pair_squared_distances, two_nearest
 from scope3d.geometry.pose import Pose
 from scope3d.io.map_points import MapPoints
 from scope3d.sensor.camera import Camera
@@ -205,7 +205,6 @@ class Localizer:
         self.map = map_points
         self.camera = camera
         self.options = options
-        self._matcher = cv2.BFMatcher(cv2.NORM_L2)
         self._detect_mask = detection_mask(camera, options.features.mask_margin_px) > 0
         self._usable_cache: tuple[np.ndarray, np.ndarray] | None = None
         self._observations: tuple | None = None  # the observation descriptors by point, built on first use
@@ -450,16 +449,14 @@ class Localizer:
         return _one_to_one(ids[keep], best[keep], best_d2[keep])
 
     def _match_global(self, desc: np.ndarray):
-        """Every feature against every map descriptor, ratio test, one-to-one."""
+        """Every feature against every map descriptor, ratio test, one-to-one. The two nearest by one matrix
+        product (BLAS: the same neighbours and distances as OpenCV's brute force, a fifth of its time on
+        2,000 features against a 6,800-point map, where it was half of a relocalization at 1 Mpx)."""
         if len(desc) < 2:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
-        pairs = self._matcher.knnMatch(desc, self.map.descriptors, k=2)
-        rows = [(p[0].trainIdx, p[0].queryIdx, p[0].distance) for p in pairs
-                if len(p) == 2 and p[0].distance < self.options.matching.ratio * p[1].distance]
-        if not rows:
-            return np.zeros(0, np.int64), np.zeros(0, np.int64)
-        ids, feat, d = (np.array(v) for v in zip(*rows))
-        return _one_to_one(ids.astype(np.int64), feat.astype(np.int64), d**2)
+        nearest, best, second = two_nearest(desc, self.map.descriptors)
+        feat = np.flatnonzero(best.astype(np.float64) < self.options.matching.ratio * second.astype(np.float64))
+        return _one_to_one(nearest[feat], feat.astype(np.int64), best[feat].astype(np.float64) ** 2)
 
     def _match_every_observation(self, desc: np.ndarray):
         """Every feature against every observation's descriptor: per map point the nearest of its
