@@ -10,16 +10,16 @@ calibrated poses (``scope3d map``, the same options as ``bench_localize_real``),
   sequence of frames by rotating the camera about its own centre: a pure rotation ``R_d`` maps the image
   by the homography ``K R_d K^-1`` exactly (the scene's depth does not enter; the Strecha cameras have no
   distortion), so the warped frames are real photographs with a known true pose ``R_d cam_from_world``
-  (only resampling and the black rim the warp leaves differ from a real camera turning). The camera pans
-  ``STEP_DEG`` per frame along a slow circle (about 2 px a frame at 1 Mpx, a hand-held scope's motion at
-  30 frames/s). The first frame relocalizes; the rest take the Localizer's tracking path (optical flow,
-  a SIFT refresh every ``refresh_every`` frames), as ``scope3d localize`` runs them.
+  (only resampling and the black rim the warp leaves differ from a real camera turning). The optical axis
+  circles slowly, its tilt growing by ``STEP_DEG / 2`` a frame (median turn 1.5 px a frame at 1 Mpx, at most
+  3.2 px: a steady hand at 30 frames/s). The first frame relocalizes; the rest take the Localizer's
+  tracking path (optical flow, a SIFT refresh every ``refresh_every`` frames), as ``scope3d localize`` runs them.
 * COLMAP (pycolmap) beside: ``estimate_and_refine_absolute_pose`` on the very correspondences our pose
   estimator was given in each frame (recorded from the localizer), and COLMAP's SIFT on the same 1 Mpx
   frame (its relocalization needs at least SIFT + pose; its matching against a map is not counted).
 
-Both ``LocalizerOptions()`` (``scope3d localize``'s default, 2000 features) and the ``photograph``
-features (8000) are timed. Wall time and process CPU time (all threads) per frame, median and p95.
+``LocalizerOptions()`` (``scope3d localize``'s default, 2000 features), the ``photograph`` features (8000)
+and the ``threaded`` preset are timed. Wall time and process CPU time (all threads) per frame, median and p95.
 
 Writes benchmarks/results/localize_speed.json. Run:
     WORK=/tmp/n34work .venv/bin/python benchmarks/bench_localize_speed.py
@@ -40,7 +40,7 @@ import numpy as np
 from scope3d.geometry.pose import Pose
 from scope3d.geometry.rotation import rotation_angle_between, rotvec_to_matrix
 from scope3d.pipelines.surgical_map import MAP_PRESETS
-from scope3d.sfm.localization import Localizer, LocalizerOptions
+from scope3d.sfm.localization import LOCALIZER_PRESETS, Localizer, LocalizerOptions
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_localize_real import colmap_pose, map_options, scope3d_map, strecha  # noqa: E402
@@ -187,6 +187,10 @@ def main() -> None:
                 "LocalizerOptions(features=FEATURE_PRESETS['photograph'])",
                 LocalizerOptions(features=MAP_PRESETS["photograph"].features), points, ds, odd, k, n_frames,
                 step_deg, repeats),
+            # the SIFT refresh on a worker thread (every 5 frames, half size, merged 2 frames later): the
+            # stream's thread then only tracks
+            "threaded": run_options("LOCALIZER_PRESETS['threaded']", LOCALIZER_PRESETS["threaded"], points, ds, odd,
+                                    k, n_frames, step_deg, repeats),
         }
     result = {"scene": label, "camera": f"{cam.width}x{cam.height}", "megapixels": cam.width * cam.height / 1e6,
               "map_points": len(points), "map_s": map_s, "frames_per_sequence": n_frames, "step_deg": step_deg,
