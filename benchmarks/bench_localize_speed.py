@@ -18,8 +18,8 @@ calibrated poses (``scope3d map``, the same options as ``bench_localize_real``),
   estimator was given in each frame (recorded from the localizer), and COLMAP's SIFT on the same 1 Mpx
   frame (its relocalization needs at least SIFT + pose; its matching against a map is not counted).
 
-``LocalizerOptions()`` (``scope3d localize``'s default, 2000 features), the ``photograph`` features (8000)
-and the ``threaded`` preset are timed. Wall time and process CPU time (all threads) per frame, median and p95.
+``LocalizerOptions()`` (``scope3d localize``'s default, 2000 features), the ``photograph`` features (8000),
+``sift_image_scale=0.5`` and the ``threaded`` preset are timed. Wall time and process CPU time (all threads) per frame, median and p95.
 
 Writes benchmarks/results/localize_speed.json. Run:
     WORK=/tmp/n34work .venv/bin/python benchmarks/bench_localize_speed.py
@@ -189,6 +189,10 @@ def main() -> None:
                 step_deg, repeats),
             # the SIFT refresh on a worker thread (every 5 frames, half size, merged 2 frames later): the
             # stream's thread then only tracks
+            # SIFT on the half-size frame for the first frame, relocalizations and synchronous refreshes
+            "sift_image_scale_0.5": run_options("LocalizerOptions(sift_image_scale=0.5)",
+                                                LocalizerOptions(sift_image_scale=0.5), points, ds, odd, k, n_frames,
+                                                step_deg, repeats),
             "threaded": run_options("LOCALIZER_PRESETS['threaded']", LOCALIZER_PRESETS["threaded"], points, ds, odd,
                                     k, n_frames, step_deg, repeats),
         }

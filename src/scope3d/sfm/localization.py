@@ -101,6 +101,12 @@ class LocalizerOptions:
     refresh_image_scale : float in (0, 1], the lagged refresh's SIFT runs on the frame resized by this
         factor (default 1; 0.5 costs about a quarter: SIFT's cost grows with the pixels). Its keypoints,
         scaled back, only re-anchor the optical flow; their precision shrinks with the factor.
+    sift_image_scale : float in (0, 1], the SIFT of a guided or global frame (the first frame, a
+        relocalization, a synchronous refresh) runs on the frame resized by this factor (default 1). At 1 Mpx
+        SIFT is three quarters of a relocalization's CPU, and 0.5 cuts it to a quarter: on the Strecha
+        fountain's views 0.42 -> 0.13 s per relocalization, errors alike (the map limits them), the
+        tracked frames' orientation 0.015 -> 0.022 deg (docs/localization.md, "Speed at 1 Mpx"). The
+        keypoints' precision shrinks with the factor, so a small frame (640 px) keeps 1.
     pose : :class:`~scope3d.estimators.absolute_pose.AbsolutePoseOptions`.
     """
 
@@ -118,6 +124,7 @@ class LocalizerOptions:
     refresh_lag_frames: int = 0
     refresh_in_thread: bool = True
     refresh_image_scale: float = 1.0
+    sift_image_scale: float = 1.0
     pose: AbsolutePoseOptions = field(default_factory=AbsolutePoseOptions)
 
     def __post_init__(self) -> None:
@@ -133,6 +140,8 @@ class LocalizerOptions:
             raise ValueError(f"refresh_lag_frames must be >= 0, got {self.refresh_lag_frames}")
         if not 0 < self.refresh_image_scale <= 1:
             raise ValueError(f"refresh_image_scale must be in (0, 1], got {self.refresh_image_scale}")
+        if not 0 < self.sift_image_scale <= 1:
+            raise ValueError(f"sift_image_scale must be in (0, 1], got {self.sift_image_scale}")
 
 
 #: Named settings. ``threaded``: the SIFT refresh every 5 frames on a worker thread, at half size, merged 2
@@ -267,7 +276,7 @@ class Localizer:
             guide = predicted if predicted is not None else (reported.pose if reported is not None else None)
             tolerance = PoseTolerance.exact() if predicted is not None else (
                 reported.tolerance if reported is not None else None)
-            kp, desc = self._features(grey, usable)
+            kp, desc = self._features(grey, usable, o.sift_image_scale)
             result = None
             if guide is not None:
                 radius = self._guided_radius(guide, tolerance)
