@@ -12,12 +12,12 @@ from scope3d.feature.detection import detect
 from scope3d.feature.matching import (
     MatchOptions,
     _ratio_select_grouped,
-    _two_nearest,
     best_two_per_query,
     match_exhaustive,
     match_guided,
     match_pairs,
     pair_squared_distances,
+    two_nearest,
 )
 from scope3d.feature.pairs import PairOptions, frame_overlap, select_pairs
 from scope3d.geometry.pose import Pose
@@ -212,8 +212,13 @@ def test_ratio_test_among_grouped_candidates():
     assert ma.tolist() == [0, 1] and mb.tolist() == [5, 7]
 
 
-def test_two_nearest_equals_opencv_brute_force(pair):
+def test_two_nearest_equals_opencv_brute_force(pair, monkeypatch):
     import cv2
+
+    from scope3d.feature import matching
+
+    # blocks of ~500 rows, so that both cases cross block boundaries
+    monkeypatch.setattr(matching, "_NEAREST_BLOCK_ENTRIES", 500 * 1300)
     # real SIFT descriptors (integers, norm ~512: the matrix-product distances are exact), and random
     # non-integer ones in blocks of rows across the block size, with duplicated rows for exact ties
     _, feats = pair
@@ -223,7 +228,7 @@ def test_two_nearest_equals_opencv_brute_force(pair):
     cases = [(feats[0].descriptors, feats[1].descriptors), (noisy[:1300], noisy[200:])]
     for desc_a, desc_b in cases:
         knn = cv2.BFMatcher(cv2.NORM_L2).knnMatch(desc_a, desc_b, k=2)
-        nearest, best, second = _two_nearest(desc_a, desc_b)
+        nearest, best, second = two_nearest(desc_a, desc_b)
         assert nearest.tolist() == [m[0].trainIdx for m in knn]
         if desc_a is feats[0].descriptors:  # integer arithmetic below 2^24: exact
             assert np.array_equal(best, [m[0].distance for m in knn])

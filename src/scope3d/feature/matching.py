@@ -194,11 +194,12 @@ _GUIDED_PAIRS_PER_BATCH = 128
 # of temporaries until the exact distance test, so a chunk takes ~100 MB however wide the windows are
 _CANDIDATE_HITS_PER_CHUNK = 1 << 19
 
-# rows of descriptors compared at once by _two_nearest: a (rows x N) float32 block, 16 MB at N = 4,000
-_NEAREST_BLOCK_ROWS = 1024
+# squared distances held at once by two_nearest: a (rows x N) float32 block of 16 MB (1,024 rows at N = 4,000,
+# 600 against a 6,800-point map), whatever the size of desc_b
+_NEAREST_BLOCK_ENTRIES = 1 << 22
 
 
-def _two_nearest(desc_a: np.ndarray, desc_b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def two_nearest(desc_a: np.ndarray, desc_b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each row of ``desc_a``'s nearest and second-nearest row of ``desc_b`` (L2), brute force.
 
     Returns (nearest index (Na,) int64, its distance, the second distance), float32, as OpenCV's
@@ -215,8 +216,9 @@ def _two_nearest(desc_a: np.ndarray, desc_b: np.ndarray) -> tuple[np.ndarray, np
     nearest = np.empty(len(a), np.int64)
     best = np.empty(len(a), np.float32)
     second = np.empty(len(a), np.float32)
-    for lo in range(0, len(a), _NEAREST_BLOCK_ROWS):
-        block = a[lo:lo + _NEAREST_BLOCK_ROWS]
+    rows_per_block = max(1, _NEAREST_BLOCK_ENTRIES // max(len(b), 1))
+    for lo in range(0, len(a), rows_per_block):
+        block = a[lo:lo + rows_per_block]
         d2 = block @ b.T
         d2 *= -2.0
         d2 += norm_b[None, :]
@@ -308,7 +310,7 @@ def _long_segment_matches(camera: Camera, features: list[Features], i_frames: np
             strip_b.append(offsets[fj] + b[keep])
         s_w = sel[~nar]
         if len(s_w):
-            nearest, best, second = _two_nearest(features[fi].descriptors[a_loc[s_w]], features[fj].descriptors)
+            nearest, best, second = two_nearest(features[fi].descriptors[a_loc[s_w]], features[fj].descriptors)
             d_seg = _segment_d2(kp_j[nearest], p0[s_w], p1[s_w])
             keep = (best < ratio * second) & (d_seg <= rad[s_w] ** 2)
             wide_s.append(s_w[keep])
@@ -354,7 +356,7 @@ def match_exhaustive(
     ni, nj = len(features_i), len(features_j)
     if ni < 2 or nj < 2:
         return PairMatches(i, j, np.zeros(0, np.int64), np.zeros(0, np.int64), time_s=time.perf_counter() - t0, method="exhaustive")
-    nearest, d_best, d_second = _two_nearest(features_i.descriptors, features_j.descriptors)
+    nearest, d_best, d_second = two_nearest(features_i.descriptors, features_j.descriptors)
     passed = d_best < options.ratio * d_second
     a = np.flatnonzero(passed)
     b = nearest[passed]

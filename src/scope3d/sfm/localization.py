@@ -44,7 +44,7 @@ from scipy.spatial import cKDTree
 from scope3d.estimators.absolute_pose import AbsolutePoseOptions, AbsolutePoseResult, estimate_absolute_pose
 from scope3d.feature.depth_prior import DepthPrior, pose_error_px
 from scope3d.feature.detection import FeatureOptions, detect, detection_mask, to_grey
-from scope3d.feature.matching import MatchOptions, best_two_per_query, pair_squared_distances
+from scope3d.feature.matching import MatchOptions, best_two_per_query, pair_squared_distances, two_nearest
 from scope3d.geometry.pose import Pose
 from scope3d.io.map_points import MapPoints
 from scope3d.sensor.camera import Camera
@@ -101,6 +101,12 @@ class LocalizerOptions:
     refresh_image_scale : float in (0, 1], the lagged refresh's SIFT runs on the frame resized by this
         factor (default 1; 0.5 costs about a quarter: SIFT's cost grows with the pixels). Its keypoints,
         scaled back, only re-anchor the optical flow; their precision shrinks with the factor.
+    sift_image_scale : float in (0, 1], the SIFT of a guided or global frame (the first frame, a
+        relocalization, a synchronous refresh) runs on the frame resized by this factor (default 1). At 1 Mpx
+        SIFT is three quarters of a relocalization's CPU, and 0.5 cuts it to a quarter: on the Strecha
+        fountain's views 0.42 -> 0.13 s per relocalization, errors alike (the map limits them), the
+        tracked frames' orientation 0.015 -> 0.022 deg (docs/localization.md, "Speed at 1 Mpx"). The
+        keypoints' precision shrinks with the factor, so a small frame (640 px) keeps 1.
     pose : :class:`~scope3d.estimators.absolute_pose.AbsolutePoseOptions`.
     """
 
@@ -118,6 +124,7 @@ class LocalizerOptions:
     refresh_lag_frames: int = 0
     refresh_in_thread: bool = True
     refresh_image_scale: float = 1.0
+    sift_image_scale: float = 1.0
     pose: AbsolutePoseOptions = field(default_factory=AbsolutePoseOptions)
 
     def __post_init__(self) -> None:
@@ -133,6 +140,8 @@ class LocalizerOptions:
             raise ValueError(f"refresh_lag_frames must be >= 0, got {self.refresh_lag_frames}")
         if not 0 < self.refresh_image_scale <= 1:
             raise ValueError(f"refresh_image_scale must be in (0, 1], got {self.refresh_image_scale}")
+        if not 0 < self.sift_image_scale <= 1:
+            raise ValueError(f"sift_image_scale must be in (0, 1], got {self.sift_image_scale}")
 
 
 #: Named settings. ``threaded``: the SIFT refresh every 5 frames on a worker thread, at half size, merged 2
@@ -205,7 +214,6 @@ class Localizer:
         self.map = map_points
         self.camera = camera
         self.options = options
-        self._matcher = cv2.BFMatcher(cv2.NORM_L2)
         self._detect_mask = detection_mask(camera, options.features.mask_margin_px) > 0
         self._usable_cache: tuple[np.ndarray, np.ndarray] | None = None
         self._observations: tuple | None = None  # the observation descriptors by point, built on first use
@@ -286,7 +294,7 @@ class Localizer:
             guide = predicted if predicted is not None else (reported.pose if reported is not None else None)
             tolerance = PoseTolerance.exact() if predicted is not None else (
                 reported.tolerance if reported is not None else None)
-            kp, desc = self._features(grey, usable)
+            kp, desc = self._features(grey, usable, o.sift_image_scale)
             result = None
             if guide is not None:
                 radius = self._guided_radius(guide, tolerance)
@@ -468,16 +476,14 @@ class Localizer:
         return _one_to_one(ids[keep], best[keep], best_d2[keep])
 
     def _match_global(self, desc: np.ndarray):
-        """Every feature against every map descriptor, ratio test, one-to-one."""
+        """Every feature against every map descriptor, ratio test, one-to-one. The two nearest by one matrix
+        product (BLAS: the same neighbours and distances as OpenCV's brute force, a fifth of its time on
+        2,000 features against a 6,800-point map, where it was half of a relocalization at 1 Mpx)."""
         if len(desc) < 2:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
-        pairs = self._matcher.knnMatch(desc, self.map.descriptors, k=2)
-        rows = [(p[0].trainIdx, p[0].queryIdx, p[0].distance) for p in pairs
-                if len(p) == 2 and p[0].distance < self.options.matching.ratio * p[1].distance]
-        if not rows:
-            return np.zeros(0, np.int64), np.zeros(0, np.int64)
-        ids, feat, d = (np.array(v) for v in zip(*rows))
-        return _one_to_one(ids.astype(np.int64), feat.astype(np.int64), d**2)
+        nearest, best, second = two_nearest(desc, self.map.descriptors)
+        feat = np.flatnonzero(best.astype(np.float64) < self.options.matching.ratio * second.astype(np.float64))
+        return _one_to_one(nearest[feat], feat.astype(np.int64), best[feat].astype(np.float64) ** 2)
 
     def _match_every_observation(self, desc: np.ndarray):
         """Every feature against every observation's descriptor: per map point the nearest of its
