@@ -6,13 +6,22 @@ import numpy as np
 import pytest
 import trimesh
 
-from scope3d.metrology.thread_gauge import GaugeOptions, gauge_thread, thread_limits
+from scope3d.geometry.iso_thread import THREAD_SIZES
+from scope3d.metrology.thread_gauge import GaugeOptions, gauge_thread
+from scope3d.metrology.thread_tolerances import thread_limits
 from scope3d.phantoms.scenes import build_thread
 
 NOISE_MM = 0.01
-# Mid-class 6H holes: each diameter sits in the middle of its tolerance (ISO 965-1: TD1 236/265/300 um,
-# TD2 150/160/180 um for M6/M8/M10) and the major diameter a little above its minimum, as a tap cuts.
-MID_CLASS = {"M6x1": (0.118, 0.075, 0.05), "M8x1.25": (0.132, 0.08, 0.05), "M10x1.5": (0.15, 0.09, 0.05)}
+
+
+def _mid_class(designation):
+    lim = thread_limits(designation)
+    return round((lim.d1_max_mm - lim.d1_min_mm) / 2, 4), round((lim.d2_max_mm - lim.d2_min_mm) / 2, 4), 0.05
+
+
+# Mid-class 6H holes of every size the gauge knows: each diameter sits in the middle of its tolerance (M8:
+# 0.132 mm over D1, 0.08 mm over D2) and the major diameter a little above its minimum, as a tap cuts.
+MID_CLASS = {size: _mid_class(size) for size in THREAD_SIZES}
 
 
 def _cloud(size, offsets=(0.0, 0.0, 0.0), defect=None, n=60000, seed=0):
@@ -108,3 +117,4 @@ def test_flank_angle_off_the_standard_is_measured_and_used():
     assert abs(result.flank_angle_deg.value - expected) < 0.3  # ~0.2° of tessellation bias, as at 60°
     assert abs(result.pitch_mm.value - 1.275) < 0.005
     assert abs(result.pitch_diameter_mm.value - truth["pitch_diameter_mm"]) < 0.02
+

@@ -28,53 +28,17 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from scope3d.geometry.iso_thread import ISO_METRIC_FLANK_ANGLE_DEG, THREAD_SIZES, basic_thread_depth, tooth_half_width
+from scope3d.metrology.thread_tolerances import ThreadLimits, thread_limits
 from scope3d.utils.robust import robust_sigma
-
-# ISO 965-1 (general purpose metric threads, tolerances) class 6H for internal threads: fundamental
-# deviation EI = 0 (H), tolerance grade 6: TD1 (minor diameter) 236 / 265 / 300 um for P = 1 / 1.25 /
-# 1.5 mm; TD2 (pitch diameter, nominal 5.6-11.2 mm) 150 / 160 / 180 um. The limits below are the basic
-# sizes of ISO 724 (D2 = D - 0.6495 P, D1 = D - 1.0825 P) plus these tolerances, as tabulated in ISO 965-2
-# (limits of sizes for general purpose threads). The major diameter of an internal thread has a minimum
-# (= D) only; its maximum is set by the tap and not toleranced. tests/test_thread_limits.py checks the table
-# against the published limits (ASME B1.13M = ISO 965-2 for 6H) and against the ISO 724 / 965-1 formulas.
-ISO_965_6H = {
-    # designation: (D1 min, D1 max, D2 min, D2 max, D min), mm
-    "M6x1": (4.917, 5.153, 5.350, 5.500, 6.000),
-    "M8x1.25": (6.647, 6.912, 7.188, 7.348, 8.000),
-    "M10x1.5": (8.376, 8.676, 9.026, 9.206, 10.000),
-}
-TOLERANCE_CLASSES = ("6H",)
-
-
-@dataclass(frozen=True)
-class ThreadLimits:
-    """Limits of size of one internal thread class (mm): minor diameter D1 in [d1_min, d1_max], pitch
-    diameter D2 in [d2_min, d2_max] (the virtual D2 for the go side), major diameter D >= d_min."""
-
-    designation: str
-    tolerance_class: str
-    d1_min_mm: float
-    d1_max_mm: float
-    d2_min_mm: float
-    d2_max_mm: float
-    d_min_mm: float
-    source: str = "ISO 965-1 / ISO 965-2, class 6H"
-
-
-def thread_limits(designation: str, tolerance_class: str = "6H") -> ThreadLimits:
-    """The tabulated limits of ``designation`` (``M6x1``, ``M8x1.25``, ``M10x1.5``) in ``tolerance_class``."""
-    if designation not in ISO_965_6H or tolerance_class not in TOLERANCE_CLASSES:
-        raise ValueError(f"no limits for {designation} {tolerance_class} (have {', '.join(ISO_965_6H)}, "
-                         f"class {', '.join(TOLERANCE_CLASSES)})")
-    return ThreadLimits(designation, tolerance_class, *ISO_965_6H[designation])
 
 
 @dataclass(frozen=True)
 class GaugeOptions:
     """Options of :func:`gauge_thread`.
 
-    designation : str, the nominal thread (``M6x1``, ``M8x1.25``, ``M10x1.5``): sets the pitch search range,
-        the basic depth the zone detection looks for, and the limits.
+    designation : str, the nominal thread (one of ``geometry.iso_thread.THREAD_SIZES``): sets the pitch
+        search range, the basic depth the zone detection looks for, and the limits
+        (:mod:`scope3d.metrology.thread_tolerances`).
     tolerance_class : str, ``6H``.
     noise_mm : float, expected point noise (1 sigma, mm), the scale of the robust loss (default 0.01 mm:
         a few um of a metrology scan up to a sparse reconstruction's ~0.01-0.02 mm).
@@ -347,6 +311,18 @@ def _thread_zone(z, r, pitch, depth, r_minor, r_major):
     return z0, z1
 
 
+def _ends_on_thread(z, r, side, pitch, depth):
+    """Whether the cloud's last half pitch at its ``side`` end (+1: the far end along the axis, -1: the near
+    one) spans half a thread depth of radius (thread) rather than lying on one radius (a counterbore's or
+    a plain bore's wall)."""
+    end = side * np.max(side * z)
+    last = r[side * (end - z) <= pitch / 2]
+    if len(last) < 20:
+        return True  # too few points to tell a wall from thread: the stretch's own rule decides
+    q = np.percentile(last, [5, 95])
+    return bool(q[1] - q[0] >= 0.5 * depth)
+
+
 def _pitch_scan(theta, z, r, nominal, search):
     """Pitch maximising the first harmonic of the radius in the helical phase; and the root's phase (mm)."""
     dr = r - r.mean()
@@ -395,11 +371,13 @@ def gauge_thread(points: np.ndarray, *, options: GaugeOptions = GaugeOptions()) 
     theta, r, z = _cylindrical(points, p0, d0)
     z0, z1 = _thread_zone(z, r, pitch_nom, depth_nom, major_nom / 2 - depth_nom, major_nom / 2)
     # The defect search runs on through the pitch of run-out trimmed for the sizes' fit at an end where the
-    # cloud itself ends within a pitch of the threaded stretch (the scan's last view: the crests there are
-    # whole thread), not where the wall leaves the thread (a counterbore or a plain bore lies beyond: the
-    # turn there is cut short, not damaged).
-    search_z = (z0 - pitch_nom if z.min() > z0 - 2 * pitch_nom else z0,
-                z1 + pitch_nom if z.max() < z1 + 2 * pitch_nom else z1)
+    # cloud itself ends within a pitch of the threaded stretch, still on thread (the scan's last view: the
+    # crests there are whole thread), not where the wall leaves the thread (a counterbore or a plain bore
+    # lies beyond: the turn there is cut short, not damaged). A counterbore 1 mm deep can sit inside the
+    # stretch's last window when the pitch nears 2 mm (M12x1.75), so the cloud's last half pitch must itself
+    # span half a thread depth of radius, as thread does and a plain wall does not.
+    search_z = (z0 - pitch_nom if z.min() > z0 - 2 * pitch_nom and _ends_on_thread(z, r, -1, pitch_nom, depth_nom) else z0,
+                z1 + pitch_nom if z.max() < z1 + 2 * pitch_nom and _ends_on_thread(z, r, 1, pitch_nom, depth_nom) else z1)
     zone_index = np.flatnonzero((z >= z0) & (z <= z1))
     if len(zone_index) > options.max_points:
         zone_index = np.sort(rng.choice(zone_index, options.max_points, replace=False))
@@ -459,9 +437,11 @@ def gauge_thread(points: np.ndarray, *, options: GaugeOptions = GaugeOptions()) 
     d2_virtual = d2 - f_p - f_alpha
 
     # (5) crest defects, over the zone and where the cloud ends within a pitch of it (search_z above)
-    t_all, r_all, z_all = _cylindrical(points, axis_point, axis_dir)
-    keep = (z_all >= search_z[0]) & (z_all <= search_z[1])
-    t_all, r_all, z_all = t_all[keep], r_all[keep], z_all[keep]
+    # (search_z is in step (2)'s axial coordinate, z: the fitted axis' point is the zone's median, not the
+    # whole cloud's, so its axial origin lies elsewhere; selecting by the fitted one shifted the searched
+    # stretch by that difference, into an M12's counterbore)
+    keep = (z >= search_z[0]) & (z <= search_z[1])
+    t_all, r_all, z_all = _cylindrical(points[keep], axis_point, axis_dir)
     s = z_all - pitch * t_all / (2 * np.pi) - x[5]
     w = np.mod(s + pitch / 2, pitch) - pitch / 2
     dist = _profile_distance(w, r_all, r1, r2, rp, half, pitch)
