@@ -7,7 +7,7 @@ import pytest
 import trimesh
 
 from scope3d.geometry.iso_thread import THREAD_SIZES
-from scope3d.metrology.thread_gauge import GaugeOptions, gauge_thread
+from scope3d.metrology.thread_gauge import GaugeOptions, gauge_thread, profile_parts, unmeasured_sizes
 from scope3d.metrology.thread_tolerances import thread_limits
 from scope3d.phantoms.scenes import build_thread
 
@@ -118,3 +118,23 @@ def test_flank_angle_off_the_standard_is_measured_and_used():
     assert abs(result.pitch_mm.value - 1.275) < 0.005
     assert abs(result.pitch_diameter_mm.value - truth["pitch_diameter_mm"]) < 0.02
 
+
+def test_sizes_of_parts_the_cloud_does_not_show_are_not_measured():
+    # A 45° side view of the phantom sees the crests and the flanks facing the opening, neither the other
+    # flanks nor the roots (docs/thread_metrology.md, "Defaults"): the symmetric profile would still place
+    # D2 and D, by assumption only. They must be reported unmeasured and their limits left undecided (a
+    # sound hole is then indeterminate, never failed on them); D1 is still judged, and a chip still fails.
+    points, truth = _cloud("M8x1.25", MID_CLASS["M8x1.25"])
+    full = gauge_thread(points, options=GaugeOptions(max_points=10000))
+    assert full.unseen_parts == ()
+    part, _ = profile_parts(full, points)  # of the fitted points: the zone's
+    seen = points[full.fit_state["index"]][part <= 1]  # the crests and the flanks towards +z
+    result = gauge_thread(seen, options=GaugeOptions(max_points=10000))
+    assert set(result.unseen_parts) == {"flank towards -z", "root"}, result.summary()
+    assert result.verdict == "indeterminate", result.summary()
+    undecided = {c["quantity"] for c in result.checks if "quantity" in c and not c["decided"]}
+    assert undecided == {"virtual pitch diameter", "pitch diameter", "major diameter"}, result.checks
+    assert abs(result.minor_diameter_mm.value - truth["minor_diameter_mm"]) < 0.02
+    assert unmeasured_sizes(result.unseen_parts) == ["major diameter", "pitch diameter"]
+    # one flank with both flats still gives D2 (the tooth's centre from the flats)
+    assert unmeasured_sizes(("flank towards -z",)) == []

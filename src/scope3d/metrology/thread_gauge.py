@@ -50,6 +50,10 @@ class GaugeOptions:
         whichever is larger) outside the profile is damaged (default 0.05 mm, ~10 % of the thread depth
         of an M6: a burr or chip a thread inspector would reject).
     min_bin_points : int, a bin with fewer crest points is not judged (default 5).
+    min_part_points : int, a profile part (crest, either flank, root) with fewer fitted points is not seen,
+        and the sizes it alone places are not measured (default 20: a side view looking along the hole sees
+        one flank and no root, and the symmetric profile then places the pitch and major diameters by
+        assumption only; 20 points place a part to a fifth of the 0.01 mm point noise).
     engagement_turns : float or None, turns of the length of engagement for the pitch's share of the
         virtual pitch diameter (default None: the turns measured).
     axis_hint : (3,) or None, approximate axis direction (default None: the principal axis of the cloud,
@@ -74,6 +78,7 @@ class GaugeOptions:
     defect_bin_deg: float = 5.0
     min_defect_depth_mm: float = 0.05
     min_bin_points: int = 5
+    min_part_points: int = 5 * 4
     engagement_turns: float | None = None
     axis_hint: tuple | None = None
     fix_flank_angle: bool = True
@@ -84,8 +89,10 @@ class GaugeOptions:
         thread_limits(self.designation, self.tolerance_class)
         if not (self.noise_mm > 0 and self.max_points >= 100 and 0 < self.pitch_search < 0.5):
             raise ValueError("need noise_mm > 0, max_points >= 100 and pitch_search in (0, 0.5)")
-        if not (0 < self.defect_bin_deg <= 90 and self.min_defect_depth_mm > 0 and self.min_bin_points >= 1):
-            raise ValueError("need defect_bin_deg in (0, 90], min_defect_depth_mm > 0 and min_bin_points >= 1")
+        if not (0 < self.defect_bin_deg <= 90 and self.min_defect_depth_mm > 0 and self.min_bin_points >= 1
+                and self.min_part_points >= 1):
+            raise ValueError("need defect_bin_deg in (0, 90], min_defect_depth_mm > 0, min_bin_points >= 1 and "
+                             "min_part_points >= 1")
         if not self.coverage_factor > 0:
             raise ValueError("coverage_factor must be positive")
         if self.engagement_turns is not None and self.engagement_turns <= 0:
@@ -153,6 +160,8 @@ class GaugeResult:
     n_points: int
     profile: dict = field(default_factory=dict)
     virtual_pitch_diameter_uncertainty_mm: float = 0.0
+    # profile parts (PROFILE_PARTS) with fewer than GaugeOptions.min_part_points fitted points
+    unseen_parts: tuple = ()
     # what :func:`remeasure` needs to fit the same points again: their indices in the input cloud, the
     # axis base frame, the parameters and bounds, which fit gave the sizes
     fit_state: dict = field(default_factory=dict, repr=False)
@@ -169,6 +178,7 @@ class GaugeResult:
             "zone_mm": list(self.zone_mm), "verdict": self.verdict, "checks": self.checks,
             "defects": [d.to_dict() for d in self.defects], "residual_rms_mm": self.residual_rms_mm,
             "n_points": self.n_points, "limits_source": self.limits.source,
+            "unseen_parts": list(self.unseen_parts),
         }
 
     def summary(self) -> str:
@@ -190,11 +200,13 @@ class GaugeResult:
             "flank_angle_held") else ""
         lines.append(f"  {'flank angle (deg)':20s} {f.value:9.3f} {f.uncertainty:8.3f}  60 nominal{held}")
         lines.append(f"  virtual pitch diameter {self.virtual_pitch_diameter_mm:.4f} mm")
+        if self.unseen_parts:
+            lines.append(f"  not in the cloud: {' and '.join(self.unseen_parts)} (the sizes they place are not measured)")
         for d in self.defects:
             lines.append(f"  defect: crest turn {d.turn} at {d.angle_deg:.1f}° (width {d.width_deg:.0f}°), "
                          f"depth {d.depth_mm:.3f} mm")
         for c in self.checks:
-            if not c["ok"]:
+            if not c["ok"] and not c["check"].endswith("(not measured)"):
                 lines.append(f"  out of limits: {c['check']}")
         return "\n".join(lines)
 
@@ -423,6 +435,13 @@ def gauge_thread(points: np.ndarray, *, options: GaugeOptions = GaugeOptions()) 
     x, std, res, core = fit.x, fit.std, fit.residuals, fit.core
     pitch, r1, r2, rp, half = x[4], x[6], x[7], x[8], x[9]
     axis_point, axis_dir = _axis_from_params(p0, base, *x[:4])
+    # which parts of the profile the fit's core points lie on: a part not seen places its sizes by the
+    # profile's symmetry alone, which measures nothing (a 45° view: one flank, no root)
+    tz, _, zz2 = _cylindrical(zone_points[core], axis_point, axis_dir)
+    wz = np.mod(zz2 - pitch * tz / (2 * np.pi) - x[5] + pitch / 2, pitch) - pitch / 2
+    counts = np.bincount(_part_of(wz, tooth_half_width(r1, pitch, rp, half), tooth_half_width(r2, pitch, rp, half)),
+                         minlength=len(PROFILE_PARTS))
+    unseen = tuple(name for name, n in zip(PROFILE_PARTS, counts) if n < options.min_part_points)
 
     # virtual pitch diameter (ISO 965-1 sec. 3 / ISO 1502): the go side sees D2 reduced by the
     # pitch-diameter equivalents of the pitch error over the engagement, fP = 1.732 |dP| n (60° thread),
@@ -453,7 +472,7 @@ def gauge_thread(points: np.ndarray, *, options: GaugeOptions = GaugeOptions()) 
     # the pitch's share of the virtual D2 moves with the pitch: u(D2v)^2 = u(D2)^2 + (1.732 n u(P))^2
     u_d2v = float(np.hypot(2 * std[8], 1.732 * turns * std[4]))
     verdict, checks = judge(limits, options, 2 * r1, 2 * std[6], d2, 2 * std[8], float(d2_virtual), u_d2v, 2 * r2,
-                             2 * std[7], defects, fit.profile_at_bound)
+                             2 * std[7], defects, fit.profile_at_bound, unseen)
     return GaugeResult(
         minor_diameter_mm=Measured(2 * r1, 2 * std[6]), major_diameter_mm=Measured(2 * r2, 2 * std[7]),
         pitch_diameter_mm=Measured(d2, 2 * std[8]), pitch_mm=Measured(pitch, std[4]),
@@ -464,7 +483,7 @@ def gauge_thread(points: np.ndarray, *, options: GaugeOptions = GaugeOptions()) 
         profile={"crest_half_width_mm": float(hc), "phase_mm": float(x[5]),
                  "flank_angle_in_size_fit_deg": float(np.rad2deg(2 * half)),
                  "flank_angle_held": fit is not free},
-        virtual_pitch_diameter_uncertainty_mm=u_d2v,
+        virtual_pitch_diameter_uncertainty_mm=u_d2v, unseen_parts=unseen,
         fit_state={"index": index[zone_index], "p0": p0, "base": base, "x": x.copy(), "lower": lower,
                    "upper": upper, "free_flank": fit is free, "turns": float(turns), "f_alpha": float(f_alpha),
                    "pitch_nominal": float(pitch_nom), "at_bound": fit.profile_at_bound},
@@ -472,7 +491,8 @@ def gauge_thread(points: np.ndarray, *, options: GaugeOptions = GaugeOptions()) 
 
 
 def judge(limits: ThreadLimits, options: GaugeOptions, d1: float, u_d1: float, d2: float, u_d2: float,
-           d2_virtual: float, u_d2v: float, d: float, u_d: float, defects: list, at_bound: bool) -> tuple[str, list[dict]]:
+           d2_virtual: float, u_d2v: float, d: float, u_d: float, defects: list, at_bound: bool,
+           unseen: tuple = ()) -> tuple[str, list[dict]]:
     """The verdict and its checks from the sizes and their standard uncertainties (mm).
 
     Each limit is guarded by the expanded uncertainty U = k u (ISO 14253-1, k = ``coverage_factor``): a
@@ -481,8 +501,11 @@ def judge(limits: ThreadLimits, options: GaugeOptions, d1: float, u_d1: float, d
     damaged crest. ``pass``: every limit proven kept, and the gauge capable — U at most a quarter of the
     tolerance (the usual 4:1 gauge-maker's rule; TD1 stands in for the major diameter, which has no
     width) and no profile parameter stopped at its bound (the cloud did not show that part of the
-    profile). Anything else is ``indeterminate``; a profile at its bound proves nothing either way."""
+    profile). Anything else is ``indeterminate``; a profile at its bound proves nothing either way, nor
+    does a size whose part of the profile the cloud did not show (``unseen``, names from PROFILE_PARTS:
+    its limits are left undecided)."""
     k = options.coverage_factor
+    unmeasured = set(unmeasured_sizes(unseen))
     checks = []
     for name, value, u, limit, upper in (
             ("minor diameter", d1, u_d1, limits.d1_min_mm, False), ("minor diameter", d1, u_d1, limits.d1_max_mm, True),
@@ -490,16 +513,19 @@ def judge(limits: ThreadLimits, options: GaugeOptions, d1: float, u_d1: float, d
             ("pitch diameter", d2, u_d2, limits.d2_max_mm, True), ("major diameter", d, u_d, limits.d_min_mm, False)):
         margin = (limit - value) if upper else (value - limit)  # > 0 inside the limit
         gauge = " (go)" if name == "virtual pitch diameter" else " (no-go)" if name == "pitch diameter" else ""
-        checks.append({"check": f"{name} {value:.4f} {'<=' if upper else '>='} {limit:.3f}{gauge}", "quantity": name,
+        seen = name.removeprefix("virtual ") not in unmeasured
+        checks.append({"check": f"{name} {value:.4f} {'<=' if upper else '>='} {limit:.3f}{gauge}"
+                       + ("" if seen else " (not measured)"), "quantity": name,
                        "ok": bool(margin >= 0), "margin_mm": float(margin), "expanded_uncertainty_mm": float(k * u),
-                       "decided": bool(abs(margin) > k * u)})
+                       "decided": bool(seen and abs(margin) > k * u)})
     checks.append({"check": f"{len(defects)} damaged crest(s)", "ok": not defects, "decided": True})
     td1 = limits.d1_max_mm - limits.d1_min_mm
     td2 = limits.d2_max_mm - limits.d2_min_mm
     incapable = [name for name, u, tol in (("minor diameter", u_d1, td1), ("pitch diameter", u_d2, td2),
                                            ("major diameter", u_d, td1)) if not k * u <= tol / 4]
-    undecided = [c["check"] for c in checks if not c["decided"]]
-    notes = ([f"uncertainty over a quarter of the tolerance: {', '.join(incapable)}"] if incapable else []) + \
+    undecided = [c["check"] for c in checks if not c["decided"] and not c["check"].endswith("(not measured)")]
+    notes = ([f"{' and '.join(unseen)} not seen: {', '.join(sorted(unmeasured))} not measured"] if unmeasured else []) + \
+        ([f"uncertainty over a quarter of the tolerance: {', '.join(incapable)}"] if incapable else []) + \
         (["profile fit at a bound"] if at_bound else []) + \
         ([f"within the expanded uncertainty of a limit: {', '.join(undecided)}"] if undecided else [])
     checks.append({"check": "measurement decides every limit" + (f" (not: {'; '.join(notes)})" if notes else ""),
@@ -531,6 +557,25 @@ def remeasure(result: GaugeResult, points: np.ndarray, noise_mm: float = 0.01) -
 PROFILE_PARTS = ("crest", "flank towards +z", "flank towards -z", "root")
 
 
+def unmeasured_sizes(unseen) -> list[str]:
+    """The sizes a cloud without the profile parts ``unseen`` (names from PROFILE_PARTS) does not measure:
+    the crest places D1, the root D; D2 is where the tooth is half a pitch wide, so it needs both flanks,
+    or one flank and the tooth's centre, which the crest and root flats together give (the symmetric
+    profile: the crest's centre half a pitch from the root's)."""
+    unseen = set(unseen)
+    out = (["minor diameter"] if "crest" in unseen else []) + (["major diameter"] if "root" in unseen else [])
+    if unseen & {"flank towards +z", "flank towards -z"} and unseen & {"crest", "root"}:
+        out.append("pitch diameter")
+    return out
+
+
+def _part_of(w, hc, hr):
+    """Index into PROFILE_PARTS of points at axial offset ``w`` from the crest centre, the crest ``hc`` and
+    the root ``hr`` half a tooth wide (a root wider than the pitch allows leaves no root)."""
+    aw = np.abs(w)
+    return np.where(aw <= hc, 0, np.where(aw >= hr, 3, np.where(w > 0, 1, 2)))
+
+
 def profile_parts(result: GaugeResult, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Which part of the fitted profile each fitted point lies on, and the profile's outward normal there.
 
@@ -547,8 +592,7 @@ def profile_parts(result: GaugeResult, points: np.ndarray) -> tuple[np.ndarray, 
     t = np.arctan2(local[:, 1], local[:, 0])
     w = np.mod(local[:, 2] - pitch * t / (2 * np.pi) - phase + pitch / 2, pitch) - pitch / 2
     hc, hr = tooth_half_width(r1, pitch, rp, half), tooth_half_width(r2, pitch, rp, half)
-    aw = np.abs(w)
-    part = np.where(aw <= hc, 0, np.where(aw >= hr, 3, np.where(w > 0, 1, 2)))
+    part = _part_of(w, hc, hr)
     # flank line from (hc, r1) to (hr, r2) in (|w|, r): into the material is towards the tooth and outwards
     length = np.hypot(hr - hc, r2 - r1)
     n_w, n_r = -(r2 - r1) / length, (hr - hc) / length
