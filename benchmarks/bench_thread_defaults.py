@@ -11,13 +11,13 @@ default hole, made at the basic sizes, i.e. on the 6H lower limits) run too: ``-
 limits: the right verdict is ``indeterminate`` unless the measurement is off by more than its U).
 Seeds 23 and 31 were not used while developing (that used 1-3); seed 47 (``*_chip_s47``, run by name with
 ``--cases``) checks what was fixed after the two seeds' first run on a seed that run never saw. The only
-option given besides the hole is ``--size 400x320`` (the borescope's 1280x1024 frames take ~10x the CPU to render and map; the plan's
-step, frames and gap do not depend on the pixel count, only on the field of view).
+option given besides the hole is ``--size 400x320`` (the borescope's 1280x1024 frames take ~10x the CPU to
+render and map; the plan's step, frames and gap do not depend on the pixel count, only on the field of view).
 
 Errors against the as-made sizes and the true registration come from ``report.json``; the wall and CPU
 (user + system of the child process) times of the render and the scan are measured per hole.
 
-    PYTHONPATH=src .venv/bin/python benchmarks/bench_thread_defaults.py --data DIR [--cases a,b] [--rows F]
+    PYTHONPATH=src .venv/bin/python benchmarks/bench_thread_defaults.py --data DIR [--cases a,b] [--rows F] [--reuse]
     PYTHONPATH=src .venv/bin/python benchmarks/bench_thread_defaults.py --merge F1,F2,...
 
 writes the rows to ``--rows`` (default benchmarks/results/thread_defaults.json) after every hole;

@@ -388,8 +388,9 @@ def gauge_thread(points: np.ndarray, *, options: GaugeOptions = GaugeOptions()) 
     # lies beyond: the turn there is cut short, not damaged). A counterbore 1 mm deep can sit inside the
     # stretch's last window when the pitch nears 2 mm (M12x1.75), so the cloud's last half pitch must itself
     # span half a thread depth of radius, as thread does and a plain wall does not.
-    search_z = (z0 - pitch_nom if z.min() > z0 - 2 * pitch_nom and _ends_on_thread(z, r, -1, pitch_nom, depth_nom) else z0,
-                z1 + pitch_nom if z.max() < z1 + 2 * pitch_nom and _ends_on_thread(z, r, 1, pitch_nom, depth_nom) else z1)
+    near_end = (z.min() > z0 - 2 * pitch_nom and _ends_on_thread(z, r, -1, pitch_nom, depth_nom),
+                z.max() < z1 + 2 * pitch_nom and _ends_on_thread(z, r, 1, pitch_nom, depth_nom))
+    search_z = (z0 - pitch_nom if near_end[0] else z0, z1 + pitch_nom if near_end[1] else z1)
     zone_index = np.flatnonzero((z >= z0) & (z <= z1))
     if len(zone_index) > options.max_points:
         zone_index = np.sort(rng.choice(zone_index, options.max_points, replace=False))
@@ -442,6 +443,12 @@ def gauge_thread(points: np.ndarray, *, options: GaugeOptions = GaugeOptions()) 
     counts = np.bincount(_part_of(wz, tooth_half_width(r1, pitch, rp, half), tooth_half_width(r2, pitch, rp, half)),
                          minlength=len(PROFILE_PARTS))
     unseen = tuple(name for name, n in zip(PROFILE_PARTS, counts) if n < options.min_part_points)
+    # a radius the cloud does not place may run to its bound (a 45° view: the root's, D); that size is not
+    # measured, and its bound says nothing about the parts seen (a chip on a seen crest still fails the hole)
+    unmeasured = unmeasured_sizes(unseen)
+    unplaced = {i for i, size in ((6, "minor diameter"), (7, "major diameter"), (8, "pitch diameter"))
+                if size in unmeasured}
+    at_bound = any(6 <= i <= 9 and i not in unplaced for i in fit.stopped)
 
     # virtual pitch diameter (ISO 965-1 sec. 3 / ISO 1502): the go side sees D2 reduced by the
     # pitch-diameter equivalents of the pitch error over the engagement, fP = 1.732 |dP| n (60° thread),
@@ -472,7 +479,7 @@ def gauge_thread(points: np.ndarray, *, options: GaugeOptions = GaugeOptions()) 
     # the pitch's share of the virtual D2 moves with the pitch: u(D2v)^2 = u(D2)^2 + (1.732 n u(P))^2
     u_d2v = float(np.hypot(2 * std[8], 1.732 * turns * std[4]))
     verdict, checks = judge(limits, options, 2 * r1, 2 * std[6], d2, 2 * std[8], float(d2_virtual), u_d2v, 2 * r2,
-                             2 * std[7], defects, fit.profile_at_bound, unseen)
+                             2 * std[7], defects, at_bound, unseen)
     return GaugeResult(
         minor_diameter_mm=Measured(2 * r1, 2 * std[6]), major_diameter_mm=Measured(2 * r2, 2 * std[7]),
         pitch_diameter_mm=Measured(d2, 2 * std[8]), pitch_mm=Measured(pitch, std[4]),
@@ -486,7 +493,7 @@ def gauge_thread(points: np.ndarray, *, options: GaugeOptions = GaugeOptions()) 
         virtual_pitch_diameter_uncertainty_mm=u_d2v, unseen_parts=unseen,
         fit_state={"index": index[zone_index], "p0": p0, "base": base, "x": x.copy(), "lower": lower,
                    "upper": upper, "free_flank": fit is free, "turns": float(turns), "f_alpha": float(f_alpha),
-                   "pitch_nominal": float(pitch_nom), "at_bound": fit.profile_at_bound},
+                   "pitch_nominal": float(pitch_nom), "at_bound": at_bound},
     )
 
 
@@ -522,7 +529,7 @@ def judge(limits: ThreadLimits, options: GaugeOptions, d1: float, u_d1: float, d
     td1 = limits.d1_max_mm - limits.d1_min_mm
     td2 = limits.d2_max_mm - limits.d2_min_mm
     incapable = [name for name, u, tol in (("minor diameter", u_d1, td1), ("pitch diameter", u_d2, td2),
-                                           ("major diameter", u_d, td1)) if not k * u <= tol / 4]
+                                           ("major diameter", u_d, td1)) if not k * u <= tol / 4 and name not in unmeasured]
     undecided = [c["check"] for c in checks if not c["decided"] and not c["check"].endswith("(not measured)")]
     notes = ([f"{' and '.join(unseen)} not seen: {', '.join(sorted(unmeasured))} not measured"] if unmeasured else []) + \
         ([f"uncertainty over a quarter of the tolerance: {', '.join(incapable)}"] if incapable else []) + \
@@ -617,6 +624,7 @@ class _ProfileFit:
     profile_at_bound: bool
     flank_at_bound: bool
     cost: float = 0.0
+    stopped: tuple = ()  # indices of the free parameters that stopped at a bound
 
 
 def _fit_profile(points, p0, base, x0, lower, upper, free_flank: bool, noise_mm: float) -> _ProfileFit:
@@ -651,7 +659,8 @@ def _fit_profile(points, p0, base, x0, lower, upper, free_flank: bool, noise_mm:
     std = np.zeros(len(x0))
     std[free] = np.sqrt(np.maximum(np.diag(cov), 0.0))
     stopped = (np.isclose(x, lower, atol=1e-6) | np.isclose(x, upper, atol=1e-6)) & free
-    return _ProfileFit(x, std, res, core, bool(stopped[6:10].any()), bool(stopped[9]), float(sol.cost))
+    return _ProfileFit(x, std, res, core, bool(stopped[6:10].any()), bool(stopped[9]), float(sol.cost),
+                       tuple(int(i) for i in np.flatnonzero(stopped)))
 
 
 def _crest_defects(theta, z, turn, dist, options: GaugeOptions, pitch: float) -> list[ThreadDefect]:
