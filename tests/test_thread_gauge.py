@@ -138,3 +138,14 @@ def test_sizes_of_parts_the_cloud_does_not_show_are_not_measured():
     assert unmeasured_sizes(result.unseen_parts) == ["major diameter", "pitch diameter"]
     # one flank with both flats still gives D2 (the tooth's centre from the flats)
     assert unmeasured_sizes(("flank towards -z",)) == []
+
+
+def test_a_chip_on_a_seen_crest_fails_a_hole_seen_from_one_side():
+    # the 45° cloud of a chipped hole: its root radius, unplaced, may stop at a bound; the chip still fails it
+    points, _ = _cloud("M8x1.25", MID_CLASS["M8x1.25"], defect=(200.0, 20.0, 0.15))
+    full = gauge_thread(points, options=GaugeOptions(max_points=10000))
+    part, _ = profile_parts(full, points)
+    result = gauge_thread(points[full.fit_state["index"]][part <= 1], options=GaugeOptions(max_points=10000))
+    assert "root" in result.unseen_parts
+    assert result.verdict == "fail", result.summary()
+    assert any(abs((d.angle_deg - 200.0 + 180) % 360 - 180) <= 10.0 for d in result.defects)
