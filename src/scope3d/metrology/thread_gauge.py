@@ -53,7 +53,8 @@ class GaugeOptions:
     min_part_points : int, a profile part (crest, either flank, root) with fewer fitted points is not seen,
         and the sizes it alone places are not measured (default 20: a side view looking along the hole sees
         one flank and no root, and the symmetric profile then places the pitch and major diameters by
-        assumption only; 20 points place a part to a fifth of the 0.01 mm point noise).
+        assumption only; 20 points place a part to a fifth of the 0.01 mm point noise). A flank with under a
+        tenth of the other flank's points is not seen either.
     engagement_turns : float or None, turns of the length of engagement for the pitch's share of the
         virtual pitch diameter (default None: the turns measured).
     axis_hint : (3,) or None, approximate axis direction (default None: the principal axis of the cloud,
@@ -442,7 +443,12 @@ def gauge_thread(points: np.ndarray, *, options: GaugeOptions = GaugeOptions()) 
     wz = np.mod(zz2 - pitch * tz / (2 * np.pi) - x[5] + pitch / 2, pitch) - pitch / 2
     counts = np.bincount(_part_of(wz, tooth_half_width(r1, pitch, rp, half), tooth_half_width(r2, pitch, rp, half)),
                          minlength=len(PROFILE_PARTS))
-    unseen = tuple(name for name, n in zip(PROFILE_PARTS, counts) if n < options.min_part_points)
+    # A flank seen as a surface gathers about as many points as the other (90° scans: 0.7-0.9 of it); one
+    # seen only in scraps past the crests, with under a tenth of the other's (45°: 0.01-0.02), is not seen.
+    weak = 1 + int(np.argmin(counts[1:3]))
+    scraps = counts[weak] < 0.1 * counts[3 - weak]
+    unseen = tuple(name for k, (name, n) in enumerate(zip(PROFILE_PARTS, counts))
+                   if n < options.min_part_points or (k == weak and scraps))
     # a radius the cloud does not place may run to its bound (a 45° view: the root's, D); that size is not
     # measured, and its bound says nothing about the parts seen (a chip on a seen crest still fails the hole)
     unmeasured = unmeasured_sizes(unseen)
