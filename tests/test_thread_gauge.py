@@ -6,13 +6,22 @@ import numpy as np
 import pytest
 import trimesh
 
-from scope3d.metrology.thread_gauge import GaugeOptions, gauge_thread, thread_limits
+from scope3d.geometry.iso_thread import THREAD_SIZES
+from scope3d.metrology.thread_gauge import GaugeOptions, gauge_thread, profile_parts, unmeasured_sizes
+from scope3d.metrology.thread_tolerances import thread_limits
 from scope3d.phantoms.scenes import build_thread
 
 NOISE_MM = 0.01
-# Mid-class 6H holes: each diameter sits in the middle of its tolerance (ISO 965-1: TD1 236/265/300 um,
-# TD2 150/160/180 um for M6/M8/M10) and the major diameter a little above its minimum, as a tap cuts.
-MID_CLASS = {"M6x1": (0.118, 0.075, 0.05), "M8x1.25": (0.132, 0.08, 0.05), "M10x1.5": (0.15, 0.09, 0.05)}
+
+
+def _mid_class(designation):
+    lim = thread_limits(designation)
+    return round((lim.d1_max_mm - lim.d1_min_mm) / 2, 4), round((lim.d2_max_mm - lim.d2_min_mm) / 2, 4), 0.05
+
+
+# Mid-class 6H holes of every size the gauge knows: each diameter sits in the middle of its tolerance (M8:
+# 0.132 mm over D1, 0.08 mm over D2) and the major diameter a little above its minimum, as a tap cuts.
+MID_CLASS = {size: _mid_class(size) for size in THREAD_SIZES}
 
 
 def _cloud(size, offsets=(0.0, 0.0, 0.0), defect=None, n=60000, seed=0):
@@ -108,3 +117,35 @@ def test_flank_angle_off_the_standard_is_measured_and_used():
     assert abs(result.flank_angle_deg.value - expected) < 0.3  # ~0.2° of tessellation bias, as at 60°
     assert abs(result.pitch_mm.value - 1.275) < 0.005
     assert abs(result.pitch_diameter_mm.value - truth["pitch_diameter_mm"]) < 0.02
+
+
+def test_sizes_of_parts_the_cloud_does_not_show_are_not_measured():
+    # A 45° side view of the phantom sees the crests and the flanks facing the opening, neither the other
+    # flanks nor the roots (docs/thread_metrology.md, "Defaults"): the symmetric profile would still place
+    # D2 and D, by assumption only. They must be reported unmeasured and their limits left undecided (a
+    # sound hole is then indeterminate, never failed on them); D1 is still judged, and a chip still fails.
+    points, truth = _cloud("M8x1.25", MID_CLASS["M8x1.25"])
+    full = gauge_thread(points, options=GaugeOptions(max_points=10000))
+    assert full.unseen_parts == ()
+    part, _ = profile_parts(full, points)  # of the fitted points: the zone's
+    seen = points[full.fit_state["index"]][part <= 1]  # the crests and the flanks towards +z
+    result = gauge_thread(seen, options=GaugeOptions(max_points=10000))
+    assert set(result.unseen_parts) == {"flank towards -z", "root"}, result.summary()
+    assert result.verdict == "indeterminate", result.summary()
+    undecided = {c["quantity"] for c in result.checks if "quantity" in c and not c["decided"]}
+    assert undecided == {"virtual pitch diameter", "pitch diameter", "major diameter"}, result.checks
+    assert abs(result.minor_diameter_mm.value - truth["minor_diameter_mm"]) < 0.02
+    assert unmeasured_sizes(result.unseen_parts) == ["major diameter", "pitch diameter"]
+    # one flank with both flats still gives D2 (the tooth's centre from the flats)
+    assert unmeasured_sizes(("flank towards -z",)) == []
+
+
+def test_a_chip_on_a_seen_crest_fails_a_hole_seen_from_one_side():
+    # the 45° cloud of a chipped hole: its root radius, unplaced, may stop at a bound; the chip still fails it
+    points, _ = _cloud("M8x1.25", MID_CLASS["M8x1.25"], defect=(200.0, 20.0, 0.15))
+    full = gauge_thread(points, options=GaugeOptions(max_points=10000))
+    part, _ = profile_parts(full, points)
+    result = gauge_thread(points[full.fit_state["index"]][part <= 1], options=GaugeOptions(max_points=10000))
+    assert "root" in result.unseen_parts
+    assert result.verdict == "fail", result.summary()
+    assert any(abs((d.angle_deg - 200.0 + 180) % 360 - 180) <= 10.0 for d in result.defects)

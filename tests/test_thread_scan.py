@@ -138,3 +138,21 @@ def test_a_killed_batch_leaves_no_worker_behind(hole, tmp_path):
     session = kill_the_leader_when(job, environment(), scanning)
     assert session is not None, "5 batches ended before a worker started the hole"
     assert left_alive(session) == {}
+
+
+def test_a_scan_that_hides_parts_of_the_profile_says_which_and_what_scan_shows_them():
+    # the one line thread-scan gives when the cloud lacks profile parts (a 45° view: one flank, no root)
+    from types import SimpleNamespace
+
+    from scope3d.phantoms.lab import borescope_camera
+    from scope3d.pipelines.thread_scan import unseen_message
+
+    camera = borescope_camera(size=(400, 320))
+    gauge = SimpleNamespace(unseen_parts=("flank towards -z", "root"))
+    line = unseen_message(gauge, SimpleNamespace(camera=camera), "M6x1", [SimpleNamespace(side_view_deg=45.0)] * 12)
+    plan = plan_quadrant_scan(camera, "M6x1", 90.0)
+    assert "\n" not in line
+    assert line.startswith("flank towards -z and root not in the cloud: major diameter and pitch diameter not measured")
+    assert "(a 45° side view)" in line
+    assert line.endswith(f"{plan.frames_per_quadrant} frames per quadrant {plan.step_mm:g} mm apart, frame gap "
+                         f"{plan.frame_gap}")

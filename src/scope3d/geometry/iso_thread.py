@@ -14,7 +14,8 @@ import numpy as np
 from scope3d.errors import InputError
 
 # Nominal diameter D (mm) and pitch P (mm) of the ISO 261 coarse threads the lab builds and the gauge knows.
-THREAD_SIZES = {"M6x1": (6.0, 1.0), "M8x1.25": (8.0, 1.25), "M10x1.5": (10.0, 1.5)}
+THREAD_SIZES = {"M5x0.8": (5.0, 0.8), "M6x1": (6.0, 1.0), "M8x1.25": (8.0, 1.25), "M10x1.5": (10.0, 1.5),
+                "M12x1.75": (12.0, 1.75)}
 
 # ISO 68-1: every ISO metric (M) thread has a symmetric profile with a 60° included flank angle.
 ISO_METRIC_FLANK_ANGLE_DEG = 60.0

@@ -28,53 +28,17 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from scope3d.geometry.iso_thread import ISO_METRIC_FLANK_ANGLE_DEG, THREAD_SIZES, basic_thread_depth, tooth_half_width
+from scope3d.metrology.thread_tolerances import ThreadLimits, thread_limits
 from scope3d.utils.robust import robust_sigma
-
-# ISO 965-1 (general purpose metric threads, tolerances) class 6H for internal threads: fundamental
-# deviation EI = 0 (H), tolerance grade 6: TD1 (minor diameter) 236 / 265 / 300 um for P = 1 / 1.25 /
-# 1.5 mm; TD2 (pitch diameter, nominal 5.6-11.2 mm) 150 / 160 / 180 um. The limits below are the basic
-# sizes of ISO 724 (D2 = D - 0.6495 P, D1 = D - 1.0825 P) plus these tolerances, as tabulated in ISO 965-2
-# (limits of sizes for general purpose threads). The major diameter of an internal thread has a minimum
-# (= D) only; its maximum is set by the tap and not toleranced. tests/test_thread_limits.py checks the table
-# against the published limits (ASME B1.13M = ISO 965-2 for 6H) and against the ISO 724 / 965-1 formulas.
-ISO_965_6H = {
-    # designation: (D1 min, D1 max, D2 min, D2 max, D min), mm
-    "M6x1": (4.917, 5.153, 5.350, 5.500, 6.000),
-    "M8x1.25": (6.647, 6.912, 7.188, 7.348, 8.000),
-    "M10x1.5": (8.376, 8.676, 9.026, 9.206, 10.000),
-}
-TOLERANCE_CLASSES = ("6H",)
-
-
-@dataclass(frozen=True)
-class ThreadLimits:
-    """Limits of size of one internal thread class (mm): minor diameter D1 in [d1_min, d1_max], pitch
-    diameter D2 in [d2_min, d2_max] (the virtual D2 for the go side), major diameter D >= d_min."""
-
-    designation: str
-    tolerance_class: str
-    d1_min_mm: float
-    d1_max_mm: float
-    d2_min_mm: float
-    d2_max_mm: float
-    d_min_mm: float
-    source: str = "ISO 965-1 / ISO 965-2, class 6H"
-
-
-def thread_limits(designation: str, tolerance_class: str = "6H") -> ThreadLimits:
-    """The tabulated limits of ``designation`` (``M6x1``, ``M8x1.25``, ``M10x1.5``) in ``tolerance_class``."""
-    if designation not in ISO_965_6H or tolerance_class not in TOLERANCE_CLASSES:
-        raise ValueError(f"no limits for {designation} {tolerance_class} (have {', '.join(ISO_965_6H)}, "
-                         f"class {', '.join(TOLERANCE_CLASSES)})")
-    return ThreadLimits(designation, tolerance_class, *ISO_965_6H[designation])
 
 
 @dataclass(frozen=True)
 class GaugeOptions:
     """Options of :func:`gauge_thread`.
 
-    designation : str, the nominal thread (``M6x1``, ``M8x1.25``, ``M10x1.5``): sets the pitch search range,
-        the basic depth the zone detection looks for, and the limits.
+    designation : str, the nominal thread (one of ``geometry.iso_thread.THREAD_SIZES``): sets the pitch
+        search range, the basic depth the zone detection looks for, and the limits
+        (:mod:`scope3d.metrology.thread_tolerances`).
     tolerance_class : str, ``6H``.
     noise_mm : float, expected point noise (1 sigma, mm), the scale of the robust loss (default 0.01 mm:
         a few um of a metrology scan up to a sparse reconstruction's ~0.01-0.02 mm).
@@ -86,6 +50,11 @@ class GaugeOptions:
         whichever is larger) outside the profile is damaged (default 0.05 mm, ~10 % of the thread depth
         of an M6: a burr or chip a thread inspector would reject).
     min_bin_points : int, a bin with fewer crest points is not judged (default 5).
+    min_part_points : int, a profile part (crest, either flank, root) with fewer fitted points is not seen,
+        and the sizes it alone places are not measured (default 20: a side view looking along the hole sees
+        one flank and no root, and the symmetric profile then places the pitch and major diameters by
+        assumption only; 20 points place a part to a fifth of the 0.01 mm point noise). A flank with under a
+        tenth of the other flank's points is not seen either.
     engagement_turns : float or None, turns of the length of engagement for the pitch's share of the
         virtual pitch diameter (default None: the turns measured).
     axis_hint : (3,) or None, approximate axis direction (default None: the principal axis of the cloud,
@@ -110,6 +79,7 @@ class GaugeOptions:
     defect_bin_deg: float = 5.0
     min_defect_depth_mm: float = 0.05
     min_bin_points: int = 5
+    min_part_points: int = 5 * 4
     engagement_turns: float | None = None
     axis_hint: tuple | None = None
     fix_flank_angle: bool = True
@@ -120,8 +90,10 @@ class GaugeOptions:
         thread_limits(self.designation, self.tolerance_class)
         if not (self.noise_mm > 0 and self.max_points >= 100 and 0 < self.pitch_search < 0.5):
             raise ValueError("need noise_mm > 0, max_points >= 100 and pitch_search in (0, 0.5)")
-        if not (0 < self.defect_bin_deg <= 90 and self.min_defect_depth_mm > 0 and self.min_bin_points >= 1):
-            raise ValueError("need defect_bin_deg in (0, 90], min_defect_depth_mm > 0 and min_bin_points >= 1")
+        if not (0 < self.defect_bin_deg <= 90 and self.min_defect_depth_mm > 0 and self.min_bin_points >= 1
+                and self.min_part_points >= 1):
+            raise ValueError("need defect_bin_deg in (0, 90], min_defect_depth_mm > 0, min_bin_points >= 1 and "
+                             "min_part_points >= 1")
         if not self.coverage_factor > 0:
             raise ValueError("coverage_factor must be positive")
         if self.engagement_turns is not None and self.engagement_turns <= 0:
@@ -189,6 +161,8 @@ class GaugeResult:
     n_points: int
     profile: dict = field(default_factory=dict)
     virtual_pitch_diameter_uncertainty_mm: float = 0.0
+    # profile parts (PROFILE_PARTS) with fewer than GaugeOptions.min_part_points fitted points
+    unseen_parts: tuple = ()
     # what :func:`remeasure` needs to fit the same points again: their indices in the input cloud, the
     # axis base frame, the parameters and bounds, which fit gave the sizes
     fit_state: dict = field(default_factory=dict, repr=False)
@@ -205,6 +179,7 @@ class GaugeResult:
             "zone_mm": list(self.zone_mm), "verdict": self.verdict, "checks": self.checks,
             "defects": [d.to_dict() for d in self.defects], "residual_rms_mm": self.residual_rms_mm,
             "n_points": self.n_points, "limits_source": self.limits.source,
+            "unseen_parts": list(self.unseen_parts),
         }
 
     def summary(self) -> str:
@@ -226,11 +201,13 @@ class GaugeResult:
             "flank_angle_held") else ""
         lines.append(f"  {'flank angle (deg)':20s} {f.value:9.3f} {f.uncertainty:8.3f}  60 nominal{held}")
         lines.append(f"  virtual pitch diameter {self.virtual_pitch_diameter_mm:.4f} mm")
+        if self.unseen_parts:
+            lines.append(f"  not in the cloud: {' and '.join(self.unseen_parts)} (the sizes they place are not measured)")
         for d in self.defects:
             lines.append(f"  defect: crest turn {d.turn} at {d.angle_deg:.1f}° (width {d.width_deg:.0f}°), "
                          f"depth {d.depth_mm:.3f} mm")
         for c in self.checks:
-            if not c["ok"]:
+            if not c["ok"] and not c["check"].endswith("(not measured)"):
                 lines.append(f"  out of limits: {c['check']}")
         return "\n".join(lines)
 
@@ -347,6 +324,18 @@ def _thread_zone(z, r, pitch, depth, r_minor, r_major):
     return z0, z1
 
 
+def _ends_on_thread(z, r, side, pitch, depth):
+    """Whether the cloud's last half pitch at its ``side`` end (+1: the far end along the axis, -1: the near
+    one) spans half a thread depth of radius (thread) rather than lying on one radius (a counterbore's or
+    a plain bore's wall)."""
+    end = side * np.max(side * z)
+    last = r[side * (end - z) <= pitch / 2]
+    if len(last) < 20:
+        return True  # too few points to tell a wall from thread: the stretch's own rule decides
+    q = np.percentile(last, [5, 95])
+    return bool(q[1] - q[0] >= 0.5 * depth)
+
+
 def _pitch_scan(theta, z, r, nominal, search):
     """Pitch maximising the first harmonic of the radius in the helical phase; and the root's phase (mm)."""
     dr = r - r.mean()
@@ -395,11 +384,14 @@ def gauge_thread(points: np.ndarray, *, options: GaugeOptions = GaugeOptions()) 
     theta, r, z = _cylindrical(points, p0, d0)
     z0, z1 = _thread_zone(z, r, pitch_nom, depth_nom, major_nom / 2 - depth_nom, major_nom / 2)
     # The defect search runs on through the pitch of run-out trimmed for the sizes' fit at an end where the
-    # cloud itself ends within a pitch of the threaded stretch (the scan's last view: the crests there are
-    # whole thread), not where the wall leaves the thread (a counterbore or a plain bore lies beyond: the
-    # turn there is cut short, not damaged).
-    search_z = (z0 - pitch_nom if z.min() > z0 - 2 * pitch_nom else z0,
-                z1 + pitch_nom if z.max() < z1 + 2 * pitch_nom else z1)
+    # cloud itself ends within a pitch of the threaded stretch, still on thread (the scan's last view: the
+    # crests there are whole thread), not where the wall leaves the thread (a counterbore or a plain bore
+    # lies beyond: the turn there is cut short, not damaged). A counterbore 1 mm deep can sit inside the
+    # stretch's last window when the pitch nears 2 mm (M12x1.75), so the cloud's last half pitch must itself
+    # span half a thread depth of radius, as thread does and a plain wall does not.
+    near_end = (z.min() > z0 - 2 * pitch_nom and _ends_on_thread(z, r, -1, pitch_nom, depth_nom),
+                z.max() < z1 + 2 * pitch_nom and _ends_on_thread(z, r, 1, pitch_nom, depth_nom))
+    search_z = (z0 - pitch_nom if near_end[0] else z0, z1 + pitch_nom if near_end[1] else z1)
     zone_index = np.flatnonzero((z >= z0) & (z <= z1))
     if len(zone_index) > options.max_points:
         zone_index = np.sort(rng.choice(zone_index, options.max_points, replace=False))
@@ -445,6 +437,24 @@ def gauge_thread(points: np.ndarray, *, options: GaugeOptions = GaugeOptions()) 
     x, std, res, core = fit.x, fit.std, fit.residuals, fit.core
     pitch, r1, r2, rp, half = x[4], x[6], x[7], x[8], x[9]
     axis_point, axis_dir = _axis_from_params(p0, base, *x[:4])
+    # which parts of the profile the fit's core points lie on: a part not seen places its sizes by the
+    # profile's symmetry alone, which measures nothing (a 45° view: one flank, no root)
+    tz, _, zz2 = _cylindrical(zone_points[core], axis_point, axis_dir)
+    wz = np.mod(zz2 - pitch * tz / (2 * np.pi) - x[5] + pitch / 2, pitch) - pitch / 2
+    counts = np.bincount(_part_of(wz, tooth_half_width(r1, pitch, rp, half), tooth_half_width(r2, pitch, rp, half)),
+                         minlength=len(PROFILE_PARTS))
+    # A flank seen as a surface gathers about as many points as the other (90° scans: 0.7-0.9 of it); one
+    # seen only in scraps past the crests, with under a tenth of the other's (45°: 0.01-0.02), is not seen.
+    weak = 1 + int(np.argmin(counts[1:3]))
+    scraps = counts[weak] < 0.1 * counts[3 - weak]
+    unseen = tuple(name for k, (name, n) in enumerate(zip(PROFILE_PARTS, counts))
+                   if n < options.min_part_points or (k == weak and scraps))
+    # a radius the cloud does not place may run to its bound (a 45° view: the root's, D); that size is not
+    # measured, and its bound says nothing about the parts seen (a chip on a seen crest still fails the hole)
+    unmeasured = unmeasured_sizes(unseen)
+    unplaced = {i for i, size in ((6, "minor diameter"), (7, "major diameter"), (8, "pitch diameter"))
+                if size in unmeasured}
+    at_bound = any(6 <= i <= 9 and i not in unplaced for i in fit.stopped)
 
     # virtual pitch diameter (ISO 965-1 sec. 3 / ISO 1502): the go side sees D2 reduced by the
     # pitch-diameter equivalents of the pitch error over the engagement, fP = 1.732 |dP| n (60° thread),
@@ -459,9 +469,11 @@ def gauge_thread(points: np.ndarray, *, options: GaugeOptions = GaugeOptions()) 
     d2_virtual = d2 - f_p - f_alpha
 
     # (5) crest defects, over the zone and where the cloud ends within a pitch of it (search_z above)
-    t_all, r_all, z_all = _cylindrical(points, axis_point, axis_dir)
-    keep = (z_all >= search_z[0]) & (z_all <= search_z[1])
-    t_all, r_all, z_all = t_all[keep], r_all[keep], z_all[keep]
+    # (search_z is in step (2)'s axial coordinate, z: the fitted axis' point is the zone's median, not the
+    # whole cloud's, so its axial origin lies elsewhere; selecting by the fitted one shifted the searched
+    # stretch by that difference, into an M12's counterbore)
+    keep = (z >= search_z[0]) & (z <= search_z[1])
+    t_all, r_all, z_all = _cylindrical(points[keep], axis_point, axis_dir)
     s = z_all - pitch * t_all / (2 * np.pi) - x[5]
     w = np.mod(s + pitch / 2, pitch) - pitch / 2
     dist = _profile_distance(w, r_all, r1, r2, rp, half, pitch)
@@ -473,7 +485,7 @@ def gauge_thread(points: np.ndarray, *, options: GaugeOptions = GaugeOptions()) 
     # the pitch's share of the virtual D2 moves with the pitch: u(D2v)^2 = u(D2)^2 + (1.732 n u(P))^2
     u_d2v = float(np.hypot(2 * std[8], 1.732 * turns * std[4]))
     verdict, checks = judge(limits, options, 2 * r1, 2 * std[6], d2, 2 * std[8], float(d2_virtual), u_d2v, 2 * r2,
-                             2 * std[7], defects, fit.profile_at_bound)
+                             2 * std[7], defects, at_bound, unseen)
     return GaugeResult(
         minor_diameter_mm=Measured(2 * r1, 2 * std[6]), major_diameter_mm=Measured(2 * r2, 2 * std[7]),
         pitch_diameter_mm=Measured(d2, 2 * std[8]), pitch_mm=Measured(pitch, std[4]),
@@ -484,15 +496,16 @@ def gauge_thread(points: np.ndarray, *, options: GaugeOptions = GaugeOptions()) 
         profile={"crest_half_width_mm": float(hc), "phase_mm": float(x[5]),
                  "flank_angle_in_size_fit_deg": float(np.rad2deg(2 * half)),
                  "flank_angle_held": fit is not free},
-        virtual_pitch_diameter_uncertainty_mm=u_d2v,
+        virtual_pitch_diameter_uncertainty_mm=u_d2v, unseen_parts=unseen,
         fit_state={"index": index[zone_index], "p0": p0, "base": base, "x": x.copy(), "lower": lower,
                    "upper": upper, "free_flank": fit is free, "turns": float(turns), "f_alpha": float(f_alpha),
-                   "pitch_nominal": float(pitch_nom), "at_bound": fit.profile_at_bound},
+                   "pitch_nominal": float(pitch_nom), "at_bound": at_bound},
     )
 
 
 def judge(limits: ThreadLimits, options: GaugeOptions, d1: float, u_d1: float, d2: float, u_d2: float,
-           d2_virtual: float, u_d2v: float, d: float, u_d: float, defects: list, at_bound: bool) -> tuple[str, list[dict]]:
+           d2_virtual: float, u_d2v: float, d: float, u_d: float, defects: list, at_bound: bool,
+           unseen: tuple = ()) -> tuple[str, list[dict]]:
     """The verdict and its checks from the sizes and their standard uncertainties (mm).
 
     Each limit is guarded by the expanded uncertainty U = k u (ISO 14253-1, k = ``coverage_factor``): a
@@ -501,8 +514,11 @@ def judge(limits: ThreadLimits, options: GaugeOptions, d1: float, u_d1: float, d
     damaged crest. ``pass``: every limit proven kept, and the gauge capable — U at most a quarter of the
     tolerance (the usual 4:1 gauge-maker's rule; TD1 stands in for the major diameter, which has no
     width) and no profile parameter stopped at its bound (the cloud did not show that part of the
-    profile). Anything else is ``indeterminate``; a profile at its bound proves nothing either way."""
+    profile). Anything else is ``indeterminate``; a profile at its bound proves nothing either way, nor
+    does a size whose part of the profile the cloud did not show (``unseen``, names from PROFILE_PARTS:
+    its limits are left undecided)."""
     k = options.coverage_factor
+    unmeasured = set(unmeasured_sizes(unseen))
     checks = []
     for name, value, u, limit, upper in (
             ("minor diameter", d1, u_d1, limits.d1_min_mm, False), ("minor diameter", d1, u_d1, limits.d1_max_mm, True),
@@ -510,16 +526,19 @@ def judge(limits: ThreadLimits, options: GaugeOptions, d1: float, u_d1: float, d
             ("pitch diameter", d2, u_d2, limits.d2_max_mm, True), ("major diameter", d, u_d, limits.d_min_mm, False)):
         margin = (limit - value) if upper else (value - limit)  # > 0 inside the limit
         gauge = " (go)" if name == "virtual pitch diameter" else " (no-go)" if name == "pitch diameter" else ""
-        checks.append({"check": f"{name} {value:.4f} {'<=' if upper else '>='} {limit:.3f}{gauge}", "quantity": name,
+        seen = name.removeprefix("virtual ") not in unmeasured
+        checks.append({"check": f"{name} {value:.4f} {'<=' if upper else '>='} {limit:.3f}{gauge}"
+                       + ("" if seen else " (not measured)"), "quantity": name,
                        "ok": bool(margin >= 0), "margin_mm": float(margin), "expanded_uncertainty_mm": float(k * u),
-                       "decided": bool(abs(margin) > k * u)})
+                       "decided": bool(seen and abs(margin) > k * u)})
     checks.append({"check": f"{len(defects)} damaged crest(s)", "ok": not defects, "decided": True})
     td1 = limits.d1_max_mm - limits.d1_min_mm
     td2 = limits.d2_max_mm - limits.d2_min_mm
     incapable = [name for name, u, tol in (("minor diameter", u_d1, td1), ("pitch diameter", u_d2, td2),
-                                           ("major diameter", u_d, td1)) if not k * u <= tol / 4]
-    undecided = [c["check"] for c in checks if not c["decided"]]
-    notes = ([f"uncertainty over a quarter of the tolerance: {', '.join(incapable)}"] if incapable else []) + \
+                                           ("major diameter", u_d, td1)) if not k * u <= tol / 4 and name not in unmeasured]
+    undecided = [c["check"] for c in checks if not c["decided"] and not c["check"].endswith("(not measured)")]
+    notes = ([f"{' and '.join(unseen)} not seen: {', '.join(sorted(unmeasured))} not measured"] if unmeasured else []) + \
+        ([f"uncertainty over a quarter of the tolerance: {', '.join(incapable)}"] if incapable else []) + \
         (["profile fit at a bound"] if at_bound else []) + \
         ([f"within the expanded uncertainty of a limit: {', '.join(undecided)}"] if undecided else [])
     checks.append({"check": "measurement decides every limit" + (f" (not: {'; '.join(notes)})" if notes else ""),
@@ -551,6 +570,25 @@ def remeasure(result: GaugeResult, points: np.ndarray, noise_mm: float = 0.01) -
 PROFILE_PARTS = ("crest", "flank towards +z", "flank towards -z", "root")
 
 
+def unmeasured_sizes(unseen) -> list[str]:
+    """The sizes a cloud without the profile parts ``unseen`` (names from PROFILE_PARTS) does not measure:
+    the crest places D1, the root D; D2 is where the tooth is half a pitch wide, so it needs both flanks,
+    or one flank and the tooth's centre, which the crest and root flats together give (the symmetric
+    profile: the crest's centre half a pitch from the root's)."""
+    unseen = set(unseen)
+    out = (["minor diameter"] if "crest" in unseen else []) + (["major diameter"] if "root" in unseen else [])
+    if unseen & {"flank towards +z", "flank towards -z"} and unseen & {"crest", "root"}:
+        out.append("pitch diameter")
+    return out
+
+
+def _part_of(w, hc, hr):
+    """Index into PROFILE_PARTS of points at axial offset ``w`` from the crest centre, the crest ``hc`` and
+    the root ``hr`` half a tooth wide (a root wider than the pitch allows leaves no root)."""
+    aw = np.abs(w)
+    return np.where(aw <= hc, 0, np.where(aw >= hr, 3, np.where(w > 0, 1, 2)))
+
+
 def profile_parts(result: GaugeResult, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Which part of the fitted profile each fitted point lies on, and the profile's outward normal there.
 
@@ -567,8 +605,7 @@ def profile_parts(result: GaugeResult, points: np.ndarray) -> tuple[np.ndarray, 
     t = np.arctan2(local[:, 1], local[:, 0])
     w = np.mod(local[:, 2] - pitch * t / (2 * np.pi) - phase + pitch / 2, pitch) - pitch / 2
     hc, hr = tooth_half_width(r1, pitch, rp, half), tooth_half_width(r2, pitch, rp, half)
-    aw = np.abs(w)
-    part = np.where(aw <= hc, 0, np.where(aw >= hr, 3, np.where(w > 0, 1, 2)))
+    part = _part_of(w, hc, hr)
     # flank line from (hc, r1) to (hr, r2) in (|w|, r): into the material is towards the tooth and outwards
     length = np.hypot(hr - hc, r2 - r1)
     n_w, n_r = -(r2 - r1) / length, (hr - hc) / length
@@ -593,6 +630,7 @@ class _ProfileFit:
     profile_at_bound: bool
     flank_at_bound: bool
     cost: float = 0.0
+    stopped: tuple = ()  # indices of the free parameters that stopped at a bound
 
 
 def _fit_profile(points, p0, base, x0, lower, upper, free_flank: bool, noise_mm: float) -> _ProfileFit:
@@ -627,7 +665,8 @@ def _fit_profile(points, p0, base, x0, lower, upper, free_flank: bool, noise_mm:
     std = np.zeros(len(x0))
     std[free] = np.sqrt(np.maximum(np.diag(cov), 0.0))
     stopped = (np.isclose(x, lower, atol=1e-6) | np.isclose(x, upper, atol=1e-6)) & free
-    return _ProfileFit(x, std, res, core, bool(stopped[6:10].any()), bool(stopped[9]), float(sol.cost))
+    return _ProfileFit(x, std, res, core, bool(stopped[6:10].any()), bool(stopped[9]), float(sol.cost),
+                       tuple(int(i) for i in np.flatnonzero(stopped)))
 
 
 def _crest_defects(theta, z, turn, dist, options: GaugeOptions, pitch: float) -> list[ThreadDefect]:

@@ -113,7 +113,7 @@ def matched_frame_gap(step_mm: float, extent_mm: float, *,
 def plan_quadrant_scan(camera: Camera, designation: str, side_view_deg: float = 90.0,
                        *, step_mm: float | None = None,
                        options: QuadrantScanPlanOptions = QuadrantScanPlanOptions()) -> QuadrantScanPlan:
-    """The quadrant scan of a ``designation`` hole (``M6x1``, ``M8x1.25``, ``M10x1.5``) seen by ``camera``
+    """The quadrant scan of a ``designation`` hole (one of ``THREAD_SIZES``) seen by ``camera``
     at ``side_view_deg`` (see the module docstring); ``step_mm`` imposes the step (None: the plan's), the
     frames and the frame gap then follow from it."""
     radius = pitch_radius_mm(designation)

@@ -121,7 +121,7 @@ def with_systematic(result: GaugeResult, systematic_mm: dict, *, options: GaugeO
     u_d2v = float(np.hypot(u_d2v_stat, systematic_mm.get("virtual_pitch_diameter", 0.0)))
     verdict, checks = judge(result.limits, options, d1.value, d1.uncertainty, d2.value, d2.uncertainty,
                              result.virtual_pitch_diameter_mm, u_d2v, d.value, d.uncertainty, result.defects,
-                             bool(result.fit_state.get("at_bound", False)))
+                             bool(result.fit_state.get("at_bound", False)), result.unseen_parts)
     state = dict(result.fit_state, u_d2v_statistical=u_d2v_stat)
     return replace(result, minor_diameter_mm=d1, pitch_diameter_mm=d2, major_diameter_mm=d, pitch_mm=p,
                     virtual_pitch_diameter_uncertainty_mm=u_d2v, verdict=verdict, checks=checks, fit_state=state)

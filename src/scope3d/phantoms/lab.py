@@ -174,7 +174,7 @@ def generate(
         targets) depends only on ``texture_seed``, like a physical phantom that is imaged many times.
     pose_noise_mm : half-width of the uniform error on reported camera centres (see module docstring).
     camera : overrides :func:`default_camera`; else ``size`` (width, height) px and ``fov_deg`` adjust it.
-    thread : ``M6x1``, ``M8x1.25`` or ``M10x1.5`` for the ``thread`` scene.
+    thread : one of ``geometry.iso_thread.THREAD_SIZES`` (``M5x0.8`` to ``M12x1.75``) for the ``thread`` scene.
     n_frames : limit or length of the trajectory (see :func:`~scope3d.phantoms.trajectories.build_trajectory`).
     side_view_deg : borescope side-view angle for ``quadrants`` (45 or 90 in the reference).
     axis_offset_mm, axis_tilt_deg : misalignment of the ``axial`` trajectory (lateral offset of the scope

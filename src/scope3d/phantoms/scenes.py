@@ -905,7 +905,7 @@ SCENES = {
     "dome": "debulked brain-tumour cavity: spherical dome R 15-17.5 mm, depth 10 mm, 40 mm plate, 8 fluorescent targets",
     "sheet": "flat printed sheet, 60 mm square, z = 0",
     "bladder": "irregular ellipsoidal cavity ~90 x 76 x 64 mm seen from inside, 4 star markers of 6 mm",
-    "thread": "ISO internal thread in a blind hole (M6x1, M8x1.25, M10x1.5), shiny aluminium",
+    "thread": "ISO internal thread in a blind hole (M5x0.8 to M12x1.75), shiny aluminium",
     "cavity": "resection cavity 6-15 mm deep with an overhanging lip, creases, a 2 mm step, vessels, wet tissue, "
               "8 fluorescent targets",
 }

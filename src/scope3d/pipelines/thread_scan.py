@@ -49,8 +49,9 @@ from scope3d.geometry.pose import Pose
 from scope3d.io.dataset import Dataset, check_jobs_take
 from scope3d.io.ply import write_ply
 from scope3d.io.quadrants import read_quadrant_thread, read_quadrants
-from scope3d.metrology.thread_gauge import GaugeOptions, GaugeResult, gauge_thread
-from scope3d.metrology.thread_scan_plan import QuadrantScanPlan, ScanCoverage, measured_quadrant_scan, scan_coverage
+from scope3d.metrology.thread_gauge import GaugeOptions, GaugeResult, gauge_thread, unmeasured_sizes
+from scope3d.metrology.thread_scan_plan import (QuadrantScanPlan, ScanCoverage, measured_quadrant_scan,
+                                                plan_quadrant_scan, scan_coverage)
 from scope3d.metrology.thread_uncertainty import (MATCH_GAP_MM, SPARSE_POINT_BIAS_MM, combined_systematic,
                                                   match_gap_systematic, profile_bias_systematic,
                                                   registration_systematic, with_systematic)
@@ -75,7 +76,7 @@ DEFAULT_THREAD = "M8x1.25"
 
 @dataclass(frozen=True)
 class ThreadScanOptions:
-    """designation : the nominal thread (``M6x1``, ``M8x1.25``, ``M10x1.5``; None, the default: the one the
+    """designation : the nominal thread (one of ``THREAD_SIZES``; None, the default: the one the
     dataset's ``quadrants.json`` names, else :data:`DEFAULT_THREAD`); the gauge's other options
     come from ``gauge`` (its designation is replaced by this one). mapping, panorama, outliers, gauge :
     the stages' options. dense : the dense clouds' options, or None to gauge the sparse points. threads :
@@ -165,6 +166,8 @@ class ThreadScanResult:
             registration.update(self.errors)
         gauge = g.to_dict() if g is not None else {"verdict": "indeterminate", "message": self.gauge_message,
                                                    "defects": []}
+        if g is not None and self.gauge_message:
+            gauge["message"] = self.gauge_message
         if self.systematic_mm:
             gauge["systematic_by_source_mm"] = self.systematic_mm
         return {
@@ -186,6 +189,8 @@ class ThreadScanResult:
     def summary(self) -> str:
         lines = [self.gauge.summary() if self.gauge is not None else
                  f"thread gauge: INDETERMINATE ({self.gauge_message})"]
+        if self.gauge is not None and self.gauge_message:
+            lines.append(f"not measured: {self.gauge_message}")
         if self.gauge is not None and self.gauge.verdict == "indeterminate" and self.coverage and self.coverage.below_plan:
             lines.append(f"scan below the plan: {self.coverage.message()}")
         p = self.panorama
@@ -314,6 +319,22 @@ def true_world_from_stacked(dataset: Dataset, mount: MountEstimate | None = None
     return out
 
 
+def unseen_message(gauge, dataset: Dataset, designation: str, scans: list[QuadrantScanPlan]) -> str:
+    """One line: the profile parts the cloud did not show, the sizes left unmeasured, and the scan that
+    shows them (the scan plan's at a 90° side view, which looks at the wall square on: both flanks and the
+    root of every tooth)."""
+    views = sorted({round(s.side_view_deg) for s in scans})
+    sizes = unmeasured_sizes(gauge.unseen_parts)
+    line = (f"{' and '.join(gauge.unseen_parts)} not in the cloud: {' and '.join(sizes)} not measured "
+            f"(a {'/'.join(map(str, views))}° side view")
+    try:
+        plan = plan_quadrant_scan(dataset.camera, designation, 90.0)
+    except ValueError:
+        return line + ")"
+    return (line + f"); a 90° side view shows them: the scan plan's {plan.frames_per_quadrant} frames per "
+            f"quadrant {plan.step_mm:g} mm apart, frame gap {plan.frame_gap}")
+
+
 def run(options: ThreadScanOptions, dataset: Dataset, out_dir: str | Path, *,
         progress: Progress | None = None) -> ThreadScanResult:
     """Measure a tapped hole from a side-view quadrant scan and write the run folder ``out_dir``."""
@@ -355,6 +376,8 @@ def run(options: ThreadScanOptions, dataset: Dataset, out_dir: str | Path, *,
         gauge = gauge_thread(points, options=gauge_options)
     except ValueError as exc:  # no thread in the cloud: a result to report, not a crash
         gauge_message = str(exc) + (f"; {coverage.message()}" if coverage is not None else "")
+    if gauge is not None and unmeasured_sizes(gauge.unseen_parts):
+        gauge_message = unseen_message(gauge, dataset, options.designation, scans)
     timings["gauge"] = time.perf_counter() - t0
     systematic = {}
     if gauge is not None and (options.registration_draws or options.point_bias_mm or options.match_gap_mm):
