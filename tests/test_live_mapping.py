@@ -165,3 +165,27 @@ def test_kalman_change_world_moves_the_estimate_exactly():
     kf.change_world(new_from_old)
     np.testing.assert_allclose(kf.pose.matrix, (before @ new_from_old.inverse()).matrix, atol=1e-12)
     assert np.isclose(np.linalg.norm(kf.state[9:12]), speed)  # a rigid move keeps the speed
+
+
+def test_a_mirrored_or_collapsed_window_is_not_a_map():
+    """Two keyframes a few mm apart can adjust to points behind the cameras, or all onto them: such a window
+    gives no depth prior (None), so the local map is refused instead of the depth prior raising."""
+    from scope3d.geometry.pose import Pose
+    from scope3d.scene.tracks import Tracks
+    from scope3d.sfm.live_mapping import _KeyframeWork
+
+    camera = phantoms.generate("dome", size=(64, 64), n_frames=1).camera
+    work = _KeyframeWork(camera, LiveMapperOptions())
+    poses = [Pose.identity(), Pose.identity()]
+    n = 50
+
+    def tracks(z):
+        xyz = np.column_stack([np.zeros(n), np.zeros(n), z])
+        return Tracks(np.repeat(np.arange(n), 2), np.tile([0, 1], n), np.zeros(2 * n, np.int64),
+                      np.zeros((2 * n, 2)), np.zeros((n, 3), np.uint8), xyz)
+
+    near, far = LiveMapperOptions().working_range_mm
+    good = work._depth_prior(poses, tracks(np.linspace(10.0, 20.0, n)))
+    assert good is not None and good.near_mm <= 10.0 and good.far_mm >= 20.0
+    assert work._depth_prior(poses, tracks(np.linspace(-20.0, 20.0, n))) is None  # half behind: mirrored
+    assert work._depth_prior(poses, tracks(np.full(n, near / 10))) is None  # collapsed onto the cameras

@@ -103,7 +103,11 @@ class LiveMapperOptions:
         waits for the GIL), ``thread``, or ``inline`` (when submitted, in the caller's thread). All three
         apply the result at the same frame, so they give the same output.
     min_keyframes : int >= 2, the first local map is built once this many keyframes are in (default 3: with
-        the robot's box the only scale, two keyframes a few mm apart leave the scale loose).
+        the robot's box the only scale, two keyframes a few mm apart leave the scale loose. 2 gave the dome
+        survey its first image pose at frame 53 instead of 73, but 126 lost frames instead of 128 and the
+        fused error <= half the robot's on 31 % of the frames instead of 42 %: docs/live.md. A window whose
+        adjustment mirrors the points behind the cameras or collapses them onto them is refused, and the
+        map waits for the next keyframe).
     features : SIFT on keyframes (the map's default settings). matching : guided matching of keyframe pairs.
     pairs : the global BCBA's pair choice. tracks : triangulation gates. bundle : the adjustments.
     kalman : the fusion filter's motion model.
@@ -407,9 +411,12 @@ class _KeyframeWork:
         t = adjusted.tracks
         if t.n_tracks < o.localizer.pose.min_inliers:
             return None
+        prior = self._depth_prior(adjusted.poses, t)
+        if prior is None:
+            return None
         for k, pose in zip(window, adjusted.poses):
             self.adjusted[k] = pose
-        self.depth_prior = self._depth_prior(adjusted.poses, t)
+        self.depth_prior = prior
         points = MapPoints(t.points, track_descriptors(features, t), t.lengths(), t.colors,
                            observation_descriptors(features, t), t.track.copy())
         return _LocalMap(window, list(adjusted.poses), t, points)
@@ -441,13 +448,17 @@ class _KeyframeWork:
         return LiveMap(frames, adjusted.poses, list(self.measured), adjusted.tracks.points, adjusted.tracks.colors,
                        adjusted.tracks, final=True)
 
-    def _depth_prior(self, poses: list[Pose], tracks: Tracks) -> DepthPrior:
+    def _depth_prior(self, poses: list[Pose], tracks: Tracks) -> DepthPrior | None:
         """The depth range of the newest local map's points in their keyframes (2nd-98th percentile,
         widened): the window's own, not joined with older ones (the first windows' scale is the least
-        certain, their range the least right)."""
+        certain, their range the least right). None when more than 2 % of the observed points lie behind
+        their keyframe, or 98 % nearer than ``working_range_mm``'s near end: a mirrored or collapsed
+        solution (two keyframes a few mm apart can give one), not a map."""
         depth = np.concatenate([poses[f].transform(tracks.points[tracks.track[tracks.frame == f]])[:, 2]
                                 for f in np.unique(tracks.frame)])
         lo, hi = np.percentile(depth, [2.0, 98.0])
+        if lo <= 0 or hi < self.options.working_range_mm[0]:
+            return None
         m = self.options.depth_margin
         return DepthPrior(float(max(lo * (1 - m), 1e-3)), float(hi * (1 + m)))
 
