@@ -3,9 +3,11 @@ reporting every frame within +-3 mm / +-1.5 deg (uniform, independent per frame)
 
 Bounds from the set-up:
 
-* the true centre lies within 3 mm of every report per axis, and the tracking's image pose is refined inside
-  the report's box, so within 6 mm of the truth per axis; the fused pose mixes these measurements, so after
-  the filter has settled (the first second) its error per axis stays within 6 mm;
+* the true centre lies within 3 mm of every report per axis; the tracking's image pose is in the map's
+  world, whose keyframes each stay inside their report's box, so that world is off the truth by at most one
+  box (3 mm per axis) and the image pose (refined inside twice the report's box) within 3 mm of the truth
+  plus the tracking's own error; the fused pose mixes these measurements, so after the filter has settled
+  (the first second) its error per axis stays within 6 mm;
 * fusion must help: the image pose is good to the map's ~0.1-1 mm, the report to 3 mm per axis (median
   norm ~2.6 mm for a uniform box), so the fused median must be below the robot's median;
 * the final map is the map's own bounded-adjustment stage over the same keyframes with the robot's boxes:
