@@ -105,7 +105,8 @@ class LiveMapperOptions:
     min_keyframes : int >= 2, the first local map is built once this many keyframes are in (default 3: with
         the robot's box the only scale, two keyframes a few mm apart leave the scale loose. 2 gave the dome
         survey its first image pose at frame 53 instead of 73, but 126 lost frames instead of 128 and the
-        fused error <= half the robot's on 31 % of the frames instead of 42 %: docs/live.md. A window whose
+        fused error <= half the robot's on 31 % of the frames instead of 42 % (image box 1x; with 2x: 58 lost
+        instead of 69, 16 % instead of 26 %): docs/live.md. A window whose
         adjustment mirrors the points behind the cameras or collapses them onto them is refused, and the
         map waits for the next keyframe).
     features : SIFT on keyframes (the map's default settings). matching : guided matching of keyframe pairs.
