@@ -3,9 +3,11 @@ reporting every frame within +-3 mm / +-1.5 deg (uniform, independent per frame)
 
 Bounds from the set-up:
 
-* the true centre lies within 3 mm of every report per axis, and the tracking's image pose is refined inside
-  the report's box, so within 6 mm of the truth per axis; the fused pose mixes these measurements, so after
-  the filter has settled (the first second) its error per axis stays within 6 mm;
+* the true centre lies within 3 mm of every report per axis; the tracking's image pose is in the map's
+  world, whose keyframes each stay inside their report's box, so that world is off the truth by at most one
+  box (3 mm per axis) and the image pose (refined inside twice the report's box) within 3 mm of the truth
+  plus the tracking's own error; the fused pose mixes these measurements, so after the filter has settled
+  (the first second) its error per axis stays within 6 mm;
 * fusion must help: the image pose is good to the map's ~0.1-1 mm, the report to 3 mm per axis (median
   norm ~2.6 mm for a uniform box), so the fused median must be below the robot's median;
 * the final map is the map's own bounded-adjustment stage over the same keyframes with the robot's boxes:
@@ -165,3 +167,27 @@ def test_kalman_change_world_moves_the_estimate_exactly():
     kf.change_world(new_from_old)
     np.testing.assert_allclose(kf.pose.matrix, (before @ new_from_old.inverse()).matrix, atol=1e-12)
     assert np.isclose(np.linalg.norm(kf.state[9:12]), speed)  # a rigid move keeps the speed
+
+
+def test_a_mirrored_or_collapsed_window_is_not_a_map():
+    """Two keyframes a few mm apart can adjust to points behind the cameras, or all onto them: such a window
+    gives no depth prior (None), so the local map is refused instead of the depth prior raising."""
+    from scope3d.geometry.pose import Pose
+    from scope3d.scene.tracks import Tracks
+    from scope3d.sfm.live_mapping import _KeyframeWork
+
+    camera = phantoms.generate("dome", size=(64, 64), n_frames=1).camera
+    work = _KeyframeWork(camera, LiveMapperOptions())
+    poses = [Pose.identity(), Pose.identity()]
+    n = 50
+
+    def tracks(z):
+        xyz = np.column_stack([np.zeros(n), np.zeros(n), z])
+        return Tracks(np.repeat(np.arange(n), 2), np.tile([0, 1], n), np.zeros(2 * n, np.int64),
+                      np.zeros((2 * n, 2)), np.zeros((n, 3), np.uint8), xyz)
+
+    near, far = LiveMapperOptions().working_range_mm
+    good = work._depth_prior(poses, tracks(np.linspace(10.0, 20.0, n)))
+    assert good is not None and good.near_mm <= 10.0 and good.far_mm >= 20.0
+    assert work._depth_prior(poses, tracks(np.linspace(-20.0, 20.0, n))) is None  # half behind: mirrored
+    assert work._depth_prior(poses, tracks(np.full(n, near / 10))) is None  # collapsed onto the cameras
