@@ -32,12 +32,14 @@ RESULTS = Path(__file__).resolve().parent / "results" / "map_box_width.json"
 CORETYPES = ("", "Haswell", "Sandybridge", "Prescott")
 
 
-def prepare(root: Path, seed: int, size: int) -> Path:
-    """The recording's scan imported with the true camera and hand-eye: frames, and the truth beside them."""
+def prepare(root: Path, seed: int, size: int, sync_error_s: float = 0.0) -> Path:
+    """The recording's scan imported with the true camera and hand-eye: frames, and the truth beside them
+    (``sync_error_s``: the frame times that far off on the robot's clock)."""
     from scope3d.cli.main import main as scope3d
     from scope3d.phantoms.recording import RecordingOptions, write_recording
 
-    write_recording(RecordingOptions(size=(size, size), speed_mm_s=50.0, robot_error_mm=0.0, seed=seed), root / "rec")
+    write_recording(RecordingOptions(size=(size, size), speed_mm_s=50.0, robot_error_mm=0.0, seed=seed,
+                                     sync_error_s=sync_error_s), root / "rec")
     rec = root / "rec"
     if scope3d(["import", "frames", str(rec / "scan" / "video.mkv"), "--camera", str(rec / "truth" / "camera.json"),
                 "--poses", str(rec / "scan" / "robot_log.csv"), "--pose-format", "xyz-qxyzw", "--unit", "m",

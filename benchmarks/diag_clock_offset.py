@@ -22,27 +22,19 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+from bench_map_box_width import prepare  # the same recording and import (a script beside this one)
 
 RESULTS = Path(__file__).resolve().parent / "results" / "clock_offset.json"
 
 
 def case(root: Path, seed: int, sync_s: float) -> dict:
-    from scope3d.cli.main import main as scope3d
     from scope3d.io.dataset import load_dataset
     from scope3d.io.poses_csv import read_poses_csv
-    from scope3d.phantoms.recording import RecordingOptions, write_recording
+    from scope3d.phantoms.recording import RecordingOptions
     from scope3d.pipelines.surgical_map import MapOptions, run
 
-    options = RecordingOptions(size=(304, 304), speed_mm_s=50.0, robot_error_mm=0.0, seed=seed, sync_error_s=sync_s)
-    write_recording(options, root / "rec")
     rec = root / "rec"
-    if scope3d(["import", "frames", str(rec / "scan" / "video.mkv"), "--camera", str(rec / "truth" / "camera.json"),
-                "--poses", str(rec / "scan" / "robot_log.csv"), "--pose-format", "xyz-qxyzw", "--unit", "m",
-                "--frame-times", str(rec / "scan" / "frame_times.csv"), "--hand-eye", str(rec / "truth" / "hand_eye.json"),
-                "--tolerance", "0.5", "--tolerance-deg", "0.25", "--every", "3", "--out", str(root / "scan"),
-                "--quiet"]) != 0:
-        raise SystemExit(f"import of seed {seed} failed")
-    ds = load_dataset(root / "scan")
+    ds = load_dataset(prepare(root, seed, 304, sync_s))
     result = run(replace(MapOptions(), figures=False, fluorescence=None), ds, root / "map")
     names, truth = read_poses_csv(rec / "truth" / "poses.csv")
     every = {n: p.pose.centre for n, p in zip(names, truth)}
@@ -52,7 +44,7 @@ def case(root: Path, seed: int, sync_s: float) -> dict:
     velocity = []
     for n in ds.names:
         a, b = max(at[n] - 1, 0), min(at[n] + 1, len(order) - 1)
-        velocity.append((every[order[b]] - every[order[a]]) * options.fps / (b - a))
+        velocity.append((every[order[b]] - every[order[a]]) * RecordingOptions().fps / (b - a))
     v = np.stack(velocity)
     imported = np.stack([m.pose.centre for m in ds.poses])
     mapped = np.stack([p.centre for p in result.poses])
