@@ -70,6 +70,7 @@ def keyframe_dataset(src: Path, frames: list[int], dest: Path) -> Path:
 
 def main(work: Path) -> None:
     work.mkdir(parents=True, exist_ok=True)
+    load_at_start = os.getloadavg()  # latency is the machine's as much as the code's: say how busy it was
     t0 = time.perf_counter()
     video = dome_video(work)
     render_s = time.perf_counter() - t0
@@ -85,6 +86,7 @@ def main(work: Path) -> None:
     result = {
         "setup": {"scene": "dome, 5 x 6 survey grid as a 30 fps video", "frames": N_FRAMES, "size_px": SIZE,
                   "robot_error": "+-3 mm, +-1.5 deg uniform per frame", "machine": "2 cores shared with other jobs",
+                  "load_average_at_start": load_at_start, "load_average_at_end": os.getloadavg(),
                   "render_s": render_s},
         "live": {k: r[k] for k in ("n_frames", "n_keyframes", "n_points", "statuses", "latency_ms", "global_bcba_s",
                                    "replayed_at_rate")},

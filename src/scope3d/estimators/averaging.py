@@ -49,6 +49,10 @@ class RelativePose:
     rotation_sigma_rad, direction_sigma_rad : standard deviations (rad, along the worst axis) from the
         refinement's covariance, for a keypoint noise of ``noise_px``: a pair with few matches on a
         small patch, or a baseline along the line of sight, has a large one and weighs little.
+    parallax_rad : the inliers' median triangulation angle under this pose (the angle between frame j's
+        ray and frame i's ray turned by ``rotation``; COLMAP's two-view ``tri_angle``), NaN when not
+        measured. Below about a degree a small rotation mimics the baseline's image motion, so rotation
+        and direction trade off along a valley the sigmas (a local curvature) do not see.
     """
 
     i: int
@@ -58,6 +62,7 @@ class RelativePose:
     inliers: np.ndarray
     rotation_sigma_rad: float = np.inf
     direction_sigma_rad: float = np.inf
+    parallax_rad: float = np.nan
 
     @property
     def n_inliers(self) -> int:
@@ -140,14 +145,19 @@ def refine_relative_pose(camera: Camera, pixels_i: np.ndarray, pixels_j: np.ndar
 def _relative_pose_with_sigmas(camera: Camera, xi: np.ndarray, xj: np.ndarray, R: np.ndarray, t: np.ndarray,
                                inliers: np.ndarray, cov: np.ndarray, noise_px: float, i: int, j: int) -> RelativePose:
     """The refined pose with its rotation and direction sigmas (largest eigenvalue of the refinement's
-    covariance scaled by the pixel noise), t's sign fixed by cheirality."""
+    covariance scaled by the pixel noise) and its parallax (the inliers' median triangulation angle), t's
+    sign fixed by cheirality."""
     noise = noise_px / (0.5 * (camera.fx + camera.fy))
     sigma_rot = noise * np.sqrt(max(np.linalg.eigvalsh(cov[:3, :3]).max(), 0.0))
     sigma_dir = noise * np.sqrt(max(np.linalg.eigvalsh(cov[3:, 3:]).max(), 0.0))
     # the Sampson distance does not see the sign of t: most inliers must lie in front of both cameras
     if _in_front_fraction(xi[inliers], xj[inliers], R, t) < 0.5:
         t = -t
-    return RelativePose(i, j, R, t, inliers, float(sigma_rot), float(sigma_dir))
+    ray_i = np.c_[xi[inliers], np.ones(int(inliers.sum()))] @ R.T  # frame i's rays in frame j's axes
+    ray_j = np.c_[xj[inliers], np.ones(int(inliers.sum()))]
+    cos = np.einsum("ij,ij->i", ray_i, ray_j) / (np.linalg.norm(ray_i, axis=1) * np.linalg.norm(ray_j, axis=1))
+    parallax = float(np.median(np.arccos(np.clip(cos, -1.0, 1.0))))
+    return RelativePose(i, j, R, t, inliers, float(sigma_rot), float(sigma_dir), parallax)
 
 
 def _sampson(xi: np.ndarray, xj: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:

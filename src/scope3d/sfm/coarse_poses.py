@@ -10,7 +10,9 @@ depend on the poses, so this pass asks them first and keeps the measurements for
 2. Each frame's best partners, and the pairs of a maximum spanning tree on similarity, are matched
    exhaustively (no prediction: the poses are not trusted yet) and verified by the essential matrix
    (:func:`scope3d.estimators.averaging.relative_pose`). A relative rotation further from the measured one than the
-   two orientation tolerances allow cannot be the truth and is dropped.
+   two orientation tolerances allow cannot be the truth and is dropped, and so is a pair with too little
+   parallax to tell its rotation from its baseline (frames a fraction of a millimetre apart: a scope held
+   still, a live mapper's keyframes while it tracks badly).
 3. While the verified pairs leave the frames in several groups, the best untried pairs between groups
    are tried, a few rounds.
 4. Rotation averaging, then position averaging with the measured centres as priors
@@ -60,6 +62,15 @@ class CoarseOptions:
     min_pairs_per_frame : int, a frame in fewer verified pairs tries more partners (default 3: one pair
         leaves its distance free, two can leave a hinge). reinforce_rounds : int, rounds of that (default 2).
     noise_px : float, keypoint localisation noise, for the relative poses' uncertainty (default 0.5 px).
+    min_parallax_deg : float, a pair whose inliers' median triangulation angle under its relative pose is
+        below this is not verified (default 1 deg, the angle below which the map does not triangulate a
+        point, ``TrackOptions.min_angle_deg``). With less parallax a small rotation moves the image as the
+        baseline does and the essential matrix's rotation and direction trade off, while their sigmas (the
+        cost's curvature at the minimum) stay small: on ``bench_live``'s keyframes, pairs 0.15 mm apart at
+        15 mm (2 px of motion) came out with the direction 60-95 deg and the rotation 0.4 deg off at a
+        stated 0.03 deg; averaged, they pulled ten frames onto one point and the map's points onto the
+        cameras. The angle is measured under the pair's own estimate, which puts a rotation that absorbed
+        the baseline at a few hundredths of a degree.
     threads : int, pairs matched at once (OpenCV releases the GIL; default 0: every available core,
         :mod:`scope3d.utils.threads`).
     """
@@ -70,14 +81,15 @@ class CoarseOptions:
     min_pairs_per_frame: int = 3
     reinforce_rounds: int = 2
     noise_px: float = 0.5
+    min_parallax_deg: float = 1.0
     threads: int = 0
     retrieval: RetrievalOptions = field(default_factory=RetrievalOptions)
 
     def __post_init__(self) -> None:
         if (self.partners_per_frame < 1 or self.connect_rounds < 0 or self.min_pairs_per_frame < 0
-                or self.reinforce_rounds < 0 or self.noise_px <= 0):
+                or self.reinforce_rounds < 0 or self.noise_px <= 0 or not 0 <= self.min_parallax_deg < 90):
             raise ValueError("need partners_per_frame >= 1, connect_rounds, min_pairs_per_frame, reinforce_rounds >= 0, "
-                             "noise_px > 0")
+                             "noise_px > 0, 0 <= min_parallax_deg < 90")
         check_threads(self.threads)
         if not 0 < self.max_view_angle_deg <= 180:
             raise ValueError(f"max_view_angle_deg must be in (0, 180], got {self.max_view_angle_deg}")
@@ -145,6 +157,7 @@ def coarse_poses(camera: Camera, features: list[Features], measured: list[Measur
     n = len(features)
     similarity = image_similarity(features, options.retrieval)
     score = np.where(plausible_partners(measured, options.max_view_angle_deg), similarity, 0.0)
+    min_parallax = np.deg2rad(options.min_parallax_deg)
 
     def verify(pair: tuple[int, int]):
         i, j = pair
@@ -157,7 +170,7 @@ def coarse_poses(camera: Camera, features: list[Features], measured: list[Measur
                             threshold_px=match_options.ransac_threshold_px, noise_px=options.noise_px,
                             confidence=match_options.ransac_confidence,
                             prior=(r_meas, mj.translation - r_meas @ mi.translation), i=i, j=j)
-        if rel is None or rel.n_inliers < match_options.min_matches:
+        if rel is None or rel.n_inliers < match_options.min_matches or rel.parallax_rad < min_parallax:
             return None
         # the true relative rotation lies within both tolerances of the measured one (3 sigma of the
         # estimate's own noise on top)
