@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from scope3d.estimators.bundle import BundleProblem
-from scope3d.estimators.bundle.covariance import pairwise_pose_covariances
+from scope3d.estimators.bundle.covariance import marginal_sigmas, pairwise_pose_covariances
 from scope3d.geometry.pose import Pose
 from scope3d.phantoms.bundle_scene import make_scene
 from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance
@@ -55,3 +55,23 @@ def test_pair_covariance_shrinks_with_the_keypoint_noise():
     b = pairwise_pose_covariances(problem, problem.initial, [(2, 3)], noise_px=NOISE_PX / 2, prior_sigmas=_prior(6))
     assert np.all(np.diag(b[0]) < np.diag(a[0]))
     assert np.all(np.linalg.eigvalsh(a[0]) > 0)
+
+
+def test_marginal_sigmas_match_the_inverse_and_stay_finite_or_inf_when_the_information_is_singular():
+    """A well-conditioned information gives the inverse's diagonal; a nearly singular one (a camera the
+    images leave free along one direction, in mm and rad at once) gives inf for the parameters on that
+    direction and the exact marginal for the others, never NaN from round-off in the inverse."""
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(12, 12))
+    information = a @ a.T + np.eye(12)
+    np.testing.assert_allclose(marginal_sigmas(information), np.sqrt(np.diag(np.linalg.inv(information))), rtol=1e-9)
+
+    # parameters 0-1 are fixed only in their sum (a rank-1 block); 2-3 independently, on scales 1e6 apart
+    scale = np.array([1.0, 1.0, 1e3, 1e-3])
+    block = np.array([[1.0, 1.0, 0, 0], [1.0, 1.0, 0, 0], [0, 0, 4.0, 0], [0, 0, 0, 9.0]])
+    singular = block * np.outer(scale, scale)
+    sigmas = marginal_sigmas(singular)
+    assert not np.isnan(sigmas).any()
+    assert np.isinf(sigmas[:2]).all()
+    np.testing.assert_allclose(sigmas[2:], [0.5 / 1e3, 1.0 / 3 / 1e-3], rtol=1e-9)
+    assert np.isinf(marginal_sigmas(np.zeros((3, 3)))).all()

@@ -20,7 +20,7 @@ import numpy as np
 
 from scope3d.errors import InputError
 from scope3d.estimators.bundle import BundleProblem, BundleResult, SolverOptions, solve
-from scope3d.estimators.bundle.covariance import pairwise_pose_covariances, reduced_camera_system
+from scope3d.estimators.bundle.covariance import marginal_sigmas, pairwise_pose_covariances, reduced_camera_system
 from scope3d.estimators.bundle.problem import camera_from_block, lens_block
 from scope3d.estimators.gauge import align_gauge
 from scope3d.estimators.triangulation import TrackOptions, reprojection_errors, triangulate_tracks
@@ -289,10 +289,7 @@ def adjusted_pose_sigmas(mode: str, measured: list[MeasuredPose], camera: Camera
     free = flat > 0
     information = S[np.ix_(free, free)] / noise_px**2 + np.diag(1.0 / flat[free] ** 2)  # 1 / inf^2 = 0
     out = np.zeros_like(flat)
-    try:
-        out[free] = np.sqrt(np.diag(np.linalg.inv(information)))
-    except np.linalg.LinAlgError:  # a camera with an unknown pose that no image ties to the rest
-        out[free] = np.inf
+    out[free] = marginal_sigmas(information)  # inf for a camera with an unknown pose no image ties to the rest
     return out.reshape(prior.shape)
 
 

@@ -57,6 +57,32 @@ def pairwise_pose_covariances(problem: BundleProblem, parameters: BundleParamete
     return out
 
 
+def marginal_sigmas(information: np.ndarray, *, rcond: float = 1e-12) -> np.ndarray:
+    """(n,) standard deviations of each parameter from a symmetric positive semi-definite ``information``
+    matrix (n, n): the square roots of the diagonal of its inverse, inf for a parameter that leans on a
+    direction the information does not fix.
+
+    ``np.linalg.inv`` of a nearly singular information (a camera the images barely tie down, in mm and rad
+    at once) returns round-off, including negative variances whose square root is NaN. Scaled to a unit
+    diagonal first (so millimetres and radians do not set the conditioning), the eigenvalues below
+    ``rcond`` times the largest are the unfixed directions; a parameter with weight on one of them has an
+    unbounded variance, the others the inverse restricted to the fixed directions."""
+    d = np.sqrt(np.clip(np.diag(information), 0.0, None))
+    observed = d > 0
+    out = np.full(len(d), np.inf)
+    if not observed.any():
+        return out
+    scaled = information[np.ix_(observed, observed)] / np.outer(d[observed], d[observed])
+    lam, vectors = np.linalg.eigh(scaled)
+    fixed = lam > rcond * lam[-1]
+    variance = (vectors[:, fixed] ** 2) @ (1.0 / lam[fixed])
+    # round-off puts ~1e-16 of weight on every direction; a parameter truly on an unfixed one carries O(1)
+    loose = (vectors[:, ~fixed] ** 2).sum(axis=1) > 1e-6
+    variance[loose] = np.inf
+    out[observed] = np.sqrt(variance) / d[observed]
+    return out
+
+
 def _pose_covariance(problem: BundleProblem, parameters: BundleParameters, loss_scale_px: float,
                      noise_px: float | None, prior_sigmas: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
     """The joint pose covariance (6m, 6m) (gauge removed, or held by the priors) and which cameras are
