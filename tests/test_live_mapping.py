@@ -246,3 +246,56 @@ def test_the_gauge_step_between_local_maps_is_recovered():
     fitted = _world_step(old, new, 20.0)
     probe = np.random.default_rng(1).uniform(-10, 10, (20, 3))
     np.testing.assert_allclose(fitted.apply(probe), step.apply(probe), atol=1e-9)
+
+
+def test_the_change_test_retires_the_resected_walls_old_features():
+    """The worker's change test on the phantom's resection: the dome's first survey row at 30 fps, a pit of 3 mm
+    radius and 1.5 mm depth cut at 1 s under (0, 9) mm, in view all along. The local map: points of the wall
+    as it was (frame 24's true depths, every 6th pixel), each seen by keyframe 0 (frame 24, before the cut) and
+    keyframe 1; keyframes 1-3 (frames 40, 45, 50, after it, 1.7 mm apart: at the survey's keyframe spacing,
+    3.3 mm, the half-size sweep kept a depth on none of the pit's deep points, docs/live.md) are the test's
+    sweeps, with their true poses (as a local BCBA gives them: relative errors of hundredths of a
+    millimetre). Keyframe 0's features over the pit's deep part (the wall moved 1 mm or more) are retired,
+    none far from the pit, and no feature of the keyframes that saw the new wall."""
+    from functools import partial
+    from types import SimpleNamespace
+
+    from scope3d.feature.depth_prior import DepthPrior
+    from scope3d.mvs.surface_change import detect_surface_change
+    from scope3d.phantoms.resection import Resection, wall_moved_mm
+    from scope3d.scene.tracks import Tracks
+    from scope3d.sfm.live_mapping import _KeyframeWork, _LocalMap, _reduced
+
+    seq = phantoms.generate("dome", seed=0, size=(320, 240), video_fps=30.0, n_frames=60,
+                            resection=Resection(1.0, radius_mm=3.0, depth_mm=1.5, centre_xy_mm=(0.0, 9.0)))
+    truth = seq.scene_info["resection"]
+    frames = [24, 40, 45, 50]
+    camera, poses = seq.camera, [seq.true_poses[f] for f in frames]
+    depth = seq.depths[frames[0]]
+    v, u = np.mgrid[0:camera.height:6, 0:camera.width:6].reshape(2, -1)
+    ok = np.isfinite(depth[v, u]) & camera.in_image(np.stack([u, v], 1).astype(float))
+    px = np.stack([u[ok], v[ok]], 1).astype(float)
+    points = poses[0].inverse().transform(camera.unproject(px, depth[v[ok], u[ok]]))
+    n = len(points)
+    seen_in_1 = camera.project_world(poses[1], points)
+    tracks = Tracks(np.repeat(np.arange(n), 2), np.tile([0, 1], n), np.repeat(np.arange(n), 2),
+                    np.stack([px, seen_in_1], 1).reshape(-1, 2), np.zeros((n, 3), np.uint8), points)
+    options = replace(LiveMapperOptions(), change_test=partial(detect_surface_change))
+    work = _KeyframeWork(camera, options)
+    work.features = [SimpleNamespace(keypoints=px)] + [SimpleNamespace(keypoints=seen_in_1)] * 3
+    work.retired = [np.zeros(n, bool) for _ in frames]
+    work.images = {k: _reduced(seq.frames[f], options.change_scale) for k, f in enumerate(frames)}
+    work.posed = dict(enumerate(poses))
+    work.depth_prior = DepthPrior(10.0, 35.0)
+    dropped = work._drop_changed(_LocalMap([0, 1, 2, 3], poses, tracks, None))
+
+    moved = wall_moved_mm(points, truth)
+    deep = moved >= 1.0
+    retired = work.retired[0]
+    assert deep.sum() > 20 and len(dropped) > 0
+    assert retired[deep].mean() >= 0.9
+    # what is retired is over the pit or within the footprint's reach of its rim: the grid's 6 px are 0.41 mm
+    # at 22 mm (fx 321 px), and 16 neighbours on a square grid reach sqrt(16 / pi) = 2.3 spacings, 0.93 mm
+    off = np.linalg.norm(points - np.asarray(truth["centre_mm"]), axis=1) - truth["radius_mm"]
+    assert np.all(off[retired] <= 1.0)
+    assert not any(work.retired[k].any() for k in (1, 2, 3))
