@@ -33,10 +33,10 @@ if asked: ``LiveMapperOptions.worker``):
 * **local BCBA** over the newest ``local_window`` keyframes: tracks, triangulation and bundle adjustment
   with every keyframe kept inside the robot's box (:func:`~scope3d.sfm.guided_mapping.adjust_map`, the
   map's own stage), started from the keyframes' live poses, then placed in the world that best fits every
-  keyframe's robot report so far (``gauge``: the window's six alone leave it ~1.2 mm off). Its points (with their SIFT descriptors)
-  become the tracking map, ``map_lag_frames`` frames after the keyframe: a fixed lag rather than "when
-  done", so the output does not depend on the machine's load (the stream waits when the worker is late).
-
+  keyframe's robot report so far (``gauge``: the window's six alone leave it ~1.2 mm off). Its points (with
+  their SIFT descriptors) become the tracking map, ``map_lag_frames`` frames after the keyframe: a fixed lag
+  rather than "when done", so the output does not depend on the machine's load (the stream waits when the
+  worker is late);
 * **changed tissue** (with ``change_test``, e.g. ``scope3d live``'s ``LiveOptions.change``): after the local
   BCBA the newest three keyframes, adjusted together, are plane-swept (at half size) and tested against the
   window's points (:mod:`scope3d.mvs.surface_change`). Where they no longer agree (resected, moved), the
