@@ -191,3 +191,111 @@ def test_a_mirrored_or_collapsed_window_is_not_a_map():
     assert good is not None and good.near_mm <= 10.0 and good.far_mm >= 20.0
     assert work._depth_prior(poses, tracks(np.linspace(-20.0, 20.0, n))) is None  # half behind: mirrored
     assert work._depth_prior(poses, tracks(np.full(n, near / 10))) is None  # collapsed onto the cameras
+
+
+def test_retired_features_leave_every_match():
+    """A keyframe's features that saw tissue since changed (the change test retires them) are in no match the
+    local or the global BCBA builds tracks from; the other matches are kept as they were."""
+    from scope3d.feature.matching import PairMatches
+    from scope3d.sfm.live_mapping import _KeyframeWork
+
+    camera = phantoms.generate("dome", size=(64, 64), n_frames=1).camera
+    work = _KeyframeWork(camera, LiveMapperOptions())
+    work.retired = [np.zeros(10, bool), np.zeros(10, bool)]
+    work.retired[0][[2, 5]] = True
+    work.retired[1][[0, 7]] = True
+    m = PairMatches(0, 1, np.arange(10), np.arange(10)[::-1])  # feature i of 0 with 9 - i of 1
+    kept = work._usable(m)
+    assert kept.idx_i.tolist() == [0, 1, 3, 4, 6, 7, 8]  # 2, 5 retired in 0; 9 (with 0) and 2 (with 7) in 1
+    np.testing.assert_array_equal(kept.idx_j, 9 - kept.idx_i)
+    work.retired = [np.zeros(10, bool), np.zeros(10, bool)]
+    assert work._usable(m) is m
+
+
+def test_the_change_tests_reduced_camera_sees_the_reduced_image():
+    """The change test sweeps keyframes reduced twice: a point's pixel in the reduced camera is the mean of
+    the 2 x 2 full pixels it averages, u' = (u + 0.5) / 2 - 0.5, to rounding."""
+    from scope3d.sfm.live_mapping import _reduced, _reduced_camera
+
+    camera = phantoms.generate("dome", size=(SIZE, SIZE), n_frames=1).camera
+    small = _reduced_camera(camera, 2)
+    assert (small.width, small.height) == (SIZE // 2, SIZE // 2)
+    assert _reduced(np.zeros((SIZE, SIZE, 3), np.uint8), 2).shape == (SIZE // 2, SIZE // 2, 3)
+    points = np.random.default_rng(0).uniform([-5, -5, 10], [5, 5, 30], (50, 3))
+    np.testing.assert_allclose(small.project(points), (camera.project(points) + 0.5) / 2 - 0.5, atol=1e-9)
+
+
+def test_the_gauge_step_between_local_maps_is_recovered():
+    """Two local maps whose worlds differ by a known rigid step (rotation, shift) with keyframes on one line:
+    the step fitted to their common keyframes (centres and a point down each optical axis) is it, to
+    rounding."""
+    from scope3d.estimators.gauge import moved_by
+    from scope3d.geometry.pose import Pose
+    from scope3d.geometry.rotation import rotvec_to_matrix
+    from scope3d.geometry.similarity import Similarity
+    from scope3d.scene.tracks import Tracks
+    from scope3d.sfm.live_mapping import _LocalMap, _world_step
+
+    down = np.diag([1.0, -1.0, -1.0])
+    poses = [Pose.from_centre(down, np.array([x, 12.5, 15.0])) for x in (0.0, 3.0, 6.0, 9.0)]
+    step = Similarity(1.0, rotvec_to_matrix(np.array([0.01, -0.02, 0.03])), np.zeros(3), np.array([0.4, -0.3, 0.2]))
+    empty = Tracks(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)),
+                   np.zeros((0, 3), np.uint8))
+    old = _LocalMap([0, 1, 2, 3], poses, empty, None)
+    new = _LocalMap([1, 2, 3, 4], moved_by(poses[1:], step) + [poses[0]], empty, None)
+    fitted = _world_step(old, new, 20.0)
+    probe = np.random.default_rng(1).uniform(-10, 10, (20, 3))
+    np.testing.assert_allclose(fitted.apply(probe), step.apply(probe), atol=1e-9)
+
+
+def test_the_change_test_retires_the_resected_walls_old_features():
+    """The worker's change test on the phantom's resection: the dome's first survey row at 30 fps, a pit of 3 mm
+    radius and 1.5 mm depth cut at 1 s under (0, 9) mm, in view all along. The local map: points of the wall
+    as it was (frame 24's true depths, every 6th pixel), each seen by keyframe 0 (frame 24, before the cut) and
+    keyframe 1; keyframes 1-3 (frames 40, 45, 50, after it, 1.7 mm apart: at the survey's keyframe spacing,
+    3.3 mm, the half-size sweep kept a depth on none of the pit's deep points, docs/live.md) are the test's
+    sweeps, with their true poses (as a local BCBA gives them: relative errors of hundredths of a
+    millimetre). Keyframe 0's features over the pit's deep part (the wall moved 1 mm or more) are retired,
+    none far from the pit, and no feature of the keyframes that saw the new wall."""
+    from functools import partial
+    from types import SimpleNamespace
+
+    from scope3d.feature.depth_prior import DepthPrior
+    from scope3d.mvs.surface_change import detect_surface_change
+    from scope3d.phantoms.resection import Resection, wall_moved_mm
+    from scope3d.scene.tracks import Tracks
+    from scope3d.sfm.live_mapping import _KeyframeWork, _LocalMap, _reduced
+
+    seq = phantoms.generate("dome", seed=0, size=(320, 240), video_fps=30.0, n_frames=60,
+                            resection=Resection(1.0, radius_mm=3.0, depth_mm=1.5, centre_xy_mm=(0.0, 9.0)))
+    truth = seq.scene_info["resection"]
+    frames = [24, 40, 45, 50]
+    camera, poses = seq.camera, [seq.true_poses[f] for f in frames]
+    depth = seq.depths[frames[0]]
+    v, u = np.mgrid[0:camera.height:6, 0:camera.width:6].reshape(2, -1)
+    ok = np.isfinite(depth[v, u]) & camera.in_image(np.stack([u, v], 1).astype(float))
+    px = np.stack([u[ok], v[ok]], 1).astype(float)
+    points = poses[0].inverse().transform(camera.unproject(px, depth[v[ok], u[ok]]))
+    n = len(points)
+    seen_in_1 = camera.project_world(poses[1], points)
+    tracks = Tracks(np.repeat(np.arange(n), 2), np.tile([0, 1], n), np.repeat(np.arange(n), 2),
+                    np.stack([px, seen_in_1], 1).reshape(-1, 2), np.zeros((n, 3), np.uint8), points)
+    options = replace(LiveMapperOptions(), change_test=partial(detect_surface_change))
+    work = _KeyframeWork(camera, options)
+    work.features = [SimpleNamespace(keypoints=px)] + [SimpleNamespace(keypoints=seen_in_1)] * 3
+    work.retired = [np.zeros(n, bool) for _ in frames]
+    work.images = {k: _reduced(seq.frames[f], options.change_scale) for k, f in enumerate(frames)}
+    work.posed = dict(enumerate(poses))
+    work.depth_prior = DepthPrior(10.0, 35.0)
+    dropped = work._drop_changed(_LocalMap([0, 1, 2, 3], poses, tracks, None))
+
+    moved = wall_moved_mm(points, truth)
+    deep = moved >= 1.0
+    retired = work.retired[0]
+    assert deep.sum() > 20 and len(dropped) > 0
+    assert retired[deep].mean() >= 0.9
+    # what is retired is over the pit or within the footprint's reach of its rim: the grid's 6 px are 0.41 mm
+    # at 22 mm (fx 321 px), and 16 neighbours on a square grid reach sqrt(16 / pi) = 2.3 spacings, 0.93 mm
+    off = np.linalg.norm(points - np.asarray(truth["centre_mm"]), axis=1) - truth["radius_mm"]
+    assert np.all(off[retired] <= 1.0)
+    assert not any(work.retired[k].any() for k in (1, 2, 3))

@@ -28,6 +28,10 @@ def register(subparsers) -> None:
     p.add_argument("--preset", choices=("default", "dim_endoscope"), default="default",
                    help="dim_endoscope: CLAHE and a lower SIFT threshold, for dark or small frames (as `scope3d map "
                    "--preset dim_endoscope`)")
+    p.add_argument("--changing-tissue", action="store_true",
+                   help="test each keyframe for tissue that changed (resected, moved) and map it again from the new "
+                   "keyframes (mvs.surface_change; 0.5-1.5 s of the worker per keyframe: the stream may wait for "
+                   "it; docs/live.md)")
     add_job_arguments(p)
     p.set_defaults(func=_run)
 
@@ -36,12 +40,14 @@ def _run(args) -> int:
     from scope3d.cli.progress import progress_bar
     from scope3d.errors import InputError
     from scope3d.io.dataset import load_dataset
+    from scope3d.mvs.surface_change import SurfaceChangeOptions
     from scope3d.pipelines.live import LiveOptions, run
     from scope3d.sfm.live_mapping import LIVE_PRESETS
 
     dataset = load_dataset(args.dataset)
     try:
-        options = LiveOptions(LIVE_PRESETS[args.preset], wait=not args.no_wait, fps=args.fps)
+        options = LiveOptions(LIVE_PRESETS[args.preset], wait=not args.no_wait, fps=args.fps,
+                              change=SurfaceChangeOptions() if args.changing_tissue else None)
     except ValueError as exc:
         raise InputError(f"--fps: {exc}") from None
     with job_folder(args.out) as staged, progress_bar(show_progress(args), "frame") as progress:

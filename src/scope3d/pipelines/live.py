@@ -19,7 +19,9 @@ Method, one stage per function, run top to bottom by :func:`run`:
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +32,7 @@ from scope3d.io.dataset import Dataset
 from scope3d.io.ply import write_ply
 from scope3d.io.poses_csv import format_poses_csv
 from scope3d.metrology.evaluation import EvaluationOptions, pose_errors, surface_errors
+from scope3d.mvs.surface_change import SurfaceChangeOptions, detect_surface_change
 from scope3d.scene.mesh import PointCloud, SampledSurface
 from scope3d.sensor.pose_tolerance import MeasuredPose
 from scope3d.sfm.live_mapping import LIVE_STATUSES, LiveFrame, LiveMap, LiveMapper, LiveMapperOptions
@@ -46,6 +49,11 @@ class LiveOptions:
     fps : float or None, the recording's frame rate (None: the phantom video's, from its ground truth).
     tolerance_sigmas : float, the tolerance written for a fused pose, in its standard deviations (3).
     evaluation : the surface errors' settings. figures : bool, write live.png (default True).
+    change : tissue that changed (resected, moved) found by :func:`~scope3d.mvs.surface_change.detect_surface_change`
+        with these options and dropped from the map (the mapper's ``change_test``), or None (default) to keep
+        every point; a ``change_test`` already in ``mapper`` is kept. Off by default: on the loaded 2-core
+        machine the test takes 0.5-1.5 s per keyframe, which pushes the worker past its one-second lag, so the
+        stream waits (latency p99 1.7 s instead of 76 ms on the dome survey, benchmarks/results/live_resect.json).
     """
 
     mapper: LiveMapperOptions = field(default_factory=LiveMapperOptions)
@@ -54,6 +62,7 @@ class LiveOptions:
     tolerance_sigmas: float = 3.0
     evaluation: EvaluationOptions = field(default_factory=EvaluationOptions)
     figures: bool = True
+    change: SurfaceChangeOptions | None = None
 
     def __post_init__(self) -> None:
         if self.fps is not None and not (np.isfinite(self.fps) and self.fps > 0):
@@ -97,16 +106,26 @@ def frame_times(options: LiveOptions, dataset: Dataset) -> np.ndarray:
     return np.arange(len(dataset)) / float(fps)
 
 
-def replay(options: LiveOptions, dataset: Dataset, times: np.ndarray, *,
-           progress: Progress | None = None) -> tuple[list[LiveFrame], LiveMap, float, list[LiveMap]]:
+def mapper_options(options: LiveOptions) -> LiveMapperOptions:
+    """The mapper's options with the change test of ``options.change`` (a function that pickles: the mapper's
+    worker is a spawned process)."""
+    if options.change is None or options.mapper.change_test is not None:
+        return options.mapper
+    return replace(options.mapper, change_test=partial(detect_surface_change, options=options.change))
+
+
+def replay(options: LiveOptions, dataset: Dataset, times: np.ndarray, *, progress: Progress | None = None,
+           on_frame: Callable[[LiveFrame, LiveMapper], None] | None = None,
+           ) -> tuple[list[LiveFrame], LiveMap, float, list[LiveMap]]:
     """Every frame through one mapper, at the recorded rate when ``options.wait``; then the global BCBA.
     Returns the frames, the final map, the global BCBA's wall time (s) and the map as it stood at each
     keyframe (:meth:`~scope3d.sfm.live_mapping.LiveMapper.current_map`, taken after the frame's answer).
-    A frame is read before its time comes (a live stream delivers decoded frames)."""
+    A frame is read before its time comes (a live stream delivers decoded frames). ``on_frame(frame,
+    mapper)`` is called after each frame's answer (a benchmark's look at the map as it grows)."""
     frames: list[LiveFrame] = []
     snapshots: list[LiveMap] = []
     stage(progress, "live", len(dataset))
-    with LiveMapper(dataset.camera, options.mapper) as mapper:
+    with LiveMapper(dataset.camera, mapper_options(options)) as mapper:
         start = time.perf_counter()
         for k in range(len(dataset)):
             image = dataset.frame(k)
@@ -115,6 +134,8 @@ def replay(options: LiveOptions, dataset: Dataset, times: np.ndarray, *,
                 if late > 0:
                     time.sleep(late)
             frames.append(mapper.add_frame(image, dataset.poses[k], float(times[k])))
+            if on_frame is not None:
+                on_frame(frames[-1], mapper)
             if frames[-1].keyframe is not None:
                 snapshots.append(mapper.current_map())
             advance(progress)
@@ -176,11 +197,12 @@ def write_outputs(options: LiveOptions, dataset: Dataset, out_dir: Path, frames:
     (out_dir / "keyframes.csv").write_text(format_poses_csv([names[k] for k in final.keyframe_frames],
                                                             [MeasuredPose(p) for p in final.keyframe_poses]))
     rows = errors.get("rows")
-    lines = ["frame,time_s,status,keyframe,latency_ms,waited_ms,inliers,fused_error_mm,robot_error_mm,image_error_mm"]
+    lines = ["frame,time_s,status,keyframe,latency_ms,waited_ms,inliers,dropped_points,fused_error_mm,robot_error_mm,"
+             "image_error_mm"]
     for k, f in enumerate(frames):
         e = (f"{rows[k]['fused'][0]:.6f},{rows[k]['robot'][0]:.6f},{rows[k]['image'][0]:.6f}" if rows else ",,")
         lines.append(f"{names[f.index]},{f.time_s:.6f},{f.status},{'' if f.keyframe is None else f.keyframe},"
-                     f"{f.latency_ms:.3f},{f.waited_ms:.3f},{f.n_inliers},{e}")
+                     f"{f.latency_ms:.3f},{f.waited_ms:.3f},{f.n_inliers},{f.dropped_points},{e}")
     (out_dir / "frames.csv").write_text("\n".join(lines) + "\n")
     write_ply(out_dir / "map.ply", PointCloud(final.points, final.colors))
     (out_dir / "keyframe_maps").mkdir()
@@ -200,6 +222,8 @@ def write_outputs(options: LiveOptions, dataset: Dataset, out_dir: Path, frames:
                        "without_waits": {"median": float(np.median(own)), "p99": float(np.percentile(own, 99)),
                                          "max": float(own.max())}},
         "global_bcba_s": finish_s,
+        "changed_tissue": {"points_dropped": int(sum(f.dropped_points for f in frames)),
+                           "at_frames": [f.index for f in frames if f.dropped_points]},
         "keyframe_frames": final.keyframe_frames.tolist(),
     }
     report.update({k: v for k, v in errors.items() if k != "rows"})

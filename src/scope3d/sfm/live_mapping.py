@@ -32,9 +32,16 @@ if asked: ``LiveMapperOptions.worker``):
   depth is known, exhaustively;
 * **local BCBA** over the newest ``local_window`` keyframes: tracks, triangulation and bundle adjustment
   with every keyframe kept inside the robot's box (:func:`~scope3d.sfm.guided_mapping.adjust_map`, the
-  map's own stage), started from the keyframes' live poses. Its points (with their SIFT descriptors)
-  become the tracking map, ``map_lag_frames`` frames after the keyframe: a fixed lag rather than "when
-  done", so the output does not depend on the machine's load (the stream waits when the worker is late).
+  map's own stage), started from the keyframes' live poses, then placed in the world that best fits every
+  keyframe's robot report so far (``gauge``: the window's six alone leave it ~1.2 mm off). Its points (with
+  their SIFT descriptors) become the tracking map, ``map_lag_frames`` frames after the keyframe: a fixed lag
+  rather than "when done", so the output does not depend on the machine's load (the stream waits when the
+  worker is late);
+* **changed tissue** (with ``change_test``, e.g. ``scope3d live``'s ``LiveOptions.change``): after the local
+  BCBA the newest three keyframes, adjusted together, are plane-swept (at half size) and tested against the
+  window's points (:mod:`scope3d.mvs.surface_change`). Where they no longer agree (resected, moved), the
+  older keyframes' features there are retired (no match uses them again, in a later window or the global
+  BCBA), the window is adjusted again, and the new keyframes alone map the region.
 
 :meth:`LiveMapper.finish` runs the **global BCBA**: pairs over all keyframes chosen from their adjusted
 poses (:func:`~scope3d.feature.pairs.select_pairs`, which also closes loops: a serpentine survey's
@@ -56,10 +63,13 @@ import queue
 import threading
 import time
 import traceback
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
+import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from scope3d.errors import InputError
 from scope3d.estimators.kalman import KalmanOptions, PoseKalmanFilter, covariance_to_tolerance
@@ -70,7 +80,9 @@ from scope3d.feature.keyframes import KeyframeOptions, KeyframeSelector
 from scope3d.feature.matching import MatchOptions, PairMatches, match_exhaustive, match_guided_many
 from scope3d.feature.pairs import PairOptions, select_pairs
 from scope3d.feature.tracks import build_tracks, observation_descriptors, track_descriptors
+from scope3d.estimators.gauge import gauge_from_measurements, moved_by
 from scope3d.geometry.pose import Pose
+from scope3d.geometry.similarity import Similarity, fit_similarity
 from scope3d.io.map_points import MapPoints
 from scope3d.scene.tracks import Tracks
 from scope3d.sensor.camera import Camera
@@ -80,6 +92,7 @@ from scope3d.sfm.localization import LocalizationResult, Localizer, LocalizerOpt
 
 LIVE_STATUSES = ("tracked", "keyframe", "relocalized", "lost")
 LIVE_WORKERS = ("process", "thread", "inline")
+LIVE_GAUGES = ("all", "window")
 
 
 @dataclass(frozen=True)
@@ -120,6 +133,28 @@ class LiveMapperOptions:
         report's box plus that offset. Inside the box alone, 186 of the dome survey's pose attempts failed as
         ``outside_tolerance`` (the 1.1 mm gauge offset plus the report's error past 3 mm), each a lost frame
         and a relocalization on the tracking path.
+    gauge : ``all`` (default) or ``window``: the robot's reports that place each local map in the world.
+        ``window``: its own keyframes' (the local BCBA's gauge), off the truth by the mean of six reports'
+        errors. ``all``: every keyframe's so far, the older ones carried into the window's world by the steps
+        between successive local maps (:func:`_world_step`), so that the errors average down as the map grows
+        (docs/live.md: the image pose's error was mostly this gauge; on the dome survey the gauge's shift at
+        the camera fell from 1.47 to 1.23 mm median, the fused error from 1.95 to 1.56 mm, and the frames
+        with the fused error at most half the robot's rose from 26 to 42 %; holding its scale at 1 did
+        worse, 34 %: the windows' scales differ).
+    change_test : the test of tissue that changed, or None (default) to keep every point: a function
+        ``(camera, points, sigma_mm, images, poses, *, references) -> SurfaceChange``, in practice
+        ``functools.partial(scope3d.mvs.surface_change.detect_surface_change, options=...)`` (``scope3d
+        live`` passes it; ``mvs`` sits beside ``sfm``, so the mapper takes it as a function).
+        change_keyframes : int >= 3, the newest keyframes (adjusted together) whose plane sweeps test the map
+        (default 3: the sweep's reference and its two sources; the two newest are swept, the test's two
+        views of a point). change_min_baseline : float, the test waits while two of them are nearer than this
+        fraction of the depth prior's near end (default 0.05, half the sweep's baseline of choice, 0.1:
+        keyframes kept in a burst when tracking was lost barely move). change_reach_neighbours : int, the
+        footprint of a change in an older keyframe reaches as far as the median distance to a map point's
+        this-th neighbour there (default 16, the test's vote). change_scale : int >= 1, the test runs on the
+        keyframes reduced this many times (default 2: a sweep of three 320 px frames took 0.75-2 s on the
+        loaded 2-core machine, more than the worker's second per keyframe; at 160 px a quarter of it, the
+        depth still good to a tenth of a millimetre at the survey's 3-7 mm baselines).
     depth_margin : float, the depth prior is the local map's 2nd-98th depth percentiles widened by this
         fraction on each side (default 0.1, as :func:`~scope3d.sfm.depth_priors.estimate_depth_prior`).
     working_range_mm : (near, far), where the scene may lie before any point is known (default 2-100 mm, an
@@ -142,10 +177,18 @@ class LiveMapperOptions:
     kalman: KalmanOptions = field(default_factory=KalmanOptions)
     guide_sigmas: float = 3.0
     image_box_scale: float = 2.0
+    gauge: str = "all"
+    change_test: Callable | None = None
+    change_keyframes: int = 3
+    change_scale: int = 2
+    change_min_baseline: float = 0.05
+    change_reach_neighbours: int = 16
     depth_margin: float = 0.1
     working_range_mm: tuple[float, float] = (2.0, 100.0)
 
     def __post_init__(self) -> None:
+        if self.gauge not in LIVE_GAUGES:
+            raise ValueError(f"gauge must be one of {LIVE_GAUGES}, got {self.gauge!r}")
         if not 0 < self.min_inlier_fraction < 1:
             raise ValueError(f"min_inlier_fraction must be in (0, 1), got {self.min_inlier_fraction}")
         if self.local_window < 2:
@@ -160,6 +203,11 @@ class LiveMapperOptions:
             raise ValueError("need guide_sigmas > 0 and depth_margin >= 0")
         if not self.image_box_scale >= 1:
             raise ValueError(f"image_box_scale must be >= 1, got {self.image_box_scale}")
+        if self.change_scale < 1:
+            raise ValueError(f"change_scale must be >= 1, got {self.change_scale}")
+        if self.change_keyframes < 3 or self.change_reach_neighbours < 1 or not self.change_min_baseline > 0:
+            raise ValueError("need change_keyframes >= 3 (a sweep's reference and its two sources), "
+                             "change_reach_neighbours >= 1 and change_min_baseline > 0")
         DepthPrior(*self.working_range_mm)  # raises on a wrong range
 
 
@@ -183,6 +231,8 @@ class LiveFrame:
     n_inliers : tracking inliers (0 without an image pose). keyframe : the keyframe's number when the frame
     became one, else None. latency_ms : wall time of :meth:`LiveMapper.add_frame`. waited_ms : the part of it
     spent waiting for a local map due at this frame that the worker had not finished (0 when it was ready).
+    dropped_points : map points the change test found changed in the local map that became the tracking map
+    at this frame (their tissue was re-mapped from the newest keyframes).
     """
 
     index: int
@@ -196,6 +246,7 @@ class LiveFrame:
     keyframe: int | None
     latency_ms: float
     waited_ms: float = 0.0
+    dropped_points: int = 0
 
 
 @dataclass
@@ -219,12 +270,14 @@ class LiveMap:
 
 @dataclass
 class _LocalMap:
-    """A local BCBA's outcome: its keyframes, their adjusted poses, its tracks and its tracking map."""
+    """A local BCBA's outcome: its keyframes, their adjusted poses, its tracks and its tracking map; the
+    points the change test dropped before it was adjusted ((N, 3) mm, its world)."""
 
     keyframes: list[int]
     poses: list[Pose]
     tracks: Tracks
     points: MapPoints
+    dropped: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
 
 class LiveMapper:
@@ -265,9 +318,10 @@ class LiveMapper:
             raise ValueError(f"frame time {time} s is before the previous frame's {self._last_time} s")
         index = self._frames
         t_wait = _clock()
+        dropped = 0
         while self._pending and self._pending[0] <= index:
             self._pending.pop(0)
-            self._apply(self._worker.result())
+            dropped += self._apply(self._worker.result())
         waited_ms = 1000.0 * (_clock() - t_wait) if self._worker.was_late() else 0.0
         if self._filter.initialised:
             self._filter.predict(time - self._last_time)
@@ -301,7 +355,7 @@ class LiveMapper:
         self._last_status = status if ok else "lost"
         return LiveFrame(index, float(time), status, self._filter.pose, self._filter.pose_covariance,
                          result.pose if ok else None, result.covariance if ok else None,
-                         result.n_inliers if ok else 0, keyframe, 1000.0 * (_clock() - t0), waited_ms)
+                         result.n_inliers if ok else 0, keyframe, 1000.0 * (_clock() - t0), waited_ms, dropped)
 
     def current_map(self) -> LiveMap:
         """The map now: every keyframe (adjusted where a local BCBA reached it) and the local map's points;
@@ -348,9 +402,10 @@ class LiveMapper:
     def n_keyframes(self) -> int:
         return len(self._keyframes)
 
-    def _apply(self, outcome: "_LocalMap | None") -> None:
+    def _apply(self, outcome: "_LocalMap | None") -> int:
+        """Track on a new local map; returns how many points the change test dropped from it."""
         if outcome is None:
-            return
+            return 0
         before, self._local = self._local, outcome
         if self._localizer is None:
             self._localizer = Localizer(outcome.points, self.camera, self.options.localizer)
@@ -360,6 +415,7 @@ class LiveMapper:
             if moved is not None:
                 self._filter.change_world(moved)
         self._reference_inliers = 0
+        return len(outcome.dropped)
 
     def _keyframe_frames(self) -> np.ndarray:
         return np.array([k.frame for k in self._keyframes], np.int64)
@@ -386,16 +442,28 @@ class _KeyframeWork:
         self.matches: dict[tuple[int, int], PairMatches] = {}
         self.adjusted: dict[int, Pose] = {}
         self.depth_prior: DepthPrior | None = None
+        # the change test's state: per keyframe and feature, whether it saw tissue that has changed since (its
+        # matches are no longer used); the newest keyframes' images; every adjusted keyframe's pose in the
+        # newest local map's world
+        self.retired: list[np.ndarray] = []
+        self.images: dict[int, np.ndarray] = {}
+        self.posed: dict[int, Pose] = {}
+        self.last: _LocalMap | None = None
 
     def add(self, keyframe: int, image: np.ndarray, measured: MeasuredPose, guide: MeasuredPose) -> _LocalMap | None:
-        """A new keyframe: its SIFT, its matches to the window's other keyframes, and the local BCBA over the
-        window. None when the window holds too little to adjust."""
+        """A new keyframe: its SIFT, its matches to the window's other keyframes, the local BCBA over the
+        window, then the change test (tissue the newest keyframes no longer see as the map has it is dropped
+        and the window adjusted again without it). None when the window holds too little to adjust."""
         o = self.options
         if keyframe != len(self.features):
             raise ValueError(f"keyframe {keyframe} out of order (expected {len(self.features)})")
         self.measured.append(measured)
         self.guides.append(guide)
         self.features.append(detect(image, self.camera, options=o.features))
+        self.retired.append(np.zeros(len(self.features[-1].keypoints), bool))
+        if o.change_test is not None:
+            self.images[keyframe] = _reduced(image, o.change_scale)
+            self.images.pop(keyframe - o.change_keyframes, None)
         window = list(range(max(0, keyframe - o.local_window + 1), keyframe + 1))
         for i in window[:-1]:
             if self.depth_prior is None:
@@ -408,11 +476,47 @@ class _KeyframeWork:
             self.matches[(i, keyframe)] = m
         if len(window) < o.min_keyframes:
             return None
+        outcome = self._adjust_window(window)
+        if outcome is None:
+            return None
+        self._move_world(outcome)
+        if o.change_test is not None and len(window) > o.change_keyframes:
+            dropped = self._drop_changed(outcome)
+            if len(dropped):
+                again = self._adjust_window(window)
+                if again is not None:
+                    self._move_world(again)
+                    outcome = again
+                outcome.dropped = dropped
+        if o.gauge == "all":
+            outcome = self._anchored(outcome)
+        return outcome
+
+    def _anchored(self, local: _LocalMap) -> _LocalMap:
+        """The local map moved into the world that best fits every keyframe's robot report so far
+        (:func:`~scope3d.estimators.gauge.gauge_from_measurements` over the keyframes' poses in this map's
+        world, each weighed by its box)."""
+        ks = sorted(self.posed)
+        step = gauge_from_measurements([self.posed[k] for k in ks], [self.measured[k] for k in ks])
+        poses = moved_by(local.poses, step)
+        self.posed = dict(zip(ks, moved_by([self.posed[k] for k in ks], step)))
+        for k, pose in zip(local.keyframes, poses):
+            self.adjusted[k] = pose
+        tracks = replace(local.tracks, points=step.apply(local.tracks.points))
+        points = replace(local.points, xyz_mm=step.apply(local.points.xyz_mm))
+        moved = _LocalMap(local.keyframes, poses, tracks, points, local.dropped)
+        self.last = moved
+        return moved
+
+    def _adjust_window(self, window: list[int]) -> _LocalMap | None:
+        """The local BCBA over ``window`` (keyframe numbers) from its usable matches; None when too little
+        survives or the solution is no map (see :meth:`_depth_prior`)."""
+        o = self.options
         local = {k: n for n, k in enumerate(window)}
-        matches = [_renumbered(m, local[i], local[j]) for (i, j), m in self.matches.items()
+        matches = [_renumbered(self._usable(m), local[i], local[j]) for (i, j), m in self.matches.items()
                    if i in local and j in local and len(m)]
         features = [self.features[k] for k in window]
-        tracks = build_tracks(features, matches, min_track_length=o.tracks.min_track_length)
+        tracks = build_tracks(features, [m for m in matches if len(m)], min_track_length=o.tracks.min_track_length)
         if tracks.n_tracks < o.localizer.pose.min_inliers:
             return None
         try:
@@ -434,6 +538,71 @@ class _KeyframeWork:
                            observation_descriptors(features, t), t.track.copy())
         return _LocalMap(window, list(adjusted.poses), t, points)
 
+    def _usable(self, m: PairMatches) -> PairMatches:
+        """The matches of a keyframe pair without the features retired as changed tissue."""
+        keep = ~(self.retired[m.i][m.idx_i] | self.retired[m.j][m.idx_j])
+        return m if keep.all() else PairMatches(m.i, m.j, m.idx_i[keep], m.idx_j[keep])
+
+    def _move_world(self, new: _LocalMap) -> None:
+        """Every keyframe's pose in ``new``'s world: its own keyframes' adjusted poses, the older ones moved by
+        the gauge step between the last local map and this one (:func:`_world_step`)."""
+        old, self.last = self.last, new
+        if old is not None:
+            new_from_old = _world_step(old, new, self.depth_prior.near_mm)
+            if new_from_old is not None:
+                self.posed = dict(zip(self.posed, moved_by(list(self.posed.values()), new_from_old)))
+        self.posed.update(zip(new.keyframes, new.poses))
+
+    def _drop_changed(self, local: _LocalMap) -> np.ndarray:
+        """The change test (``change_test``, ``mvs.surface_change``): the plane sweeps of the newest
+        ``change_keyframes``, adjusted together, against the local map's points. The changed points, and those
+        in a swept view's region to map again (``SurfaceChange.regions``), lose their observations in the
+        older keyframes, and so does every older keyframe's feature within their footprint there (the reach
+        of the test's vote in that image: the median distance to a map point's ``change_reach_neighbours``-th
+        neighbour; never triangulated, or in a track the test did not judge, such a feature could still bring
+        the old surface back in a later window or the global BCBA). Returns the changed points ((N, 3) mm,
+        this local map's world).
+
+        Only the window's points are tested: a map left behind is in its own window's world. Carried into the
+        newest one by the chain of gauge steps it was 0.5-2.5 mm off within a few windows on the dome survey
+        (the test's noise factor rose to 3.6 and it flagged points off the pit), far above the 0.1-0.3 mm the
+        test resolves. Tissue changed while the scope looked elsewhere needs a loop closure first."""
+        o = self.options
+        newest = local.keyframes[-o.change_keyframes:]
+        if not _sweepable(self.camera, [self.posed[k] for k in newest], self.depth_prior, o.change_min_baseline):
+            return np.zeros((0, 3))
+        t = local.tracks
+        found = o.change_test(_reduced_camera(self.camera, o.change_scale), t.points,
+                              _point_sigma(self.camera, local.poses, t), [self.images[k] for k in newest],
+                              [self.posed[k] for k in newest], references=list(range(len(newest)))[-2:])
+        # the changed points, and every point in the region to map again of a swept view: most points over a
+        # change are judged in too few views to be tested themselves (the sweep keeps a depth only where the
+        # texture has contrast), and left in, the old surface stays in the map beside the new one
+        changed = found.changed.copy()
+        small = _reduced_camera(self.camera, o.change_scale)
+        for r, region in zip(found.references, found.regions):
+            px = _in_view(small, self.posed[newest[r]], t.points, region)
+            changed |= ~np.isnan(px[:, 0])
+        if not changed.any():
+            return np.zeros((0, 3))
+        older = np.array([k for k in self.posed if k < newest[0]], np.int64)
+        frames = np.asarray(local.keyframes)[t.frame]
+        own = changed[t.track] & np.isin(frames, older)
+        for k, f in zip(frames[own], t.feature[own]):
+            self.retired[k][f] = True
+        field_mask = self.camera.mask()
+        for k in older:
+            seen_px = _in_view(self.camera, self.posed[int(k)], t.points, field_mask)
+            visible = ~np.isnan(seen_px[:, 0])
+            hit = changed & visible
+            if hit.sum() == 0 or visible.sum() < 2:
+                continue
+            seen = seen_px[visible]
+            k_reach = min(o.change_reach_neighbours, len(seen) - 1)
+            reach = float(np.median(cKDTree(seen).query(seen, k_reach + 1)[0][:, -1]))
+            self.retired[k] |= cKDTree(seen_px[hit]).query(self.features[k].keypoints, 1)[0] <= reach
+        return t.points[changed]
+
     def guide(self, keyframe: int) -> MeasuredPose:
         """A keyframe's pose for guided matching and to start an adjustment: the adjusted one once a local
         BCBA reached it, with the box its fused covariance gave when it was kept."""
@@ -451,7 +620,7 @@ class _KeyframeWork:
         todo = [(i, j, ov) for i, j, ov in pairs if (i, j) not in self.matches]
         for m in match_guided_many(self.camera, self.features, guides, todo, prior, options=self.options.matching):
             self.matches[(m.i, m.j)] = m
-        matches = [m for m in self.matches.values() if len(m)]
+        matches = [u for u in (self._usable(m) for m in self.matches.values()) if len(u)]
         tracks = build_tracks(self.features, matches, min_track_length=self.options.tracks.min_track_length)
         if tracks.n_tracks == 0:
             raise InputError("no feature could be matched between keyframes")
@@ -645,6 +814,88 @@ def _new_from_old(old: _LocalMap, new: _LocalMap) -> Pose | None:
         return None
     k = common[-1]
     return new.poses[new.keyframes.index(k)].inverse() @ old.poses[old.keyframes.index(k)]
+
+
+#: a SIFT keypoint's localisation error (px) in a map point's depth error; its scale matters little: the change
+#: test measures the scale of its residuals (the noise factor), this only weighs a point's error against the sweep's
+KEYPOINT_SIGMA_PX = 0.5
+
+
+def _point_sigma(camera: Camera, poses: list[Pose], tracks: Tracks) -> np.ndarray:
+    """(n_tracks,) mm: each point's depth error from its widest pair of views, ``z^2 sigma_px / (f b)``, z its
+    distance from its first view's centre, b the longest baseline from that view among its observers."""
+    centres = np.array([p.centre for p in poses])[tracks.frame]
+    first = np.searchsorted(tracks.track, np.arange(tracks.n_tracks))
+    baseline = np.zeros(tracks.n_tracks)
+    np.maximum.at(baseline, tracks.track, np.linalg.norm(centres - centres[first][tracks.track], axis=1))
+    depth = np.linalg.norm(tracks.points - centres[first], axis=1)
+    return depth ** 2 * KEYPOINT_SIGMA_PX / (camera.fx * np.maximum(baseline, 1e-3))
+
+
+def _sweepable(camera: Camera, poses: list[Pose], prior: DepthPrior, min_baseline: float) -> bool:
+    """Whether the keyframes can be swept together: every two at least ``min_baseline`` times the near
+    depth apart (keyframes kept in a burst when tracking was lost barely move: no parallax), and each one's
+    view centre, at the near and the far depth, inside every other's image (a pose gone wrong looks away)."""
+    centres = np.array([p.centre for p in poses])
+    apart = np.linalg.norm(centres[:, None] - centres[None], axis=2)[np.triu_indices(len(poses), 1)]
+    if apart.min() < min_baseline * prior.near_mm:
+        return False
+    centre_px = np.array([[(camera.width - 1) / 2.0, (camera.height - 1) / 2.0]])
+    for a in poses:
+        ends = np.concatenate([a.inverse().transform(camera.unproject(centre_px, z))
+                               for z in (prior.near_mm, prior.far_mm)])
+        for b in poses:
+            if not (np.all(b.transform(ends)[:, 2] > 0) and np.all(np.isfinite(camera.project_world(b, ends)))):
+                return False
+    return True
+
+
+def _reduced(image: np.ndarray, scale: int) -> np.ndarray:
+    """The image reduced ``scale`` times (pixel areas averaged)."""
+    if scale == 1:
+        return image
+    h, w = image.shape[:2]
+    return cv2.resize(image, (w // scale, h // scale), interpolation=cv2.INTER_AREA)
+
+
+def _reduced_camera(camera: Camera, scale: int) -> Camera:
+    """The camera of :func:`_reduced` images: a reduced pixel's centre is the mean of the ``scale`` x ``scale``
+    pixels it averages (pixel centres at integers: u' = (u + 0.5) / scale - 0.5)."""
+    if scale == 1:
+        return camera
+    return replace(camera, width=camera.width // scale, height=camera.height // scale, fx=camera.fx / scale,
+                   fy=camera.fy / scale, cx=(camera.cx + 0.5) / scale - 0.5, cy=(camera.cy + 0.5) / scale - 0.5,
+                   mask_radius_px=None if camera.mask_radius_px is None else camera.mask_radius_px / scale)
+
+
+def _in_view(camera: Camera, pose: Pose, points: np.ndarray, field_mask: np.ndarray) -> np.ndarray:
+    """(N, 2) pixels of the points in front of the camera and inside its field, NaN for the others."""
+    cam = pose.transform(points)
+    out = np.full((len(points), 2), np.nan)
+    front = cam[:, 2] > 0
+    px = camera.project(cam[front])
+    ij = np.round(px).astype(int)
+    inside = (ij[:, 0] >= 0) & (ij[:, 1] >= 0) & (ij[:, 0] < camera.width) & (ij[:, 1] < camera.height)
+    inside[inside] = field_mask[ij[inside, 1], ij[inside, 0]]
+    out[np.flatnonzero(front)[inside]] = px[inside]
+    return out
+
+
+def _world_step(old: _LocalMap, new: _LocalMap, reach_mm: float) -> Similarity | None:
+    """The rigid step from the old local map's world to the new one's, fitted to all the keyframes both
+    adjusted (not one, as the tracking map's :func:`_new_from_old`: that one keyframe's own error would move
+    every older pose by it): their centres and a point ``reach_mm`` along each optical axis (a survey's
+    centres may lie on a line, which leaves the rotation about it free). None with fewer than two common
+    keyframes."""
+    common = sorted(set(old.keyframes) & set(new.keyframes))
+    if len(common) < 2:
+        return None
+
+    def marks(m: _LocalMap) -> np.ndarray:
+        poses = [m.poses[m.keyframes.index(k)] for k in common]
+        return np.concatenate([[p.centre for p in poses], [p.centre + reach_mm * p.optical_axis for p in poses]])
+
+    return fit_similarity(marks(old), marks(new), with_scale=False)
 
 
 def _renumbered(m: PairMatches, i: int, j: int) -> PairMatches:
