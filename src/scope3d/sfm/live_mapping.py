@@ -21,7 +21,10 @@ Per frame, on the caller's thread (the tracking path):
 * **keyframes** — a frame becomes a keyframe when its view has moved a fifth of the image from the last
   keyframe's (phase correlation, :class:`~scope3d.feature.keyframes.KeyframeSelector`, the video import's
   rule: a wall point stays in about five keyframes), or when tracking holds fewer than
-  ``min_inlier_fraction`` of the points the current local map first gave.
+  ``min_inlier_fraction`` of the points it held at the last keyframe (or on the current local map's first
+  frame, if later); either way only when the frame adds the baseline triangulation needs (its
+  ``tracks.min_angle_deg`` of parallax at the map's depth) from the last keyframe. A frame that cannot be
+  tracked and has no baseline stays ``lost``, not a keyframe.
 
 Per keyframe, on a worker while tracking goes on (a child process by default, a thread or inline
 if asked: ``LiveMapperOptions.worker``):
@@ -32,9 +35,11 @@ if asked: ``LiveMapperOptions.worker``):
   depth is known, exhaustively;
 * **local BCBA** over the newest ``local_window`` keyframes: tracks, triangulation and bundle adjustment
   with every keyframe kept inside the robot's box (:func:`~scope3d.sfm.guided_mapping.adjust_map`, the
-  map's own stage), started from the keyframes' live poses, then placed in the world that best fits every
-  keyframe's robot report so far (``gauge``: the window's six alone leave it ~1.2 mm off). Its points (with
-  their SIFT descriptors) become the tracking map, ``map_lag_frames`` frames after the keyframe: a fixed lag
+  map's own stage), started from the keyframes' live poses; the tracks whose views span less than
+  triangulation's angle with the point at the window's near depth are dropped (:func:`_with_parallax`);
+  the window is then placed in the world that best fits every keyframe's robot report so far (``gauge``:
+  the window's six alone leave it ~1.2 mm off). Its points (with their SIFT descriptors) become the
+  tracking map, ``map_lag_frames`` frames after the keyframe: a fixed lag
   rather than "when done", so the output does not depend on the machine's load (the stream waits when the
   worker is late);
 * **changed tissue** (with ``change_test``, e.g. ``scope3d live``'s ``LiveOptions.change``): after the local
@@ -47,7 +52,8 @@ if asked: ``LiveMapperOptions.worker``):
 poses (:func:`~scope3d.feature.pairs.select_pairs`, which also closes loops: a serpentine survey's
 neighbouring rows, a return to a mapped region), the missing pairs matched guided, then the map's
 tracks-triangulation-bounded-adjustment stage over every keyframe with the robot's boxes. It is the same
-stage ``scope3d map`` runs on the same frames, started from better poses.
+stage ``scope3d map`` runs on the same frames, started from better poses; the tracks without parallax
+leave it as they leave the local maps.
 
 Statuses (:data:`LIVE_STATUSES`): ``tracked`` (image pose fused with the robot's), ``keyframe`` (as tracked
 — or the robot's alone before the first map — and the frame was kept), ``relocalized`` (the image pose came
@@ -102,8 +108,10 @@ class LiveMapperOptions:
     localizer : tracking against the local map (:class:`~scope3d.sfm.localization.LocalizerOptions`).
     keyframes : when the view has moved enough (:class:`~scope3d.feature.keyframes.KeyframeOptions`).
     min_inlier_fraction : float in (0, 1), a frame also becomes a keyframe when its tracking inliers fall
-        below this fraction of what the first frame tracked on the current local map had (default 0.5: the
-        view has left half of the mapped points behind).
+        below this fraction of what the last keyframe, or the first frame tracked on the current local map if
+        later, had (default 0.5: the view has left half of the mapped points behind). Measured against the
+        map's first frame alone, the rule held from the frame it fired until the next local map, one
+        ``map_lag_frames`` later, and kept every frame in between (the dome survey's frames 268-275).
     local_window : int >= 2, keyframes in the local BCBA and in the tracking map (default 6: with a keyframe
         every fifth of the image a wall point is in about five, so the window holds every view of the
         points the newest keyframe sees).
