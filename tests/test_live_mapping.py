@@ -299,3 +299,68 @@ def test_the_change_test_retires_the_resected_walls_old_features():
     off = np.linalg.norm(points - np.asarray(truth["centre_mm"]), axis=1) - truth["radius_mm"]
     assert np.all(off[retired] <= 1.0)
     assert not any(work.retired[k].any() for k in (1, 2, 3))
+
+
+def test_thinning_tracking_keeps_one_keyframe_with_baseline_not_a_burst():
+    """The keyframe rule on a slow stretch (bench_live's dome survey kept every frame from 268 to 275, 8
+    keyframes 0.15 mm apart: tracking had fallen below half the inliers of the local map's first frame, and
+    nothing changed that until the next local map, 30 frames later). Here the scope creeps 0.03 mm a frame at
+    15 mm from the wall and tracking holds 40 inliers after the first keyframe's 100, below half every frame.
+    A keyframe needs triangulation's 1 deg of parallax at the map's depth, 15 tan(1 deg) = 0.262 mm: frame 9
+    (0.27 mm) is the first with it (frame 8: 0.24 mm); after it the inliers are measured against its own 40,
+    so no later frame is kept. Robot and image report the true pose (the image to 1e-3 mm), so the fused
+    pose is the truth to far below the 0.01-0.02 mm margins."""
+    from scope3d.geometry.pose import Pose
+    from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance
+    from scope3d.sfm.localization import LocalizationResult
+
+    camera = phantoms.generate("dome", size=(64, 64), n_frames=1).camera
+    image = np.random.default_rng(0).integers(0, 255, (64, 64, 3), dtype=np.uint8)
+    poses = [Pose.from_centre(np.diag([1.0, -1.0, -1.0]), np.array([0.03 * k, 0.0, 15.0])) for k in range(30)]
+    box = PoseTolerance(np.full(3, 3.0), np.full(3, np.deg2rad(1.5)))
+
+    class Localizer:  # tracking's answer: the true pose, 100 inliers on the first frame, then 40
+        def localize(self, image, measured):
+            k = len(frames)
+            return LocalizationResult("ok", "tracking", poses[k], 100, 100 if k == 0 else 40,
+                                      np.diag(np.r_[np.full(3, 1e-8), np.full(3, 1e-6)]), 0.3, 0.0, 0.0)
+
+    class Worker:  # no local map: the keyframe rule alone
+        def submit(self, *args):
+            pass
+
+        def was_late(self):
+            return False
+
+        def close(self):
+            pass
+
+    frames = []
+    with LiveMapper(camera, replace(LiveMapperOptions(), worker="inline")) as mapper:
+        mapper._localizer, mapper._worker, mapper._map_depth_mm = Localizer(), Worker(), 15.0
+        for k, pose in enumerate(poses):
+            frames.append(mapper.add_frame(image, MeasuredPose(pose, box), k / 30.0))
+    assert [f.index for f in frames if f.keyframe is not None] == [0, 9]
+    assert all(f.status == "tracked" for f in frames if f.index not in (0, 9))
+
+
+def test_points_without_parallax_at_the_maps_depth_leave_the_map():
+    """A track of two views 0.02 mm apart whose point the adjustment pulled 1 mm in front of them spans
+    2 atan(0.01 / 1) = 1.15 deg there, so triangulation's 1 deg gate keeps it; at the map's near depth
+    (10 mm) the same views span 0.11 deg, and it is dropped. A wall point 15 mm from views 3 mm apart
+    (11 deg) is kept, and one 15 mm from the near-identical views (0.08 deg) is dropped."""
+    from scope3d.estimators.triangulation import ray_angles_deg
+    from scope3d.geometry.pose import Pose
+    from scope3d.scene.tracks import Tracks
+    from scope3d.sfm.live_mapping import _with_parallax
+
+    camera = phantoms.generate("dome", size=(64, 64), n_frames=1).camera
+    down = np.diag([1.0, -1.0, -1.0])
+    poses = [Pose.from_centre(down, np.array([x, 0.0, 15.0])) for x in (0.0, 0.02, 3.0)]
+    points = np.array([[0.01, 0.0, 14.0], [1.5, 0.0, 0.0], [0.01, 0.0, 0.0]])  # collapsed, wall, wall
+    frame = np.array([0, 1, 0, 2, 0, 1])
+    pixels = np.concatenate([camera.project_world(poses[f], points[[t]]) for t, f in zip([0, 0, 1, 1, 2, 2], frame)])
+    tracks = Tracks(np.array([0, 0, 1, 1, 2, 2]), frame, np.arange(6), pixels, np.zeros((3, 3), np.uint8), points)
+    assert ray_angles_deg(camera, poses, tracks)[0] >= 1.0  # the collapsed point passes triangulation's gate
+    kept = _with_parallax(camera, poses, tracks, 10.0, 1.0)
+    np.testing.assert_array_equal(kept.points, points[[1]])

@@ -95,6 +95,7 @@ class KeyframeSelector:
         self._size: tuple[int, int] | None = None  # full-frame (W, H)
         self._window: np.ndarray | None = None
         self._key: np.ndarray | None = None
+        self._last: np.ndarray | None = None  # the frame last measured, until kept
         self.n_offered = 0
         self.n_kept = 0
 
@@ -135,17 +136,29 @@ class KeyframeSelector:
 
     def offer(self, image: np.ndarray) -> KeyframeDecision:
         """Decide on the next frame ((H, W, 3) RGB or (H, W) grey); a kept frame becomes the reference."""
+        decision = self.measure(image)
+        if decision.keep:
+            self.keep()
+        return decision
+
+    def measure(self, image: np.ndarray) -> KeyframeDecision:
+        """The decision on the next frame, not acted on: :meth:`keep` makes it the reference. For a caller with
+        rules of its own (the live mapper also keeps a frame when tracking thins out, and refuses one that
+        adds no baseline): the next shift is then measured from the frame it actually kept."""
         prepared = self._prepare(image)
         self.n_offered += 1
+        self._last = prepared
         if self._key is None:
-            self._key = prepared
-            self.n_kept += 1
             return KeyframeDecision(True, (math.nan, math.nan), math.nan, 1.0)
         (dx, dy), response = cv2.phaseCorrelate(self._key, prepared, self._window)
         scale = self._size[0] / self._window.shape[1]
         shift_fraction = float(math.hypot(dx / self._window.shape[1], dy / self._window.shape[0]))
         keep = shift_fraction >= self.options.min_shift_fraction or response < self.options.min_response
-        if keep:
-            self._key = prepared
-            self.n_kept += 1
         return KeyframeDecision(bool(keep), (float(dx * scale), float(dy * scale)), shift_fraction, float(response))
+
+    def keep(self) -> None:
+        """Make the frame last measured the key frame, whatever its decision said."""
+        if self._last is None:
+            raise ValueError("no frame measured since the last key frame")
+        self._key, self._last = self._last, None
+        self.n_kept += 1

@@ -21,7 +21,10 @@ Per frame, on the caller's thread (the tracking path):
 * **keyframes** — a frame becomes a keyframe when its view has moved a fifth of the image from the last
   keyframe's (phase correlation, :class:`~scope3d.feature.keyframes.KeyframeSelector`, the video import's
   rule: a wall point stays in about five keyframes), or when tracking holds fewer than
-  ``min_inlier_fraction`` of the points the current local map first gave.
+  ``min_inlier_fraction`` of the points it held at the last keyframe (or on the current local map's first
+  frame, if later); either way only when the frame adds the baseline triangulation needs (its
+  ``tracks.min_angle_deg`` of parallax at the map's depth) from the last keyframe. A frame that cannot be
+  tracked and has no baseline stays ``lost``, not a keyframe.
 
 Per keyframe, on a worker while tracking goes on (a child process by default, a thread or inline
 if asked: ``LiveMapperOptions.worker``):
@@ -32,9 +35,11 @@ if asked: ``LiveMapperOptions.worker``):
   depth is known, exhaustively;
 * **local BCBA** over the newest ``local_window`` keyframes: tracks, triangulation and bundle adjustment
   with every keyframe kept inside the robot's box (:func:`~scope3d.sfm.guided_mapping.adjust_map`, the
-  map's own stage), started from the keyframes' live poses, then placed in the world that best fits every
-  keyframe's robot report so far (``gauge``: the window's six alone leave it ~1.2 mm off). Its points (with
-  their SIFT descriptors) become the tracking map, ``map_lag_frames`` frames after the keyframe: a fixed lag
+  map's own stage), started from the keyframes' live poses; the tracks whose views span less than
+  triangulation's angle with the point at the window's near depth are dropped (:func:`_with_parallax`);
+  the window is then placed in the world that best fits every keyframe's robot report so far (``gauge``:
+  the window's six alone leave it ~1.2 mm off). Its points (with their SIFT descriptors) become the
+  tracking map, ``map_lag_frames`` frames after the keyframe: a fixed lag
   rather than "when done", so the output does not depend on the machine's load (the stream waits when the
   worker is late);
 * **changed tissue** (with ``change_test``, e.g. ``scope3d live``'s ``LiveOptions.change``): after the local
@@ -47,7 +52,8 @@ if asked: ``LiveMapperOptions.worker``):
 poses (:func:`~scope3d.feature.pairs.select_pairs`, which also closes loops: a serpentine survey's
 neighbouring rows, a return to a mapped region), the missing pairs matched guided, then the map's
 tracks-triangulation-bounded-adjustment stage over every keyframe with the robot's boxes. It is the same
-stage ``scope3d map`` runs on the same frames, started from better poses.
+stage ``scope3d map`` runs on the same frames, started from better poses; the tracks without parallax
+leave it as they leave the local maps.
 
 Statuses (:data:`LIVE_STATUSES`): ``tracked`` (image pose fused with the robot's), ``keyframe`` (as tracked
 — or the robot's alone before the first map — and the frame was kept), ``relocalized`` (the image pose came
@@ -73,7 +79,7 @@ from scipy.spatial import cKDTree
 
 from scope3d.errors import InputError
 from scope3d.estimators.kalman import KalmanOptions, PoseKalmanFilter, covariance_to_tolerance
-from scope3d.estimators.triangulation import TrackOptions
+from scope3d.estimators.triangulation import TrackOptions, ray_angles_deg
 from scope3d.feature.depth_prior import DepthPrior
 from scope3d.feature.detection import FEATURE_PRESETS, FeatureOptions, Features, detect
 from scope3d.feature.keyframes import KeyframeOptions, KeyframeSelector
@@ -102,8 +108,10 @@ class LiveMapperOptions:
     localizer : tracking against the local map (:class:`~scope3d.sfm.localization.LocalizerOptions`).
     keyframes : when the view has moved enough (:class:`~scope3d.feature.keyframes.KeyframeOptions`).
     min_inlier_fraction : float in (0, 1), a frame also becomes a keyframe when its tracking inliers fall
-        below this fraction of what the first frame tracked on the current local map had (default 0.5: the
-        view has left half of the mapped points behind).
+        below this fraction of what the last keyframe, or the first frame tracked on the current local map if
+        later, had (default 0.5: the view has left half of the mapped points behind). Measured against the
+        map's first frame alone, the rule held from the frame it fired until the next local map, one
+        ``map_lag_frames`` later, and kept every frame in between (the dome survey's frames 268-275).
     local_window : int >= 2, keyframes in the local BCBA and in the tracking map (default 6: with a keyframe
         every fifth of the image a wall point is in about five, so the window holds every view of the
         points the newest keyframe sees).
@@ -300,7 +308,9 @@ class LiveMapper:
         self._frames = 0
         self._last_time: float | None = None
         self._last_status = "lost"
-        self._reference_inliers = 0  # inliers of the first frame tracked on the current local map
+        self._reference_inliers = 0  # inliers of the last keyframe, or of the first frame tracked on a new local map
+        self._last_keyframe_pose: Pose | None = None  # its fused pose, in the tracking's current world
+        self._map_depth_mm: float | None = None  # the tracking map's median depth in its newest keyframe
         self._local: _LocalMap | None = None
         self._final: LiveMap | None = None
 
@@ -339,10 +349,18 @@ class LiveMapper:
             status = "relocalized" if result.mode == "global" or self._last_status == "lost" else "tracked"
             if self._reference_inliers == 0:
                 self._reference_inliers = result.n_inliers
-        decision = self._selector.offer(image)
-        keep = decision.keep or (ok and result.n_inliers < self.options.min_inlier_fraction * self._reference_inliers)
+        decision = self._selector.measure(image)
+        thinned = ok and result.n_inliers < self.options.min_inlier_fraction * self._reference_inliers
+        keep = (decision.keep or thinned) and self._adds_baseline(self._filter.pose)
         keyframe = None
         if keep:
+            # both rules measure from the frame kept: the view's shift from it, tracking's inliers against
+            # its own (left at the map's first frame's, the thinned rule held until the next local map
+            # arrived, map_lag_frames later, and kept every frame of a slow stretch: 8 keyframes 0.15 mm apart)
+            self._selector.keep()
+            if ok:
+                self._reference_inliers = result.n_inliers
+            self._last_keyframe_pose = self._filter.pose
             keyframe = len(self._keyframes)
             guide = MeasuredPose(self._filter.pose, covariance_to_tolerance(self._filter.pose_covariance,
                                                                              self.options.guide_sigmas))
@@ -414,8 +432,22 @@ class LiveMapper:
             self._localizer.replace_map(outcome.points, moved)
             if moved is not None:
                 self._filter.change_world(moved)
+                self._last_keyframe_pose = self._last_keyframe_pose @ moved.inverse()
         self._reference_inliers = 0
+        depth = outcome.poses[-1].transform(outcome.points.xyz_mm)[:, 2]
+        self._map_depth_mm = float(np.median(depth[depth > 0])) if np.any(depth > 0) else None
         return len(outcome.dropped)
+
+    def _adds_baseline(self, pose: Pose) -> bool:
+        """Whether a keyframe at ``pose`` would add the baseline triangulation needs: from the last keyframe,
+        ``tracks.min_angle_deg`` of parallax at the tracking map's median depth (before any map, at
+        ``working_range_mm``'s near end: the robot's poses alone measure no finer). A frame kept without it
+        adds points that only the adjustment's drift places, millimetres off the wall."""
+        if self._last_keyframe_pose is None:
+            return True
+        depth = self._map_depth_mm or self.options.working_range_mm[0]
+        baseline = float(np.linalg.norm(pose.centre - self._last_keyframe_pose.centre))
+        return baseline >= depth * np.tan(np.radians(self.options.tracks.min_angle_deg))
 
     def _keyframe_frames(self) -> np.ndarray:
         return np.array([k.frame for k in self._keyframes], np.int64)
@@ -525,11 +557,11 @@ class _KeyframeWork:
                                   track_options=o.tracks, options=o.bundle, height_field=True, where="live map")
         except InputError:
             return None
-        t = adjusted.tracks
-        if t.n_tracks < o.localizer.pose.min_inliers:
-            return None
-        prior = self._depth_prior(adjusted.poses, t)
+        prior = self._depth_prior(adjusted.poses, adjusted.tracks)
         if prior is None:
+            return None
+        t = _with_parallax(self.camera, adjusted.poses, adjusted.tracks, prior.near_mm, o.tracks.min_angle_deg)
+        if t.n_tracks < o.localizer.pose.min_inliers:
             return None
         for k, pose in zip(window, adjusted.poses):
             self.adjusted[k] = pose
@@ -627,8 +659,9 @@ class _KeyframeWork:
         adjusted = adjust_map("bounded", self.measured, self.camera, tracks, guides, prior,
                               track_options=self.options.tracks, options=self.options.bundle, height_field=True,
                               where="live map")
-        return LiveMap(frames, adjusted.poses, list(self.measured), adjusted.tracks.points, adjusted.tracks.colors,
-                       adjusted.tracks, final=True)
+        near = (self._depth_prior(adjusted.poses, adjusted.tracks) or prior).near_mm
+        t = _with_parallax(self.camera, adjusted.poses, adjusted.tracks, near, self.options.tracks.min_angle_deg)
+        return LiveMap(frames, adjusted.poses, list(self.measured), t.points, t.colors, t, final=True)
 
     def _depth_prior(self, poses: list[Pose], tracks: Tracks) -> DepthPrior | None:
         """The depth range of the newest local map's points in their keyframes (2nd-98th percentile,
@@ -896,6 +929,23 @@ def _world_step(old: _LocalMap, new: _LocalMap, reach_mm: float) -> Similarity |
         return np.concatenate([[p.centre for p in poses], [p.centre + reach_mm * p.optical_axis for p in poses]])
 
     return fit_similarity(marks(old), marks(new), with_scale=False)
+
+
+def _with_parallax(camera: Camera, poses: list[Pose], tracks: Tracks, near_mm: float, min_angle_deg: float) -> Tracks:
+    """The triangulated tracks whose views span ``min_angle_deg`` (triangulation's gate) with the point at a
+    depth the map can hold: a point nearer its views' mean centre than ``near_mm`` (the depth prior's near
+    end) is judged as if moved out to it along that line. Triangulation judges a point where it lies, so
+    views a few hundredths of a millimetre apart pass it with their point collapsed onto the cameras
+    (the dome survey's keyframe burst left such points 16 mm off the wall)."""
+    centres = np.array([p.centre for p in poses])[tracks.frame]
+    mean = np.zeros((tracks.n_tracks, 3))
+    np.add.at(mean, tracks.track, centres)
+    mean /= np.bincount(tracks.track, minlength=tracks.n_tracks)[:, None]
+    away = tracks.points - mean
+    dist = np.linalg.norm(away, axis=1, keepdims=True)
+    pushed = mean + away * np.maximum(dist, near_mm) / np.maximum(dist, 1e-12)
+    angle = ray_angles_deg(camera, poses, replace(tracks, points=pushed))
+    return tracks.subset((angle >= min_angle_deg)[tracks.track])
 
 
 def _renumbered(m: PairMatches, i: int, j: int) -> PairMatches:
