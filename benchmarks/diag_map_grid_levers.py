@@ -2,7 +2,7 @@
 
 Issue 34: with the default preset the dome's 5x6 and 7x8 grids (30 and 56 frames, 608 x 608, exact poses,
 bench_map_views.py) kept 0.83x and 0.72x COLMAP's points. Levers (docs/surgical_map.md, "More views"):
-SIFT's contrast threshold (0.04 -> ~1,240 keypoints per grid frame), the partners per frame (10, one per
+SIFT's contrast threshold (0.04: ~1,240 and ~820 keypoints per frame on the 30- and 56-frame grids), the partners per frame (10, one per
 direction of motion, 20) and the splitting of match-graph components that hold one frame twice
 (``TrackOptions.split_inconsistent``, on in ``map``; off = such components dropped whole).
 
