@@ -19,10 +19,13 @@ of 2), COLMAP extract + match + triangulate (best of 2 up to 24 views, else 1). 
 points growing with views, >= 1.3x COLMAP's points, a reprojection error no worse, >= 2x faster.
 
 Writes benchmarks/results/map_views.json and map_views.png (points vs views); prints a table. Run:
-    .venv/bin/python benchmarks/bench_map_views.py
+    .venv/bin/python benchmarks/bench_map_views.py [--family temple|dome_ring|dome_grid ...]
+``--family`` runs only those families and keeps the other families' rows of the existing map_views.json
+(the grids alone took 12 min at load 15-18 on 2 cores, COLMAP's 5.5 of them).
 """
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import tempfile
@@ -166,37 +169,55 @@ def compare(ds, options: dict, work: Path) -> dict:
     return row
 
 
-def main() -> None:
+FAMILIES = ("temple", "dome_ring", "dome_grid")
+
+
+def main(families: tuple[str, ...] = FAMILIES) -> None:
     OUT.mkdir(parents=True, exist_ok=True)
+    previous = json.loads((OUT / "map_views.json").read_text()) if set(families) != set(FAMILIES) else {}
     results: dict = {"benchmark": "points vs number of views, scope3d vs COLMAP with the same known poses",
-                     "machine": f"2 shared cores, load average at start {os.getloadavg()[0]:.1f}",
+                     "machine": f"2 shared cores, load average at start {os.getloadavg()[0]:.1f}, "
+                                f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}",
                      "targets_rings": {"points_ratio": ">= 1.3", "reprojection_error_ratio": "<= 1", "speedup": ">= 2"},
                      "note": "scope3d: current preset; scope3d_fixed4: the photograph preset's previous 4 best partners "
                              "within 35 deg; scope3d_per_direction: the default preset with one partner per direction "
                              "of motion (PairOptions.max_pairs_per_direction = 1)"}
+    if previous:  # a partial run: each family says when and at what load it was measured
+        results["machine"] = {**_machine_by_family(previous), **{f: results["machine"] for f in families}}
     with tempfile.TemporaryDirectory() as tmp_name:
         tmp = Path(tmp_name)
-        assert cli(["import", "middlebury", str(PAR), "--out", str(tmp / "temple")]) == 0
-        temple = load_dataset(tmp / "temple")
         print(f"{'':10s} {'views':>5s} {'method':22s} {'points':>7s} {'obs':>7s} {'track':>6s} {'reproj px':>9s} "
               f"{'pairs':>6s} {'time s':>7s}")
-        results["temple"] = []
-        for n in (8, 12, 16):
-            ds = ring_subset(temple, n, tmp / f"temple{n}")
-            results["temple"].append(compare(ds, {"scope3d": PHOTOGRAPH, "scope3d_fixed4": PHOTOGRAPH_FIXED4}, tmp / f"w_temple{n}"))
-            _print_row("temple", results["temple"][-1])
-        results["dome_ring"] = []
-        for ds in dome_rings(tmp):
-            results["dome_ring"].append(compare(ds, {"scope3d": PHOTOGRAPH, "scope3d_fixed4": PHOTOGRAPH_FIXED4}, tmp / f"w_ring{len(ds)}"))
-            _print_row("dome ring", results["dome_ring"][-1])
-        results["dome_grid"] = []
-        for trajectory in ("grid5x6", "grid7x8"):
-            ds = load_dataset(phantoms.write(phantoms.generate("dome", trajectory, seed=0), tmp / trajectory))
-            results["dome_grid"].append(compare(ds, {"scope3d": GRID, "scope3d_per_direction": GRID_PER_DIRECTION},
-                                                tmp / f"w_{trajectory}"))
-            _print_row("dome grid", results["dome_grid"][-1])
+        if "temple" in families:
+            assert cli(["import", "middlebury", str(PAR), "--out", str(tmp / "temple")]) == 0
+            temple = load_dataset(tmp / "temple")
+            results["temple"] = []
+            for n in (8, 12, 16):
+                ds = ring_subset(temple, n, tmp / f"temple{n}")
+                results["temple"].append(compare(ds, {"scope3d": PHOTOGRAPH, "scope3d_fixed4": PHOTOGRAPH_FIXED4}, tmp / f"w_temple{n}"))
+                _print_row("temple", results["temple"][-1])
+        if "dome_ring" in families:
+            results["dome_ring"] = []
+            for ds in dome_rings(tmp):
+                results["dome_ring"].append(compare(ds, {"scope3d": PHOTOGRAPH, "scope3d_fixed4": PHOTOGRAPH_FIXED4}, tmp / f"w_ring{len(ds)}"))
+                _print_row("dome ring", results["dome_ring"][-1])
+        if "dome_grid" in families:
+            results["dome_grid"] = []
+            for trajectory in ("grid5x6", "grid7x8"):
+                ds = load_dataset(phantoms.write(phantoms.generate("dome", trajectory, seed=0), tmp / trajectory))
+                results["dome_grid"].append(compare(ds, {"scope3d": GRID, "scope3d_per_direction": GRID_PER_DIRECTION},
+                                                    tmp / f"w_{trajectory}"))
+                _print_row("dome grid", results["dome_grid"][-1])
+    for family in FAMILIES:
+        if family not in results:
+            results[family] = previous[family]
     (OUT / "map_views.json").write_text(json.dumps(results, indent=2) + "\n")
     save_figure(results, OUT / "map_views.png")
+
+
+def _machine_by_family(previous: dict) -> dict:
+    machine = previous["machine"]
+    return dict(machine) if isinstance(machine, dict) else {f: f"{machine}, date not recorded" for f in FAMILIES}
 
 
 def _print_row(family: str, r: dict) -> None:
@@ -237,4 +258,7 @@ def save_figure(results: dict, path: Path) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--family", choices=FAMILIES, action="append",
+                        help="run only this family (repeatable); the others are kept from map_views.json")
+    main(tuple(parser.parse_args().family or FAMILIES))
