@@ -386,7 +386,9 @@ class LiveMapper:
         if local is not None:
             for k, pose in zip(local.keyframes, local.poses):
                 poses[k] = pose
-            points, colors, tracks = local.points.xyz_mm, local.points.colors, local.tracks
+            # the window's frames are its own positions; the map's are keyframe numbers
+            points, colors = local.points.xyz_mm, local.points.colors
+            tracks = replace(local.tracks, frame=np.asarray(local.keyframes)[local.tracks.frame])
         return LiveMap(self._keyframe_frames(), poses, [k.measured for k in self._keyframes], points, colors, tracks)
 
     def finish(self) -> LiveMap:
