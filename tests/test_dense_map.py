@@ -11,9 +11,9 @@ from scope3d.sensor.camera import Camera
 SIGMA_MM = 0.01
 
 
-def _plane_views():
+def _plane_views(size=64):
     """Nine cameras 15 mm above the plane z = 0.2 x, 2 mm apart, looking down; their exact depth maps."""
-    camera = Camera.from_fov(64, 64, 53.0)
+    camera = Camera.from_fov(size, size, 53.0)
     poses = []
     for x in (-2.0, 0.0, 2.0):
         for y in (-2.0, 0.0, 2.0):
@@ -58,6 +58,18 @@ def test_fused_points_of_exact_depths_lie_on_the_surface():
     # normals face the cameras: the plane's (-0.2, 0, 1), normalised
     n = fused.cloud.normals
     np.testing.assert_allclose(n, np.tile([-0.2, 0.0, 1.0] / np.hypot(0.2, 1.0), (len(n), 1)), atol=1e-6)
+
+
+def test_fusion_reads_more_points_than_an_int16_holds():
+    # 192 x 192 = 36,864 pixels per frame: more than cv2.remap's 32,767 a side, read where each frame's points
+    # project into every other. The centre view's pixels whose points fall at least 3 pixels inside the
+    # frame 2 mm away in x (~13 px at 15 mm) and in y agree with eight views' exact depths, all of them.
+    camera, poses, depths, images = _plane_views(192)
+    assert camera.width * camera.height > 32767
+    fused = fuse_depths(camera, images, poses, depths, options=DenseOptions(merge_mm=0.0))
+    keep = fused.consistent[4]
+    assert keep[16:-16, 16:-16].all()
+    assert fused.counts["consistent"] > 9 * 0.5 * camera.width * camera.height
 
 
 def test_a_depth_needs_two_other_views():
