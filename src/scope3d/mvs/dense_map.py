@@ -5,7 +5,9 @@ its best neighbours, the depth maps fused where the views agree, and a mesh of t
    projected with the adjusted poses) at a useful triangulation angle (COLMAP's view selection in spirit:
    overlap, weighed down below ``good_angle_deg``, none under ``angle_range_deg[0]`` or over its end).
 2. :func:`frame_depths` — the plane sweep of :mod:`scope3d.mvs.plane_sweep` (ZNCC over a window: an affine
-   change of brightness between views, as the scope's light moves with it, does not change the score) over the
+   change of brightness between views, as the scope's light moves with it, does not change the score; each
+   pixel scored by its best two of the eight sources, so those that do not see it there, occluded or
+   glinting, are left out) over the
    depth range of the points the frame sees, widened by ``depth_margin``; its gates give a confidence per
    pixel (the mean ZNCC, the sources that agree, the peak's margin) and a depth standard deviation from the
    match's ``match_sigma_px`` and the parallax.
@@ -42,8 +44,10 @@ from scope3d.utils.threads import check_threads, resolve_threads
 @dataclass(frozen=True)
 class DenseOptions:
     """sweep : the plane sweep (default: 7 px ZNCC windows, steps of 1 px of parallax refined by a parabola,
-        ZNCC >= 0.5 in at least 2 sources, every pixel).
-    neighbours : source frames per frame (default 4).
+        each pixel scored by its best 2 sources, ZNCC >= 0.5 in at least 2 sources, every pixel).
+    neighbours : source frames per frame (default 8: with each pixel scored by its best two, a pixel that
+        some sources cannot see, behind the cavity's lip or under the moving light's glint, still has two
+        that can).
     angle_range_deg : triangulation angles a source may have with the frame, at the median point they share
         (default 2-35°: below, a depth step moves a pixel too little; above, the views differ too much for a
         window to match). good_angle_deg : below it a source's score is scaled down by angle / good (default 8°).
@@ -64,8 +68,8 @@ class DenseOptions:
     """
 
     sweep: PlaneSweepOptions = PlaneSweepOptions(window_px=7, step_px=1.0, min_ncc=0.5, min_sources=2,
-                                                 stride_px=1, min_peak_margin=0.02)
-    neighbours: int = 4
+                                                 stride_px=1, min_peak_margin=0.02, best_sources=2)
+    neighbours: int = 8
     angle_range_deg: tuple[float, float] = (2.0, 35.0)
     good_angle_deg: float = 8.0
     min_overlap: float = 0.3
