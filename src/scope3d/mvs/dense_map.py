@@ -4,13 +4,12 @@ its best neighbours, the depth maps fused where the views agree, and a mesh of t
 1. :func:`select_neighbours` — per frame, the frames that see most of what it sees (the sparse map's points
    projected with the adjusted poses) at a useful triangulation angle (COLMAP's view selection in spirit:
    overlap, weighed down below ``good_angle_deg``, none under ``angle_range_deg[0]`` or over its end).
-2. :func:`frame_depths` — the plane sweep of :mod:`scope3d.mvs.plane_sweep` (ZNCC over a window: an affine
-   change of brightness between views, as the scope's light moves with it, does not change the score; each
-   pixel scored by its best two of the eight sources, so those that do not see it there, occluded or
-   glinting, are left out) over the
-   depth range of the points the frame sees, widened by ``depth_margin``; its gates give a confidence per
-   pixel (the mean ZNCC, the sources that agree, the peak's margin) and a depth standard deviation from the
-   match's ``match_sigma_px`` and the parallax.
+2. :func:`frame_depths` — the plane sweep of :mod:`scope3d.mvs.plane_sweep` over the depth range of the
+   points the frame sees, widened by ``depth_margin``: ZNCC over a window (an affine change of brightness
+   between views, as the scope's light moves with it, does not change the score), each pixel scored by its
+   best two of the eight sources (those that do not see it there, occluded or glinting, are left out); its
+   gates give a confidence per pixel (the score, the sources that agree, the peak's margin) and a depth
+   standard deviation from the match's ``match_sigma_px`` and the parallax.
 3. :func:`fuse_depths` — geometric consistency: a frame's pixel becomes a point where at least
    ``min_consistent_views`` other frames' depth maps, read where the point projects, agree with its depth
    within ``consistency_sigmas`` of the two depths' standard deviations combined; its position is the
