@@ -15,12 +15,15 @@ surface is the mesh step here.
 
 Run (one benchmark at a time; a few minutes per map at 304 px on 2 loaded cores):
     .venv/bin/python benchmarks/bench_dense_map.py [--size 304] [--noise 0 3] [--scenes dome cavity]
-Writes benchmarks/results/dense_map.json.
+Writes benchmarks/results/dense_map.json. The (scene, noise) runs not asked for keep their rows from the
+existing file; each run records its command, the commit and the machine's load average at its start and end.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import os
+import subprocess
 import sys
 import tempfile
 import time
@@ -79,12 +82,17 @@ def one(scene: str, noise_mm: float, size: int, work: Path) -> dict:
     phantoms.write(seq, data)
     dataset = load_dataset(data)
     options = MapOptions(dense=DenseOptions(), figures=False)
-    t0 = time.perf_counter()
+    load_at_start = os.getloadavg()  # the times are the machine's as much as the code's: say how busy it was
+    t0, cpu0 = time.perf_counter(), time.process_time()
     result = run_map(options, dataset, work / f"map_{scene}_{noise_mm:g}")
-    wall = time.perf_counter() - t0
+    wall, cpu = time.perf_counter() - t0, time.process_time() - cpu0
     rep = result.report
     out = {"scene": scene, "pose_noise_mm": noise_mm, "orientation_noise_deg": noise_mm * 0.5, "size_px": size,
-           "frames": len(dataset), "wall_s": wall, "timings_s": rep["timings_s"], "dense": rep["dense"],
+           "frames": len(dataset), "wall_s": wall, "cpu_s": cpu,  # cpu: every thread of the process
+           "measured": {"command": "benchmarks/bench_dense_map.py " + " ".join(sys.argv[1:]), "commit": _commit(),
+                        "date_utc": time.strftime("%Y-%m-%d %H:%M", time.gmtime()), "cores": os.cpu_count(),
+                        "load_average_at_start": list(load_at_start), "load_average_at_end": list(os.getloadavg())},
+           "timings_s": rep["timings_s"], "dense": rep["dense"],
            "dense_error_mm": rep["dense_error_mm"], "spline_error_mm": rep["spline_error_mm"],
            "sparse_points_error_mm": rep["surface_error_mm"]["direct"],
            "pose_error": rep.get("pose_error")}
@@ -102,6 +110,14 @@ def one(scene: str, noise_mm: float, size: int, work: Path) -> dict:
                           "definition": cavity_regions.__doc__.split("\n", 1)[1].strip() if cavity_regions.__doc__ else "",
                           "lip_half_width_deg": CAVITY_LIP_HALF_WIDTH_DEG}
     return out
+
+
+def _commit() -> str:
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                              cwd=Path(__file__).parent, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
 
 
 def main() -> int:
@@ -127,10 +143,20 @@ def main() -> int:
                           f"{s['accuracy']['mean']:.4f} (p95 {s['accuracy']['p95']:.3f}) compl {s['completeness']:.3f} "
                           f"({s['completeness_seen_by_3']:.3f})", flush=True)
                 print(f"  dense {r['timings_s']['dense']:.1f} s, sparse map {r['sparse_map_s']:.1f} s", flush=True)
-    Path(args.results).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.results).write_text(json.dumps({
-        "machine": "2 cores shared with other jobs (load 10-13 during the run)",
-        "command": "benchmarks/bench_dense_map.py " + " ".join(sys.argv[1:]), "runs": runs}, indent=1))
+    path = Path(args.results)
+    done = {(r["scene"], r["pose_noise_mm"]) for r in runs}
+    kept = []
+    if path.exists():  # the runs not asked for stay, each with when and at what load it was measured
+        previous = json.loads(path.read_text())
+        for r in previous.get("runs", []):
+            if (r["scene"], r["pose_noise_mm"]) not in done:
+                r.setdefault("measured", {"command": previous.get("command"), "machine": previous.get("machine")})
+                kept.append(r)
+    order = {"dome": 0, "cavity": 1}
+    runs = sorted(runs + kept, key=lambda r: (order.get(r["scene"], 2), r["scene"], r["pose_noise_mm"]))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps({"machine": "2 cores, shared with another job; each run's load average in its "
+                                "'measured'", "runs": runs}, indent=1))
     print(f"wrote {args.results}")
     return 0
 

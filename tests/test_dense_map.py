@@ -11,9 +11,9 @@ from scope3d.sensor.camera import Camera
 SIGMA_MM = 0.01
 
 
-def _plane_views():
+def _plane_views(size=64):
     """Nine cameras 15 mm above the plane z = 0.2 x, 2 mm apart, looking down; their exact depth maps."""
-    camera = Camera.from_fov(64, 64, 53.0)
+    camera = Camera.from_fov(size, size, 53.0)
     poses = []
     for x in (-2.0, 0.0, 2.0):
         for y in (-2.0, 0.0, 2.0):
@@ -58,6 +58,18 @@ def test_fused_points_of_exact_depths_lie_on_the_surface():
     # normals face the cameras: the plane's (-0.2, 0, 1), normalised
     n = fused.cloud.normals
     np.testing.assert_allclose(n, np.tile([-0.2, 0.0, 1.0] / np.hypot(0.2, 1.0), (len(n), 1)), atol=1e-6)
+
+
+def test_fusion_reads_more_points_than_an_int16_holds():
+    # 192 x 192 = 36,864 pixels per frame: more than cv2.remap's 32,767 a side, read where each frame's points
+    # project into every other. The centre view's pixels whose points fall at least 3 pixels inside the
+    # frame 2 mm away in x (~13 px at 15 mm) and in y agree with eight views' exact depths, all of them.
+    camera, poses, depths, images = _plane_views(192)
+    assert camera.width * camera.height > 32767
+    fused = fuse_depths(camera, images, poses, depths, options=DenseOptions(merge_mm=0.0))
+    keep = fused.consistent[4]
+    assert keep[16:-16, 16:-16].all()
+    assert fused.counts["consistent"] > 9 * 0.5 * camera.width * camera.height
 
 
 def test_a_depth_needs_two_other_views():
@@ -111,3 +123,43 @@ def test_the_recess_under_the_lip_is_reconstructed(cavity):
     v = mesh.vertices
     tv, rv = np.arctan2(v[:, 1], v[:, 0]), np.hypot(v[:, 0], v[:, 1])
     assert np.sum((rv > cavity_rim_radius(tv) + 0.1) & (v[:, 2] < -1.0)) >= 50
+
+
+@pytest.fixture(scope="module")
+def dome():
+    from scope3d.phantoms import generate
+
+    return generate("dome", size=(304, 304), seed=0)
+
+
+def test_a_dome_frame_from_its_best_two_of_eight_sources(dome):
+    # One frame of the dome (true poses) swept against its eight neighbours, scored per pixel by the best two
+    # sources or by all eight. The moving light's highlights and the plate's edge leave some sources without
+    # a match at a pixel; all eight averaged lose that pixel, the best two keep it. Both hold the sweep's noise
+    # model against the true depth: 0.1 px of parallax per match (PlaneSweepOptions.match_sigma_px), so a
+    # parabola-refined NCC peak within a quarter pixel for most kept pixels and a pixel for nearly all.
+    from dataclasses import replace
+
+    from scope3d.metrology.evaluation import visible_true_points
+    from scope3d.mvs.dense_map import select_neighbours
+    from scope3d.mvs.plane_sweep import sweep
+
+    seq = dome
+    camera, poses, images = seq.camera, seq.true_poses, list(seq.frames)
+    sparse = visible_true_points(camera, poses, lambda k: seq.depths[k], max_points=3000)
+    options = DenseOptions()
+    frame = 7
+    sources = select_neighbours(camera, poses, sparse, options=options)[frame]
+    assert len(sources) == options.neighbours
+    truth = seq.depths[frame]
+    near, far = np.nanpercentile(truth, [1, 99]) * np.array([0.85, 1.15])
+    kept = {}
+    for name, sweep_options in (("best two", options.sweep), ("all eight", replace(options.sweep, best_sources=None))):
+        d = sweep(camera, images[frame], poses[frame], [images[k] for k in sources], [poses[k] for k in sources],
+                  (near, far), options=sweep_options)
+        ok = np.isfinite(d.depth_mm) & np.isfinite(truth)
+        epipolar_px = np.abs(d.depth_mm - truth)[ok] / d.sigma_mm[ok] * sweep_options.match_sigma_px
+        assert np.median(epipolar_px) < 0.25, name
+        assert np.mean(epipolar_px < 1.0) > 0.9, name
+        kept[name] = ok.sum()
+    assert kept["best two"] > 1.3 * kept["all eight"]

@@ -4,11 +4,12 @@ its best neighbours, the depth maps fused where the views agree, and a mesh of t
 1. :func:`select_neighbours` — per frame, the frames that see most of what it sees (the sparse map's points
    projected with the adjusted poses) at a useful triangulation angle (COLMAP's view selection in spirit:
    overlap, weighed down below ``good_angle_deg``, none under ``angle_range_deg[0]`` or over its end).
-2. :func:`frame_depths` — the plane sweep of :mod:`scope3d.mvs.plane_sweep` (ZNCC over a window: an affine
-   change of brightness between views, as the scope's light moves with it, does not change the score) over the
-   depth range of the points the frame sees, widened by ``depth_margin``; its gates give a confidence per
-   pixel (the mean ZNCC, the sources that agree, the peak's margin) and a depth standard deviation from the
-   match's ``match_sigma_px`` and the parallax.
+2. :func:`frame_depths` — the plane sweep of :mod:`scope3d.mvs.plane_sweep` over the depth range of the
+   points the frame sees, widened by ``depth_margin``: ZNCC over a window (an affine change of brightness
+   between views, as the scope's light moves with it, does not change the score), each pixel scored by its
+   best two of the eight sources (those that do not see it there, occluded or glinting, are left out); its
+   gates give a confidence per pixel (the score, the sources that agree, the peak's margin) and a depth
+   standard deviation from the match's ``match_sigma_px`` and the parallax.
 3. :func:`fuse_depths` — geometric consistency: a frame's pixel becomes a point where at least
    ``min_consistent_views`` other frames' depth maps, read where the point projects, agree with its depth
    within ``consistency_sigmas`` of the two depths' standard deviations combined; its position is the
@@ -42,8 +43,10 @@ from scope3d.utils.threads import check_threads, resolve_threads
 @dataclass(frozen=True)
 class DenseOptions:
     """sweep : the plane sweep (default: 7 px ZNCC windows, steps of 1 px of parallax refined by a parabola,
-        ZNCC >= 0.5 in at least 2 sources, every pixel).
-    neighbours : source frames per frame (default 4).
+        each pixel scored by its best 2 sources, ZNCC >= 0.5 in at least 2 sources, every pixel).
+    neighbours : source frames per frame (default 8: with each pixel scored by its best two, a pixel that
+        some sources cannot see, behind the cavity's lip or under the moving light's glint, still has two
+        that can).
     angle_range_deg : triangulation angles a source may have with the frame, at the median point they share
         (default 2-35°: below, a depth step moves a pixel too little; above, the views differ too much for a
         window to match). good_angle_deg : below it a source's score is scaled down by angle / good (default 8°).
@@ -64,8 +67,8 @@ class DenseOptions:
     """
 
     sweep: PlaneSweepOptions = PlaneSweepOptions(window_px=7, step_px=1.0, min_ncc=0.5, min_sources=2,
-                                                 stride_px=1, min_peak_margin=0.02)
-    neighbours: int = 4
+                                                 stride_px=1, min_peak_margin=0.02, best_sources=2)
+    neighbours: int = 8
     angle_range_deg: tuple[float, float] = (2.0, 35.0)
     good_angle_deg: float = 8.0
     min_overlap: float = 0.3
@@ -186,13 +189,26 @@ def frame_depths(camera: Camera, images: list[np.ndarray], poses: list[Pose], po
     return out
 
 
+# cv2.remap's output must be under SHRT_MAX (32767) pixels on each side: the points are read as rows of this many
+_READ_ROW = 4096
+
+
 def _read(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Bilinear read of a float image at (N, 2) pixels; NaN outside or next to a NaN (a depth edge)."""
-    if len(uv) == 0:
+    """Bilinear read of a float image at (N, 2) pixels; NaN outside or next to a NaN (a depth edge). Any N:
+    the points are laid out as an image of ``_READ_ROW`` columns, read in blocks of fewer than 32767 rows."""
+    n = len(uv)
+    if n == 0:
         return np.zeros(0)
-    m = uv.astype(np.float32).reshape(-1, 1, 2)
-    return cv2.remap(image.astype(np.float32), m[..., 0], m[..., 1], cv2.INTER_LINEAR,
-                     borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan).reshape(-1).astype(float)
+    rows = -(-n // _READ_ROW)
+    m = np.full((rows * _READ_ROW, 2), -1.0, np.float32)  # the padding reads outside: NaN, dropped
+    m[:n] = uv
+    m = m.reshape(rows, _READ_ROW, 2)
+    img = image.astype(np.float32)
+    out = np.concatenate([
+        cv2.remap(img, m[r:r + 32766, :, 0].copy(), m[r:r + 32766, :, 1].copy(), cv2.INTER_LINEAR,
+                  borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
+        for r in range(0, rows, 32766)])
+    return out.reshape(-1)[:n].astype(float)
 
 
 def depth_normals(camera: Camera, depth_mm: np.ndarray) -> np.ndarray:
