@@ -37,6 +37,7 @@ from scope3d.mvs.plane_sweep import PlaneSweepOptions, sweep
 from scope3d.scene.mesh import Mesh, PointCloud
 from scope3d.sensor.camera import Camera
 from scope3d.utils.progress import Progress, advance, stage
+from scope3d.utils.sample_image import sample_image
 from scope3d.utils.threads import check_threads, resolve_threads
 
 
@@ -189,26 +190,9 @@ def frame_depths(camera: Camera, images: list[np.ndarray], poses: list[Pose], po
     return out
 
 
-# cv2.remap's output must be under SHRT_MAX (32767) pixels on each side: the points are read as rows of this many
-_READ_ROW = 4096
-
-
 def _read(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Bilinear read of a float image at (N, 2) pixels; NaN outside or next to a NaN (a depth edge). Any N:
-    the points are laid out as an image of ``_READ_ROW`` columns, read in blocks of fewer than 32767 rows."""
-    n = len(uv)
-    if n == 0:
-        return np.zeros(0)
-    rows = -(-n // _READ_ROW)
-    m = np.full((rows * _READ_ROW, 2), -1.0, np.float32)  # the padding reads outside: NaN, dropped
-    m[:n] = uv
-    m = m.reshape(rows, _READ_ROW, 2)
-    img = image.astype(np.float32)
-    out = np.concatenate([
-        cv2.remap(img, m[r:r + 32766, :, 0].copy(), m[r:r + 32766, :, 1].copy(), cv2.INTER_LINEAR,
-                  borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
-        for r in range(0, rows, 32766)])
-    return out.reshape(-1)[:n].astype(float)
+    """Bilinear read of a float image at (N, 2) pixels; NaN outside or next to a NaN (a depth edge); any N."""
+    return sample_image(image.astype(np.float32), uv, border=cv2.BORDER_CONSTANT, border_value=np.nan).astype(float)
 
 
 def depth_normals(camera: Camera, depth_mm: np.ndarray) -> np.ndarray:

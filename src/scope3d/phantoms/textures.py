@@ -16,8 +16,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-# cv2.remap refuses maps wider than SHRT_MAX; flat lists of points are folded into rows of this width.
-_REMAP_ROW = 4096
+from scope3d.utils.sample_image import sample_image
 
 
 @dataclass(frozen=True)
@@ -103,13 +102,8 @@ class TextureMap:
         rows = (uv[:, 1] - self.origin_mm[1]) / self.mm_per_texel / scale
         if self.wrap_u:
             cols = np.mod(cols, image.shape[1])
-        n_rows = -(-n // _REMAP_ROW)
-        pad = n_rows * _REMAP_ROW - n
-        map_x = np.pad(cols, (0, pad)).astype(np.float32).reshape(n_rows, _REMAP_ROW)
-        map_y = np.pad(rows, (0, pad)).astype(np.float32).reshape(n_rows, _REMAP_ROW)
         border = cv2.BORDER_WRAP if self.wrap_u else cv2.BORDER_REPLICATE
-        out = cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR, borderMode=border)
-        out = out.reshape(n_rows * _REMAP_ROW, -1)[:n]
+        out = sample_image(image, np.column_stack([cols, rows]), border=border).reshape(n, -1)
         return out.astype(np.float32) / 255.0
 
 

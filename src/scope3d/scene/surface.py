@@ -38,6 +38,7 @@ from scope3d.scene.thin_plate import ThinPlateSpline
 from scope3d.sensor.camera import Camera
 from scope3d.sensor.camera_models import DEFAULT_MODEL, PINHOLE_HALF_ANGLE_LIMIT
 from scope3d.utils.robust import MAD_TO_SIGMA, robust_sigma
+from scope3d.utils.sample_image import sample_image
 
 #: Passes of :func:`off_surface_points`: gross errors (2 mm) first, then ~3 sigma of a two-view point's depth.
 OFF_SURFACE_FLOORS_MM = (2.0, 0.5)
@@ -564,27 +565,8 @@ def sample_images(images, view: np.ndarray, pixels: np.ndarray) -> np.ndarray:
             out = np.zeros((len(view), img.shape[2]), dtype=float)
         src = img.astype(np.float32)
         xy = pixels[sel].astype(np.float32)
-        samples = np.empty((len(xy), img.shape[2]), dtype=np.float32)
-        # cv2.remap asserts that its maps are under SHRT_MAX (32767) in each dimension: the samples are laid
-        # out in rows of _REMAP_COLS, at most _REMAP_ROWS rows per call (a frame that is the best view of
-        # more than 32767 vertices, any large grid, failed as one column)
-        block = _REMAP_COLS * _REMAP_ROWS
-        for start in range(0, len(xy), block):
-            part = xy[start:start + block]
-            cols = min(len(part), _REMAP_COLS)
-            rows = -(-len(part) // cols)
-            grid = np.zeros((rows * cols, 2), np.float32)
-            grid[:len(part)] = part
-            s = cv2.remap(src, grid[:, 0].reshape(rows, cols), grid[:, 1].reshape(rows, cols), cv2.INTER_LINEAR,
-                          borderMode=cv2.BORDER_REPLICATE)
-            samples[start:start + len(part)] = s.reshape(rows * cols, -1)[:len(part)]
-        out[sel] = samples
+        out[sel] = sample_image(src, xy, border=cv2.BORDER_REPLICATE).reshape(len(xy), -1)
     return out if out is not None else np.zeros((len(view), 1))
-
-
-#: Layout of :func:`sample_images`' remap calls: both under cv2.remap's SHRT_MAX limit.
-_REMAP_COLS = 4096
-_REMAP_ROWS = 4096
 
 
 def texture(surface: Surface, camera: Camera, poses: list[Pose], images) -> tuple[np.ndarray, np.ndarray]:
