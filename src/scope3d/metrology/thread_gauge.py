@@ -825,11 +825,16 @@ def _crest_defects(theta, z, turn, dist, crest, options: GaugeOptions) -> list[T
     flat. A bin is judged on its crest points, or, with fewer than ``options.min_bin_points`` of them, on
     its points of the tooth's top half: a chip cuts the crest and the flanks' inner halves back together,
     and a view that sees the crest only sparsely (45°: 1-10 crest points per 10° of a turn) still sees the
-    flank beside it. The threshold's robust sigma is the crest points' (the top half's without any)."""
+    flank beside it. A crest bin is too deep beyond max(``options.min_defect_depth_mm``, 5 robust sigmas of
+    the crest points); a top-half bin beyond max(``options.min_defect_depth_mm``, 5 standard errors of its
+    median, 1.25 sigma / sqrt(n) of the top halves' robust sigma): seen from 45°, the few crest points
+    scatter by 0.3 mm, whose 5 sigmas would hide any chip, and the flank beside them by 0.02 mm, while a
+    chip's cut face, seen as sparsely as the crest, is diluted in its bin's median by the flank's points
+    at its edge (M12: 0.06 mm of a 0.3 mm chip)."""
     if len(dist) == 0:
         return []
-    sigma = robust_sigma(dist[crest] if crest.sum() >= options.min_bin_points else dist)
-    threshold = max(options.min_defect_depth_mm, 5 * sigma)
+    crest_limit = max(options.min_defect_depth_mm, 5 * robust_sigma(dist[crest])) if crest.any() else np.inf
+    top_sigma = robust_sigma(dist)
     n_bins = int(round(360.0 / options.defect_bin_deg))
     bins = np.floor(np.mod(theta, 2 * np.pi) / (2 * np.pi) * n_bins).astype(int) % n_bins
     first = int(turn.min())
@@ -837,15 +842,19 @@ def _crest_defects(theta, z, turn, dist, crest, options: GaugeOptions) -> list[T
     for k in np.unique(turn):
         sel = turn == k
         depth = np.full(n_bins, np.nan)
+        limit = np.full(n_bins, np.inf)
         zmean = np.full(n_bins, np.nan)
         for b in np.unique(bins[sel]):
             m = sel & (bins == b)
-            if (m & crest).sum() >= options.min_bin_points:
+            on_crest = (m & crest).sum() >= options.min_bin_points
+            if on_crest:
                 m = m & crest
             if m.sum() >= options.min_bin_points:
                 depth[b] = np.median(dist[m])
+                limit[b] = crest_limit if on_crest else max(options.min_defect_depth_mm,
+                                                            5 * 1.25 * top_sigma / np.sqrt(m.sum()))
                 zmean[b] = np.mean(z[m])
-        bad = np.nan_to_num(depth, nan=-np.inf) > threshold
+        bad = np.nan_to_num(depth, nan=-np.inf) > limit
         if not bad.any():
             continue
         # contiguous runs, wrapping round the circle
