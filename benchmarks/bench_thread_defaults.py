@@ -190,7 +190,12 @@ def main() -> None:
             args = r["phantom_args"]
             return int(args[args.index("--side-view") + 1]) if "--side-view" in args else 45
 
-        summary = {**tally(rows), "by_side_view": {str(v): tally([r for r in rows if view(r) == v]) for v in VIEWS}}
+        def seed(r):  # the issue's two cases apart: their holes sit on the 6H lower limits
+            return "issue" if r["case"].startswith("issue") else "s" + r["case"].rsplit("_s", 1)[1]
+
+        summary = {**tally(rows), "by_side_view": {str(v): tally([r for r in rows if view(r) == v]) for v in VIEWS},
+                   "by_side_view_and_seed": {f"{v} {k}": tally(sel) for v in VIEWS for k in sorted({seed(r) for r in rows})
+                                             if (sel := [r for r in rows if view(r) == v and seed(r) == k])}}
         (OUT / "thread_defaults.json").write_text(json.dumps({"summary": summary, "rows": rows}, indent=1))
         figure(rows, OUT / "thread_defaults.png")
         print(json.dumps(summary, indent=1))
