@@ -2,12 +2,15 @@
 as made with chosen deviations), with 0.01 mm Gaussian noise (a sparse reconstruction's point noise)."""
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import trimesh
 
 from scope3d.geometry.iso_thread import THREAD_SIZES
-from scope3d.metrology.thread_gauge import GaugeOptions, gauge_thread, profile_parts, unmeasured_sizes
+from scope3d.metrology.thread_gauge import (GaugeOptions, _frame, _profile_residuals, gauge_thread, profile_parts,
+                                           remeasure, unmeasured_sizes)
 from scope3d.metrology.thread_tolerances import thread_limits
 from scope3d.phantoms.scenes import build_thread
 
@@ -149,3 +152,56 @@ def test_a_chip_on_a_seen_crest_fails_a_hole_seen_from_one_side():
     assert "root" in result.unseen_parts
     assert result.verdict == "fail", result.summary()
     assert any(abs((d.angle_deg - 200.0 + 180) % 360 - 180) <= 10.0 for d in result.defects)
+
+
+def test_profile_jacobian_is_the_finite_difference_one():
+    # the fit's Jacobian by the chain rule against central differences, at a pose off the base frame (tilt,
+    # shift, a pitch and an angle off nominal) where every part of the profile has points
+    points, _ = _cloud("M8x1.25", MID_CLASS["M8x1.25"], n=5000)
+    points = points[(points[:, 2] < -2.0) & (points[:, 2] > -9.0)]
+    p0, base = np.array([0.01, -0.02, -5.0]), _frame(np.array([0.002, -0.003, 1.0]))
+    x = np.array([0.003, -0.002, 0.01, -0.015, 1.2505, 0.3, 3.39, 4.03, 3.64, np.deg2rad(29.5)])
+    residuals, jac = _profile_residuals(points, p0, base, x, jacobian=True)
+    np.testing.assert_array_equal(residuals, _profile_residuals(points, p0, base, x))
+    step = 1e-7  # central differences: truncation ~ step^2, round-off ~ 1e-16 mm / step ~ 1e-9
+    numeric = np.stack([(_profile_residuals(points, p0, base, x + step * e) -
+                         _profile_residuals(points, p0, base, x - step * e)) / (2 * step) for e in np.eye(10)], 1)
+    # a point within a step of a corner of the profile (or of w's wrap) has a kink between the two samples
+    assert np.mean(np.abs(jac - numeric) > 1e-6) < 1e-3
+    assert np.median(np.abs(jac - numeric)) < 1e-8
+
+
+def test_a_radius_the_cloud_does_not_place_is_held_at_its_basic_size_and_not_claimed_measured():
+    # the 45° cloud (crests and the flanks towards +z): the root's radius is held at the basic D / 2
+    points, _ = _cloud("M8x1.25", MID_CLASS["M8x1.25"])
+    full = gauge_thread(points, options=GaugeOptions(max_points=10000))
+    part, _ = profile_parts(full, points)
+    result = gauge_thread(points[full.fit_state["index"]][part <= 1], options=GaugeOptions(max_points=10000))
+    major = result.major_diameter_mm
+    assert major.value == pytest.approx(THREAD_SIZES["M8x1.25"][0]) and not major.measured
+    assert major.uncertainty == np.inf and result.profile["held_at_basic"] == ["major diameter"]
+    assert not result.pitch_diameter_mm.measured and result.minor_diameter_mm.measured
+    report = json.dumps(result.to_dict(), allow_nan=False)  # no Infinity in the report
+    assert json.loads(report)["major_diameter_mm"] == {"value": major.value, "uncertainty": None, "measured": False}
+    assert "held at the basic size, not measured" in result.summary()
+    # the re-fit of the systematic terms holds it too
+    assert remeasure(result, points[full.fit_state["index"]][part <= 1])["major_diameter"] == pytest.approx(major.value)
+
+
+def test_a_chip_on_a_sparsely_seen_crest_is_found_on_the_tooth_top_half():
+    # A 45° view sees the crests at a grazing angle: 1-10 crest points per 10° of a turn, under the 5 a
+    # crest bin needs; the flank facing the opening is seen densely. Thin the crest points to ~2 per 5° bin
+    # per turn: the chip must still be found, from its tooth's top half, and no other bin flagged.
+    points, _ = _cloud("M10x1.5", MID_CLASS["M10x1.5"], defect=(200.0, 20.0, 0.3))
+    full = gauge_thread(points, options=GaugeOptions(designation="M10x1.5", max_points=10000))
+    part, _ = profile_parts(full, points)
+    zone = points[full.fit_state["index"]]
+    rng = np.random.default_rng(3)
+    crest = np.flatnonzero(part == 0)
+    turns = np.ptp(zone[:, 2]) / 1.5
+    sparse = rng.choice(crest, int(2 * 72 * turns), replace=False)  # ~2 per 5° bin and turn
+    seen = np.concatenate([zone[part == 1], zone[sparse]])
+    result = gauge_thread(seen, options=GaugeOptions(designation="M10x1.5", max_points=10000))
+    assert result.verdict == "fail", result.summary()
+    assert len(result.defects) == 1, result.defects
+    assert abs((result.defects[0].angle_deg - 200.0 + 180) % 360 - 180) <= 10.0

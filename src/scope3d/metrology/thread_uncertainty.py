@@ -113,7 +113,7 @@ def with_systematic(result: GaugeResult, systematic_mm: dict, *, options: GaugeO
     def comb(m: Measured, key: str) -> Measured:
         stat = m.statistical if m.statistical is not None else m.uncertainty
         sys_ = float(systematic_mm.get(key, 0.0))
-        return Measured(m.value, float(np.hypot(stat, sys_)), stat, sys_)
+        return replace(m, uncertainty=float(np.hypot(stat, sys_)), statistical=stat, systematic=sys_)
 
     d1, d2 = comb(result.minor_diameter_mm, "minor_diameter"), comb(result.pitch_diameter_mm, "pitch_diameter")
     d, p = comb(result.major_diameter_mm, "major_diameter"), comb(result.pitch_mm, "pitch")

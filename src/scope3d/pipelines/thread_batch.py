@@ -68,8 +68,8 @@ def hole_names(datasets: list[Path]) -> list[str]:
 def _row_from_report(hole: str, report: dict, status: str) -> dict:
     g = report["gauge"]
 
-    def value(key):
-        return g[key]["value"] if key in g else float("nan")
+    def value(key):  # a size the scan did not measure (its part of the profile unseen) is no number to list
+        return g[key]["value"] if key in g and g[key].get("measured", True) else float("nan")
 
     return {"hole": hole, "status": status, "verdict": g["verdict"],
             "minor_diameter_mm": value("minor_diameter_mm"), "major_diameter_mm": value("major_diameter_mm"),

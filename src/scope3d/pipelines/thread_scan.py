@@ -42,6 +42,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from scope3d.errors import InputError
 from scope3d.geometry.iso_thread import THREAD_SIZES
@@ -349,71 +350,77 @@ def run(options: ThreadScanOptions, dataset: Dataset, out_dir: str | Path, *,
     clouds, mount = map_quadrants(options, dataset, scans, progress)
     timings["mapping"] = time.perf_counter() - t0
 
-    t0 = time.perf_counter()
-    panorama = register_quadrants(clouds, options=options.panorama, seed=options.seed, progress=progress)
-    registered = panorama.apply(clouds)
-    timings["registration"] = time.perf_counter() - t0
-
-    dense = [np.zeros((0, 3)) for _ in clouds]
-    if options.dense is not None:
+    # From here on the work is numpy's on one thread (the registration's RANSAC, the profile fits and the
+    # systematic terms' re-fits: many small products and SVDs), and OpenBLAS's own threads only spin against
+    # the other processes on a shared machine: 3000 3x3 and 20 200x200 SVDs took 1.5-10.8 s wall with
+    # OpenBLAS's 2 threads, 0.20-0.22 s on one (2 cores at load 3). The limit holds for this job's stages
+    # alone, not the process.
+    with threadpool_limits(limits=1, user_api="blas"):
         t0 = time.perf_counter()
-        dense = dense_clouds(options, dataset, panorama, clouds, mount, progress)
-        registered = dense
-        timings["dense"] = time.perf_counter() - t0
+        panorama = register_quadrants(clouds, options=options.panorama, seed=options.seed, progress=progress)
+        registered = panorama.apply(clouds)
+        timings["registration"] = time.perf_counter() - t0
 
-    t0 = time.perf_counter()
-    merged = np.concatenate(registered)
-    quadrant_of = np.repeat(np.arange(len(registered)), [len(r) for r in registered])
-    keep = statistical_inliers(merged, options=options.outliers)
-    points = merged[keep]
-    timings["outliers"] = time.perf_counter() - t0
+        dense = [np.zeros((0, 3)) for _ in clouds]
+        if options.dense is not None:
+            t0 = time.perf_counter()
+            dense = dense_clouds(options, dataset, panorama, clouds, mount, progress)
+            registered = dense
+            timings["dense"] = time.perf_counter() - t0
 
-    t0 = time.perf_counter()
-    # The stage's rotation axis (world z, nominal) is the gauge's hint for the hole axis.
-    gauge_options = replace(options.gauge, designation=options.designation, axis_hint=(0.0, 0.0, 1.0))
-    gauge, gauge_message = None, ""
-    try:
-        gauge = gauge_thread(points, options=gauge_options)
-    except ValueError as exc:  # no thread in the cloud: a result to report, not a crash
-        gauge_message = str(exc) + (f"; {coverage.message()}" if coverage is not None else "")
-    if gauge is not None and unmeasured_sizes(gauge.unseen_parts):
-        gauge_message = unseen_message(gauge, dataset, options.designation, scans)
-    timings["gauge"] = time.perf_counter() - t0
-    systematic = {}
-    if gauge is not None and (options.registration_draws or options.point_bias_mm or options.match_gap_mm):
         t0 = time.perf_counter()
-        if options.registration_draws:
-            draws = panorama.sample_world_from_stacked(options.registration_draws, options.seed)
-            systematic["registration"] = registration_systematic(gauge, draws, panorama.world_from_stacked, points,
-                                                                 quadrant_of[keep], gauge_options.noise_mm)
-        if options.point_bias_mm:
-            systematic["point_bias"] = profile_bias_systematic(gauge, points, options.point_bias_mm,
-                                                               gauge_options.noise_mm)
-        if options.match_gap_mm:
-            drawn_apart = pairs_drawn_apart(panorama.pairs, options.match_gap_mm)
-            placed = joint_solve(drawn_apart, [c.angle_deg for c in clouds], options=options.panorama)[0]
-            systematic["match_gap"] = match_gap_systematic(gauge, placed, panorama.world_from_stacked, points,
-                                                           quadrant_of[keep], gauge_options.noise_mm)
-        systematic = {k: v for k, v in systematic.items() if v}
-        if systematic:
-            gauge = with_systematic(gauge, combined_systematic(systematic), options=gauge_options)
-        timings["systematic"] = time.perf_counter() - t0
+        merged = np.concatenate(registered)
+        quadrant_of = np.repeat(np.arange(len(registered)), [len(r) for r in registered])
+        keep = statistical_inliers(merged, options=options.outliers)
+        points = merged[keep]
+        timings["outliers"] = time.perf_counter() - t0
 
-    errors = None
-    truth = true_world_from_stacked(dataset, mount)
-    if truth is not None:
-        rot, off = registration_errors(panorama.world_from_stacked, truth, clouds)
-        rot0, off0 = registration_errors([Pose.identity()] * len(clouds), truth, clouds)
-        errors = {"rotation_error_deg": float(rot.max()), "offset_error_mm": float(off.max()),
-                  "rotation_error_per_quadrant_deg": rot.tolist(), "offset_error_per_quadrant_mm": off.tolist(),
-                  "stacked_rotation_error_deg": float(rot0.max()), "stacked_offset_error_mm": float(off0.max())}
-        made = (dataset.ground_truth.scene.get("thread") or {}).get("as_made")
-        if made and gauge is not None:
-            errors["gauge_errors_mm"] = {
-                "minor_diameter": gauge.minor_diameter_mm.value - made["minor_diameter_mm"],
-                "major_diameter": gauge.major_diameter_mm.value - made["major_diameter_mm"],
-                "pitch_diameter": gauge.pitch_diameter_mm.value - made["pitch_diameter_mm"],
-                "pitch": gauge.pitch_mm.value - dataset.ground_truth.scene["thread"]["pitch_mm"]}
+        t0 = time.perf_counter()
+        # The stage's rotation axis (world z, nominal) is the gauge's hint for the hole axis.
+        gauge_options = replace(options.gauge, designation=options.designation, axis_hint=(0.0, 0.0, 1.0))
+        gauge, gauge_message = None, ""
+        try:
+            gauge = gauge_thread(points, options=gauge_options)
+        except ValueError as exc:  # no thread in the cloud: a result to report, not a crash
+            gauge_message = str(exc) + (f"; {coverage.message()}" if coverage is not None else "")
+        if gauge is not None and unmeasured_sizes(gauge.unseen_parts):
+            gauge_message = unseen_message(gauge, dataset, options.designation, scans)
+        timings["gauge"] = time.perf_counter() - t0
+        systematic = {}
+        if gauge is not None and (options.registration_draws or options.point_bias_mm or options.match_gap_mm):
+            t0 = time.perf_counter()
+            if options.registration_draws:
+                draws = panorama.sample_world_from_stacked(options.registration_draws, options.seed)
+                systematic["registration"] = registration_systematic(gauge, draws, panorama.world_from_stacked, points,
+                                                                     quadrant_of[keep], gauge_options.noise_mm)
+            if options.point_bias_mm:
+                systematic["point_bias"] = profile_bias_systematic(gauge, points, options.point_bias_mm,
+                                                                   gauge_options.noise_mm)
+            if options.match_gap_mm:
+                drawn_apart = pairs_drawn_apart(panorama.pairs, options.match_gap_mm)
+                placed = joint_solve(drawn_apart, [c.angle_deg for c in clouds], options=options.panorama)[0]
+                systematic["match_gap"] = match_gap_systematic(gauge, placed, panorama.world_from_stacked, points,
+                                                               quadrant_of[keep], gauge_options.noise_mm)
+            systematic = {k: v for k, v in systematic.items() if v}
+            if systematic:
+                gauge = with_systematic(gauge, combined_systematic(systematic), options=gauge_options)
+            timings["systematic"] = time.perf_counter() - t0
+
+        errors = None
+        truth = true_world_from_stacked(dataset, mount)
+        if truth is not None:
+            rot, off = registration_errors(panorama.world_from_stacked, truth, clouds)
+            rot0, off0 = registration_errors([Pose.identity()] * len(clouds), truth, clouds)
+            errors = {"rotation_error_deg": float(rot.max()), "offset_error_mm": float(off.max()),
+                      "rotation_error_per_quadrant_deg": rot.tolist(), "offset_error_per_quadrant_mm": off.tolist(),
+                      "stacked_rotation_error_deg": float(rot0.max()), "stacked_offset_error_mm": float(off0.max())}
+            made = (dataset.ground_truth.scene.get("thread") or {}).get("as_made")
+            if made and gauge is not None:
+                errors["gauge_errors_mm"] = {
+                    "minor_diameter": gauge.minor_diameter_mm.value - made["minor_diameter_mm"],
+                    "major_diameter": gauge.major_diameter_mm.value - made["major_diameter_mm"],
+                    "pitch_diameter": gauge.pitch_diameter_mm.value - made["pitch_diameter_mm"],
+                    "pitch": gauge.pitch_mm.value - dataset.ground_truth.scene["thread"]["pitch_mm"]}
     result = ThreadScanResult(clouds, panorama, dense, points, gauge, errors, timings, gauge_message, systematic, scans,
                               mount, coverage)
     write_outputs(result, out_dir)
