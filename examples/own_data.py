@@ -16,6 +16,7 @@ from pathlib import Path
 from scope3d.io.camera_json import read_camera_json
 from scope3d.io.dataset import load_dataset
 from scope3d.io.hand_eye_json import read_hand_eye_json
+from scope3d.io.intrinsic_bounds import read_intrinsic_sigmas
 from scope3d.io.robot_log import PoseLogFormat, read_frame_times
 from scope3d.phantoms.boards import LAB_BOARD
 from scope3d.phantoms.recording import RecordingOptions, write_recording
@@ -40,12 +41,16 @@ def main(argv: list[str] | None = None) -> dict:
                   sorted((recording / "calibration").glob("*.png")), args.out / "calibration")
     camera = read_camera_json(args.out / "calibration" / "camera.json")
 
-    # 2. the hand-eye transform, from board stills and the robot's log of that session
+    # 2. the hand-eye transform, from board stills and the robot's log of that session; the camera's sigmas
+    #    give the intrinsics' share of its tolerance
     log_format = PoseLogFormat("xyz-qxyzw", length_unit="m")
+    bounds = args.out / "calibration" / "intrinsic_bounds.json"
     hand_eye.run(hand_eye.HandEyeRunOptions(LAB_BOARD), sorted((recording / "hand_eye").glob("*.png")),
                  hand_eye.robot_poses_from_log(recording / "hand_eye" / "robot_log.csv", log_format,
                                                read_frame_times(recording / "hand_eye" / "frame_times.csv")),
-                 camera, args.out / "hand_eye")
+                 camera, args.out / "hand_eye",
+                 intrinsic_sigmas=read_intrinsic_sigmas(bounds, camera.model, camera.param_names),
+                 intrinsic_sigmas_source=str(bounds))
     flange_from_cam = read_hand_eye_json(args.out / "hand_eye" / "hand_eye.json")
 
     # 3. the scan: every third video frame with its pose from the robot's log, through the hand-eye

@@ -60,22 +60,26 @@ def test_the_docs_walkthrough_runs_and_poses_the_scan_as_the_truth(recording, mo
     assert np.rad2deg(got.distance_to(truth)[1]) <= 0.1
 
     # every imported pose holds the truth inside its box, and the import adds nothing to the hand-eye's
-    # own error (no robot error here; the log's rows are printed to the micrometre and 1e-9, and a grid
-    # stop's frame falls on a straight move, where linear + slerp interpolation is exact)
+    # own error (no robot error here; the log's rows are printed to the micrometre and 1e-9, and the robot's
+    # velocity is continuous (1.2 m/s^2 ramps), so linear + slerp interpolation between 4 ms rows is within
+    # a dt^2 / 8 = 2.4e-3 mm, the margin below)
     dataset = load_dataset(recording / "scan")
     names, true_poses = read_poses_csv(recording / "rec" / "truth" / "poses.csv")
     true = dict(zip(names, true_poses))
-    assert len(dataset) == 30 and all(m.contains(true[n].pose) for n, m in zip(dataset.names, dataset.poses))
-    centre = np.array([np.linalg.norm(m.pose.centre - true[n].pose.centre) for n, m in zip(dataset.names, dataset.poses)])
+    assert len(dataset) == len(names[::3])  # the page imports every 3rd frame
+    assert all(m.contains(true[n].pose) for n, m in zip(dataset.names, dataset.poses))
+    offset = np.array([m.pose.centre - true[n].pose.centre for n, m in zip(dataset.names, dataset.poses)])
     lever = np.linalg.norm(truth.translation)
     hand_eye_error = np.linalg.norm(got.translation - truth.translation) + lever * got.distance_to(truth)[1]
-    assert centre.max() <= hand_eye_error + 2e-3
-    # calibrate-hand-eye's stated tolerance for camera poses from robot poses (3 residual RMS per axis) leaves
-    # out the intrinsics' own uncertainty: here 0.040 mm along z against a stated 0.028 (docs/own_data.md)
-    del he
+    assert np.linalg.norm(offset, axis=1).max() <= hand_eye_error + 2.4e-3 + 1e-3  # + the log's micrometre digits
+    # the tolerance calibrate-hand-eye states for camera poses from robot poses (3 sigma per base axis) holds
+    # the error it made, which the calibrated focal length's own error dominates: the residuals' share alone
+    # (0.028 mm along z) did not hold it (0.040 mm)
+    assert np.all(np.abs(offset).max(axis=0) <= np.array(he["tolerance"]["position_mm"])), (offset, he["tolerance"])
+    assert np.linalg.norm(he["tolerance"]["intrinsics_share_mm"]) > 0
 
     report = json.loads((recording / "map" / "report.json").read_text())
-    assert report["model_checks"]["frames_used"] == 30
+    assert report["model_checks"]["frames_used"] == len(dataset)
     assert (recording / "map" / "report.html").is_file()
     # the lab's frame times are in sync with the robot's clock: no clock offset to report (issue 33)
     assert report["clock_offset"]["significant"] is False, report["clock_offset"]
@@ -84,7 +88,7 @@ def test_the_docs_walkthrough_runs_and_poses_the_scan_as_the_truth(recording, mo
 def test_the_example_follows_the_same_path(recording):
     example = runpy.run_path(str(ROOT / "examples" / "own_data.py"), run_name="example")["main"]
     report = example(["--recording", str(recording / "rec"), "--out", str(recording / "example")])
-    assert report["model_checks"]["frames_used"] == 30
+    assert report["model_checks"]["frames_used"] == len(load_dataset(recording / "scan"))
     cli = load_dataset(recording / "scan")
     api = load_dataset(recording / "example" / "dataset")
     assert api.names == cli.names

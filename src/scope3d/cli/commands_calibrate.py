@@ -102,7 +102,12 @@ def register_hand_eye(subparsers) -> None:
     p.add_argument("--out", type=Path, required=True, help="output folder (written atomically, replaced)")
     p.add_argument("--no-refine", action="store_true", help="closed form only, no joint refinement")
     p.add_argument("--tolerance-sigmas", type=float, default=3.0,
-                   help="pose tolerance = this many residual RMS per axis (default 3)")
+                   help="pose tolerance = this many residual RMS per axis, the intrinsics' share added in "
+                        "quadrature (default 3)")
+    p.add_argument("--intrinsic-bounds", type=Path, metavar="JSON",
+                   help="intrinsic_bounds.json of `scope3d calibrate`: its sigmas give the intrinsics' share of "
+                        "the tolerance (a focal length's error moves every board alike, which the residuals "
+                        "cannot show). Default: the intrinsic_bounds.json beside --camera when there is one")
     add_job_arguments(p)  # --quiet accepted for uniformity: the job shows no progress bar
     p.set_defaults(func=_run_hand_eye)
 
@@ -110,6 +115,7 @@ def register_hand_eye(subparsers) -> None:
 def _run_hand_eye(args) -> int:
     from scope3d.errors import InputError
     from scope3d.io.camera_json import read_camera_json
+    from scope3d.io.intrinsic_bounds import read_intrinsic_sigmas
     from scope3d.io.robot_log import read_frame_times
     from scope3d.pipelines.hand_eye import HandEyeRunOptions, robot_poses_from_log, run
     from scope3d.sensor.calibration import BoardSpec
@@ -121,6 +127,10 @@ def _run_hand_eye(args) -> int:
     options = HandEyeRunOptions(board, hand_eye=HandEyeOptions(refine=not args.no_refine,
                                                                tolerance_sigmas=args.tolerance_sigmas))
     camera = read_camera_json(args.camera)
+    bounds = args.intrinsic_bounds
+    if bounds is None and (args.camera.parent / "intrinsic_bounds.json").is_file():
+        bounds = args.camera.parent / "intrinsic_bounds.json"
+    sigmas = None if bounds is None else read_intrinsic_sigmas(bounds, camera.model, camera.param_names)
     robot = args.robot_poses
     if args.robot_log is not None:
         if args.frame_times is None:
@@ -130,5 +140,6 @@ def _run_hand_eye(args) -> int:
     elif args.frame_times is not None:
         raise InputError("--frame-times goes with --robot-log")
     with job_folder(args.out) as staged:
-        result = run(options, args.images, robot, camera, staged)
+        result = run(options, args.images, robot, camera, staged, intrinsic_sigmas=sigmas,
+                     intrinsic_sigmas_source=None if bounds is None else str(bounds))
     return finish_job(args, args.out, result.report, [result.summary(), f"wrote {args.out}/ (hand_eye.json, poses.csv)"])

@@ -75,3 +75,32 @@ def read_intrinsic_bounds(path: str | Path, model: str = DEFAULT_MODEL) -> tuple
     if found == 0:
         raise InputError(f"{path}: no bounds on any of {', '.join(INTRINSIC_NAMES)}")
     return lower, upper
+
+
+def read_intrinsic_sigmas(path: str | Path, model: str, param_names: tuple[str, ...]) -> np.ndarray:
+    """(P,) each of ``param_names``' standard deviation: its ``std``, else ``(upper - lower) / (2 k_sigma)``;
+    NaN for a parameter the file leaves out. model : the camera's, as :func:`read_intrinsic_bounds`.
+    Problems are InputErrors naming the file and the parameter."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: intrinsic bounds file is missing")
+    data = read_json_object(path)
+    if data.get("model", DEFAULT_MODEL) != model:
+        raise InputError(f"{path}: bounds of a {data.get('model', DEFAULT_MODEL)!r} camera, for a {model} camera")
+    k_sigma = data.get("k_sigma", float("nan"))
+    sigmas = np.full(len(param_names), np.nan)
+    for i, name in enumerate(param_names):
+        entry = data.get(name)
+        if entry is None:
+            continue
+        if not isinstance(entry, dict):
+            raise InputError(f"{path}: {name} must be an object with std or lower and upper")
+        sigma = entry.get("std")
+        if sigma is None and isinstance(k_sigma, (int, float)) and k_sigma > 0 and "lower" in entry and "upper" in entry:
+            sigma = (entry["upper"] - entry["lower"]) / (2.0 * k_sigma)
+        if sigma is None:
+            continue
+        if isinstance(sigma, bool) or not isinstance(sigma, (int, float)) or not math.isfinite(sigma) or sigma < 0:
+            raise InputError(f"{path}: {name}: standard deviation {sigma!r} is not a finite number >= 0")
+        sigmas[i] = float(sigma)
+    return sigmas

@@ -43,7 +43,7 @@ from scope3d.phantoms.boards import (LAB_BOARD, LAB_BOARD_OPTIONS, random_board_
 from scope3d.phantoms.lab import ORIENTATION_NOISE_DEG_PER_MM, default_camera
 from scope3d.phantoms.render import RenderOptions, render_frame, sequence_exposure
 from scope3d.phantoms.scenes import build_scene
-from scope3d.phantoms.trajectories import grid_trajectory, poses_at, survey_video
+from scope3d.phantoms.trajectories import SurveyMotion, grid_trajectory, poses_at
 from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance
 from scope3d.utils.atomic import atomic_directory
 from scope3d.utils.jsonio import write_json
@@ -59,7 +59,10 @@ class RecordingOptions:
     """size : (width, height) of the scope's frames (None: the dome's 608 x 608). calibration_views,
     hand_eye_views : board images of each session. grid : (rows, cols) of the scan's raster over the dome
     (5 mm apart, 15 mm above it, as ``grid5x6``). speed_mm_s : the scan's speed between raster points
-    (the frames in between are rendered too). fps, log_hz : the camera's and the log's rates.
+    (the frames in between are rendered too). accel_mm_s2 : the robot's acceleration: it starts and stops
+    at rest at each turn of the raster (default 1200 mm/s^2, Universal Robots' default tool acceleration for
+    a linear move, ``movel``'s ``a=1.2`` m/s^2; None: constant speed with instant turns, a velocity no
+    controller logs). fps, log_hz : the camera's and the log's rates.
     video_name : the scan's file, its codec by its suffix (:func:`scope3d.io.video.write_video`: .mkv
     lossless, .avi Motion JPEG, .mp4 MPEG-4). clock_offset_s : the robot's clock minus the camera's. sync_error_s : error of the frame times given
     on the robot's clock. robot_error_mm : the controller's pose error (module docstring). seed : every
@@ -70,6 +73,7 @@ class RecordingOptions:
     hand_eye_views: int = 12
     grid: tuple[int, int] = (5, 6)
     speed_mm_s: float = 25.0
+    accel_mm_s2: float | None = 1200.0
     fps: float = 30.0
     log_hz: float = 250.0
     clock_offset_s: float = 1000.137
@@ -86,7 +90,10 @@ def write_recording(options: RecordingOptions, out_dir: str | Path, *, progress:
     camera = default_camera(scene, "grid5x6", size=options.size)
     rng = np.random.default_rng([options.seed, 40])
     error = _RobotError(options.robot_error_mm, rng)
-    scan_times, scan_poses = _scan_path(options)
+    motion = SurveyMotion(grid_trajectory(*options.grid), speed_mm_s=options.speed_mm_s,
+                          accel_mm_s2=options.accel_mm_s2)
+    scan_times = np.arange(0.0, motion.duration_s + 1e-9, 1.0 / options.fps)  # the video's frames
+    scan_poses = motion.poses_at(scan_times)
     with atomic_directory(Path(out_dir)) as tmp:
         for sub in ("calibration", "hand_eye", "scan", "truth"):
             (tmp / sub).mkdir()
@@ -124,8 +131,7 @@ def write_recording(options: RecordingOptions, out_dir: str | Path, *, progress:
         # the controller's ticks fall anywhere between the camera's
         phase = np.random.default_rng([options.seed, 42]).uniform(0.0, 1.0 / options.log_hz)
         log_times = np.arange(scan_times[0] - 0.5 + phase, scan_times[-1] + 0.5, 1.0 / options.log_hz)
-        _write_log(tmp / "scan" / "robot_log.csv", log_times, poses_at(scan_times, scan_poses, log_times), error,
-                   options)
+        _write_log(tmp / "scan" / "robot_log.csv", log_times, motion.poses_at(log_times), error, options)
         _write_frame_times(tmp / "scan" / "frame_times.csv", [str(i) for i in range(len(frames))], scan_times,
                            options)
 
@@ -139,14 +145,6 @@ def write_recording(options: RecordingOptions, out_dir: str | Path, *, progress:
         write_json(tmp / "truth" / "scene.json", {**scene.info, "recording": _describe(options)})
         (tmp / "README.txt").write_text(_README.format(**_describe(options)))
     return Path(out_dir)
-
-
-def _scan_path(options: RecordingOptions) -> tuple[np.ndarray, list[Pose]]:
-    """Camera times (s, camera clock) and true cam_from_world of every video frame: the raster's points
-    joined by straight moves at ``speed_mm_s``, one frame every ``1 / fps``."""
-    rows, cols = options.grid
-    video = survey_video(grid_trajectory(rows, cols), options.fps, speed_mm_s=options.speed_mm_s)
-    return video.times_s, video.poses
 
 
 def _dwell_path(cam_from_world: list[Pose]) -> tuple[np.ndarray, list[Pose]]:
@@ -196,7 +194,7 @@ def _write_frame_times(path: Path, names: list[str], camera_times, options: Reco
 def _describe(options: RecordingOptions) -> dict:
     return {"board": "9x6 inner corners, 2 mm squares", "grid": "x".join(map(str, options.grid)),
             "video_name": options.video_name,
-            "speed_mm_s": options.speed_mm_s, "fps": options.fps, "log_hz": options.log_hz,
+            "speed_mm_s": options.speed_mm_s, "accel_mm_s2": options.accel_mm_s2, "fps": options.fps, "log_hz": options.log_hz,
             "clock_offset_s": options.clock_offset_s, "sync_error_s": options.sync_error_s,
             "robot_error_mm": options.robot_error_mm, "seed": options.seed}
 
@@ -206,7 +204,8 @@ _README = """A session with a robot-held endoscope over a dome phantom (rendered
 calibration/       {board} checkerboard views for the camera's intrinsics
 hand_eye/          checkerboard stills with the robot dwelling at each view; robot_log.csv is the robot's flange
                    pose log of that session, frame_times.csv when each still was taken (robot clock)
-scan/{video_name}     the scan, {fps:g} fps: a {grid} raster at {speed_mm_s:g} mm/s, 15 mm over the phantom
+scan/{video_name}     the scan, {fps:g} fps: a {grid} raster at {speed_mm_s:g} mm/s, 15 mm over the phantom,
+                   from rest to rest along each straight run at {accel_mm_s2} mm/s^2
 scan/robot_log.csv the flange pose at {log_hz:g} Hz: t in seconds on the robot's clock, x, y, z in metres,
                    qx, qy, qz, qw (base_from_flange)
 scan/frame_times.csv image,t: each video frame (its index) on the robot's clock

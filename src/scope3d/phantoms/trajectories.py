@@ -13,7 +13,10 @@
   off to one side, down a straight line to a stop above the target, looking at the target throughout.
 
 A survey's stops can also be flown as a video (:func:`survey_video`): straight moves between them at a
-constant speed, a frame every ``1 / fps`` seconds, each frame's time in :attr:`Trajectory.times_s`.
+constant speed, a frame every ``1 / fps`` seconds, each frame's time in :attr:`Trajectory.times_s`. With an
+acceleration (:class:`SurveyMotion`) the robot instead starts and stops at rest at every corner of the
+path, as a controller's linear moves do, so that its velocity is continuous and a log sampled from it is
+what a real controller's would be.
 
 Image orientation: down-looking cameras have world +x to the right and world +y up in the picture;
 cameras in the hole and the cavity have world +z (towards the opening) up in the picture.
@@ -72,26 +75,99 @@ def poses_at(key_times: np.ndarray, key_poses: list[Pose], times: np.ndarray) ->
     return [Pose.from_centre(r, c) for r, c in zip(rotation, centre)]
 
 
-def survey_video(stops: Trajectory, fps: float, *, speed_mm_s: float = SURVEY_VIDEO_SPEED_MM_S) -> Trajectory:
-    """A survey's stops (e.g. ``grid5x6``) flown as a video: straight moves from each stop to the next at
-    ``speed_mm_s``, one frame every ``1 / fps`` seconds from the first stop (time 0) to the last (the
-    orientation slerped along each move). Named ``<survey>_video``; its params hold the survey's, the frame
-    rate, the speed and the stops' times."""
-    if not (np.isfinite(fps) and fps > 0 and np.isfinite(speed_mm_s) and speed_mm_s > 0):
+class SurveyMotion:
+    """A robot flying a survey's stops (e.g. ``grid5x6``) in straight moves, the pose at any time.
+
+    accel_mm_s2 None: every move at ``speed_mm_s`` throughout, turning on the spot at each stop (a path
+    with corners in its velocity). A number: the stops are joined into straight runs (a stop where the path
+    does not turn is passed through), and each run starts and ends at rest, accelerating and braking at
+    ``accel_mm_s2`` up to ``speed_mm_s`` (a trapezoidal speed profile, triangular on a run too short to
+    reach it): the velocity is continuous, so a log sampled every ``dt`` differs from the straight line
+    between its samples by at most ``accel_mm_s2 * dt**2 / 8``. The orientation is slerped between stops by
+    arc length. Raises InputError for fewer than two stops, repeated stops or a non-positive rate."""
+
+    def __init__(self, stops: Trajectory, *, speed_mm_s: float = SURVEY_VIDEO_SPEED_MM_S,
+                 accel_mm_s2: float | None = None) -> None:
+        if not (np.isfinite(speed_mm_s) and speed_mm_s > 0) or (
+                accel_mm_s2 is not None and not (np.isfinite(accel_mm_s2) and accel_mm_s2 > 0)):
+            raise InputError(f"a survey's motion needs a positive speed and acceleration, got {speed_mm_s} mm/s "
+                             f"and {accel_mm_s2} mm/s^2")
+        if len(stops) < 2:
+            raise InputError("a survey video needs at least two stops")
+        centres = np.array([p.centre for p in stops.poses])
+        steps = np.diff(centres, axis=0)
+        arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(steps, axis=1))])
+        if not np.all(np.diff(arc) > 0):
+            raise InputError("a survey video needs its stops at distinct places")
+        self.stops, self.speed_mm_s, self.accel_mm_s2, self.stop_arcs_mm = stops, float(speed_mm_s), accel_mm_s2, arc
+        if accel_mm_s2 is None:
+            self._run_arcs = arc  # every stop ends a run, crossed at constant speed
+        else:
+            unit = steps / np.linalg.norm(steps, axis=1, keepdims=True)
+            turns = np.flatnonzero(np.einsum("ij,ij->i", unit[:-1], unit[1:]) < 1.0 - 1e-12) + 1
+            self._run_arcs = arc[np.concatenate([[0], turns, [len(arc) - 1]])]
+        lengths = np.diff(self._run_arcs)
+        if accel_mm_s2 is None:
+            self._peak, self._ramp_s = np.full(len(lengths), self.speed_mm_s), np.zeros(len(lengths))
+            durations = lengths / self.speed_mm_s
+        else:
+            self._peak = np.minimum(self.speed_mm_s, np.sqrt(accel_mm_s2 * lengths))
+            self._ramp_s = self._peak / accel_mm_s2
+            durations = 2.0 * self._ramp_s + (lengths - self._peak * self._ramp_s) / self._peak
+        self._run_starts_s = np.concatenate([[0.0], np.cumsum(durations)])
+        self.stop_times_s = arc / self.speed_mm_s if accel_mm_s2 is None else self._time_at_arc(arc)
+
+    @property
+    def duration_s(self) -> float:
+        return float(self._run_starts_s[-1])
+
+    def arc_mm(self, times_s: np.ndarray) -> np.ndarray:
+        """Distance travelled along the path at ``times_s`` (clipped to the motion's ends), mm."""
+        t = np.clip(np.asarray(times_s, dtype=float), 0.0, self.duration_s)
+        k = np.clip(np.searchsorted(self._run_starts_s, t, side="right") - 1, 0, len(self._peak) - 1)
+        tau, v, ramp = t - self._run_starts_s[k], self._peak[k], self._ramp_s[k]
+        total = self._run_starts_s[k + 1] - self._run_starts_s[k]
+        length = self._run_arcs[k + 1] - self._run_arcs[k]
+        a = np.divide(v, ramp, out=np.zeros_like(v), where=ramp > 0)
+        s = np.where(tau < ramp, 0.5 * a * tau ** 2,
+                     np.where(tau <= total - ramp, 0.5 * v * ramp + v * (tau - ramp),
+                              length - 0.5 * a * (total - tau) ** 2))
+        return self._run_arcs[k] + np.clip(s, 0.0, length)
+
+    def _time_at_arc(self, arcs: np.ndarray) -> np.ndarray:
+        """Inverse of :meth:`arc_mm` at ``arcs`` on the path (monotone, so by bisection to 1e-12 s)."""
+        lo, hi = np.zeros(len(arcs)), np.full(len(arcs), self.duration_s)
+        for _ in range(80):
+            mid = 0.5 * (lo + hi)
+            below = self.arc_mm(mid) < arcs
+            lo, hi = np.where(below, mid, lo), np.where(below, hi, mid)
+        return hi
+
+    def poses_at(self, times_s: np.ndarray) -> list[Pose]:
+        """True ``cam_from_world`` at ``times_s`` (s from the first stop; the ends' poses outside it)."""
+        if self.accel_mm_s2 is None:  # arc and time are proportional: interpolate in time, as always
+            return poses_at(self.stop_times_s, self.stops.poses, np.asarray(times_s, dtype=float))
+        return poses_at(self.stop_arcs_mm, self.stops.poses, self.arc_mm(times_s))
+
+
+def survey_video(stops: Trajectory, fps: float, *, speed_mm_s: float = SURVEY_VIDEO_SPEED_MM_S,
+                 accel_mm_s2: float | None = None) -> Trajectory:
+    """A survey's stops (e.g. ``grid5x6``) flown as a video (:class:`SurveyMotion`: straight moves at
+    ``speed_mm_s``, starting and ending each straight run at rest when ``accel_mm_s2`` is given), one frame
+    every ``1 / fps`` seconds from the first stop (time 0) to the last. Named ``<survey>_video``; its params
+    hold the survey's, the frame rate, the speed, the acceleration and the stops' times."""
+    if not (np.isfinite(fps) and fps > 0):
         raise InputError(f"a survey video needs a positive frame rate and speed, got {fps} fps and {speed_mm_s} mm/s")
-    if len(stops) < 2:
-        raise InputError("a survey video needs at least two stops")
-    centres = np.array([p.centre for p in stops.poses])
-    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(centres, axis=0), axis=1))])
-    if not np.all(np.diff(arc) > 0):
-        raise InputError("a survey video needs its stops at distinct places")
-    stop_times = arc / speed_mm_s
-    times = np.arange(0.0, stop_times[-1] + 1e-9, 1.0 / fps)
+    motion = SurveyMotion(stops, speed_mm_s=speed_mm_s, accel_mm_s2=accel_mm_s2)
+    times = np.arange(0.0, motion.duration_s + 1e-9, 1.0 / fps)
+    path = ("straight moves between the survey's stops at constant speed, orientation slerped" if accel_mm_s2 is None
+            else "straight runs between the path's corners, each from rest to rest at the given acceleration, "
+                 "orientation slerped")
     params = {**stops.params, "kind": "survey video", "survey": stops.name, "fps": float(fps),
-              "speed_mm_s": float(speed_mm_s), "stop_times_s": [round(float(t), 9) for t in stop_times],
-              "frames": len(times), "path": "straight moves between the survey's stops at constant speed, "
-                                            "orientation slerped"}
-    return Trajectory(f"{stops.name}_video", poses_at(stop_times, stops.poses, times), params, times)
+              "speed_mm_s": float(speed_mm_s), "stop_times_s": [round(float(t), 9) for t in motion.stop_times_s],
+              "frames": len(times), "path": path,
+              **({} if accel_mm_s2 is None else {"accel_mm_s2": float(accel_mm_s2)})}
+    return Trajectory(f"{stops.name}_video", motion.poses_at(times), params, times)
 
 
 def grid_trajectory(

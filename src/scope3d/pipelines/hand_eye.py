@@ -78,12 +78,16 @@ def robot_poses_from_log(log: str | Path, log_format: PoseLogFormat, frame_times
 
 
 def run(options: HandEyeRunOptions, image_paths: list[str | Path], robot: str | Path | dict[str, Pose],
-        camera: Camera, out_dir: str | Path, *, progress: Progress | None = None) -> HandEyeRunResult:
+        camera: Camera, out_dir: str | Path, *, progress: Progress | None = None,
+        intrinsic_sigmas: np.ndarray | None = None, intrinsic_sigmas_source: str | None = None) -> HandEyeRunResult:
     """Hand-eye calibration from board images taken at the robot's poses, through the calibrated
     ``camera``; writes ``hand_eye.json``, ``poses.csv`` and ``report.json`` into ``out_dir``.
 
     robot : a poses.csv of flange poses (:func:`robot_flange_poses`), or image name -> ``base_from_flange``
-    (e.g. :func:`robot_poses_from_log`). progress : counts the images searched for the board."""
+    (e.g. :func:`robot_poses_from_log`). progress : counts the images searched for the board.
+    intrinsic_sigmas : (P,) the calibration's sigma of each of ``camera.params`` (e.g.
+    :func:`scope3d.io.intrinsic_bounds.read_intrinsic_sigmas`), for the intrinsics' share of the tolerance;
+    intrinsic_sigmas_source : where they came from, for the report."""
     where = "the robot poses" if isinstance(robot, dict) else robot
     robot = dict(robot) if isinstance(robot, dict) else robot_flange_poses(robot)
     image_paths = [Path(p) for p in image_paths]
@@ -108,7 +112,7 @@ def run(options: HandEyeRunOptions, image_paths: list[str | Path], robot: str | 
         raise InputError(f"only {len(views)} image(s) show the board, need 3; not found in: "
                          f"{', '.join(skipped) or 'none'}")
     result = calibrate_hand_eye(flange, boards, camera=camera, object_points=objs, pixels=pixels,
-                                options=options.hand_eye)
+                                options=options.hand_eye, intrinsic_sigmas=intrinsic_sigmas)
     report = {
         "flange_from_cam": _pose_dict(result.flange_from_cam),
         "cam_from_flange": _pose_dict(result.cam_from_flange),
@@ -123,7 +127,10 @@ def run(options: HandEyeRunOptions, image_paths: list[str | Path], robot: str | 
                      for v, p, a in zip(views, result.position_residual_mm, result.orientation_residual_rad)},
         "tolerance": {"position_mm": result.tolerance.position_mm.tolist(),
                       "orientation_deg": np.rad2deg(result.tolerance.orientation_rad).tolist(),
-                      "sigmas": options.hand_eye.tolerance_sigmas},
+                      "sigmas": options.hand_eye.tolerance_sigmas,
+                      "intrinsics_share_mm": result.intrinsics_share_mm.tolist(),
+                      "intrinsics_share_deg": np.rad2deg(result.intrinsics_share_rad).tolist(),
+                      "intrinsics_sigmas_from": intrinsic_sigmas_source},
     }
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

@@ -21,12 +21,18 @@ transform) and ``base_from_board`` (Y, where the board stands). Every view close
 3. The residual of each view, the camera pose the robot predicts against the one the board shows, turns
    into a :class:`~scope3d.sensor.pose_tolerance.PoseTolerance` for datasets built from robot poses:
    ``cam_from_base[i] = X^-1 @ base_from_flange[i]^-1``.
+4. The residuals cannot show the intrinsics' own error: a focal length off by a fraction e puts every
+   board e times its distance too far, alike in every view, and X absorbs it (on the walkthrough's
+   recording, fx 0.15 % long moved X 0.058 mm along the optical axis with boards ~40 mm away, while
+   the residuals' RMS was 0.012 mm). Given the calibration's sigmas, X is solved again with each intrinsic
+   moved by its sigma; the camera poses the robot then predicts move by that intrinsic's share, and the
+   shares (taken as independent, summed in quadrature) join the residuals' RMS in the tolerance.
 
 ``Pose`` objects here are rigid transforms named ``b_from_a`` (``x_b = R x_a + t``), mm and rad.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -42,10 +48,12 @@ from scope3d.sensor.pose_tolerance import PoseTolerance
 class HandEyeOptions:
     """refine : jointly refine (X, Y) on the corners' reprojection error after the closed form (default True).
     tolerance_sigmas : the pose tolerance is this many RMS residuals per axis (3: a box that holds the
-        truth for ~99 % of views if the residuals are Gaussian)."""
+        truth for ~99 % of views if the residuals are Gaussian).
+    include_intrinsics : add the intrinsics' share (module docstring, step 4) when their sigmas are given."""
 
     refine: bool = True
     tolerance_sigmas: float = 3.0
+    include_intrinsics: bool = True
 
     def __post_init__(self) -> None:
         if not self.tolerance_sigmas > 0:
@@ -58,7 +66,9 @@ class HandEyeResult:
     rms_px : corner RMS reprojection error through the robot poses (after refinement).
     position_residual_mm : (n, 3) camera centre predicted by the robot minus seen by the board, base frame.
     orientation_residual_rad : (n,) angle between the predicted and the seen camera orientation.
-    tolerance : the pose tolerance for datasets made from robot poses (see module docstring)."""
+    tolerance : the pose tolerance for datasets made from robot poses (see module docstring).
+    intrinsics_share_mm, intrinsics_share_rad : (3,) per base axis, the RMS move of the predicted camera
+        poses for one sigma of the intrinsics (module docstring, step 4); zeros when no sigmas were given."""
 
     flange_from_cam: Pose
     base_from_board: Pose
@@ -67,6 +77,8 @@ class HandEyeResult:
     position_residual_mm: np.ndarray
     orientation_residual_rad: np.ndarray
     tolerance: PoseTolerance
+    intrinsics_share_mm: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    intrinsics_share_rad: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     @property
     def cam_from_flange(self) -> Pose:
@@ -80,7 +92,9 @@ class HandEyeResult:
     def summary(self) -> str:
         return (f"hand-eye: RMS {self.rms_px:.3f} px; residual RMS "
                 f"{np.sqrt(np.mean(self.position_residual_mm ** 2)):.3f} mm, "
-                f"{np.rad2deg(np.sqrt(np.mean(self.orientation_residual_rad ** 2))):.3f} deg; tolerance "
+                f"{np.rad2deg(np.sqrt(np.mean(self.orientation_residual_rad ** 2))):.3f} deg; intrinsics' share "
+                f"{np.linalg.norm(self.intrinsics_share_mm):.3f} mm, "
+                f"{np.rad2deg(np.linalg.norm(self.intrinsics_share_rad)):.3f} deg; tolerance "
                 f"{np.round(self.tolerance.position_mm, 3).tolist()} mm, "
                 f"{np.round(np.rad2deg(self.tolerance.orientation_rad), 3).tolist()} deg")
 
@@ -102,10 +116,13 @@ def calibrate_hand_eye(
     object_points: list[np.ndarray],
     pixels: list[np.ndarray],
     options: HandEyeOptions = HandEyeOptions(),
+    intrinsic_sigmas: np.ndarray | None = None,
 ) -> HandEyeResult:
     """X = flange_from_cam from n >= 3 views (robot pose, board pose, the board's corners in that view).
 
     object_points, pixels : per view (N_i, 3) mm and (N_i, 2) px, the corners behind ``cam_from_board``.
+    intrinsic_sigmas : (P,) the calibration's standard deviation of each of ``camera.params`` (NaN or 0:
+        none), for the intrinsics' share of the tolerance (module docstring, step 4).
     Raises InputError for fewer than 3 views or lists of different lengths.
     """
     n = len(base_from_flange)
@@ -114,18 +131,45 @@ def calibrate_hand_eye(
     if n < 3:
         raise InputError(f"hand-eye calibration needs at least 3 views with distinct rotations, got {n}")
     closed = park_martin(base_from_flange, cam_from_board)
-    x = closed
-    y = _mean_pose([b @ closed @ c for b, c in zip(base_from_flange, cam_from_board)])
-    if options.refine:
-        x, y = _refine(x, y, base_from_flange, cam_from_board)
+    x, y = _solve(closed, base_from_flange, cam_from_board, options.refine)
     residuals = _reprojection(x, y, base_from_flange, camera, object_points, pixels)
     rms = float(np.sqrt(np.mean(residuals ** 2) * 2.0))
     # What the robot predicts for the camera against what the board shows, in the base frame.
     rot_axes, pos = _loop_residuals(x, y, base_from_flange, cam_from_board)
     ang = np.linalg.norm(rot_axes, axis=1)
+    share_mm, share_rad = np.zeros(3), np.zeros(3)
+    if intrinsic_sigmas is not None and options.include_intrinsics:
+        share_mm, share_rad = _intrinsics_share(x, base_from_flange, camera, object_points, pixels,
+                                                np.asarray(intrinsic_sigmas, dtype=float), options.refine)
     k = options.tolerance_sigmas
-    tolerance = PoseTolerance(k * np.sqrt(np.mean(pos ** 2, axis=0)), k * np.sqrt(np.mean(rot_axes ** 2, axis=0)))
-    return HandEyeResult(x, y, closed, rms, pos, ang, tolerance)
+    tolerance = PoseTolerance(k * np.hypot(np.sqrt(np.mean(pos ** 2, axis=0)), share_mm),
+                              k * np.hypot(np.sqrt(np.mean(rot_axes ** 2, axis=0)), share_rad))
+    return HandEyeResult(x, y, closed, rms, pos, ang, tolerance, share_mm, share_rad)
+
+
+def _solve(start: Pose, base_from_flange: list[Pose], cam_from_board: list[Pose], refine: bool) -> tuple[Pose, Pose]:
+    """(X, Y) from the closed form's X (``start``), jointly refined when ``refine``."""
+    y = _mean_pose([b @ start @ c for b, c in zip(base_from_flange, cam_from_board)])
+    return _refine(start, y, base_from_flange, cam_from_board) if refine else (start, y)
+
+
+def _intrinsics_share(x: Pose, base_from_flange: list[Pose], camera: Camera, object_points: list[np.ndarray],
+                      pixels: list[np.ndarray], sigmas: np.ndarray, refine: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(3,) mm and (3,) rad per base axis: the quadrature sum over intrinsics of the RMS (over views) move
+    of the robot-predicted camera pose when X is solved again with that intrinsic one sigma off."""
+    if sigmas.shape != camera.params.shape:
+        raise ValueError(f"{sigmas.shape[0]} intrinsic sigmas for a camera of {camera.params.shape[0]} parameters")
+    nominal = [x.inverse() @ b.inverse() for b in base_from_flange]
+    pos_sq, rot_sq = np.zeros(3), np.zeros(3)
+    for j in np.flatnonzero(np.isfinite(sigmas) & (sigmas > 0)):
+        moved = camera.with_params(camera.params + np.eye(len(sigmas))[j] * sigmas[j])
+        boards = [board_pose(moved, o, p) for o, p in zip(object_points, pixels)]
+        x_j, _ = _solve(park_martin(base_from_flange, boards), base_from_flange, boards, refine)
+        predicted = [x_j.inverse() @ b.inverse() for b in base_from_flange]
+        pos_sq += np.mean([(p.centre - q.centre) ** 2 for p, q in zip(predicted, nominal)], axis=0)
+        rot_sq += np.mean([matrix_to_rotvec(q.rotation.T @ p.rotation) ** 2
+                           for p, q in zip(predicted, nominal)], axis=0)
+    return np.sqrt(pos_sq), np.sqrt(rot_sq)
 
 
 def park_martin(base_from_flange: list[Pose], cam_from_board: list[Pose]) -> Pose:
