@@ -5,6 +5,9 @@ the robot log, import frames, check), then map the imported scan and its twin (t
 true camera poses and the same tolerance), both with the recording's truth attached. Writes
 benchmarks/results/own_data.json.
 
+The *robot twin* is the same log imported through the true hand-eye: the robot's own error without what
+calibration, hand-eye and interpolation add. With an error-free robot it is the twin up to interpolation.
+
 ``--spread K`` also maps K copies of the twin whose true poses are each moved by a random rigid error of
 ``--spread-mm`` (and ``--spread-mm`` / 40 mm radians, the hand-eye's lever): how much the map's error moves
 when its inputs move by far less than anything the import adds, i.e. the resolution at which a walkthrough
@@ -92,6 +95,10 @@ def case(root: Path, robot_error_mm: float, seed: int, size: int, spread: int = 
          "--pose-format", "xyz-qxyzw", "--unit", "m", "--frame-times", "rec/scan/frame_times.csv",
          "--hand-eye", "he/hand_eye.json", "--tolerance", "0.5", "--tolerance-deg", "0.25", "--every", "3",
          "--out", "scan")
+    _run("import", "frames", "rec/scan/video.mkv", "--camera", "cal/camera.json", "--poses", "rec/scan/robot_log.csv",
+         "--pose-format", "xyz-qxyzw", "--unit", "m", "--frame-times", "rec/scan/frame_times.csv",
+         "--hand-eye", "rec/truth/hand_eye.json", "--tolerance", "0.5", "--tolerance-deg", "0.25", "--every", "3",
+         "--out", "robot_twin")
     ds = load_dataset(root / "scan", check_images=True)
     names, truth = read_poses_csv(root / "rec" / "truth" / "poses.csv")
     true = dict(zip(names, truth))
@@ -108,6 +115,8 @@ def case(root: Path, robot_error_mm: float, seed: int, size: int, spread: int = 
         "walkthrough_map": _map(_with_truth(root, root / "scan", root / "scan_gt", true_poses_measured=False),
                                 root / "map"),
         "twin_map": _map(_with_truth(root, root / "scan", root / "twin", true_poses_measured=True), root / "twin_map"),
+        "robot_twin_map": _map(_with_truth(root, root / "robot_twin", root / "robot_twin_gt",
+                                           true_poses_measured=False), root / "robot_twin_map"),
         "nudged_twin_maps": [
             _map(_with_truth(root, root / "scan", root / f"twin{k}", true_poses_measured=True,
                              nudge=_nudges(len(ds), spread_mm, np.random.default_rng([seed, 77, k]))),

@@ -16,7 +16,7 @@ from scope3d.io.poses_csv import format_poses_csv, read_poses_csv
 from scope3d.phantoms.boards import BoardRenderOptions, render_board_views
 from scope3d.sensor.calibration import BoardSpec
 from scope3d.sensor.camera import Camera
-from scope3d.sensor.hand_eye import calibrate_hand_eye
+from scope3d.sensor.hand_eye import board_pose, calibrate_hand_eye
 from scope3d.sensor.pose_tolerance import MeasuredPose, PoseTolerance, perturb_poses_uniform
 from scope3d.utils.jsonio import write_json
 
@@ -80,3 +80,28 @@ def test_hand_eye_needs_three_views_and_two_rotation_axes(robot_views):
     with pytest.raises(InputError, match="one axis"):
         calibrate_hand_eye(spin, spin, camera=CAMERA, object_points=[BOARD.object_points()] * 3,
                            pixels=views.corners_px[:3])
+
+
+def test_the_tolerance_holds_a_focal_length_error_that_the_residuals_cannot_show(robot_views):
+    # exact robot and exact corners, seen through a camera whose fx and fy are 2 sigma long: every board is
+    # 2 sigma x its distance too far in every view alike, so the loop residuals stay near zero while X moves
+    # along the optical axis. The intrinsics' share (X solved again per sigma) must state that move.
+    views, true_flange, _ = robot_views
+    obj = BOARD.object_points()
+    pixels = [CAMERA.project(c.transform(obj)) for c in views.poses]
+    sigma = np.array([0.5, 0.5, 0.3, 0.3, 1e-3, 1e-3])  # px, px, px, px, -, -
+    wrong = CAMERA.with_params(CAMERA.params + np.array([2.0, 2.0, 0, 0, 0, 0]) * sigma)
+    boards = [board_pose(wrong, obj, px) for px in pixels]
+    objs = [obj] * len(pixels)
+    plain = calibrate_hand_eye(true_flange, boards, camera=wrong, object_points=objs, pixels=pixels)
+    shared = calibrate_hand_eye(true_flange, boards, camera=wrong, object_points=objs, pixels=pixels,
+                                intrinsic_sigmas=sigma)
+    # the camera poses the robot predicts, against the truth, per base axis
+    truth = [FLANGE_FROM_CAM.inverse() @ b.inverse() for b in true_flange]
+    error = np.abs([(shared.flange_from_cam.inverse() @ b.inverse()).centre - t.centre
+                    for b, t in zip(true_flange, truth)]).max(axis=0)
+    assert np.linalg.norm(error) > 0.02  # fx 1 px long over ~20-40 mm boards: a real move
+    # the residuals alone do not hold it (tilted boards make them grow too, but less: 0.08 against 0.15 mm)
+    assert np.linalg.norm(error) > 1.5 * np.linalg.norm(plain.tolerance.position_mm)
+    assert np.all(error <= shared.tolerance.position_mm)  # with the share (3 sigma) they do
+    assert np.all(shared.intrinsics_share_mm > 0) and np.all(plain.intrinsics_share_mm == 0)

@@ -80,7 +80,8 @@ def register_hand_eye(subparsers) -> None:
         help="camera-from-flange transform of a robot-held scope from board images and the robot's poses",
         description="Detect the board in every image, find its pose through the calibrated camera, solve "
         "AX = XB in closed form (Park-Martin) and refine it jointly; write DIR/hand_eye.json "
-        "(flange_from_cam, cam_from_flange, residuals, pose tolerance = k x residual RMS) and DIR/poses.csv "
+        "(flange_from_cam, cam_from_flange, residuals, pose tolerance = k x (residual RMS and the intrinsics' "
+        "share in quadrature)) and DIR/poses.csv "
         "(every robot row turned into a camera pose with that tolerance: a dataset's poses.csv).",
     )
     p.add_argument("images", type=Path, nargs="+", help="board images, named as in the robot poses file")
