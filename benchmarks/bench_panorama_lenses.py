@@ -8,9 +8,10 @@ left out, as in ``bench_panorama_3d.py``'s rows): images only and from the plann
 ``bench_panorama_3d.py``'s: every point's distance to the true wall after a 7-DoF similarity fitted to the
 points' true positions (mean, median, p95). Per lens and seed also what explains a gap: the focal length at
 the centre (px per radian), the median SIFT features per frame, the verified pairs and which image-only map
-the choice kept.
+the choice kept. ``--vignetting N`` renders every lens with the same light falloff ``cos(theta)^N`` (fisheye-140's
+own is 1, barrel-70's 2, the pinhole's 0), to tell a lens's falloff from its geometry.
 
-Run: ``PYTHONPATH=src python benchmarks/bench_panorama_lenses.py [--size 256 256] [--seeds 0 7]`` (a few
+Run: ``PYTHONPATH=src python benchmarks/bench_panorama_lenses.py [--size 256 256] [--seeds 0 13]`` (a few
 minutes at 256 px on 2 cores); ``--mosaic`` adds bench_panorama.py's sheet mosaic (30 frames of 304 px) through
 each lens, its alignment error against the plane's exact mapping in each frame's own pixels. Writes
 benchmarks/results/panorama_lenses[_TAG].json.
@@ -31,6 +32,7 @@ import numpy as np
 from scope3d.io.dataset import load_dataset
 from scope3d.phantoms import generate, write
 from scope3d.phantoms.lenses import LENSES
+from scope3d.phantoms.render import RenderOptions
 from scope3d.registration.mosaic import MosaicOptions
 from scope3d.pipelines import mosaic as mosaic_job
 from scope3d.pipelines.panorama import Panorama3dOptions, panorama_features, run
@@ -53,13 +55,17 @@ def panorama_row(dataset, work: Path, planned: bool) -> dict:
             "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0}
 
 
-def lens_rows(lens: str, seed: int, size, work: Path) -> list[dict]:
-    seq = generate("bladder", seed=seed, pose_noise_mm=1.0, size=size, lens=lens)
+def lens_rows(lens: str, seed: int, size, work: Path, vignetting: float | None = None) -> list[dict]:
+    """Both panoramas of the spiral through ``lens``; ``vignetting`` overrides the lens's exponent n of
+    cos(theta)^n (None: the lens's own), to tell its light falloff from its geometry."""
+    options = RenderOptions() if vignetting is None else RenderOptions(vignetting=vignetting)
+    seq = generate("bladder", seed=seed, pose_noise_mm=1.0, size=size, lens=lens, options=options)
     write(seq, work / "data")
     dataset = load_dataset(work / "data")
     features = panorama_features(Panorama3dOptions(), dataset)
     cam = dataset.camera
-    common = {"lens": lens, "seed": seed, "model": cam.model, "fx_px": cam.fx, "fov_deg": cam.fov_deg,
+    common = {"lens": lens, "seed": seed, "vignetting": LENSES[lens].vignetting if vignetting is None else vignetting,
+              "model": cam.model, "fx_px": cam.fx, "fov_deg": cam.fov_deg,
               "median_features": float(np.median([len(f) for f in features]))}
     rows = []
     for planned in (False, True):
@@ -93,16 +99,18 @@ def main() -> None:
     parser.add_argument("--size", type=int, nargs=2, metavar=("W", "H"), help="default: the phantom's 608 x 608")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0])
     parser.add_argument("--tag", default="")
+    parser.add_argument("--vignetting", type=float, help="render every lens with cos(theta)^N (default: each lens's own)")
     parser.add_argument("--mosaic", action="store_true", help="also the sheet's 2-D mosaic through each lens")
+    parser.add_argument("--mosaic-only", action="store_true", help="the sheet's mosaic only, no panorama")
     args = parser.parse_args()
     load_start = os.getloadavg()
     rows = []
-    for seed in args.seeds:
+    for seed in [] if args.mosaic_only else args.seeds:
         for lens in args.lenses:
             with tempfile.TemporaryDirectory() as tmp:
-                rows += lens_rows(lens, seed, tuple(args.size) if args.size else None, Path(tmp))
+                rows += lens_rows(lens, seed, tuple(args.size) if args.size else None, Path(tmp), args.vignetting)
     mosaics = []
-    for seed in args.seeds if args.mosaic else []:
+    for seed in args.seeds if args.mosaic or args.mosaic_only else []:
         for lens in args.lenses:
             with tempfile.TemporaryDirectory() as tmp:
                 mosaics.append(mosaic_row(lens, seed, Path(tmp)))
