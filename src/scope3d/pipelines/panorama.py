@@ -20,6 +20,12 @@
                  the true poses and depths) and true coverage
     files     <- report.json, sparse/ (COLMAP text), points.ply, mesh.ply, wall.obj/.mtl/.png (the textured
                  wall), organ_map.png and organ_coverage.png, panorama_3d.png (atomic folder)
+
+Any camera model of :mod:`scope3d.sensor.camera_models` (issue 32): every stage works on the frames as they
+are, through the dataset camera's model, and none resamples a frame to rectify it. The start's bearings,
+the triangulation and the truth's track points are unit rays (``Camera.unproject``); the relative poses'
+five-point RANSAC and the star fits work on normalised coordinates x/z, so there a fisheye's rays past
+90 deg are not used (the phantom's fisheye-140 sees 70 deg).
 """
 from __future__ import annotations
 
