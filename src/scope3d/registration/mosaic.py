@@ -25,7 +25,8 @@ Any camera model: a homography relates two views of a plane only in *rectified* 
 distortion-free pinhole with the same ``fx, fy, cx, cy``. So the algorithm needs them, but it never resamples
 a frame to get them: keypoints go to rectified pixels through the lens model (:func:`rectified_pixels`: the
 model's unit ray, then the pinhole), and :func:`blend` reads each mosaic pixel's colour from the frame's own
-pixels through the same model, in one resampling. A rectified pixel exists only for a ray in front of the
+pixels through the same model, in one resampling. The alignment's residuals are weighted back to each frame's
+own pixels (:func:`own_per_rectified`), where a keypoint's noise is the same across the image. A rectified pixel exists only for a ray in front of the
 camera plane: a fisheye's rays past 90 deg have none and stay out of the mosaic.
 """
 from __future__ import annotations
