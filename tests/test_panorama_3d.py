@@ -426,3 +426,38 @@ def test_a_map_failing_the_self_check_is_refused_unless_kept(bladder, tmp_path, 
     report = run(replace(options, refuse_implausible=False), ds, tmp_path / "kept").report
     saved = json.loads((tmp_path / "kept" / "report.json").read_text())
     assert not report["self_check"]["passed"] and saved["self_check"]["cameras_off_centre"] > 0.9
+
+
+@pytest.fixture(scope="module")
+def fisheye_turn(tmp_path_factory):
+    """The same turn of the spiral through the phantom lab's 140° capsule fisheye (OPENCV_FISHEYE)."""
+    seq = generate("bladder", size=(200, 200), lens="fisheye-140")
+    root = tmp_path_factory.mktemp("panorama_fisheye") / "bladder"
+    write(seq, root)
+    return _subset(root, root.parent / "turn", set(range(FIRST, LAST + 1)))
+
+
+def test_panorama_through_a_fisheye_lens_registers_every_frame_near_the_true_wall(fisheye_turn, tmp_path):
+    out = tmp_path / "pano"
+    assert main(["panorama", str(fisheye_turn), "--out", str(out), "--quiet"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    camera = load_dataset(fisheye_turn).camera
+    assert camera.model == "OPENCV_FISHEYE"
+    assert report["n_registered"] == report["n_frames"] == LAST - FIRST + 1
+    # the pinhole test's bound (1 mm: a point's depth error ~ range x noise / focal / parallax, half of it
+    # on average) scaled by the focal lengths: the fisheye spreads 140 deg over the field the pinhole
+    # spends 70 deg on, so each pixel spans 143 / fx = 1.9 times the angle at the centre (more at the rim)
+    pinhole_fx = Camera.from_fov(200, 200, 70.0).fx
+    err = report["surface_error_mm"]["after_similarity"]
+    assert err["mean"] < 1.0 * pinhole_fx / camera.fx
+    # the stars through the fisheye: 1.9 times smaller in each direction, so their edge pixels weigh
+    # 1.9 times more in the area; the scale's own uncertainty must cover its error (3 sigma)
+    assert abs(report["scale_error_fraction"]) <= 3 * report["scale_uncertainty_fraction"]
+    # the organ map projects every frame through the lens model: the issue's targets as for the pinhole
+    organ = report["organ_map"]
+    assert organ["n_frames_on_map"] == report["n_frames"]
+    assert organ["alignment"]["p95_px"] <= 1.0
+    assert abs(organ["coverage_error_fraction"]) <= 0.01
+    for name in ("points.ply", "mesh.ply", "wall.obj", "organ_map.png", "sparse/cameras.txt"):
+        assert (out / name).stat().st_size > 0
+    assert "OPENCV_FISHEYE" in (out / "sparse" / "cameras.txt").read_text()

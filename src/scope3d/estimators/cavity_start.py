@@ -40,10 +40,9 @@ def pair_depths(camera: Camera, pixels_i: np.ndarray, pixels_j: np.ndarray,
                 relative: RelativePose) -> tuple[np.ndarray, np.ndarray]:
     """Distances along frame i's rays (M,) of the pair's points triangulated with a unit baseline (midpoint
     of the closest approach), and whether each lies in front of both cameras (M,) bool."""
-    di = np.c_[camera.pixel_to_normalised(np.asarray(pixels_i, float)), np.ones(len(pixels_i))]
-    dj = np.c_[camera.pixel_to_normalised(np.asarray(pixels_j, float)), np.ones(len(pixels_j))] @ relative.rotation
-    di /= np.linalg.norm(di, axis=1, keepdims=True)
-    dj /= np.linalg.norm(dj, axis=1, keepdims=True)
+    # unit bearings through the lens model (a fisheye's past 90 deg too)
+    di = camera.unproject(np.asarray(pixels_i, float))
+    dj = camera.unproject(np.asarray(pixels_j, float)) @ relative.rotation
     cj = -relative.rotation.T @ relative.direction  # centre j in frame i (unit baseline)
     b = np.einsum("ij,ij->i", di, dj)
     d, e = di @ cj, dj @ cj
@@ -65,10 +64,8 @@ def depth_spread(camera: Camera, pixels_i: np.ndarray, pixels_j: np.ndarray, rel
 def _bearing_rotation(camera: Camera, pixels_i: np.ndarray, pixels_j: np.ndarray) -> np.ndarray:
     """The rotation ``R_ji`` that best turns frame i's bearings onto frame j's, as if the scope had turned
     about its centre (Kabsch on unit rays): a start off by the parallax only (5-7 deg on the spiral)."""
-    a = np.c_[camera.pixel_to_normalised(np.asarray(pixels_i, float)), np.ones(len(pixels_i))]
-    b = np.c_[camera.pixel_to_normalised(np.asarray(pixels_j, float)), np.ones(len(pixels_j))]
-    a /= np.linalg.norm(a, axis=1, keepdims=True)
-    b /= np.linalg.norm(b, axis=1, keepdims=True)
+    a = camera.unproject(np.asarray(pixels_i, float))
+    b = camera.unproject(np.asarray(pixels_j, float))
     U, _, Vt = np.linalg.svd(b.T @ a)
     return U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
 

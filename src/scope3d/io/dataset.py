@@ -163,13 +163,14 @@ def _check_ground_truth_files(gt: GroundTruth, camera: Camera) -> None:
 
 
 def check_jobs_take(camera: Camera, where: str | Path, job: str) -> None:
-    """A job that takes scope3d's radial model only, so far (issue 32: ``map`` takes every model of
-    :mod:`scope3d.sensor.camera_models`; the others follow): an InputError naming ``where`` for a camera of
-    another model, so that a fisheye's parameters are never read as radial ones. Its ``check_dataset`` (or
-    ``run``) calls it before any work."""
+    """A job that takes scope3d's radial model only, so far (issue 32: ``map``, ``localize``, ``panorama`` and
+    ``mosaic`` take every model of :mod:`scope3d.sensor.camera_models`; ``axial`` and ``thread-scan`` call
+    this): an InputError naming ``where`` for a camera of another model, so that a fisheye's parameters are
+    never read as radial ones. Its ``check_dataset`` (or ``run``) calls it before any work."""
     if camera.model != DEFAULT_MODEL:
         raise InputError(f"{where}: a {camera.model} camera; scope3d {job} takes {DEFAULT_MODEL} cameras only so "
-                         "far (map and localize take every model; calibrate with --model radial for the others)")
+                         "far (map, localize, panorama and mosaic take every model; calibrate with --model radial "
+                         "for the others)")
 
 
 def write_dataset(

@@ -263,7 +263,7 @@ def true_track_points(camera: Camera, true_poses: list[Pose], depth_of, frame: n
         col = np.clip(np.rint(pixels[sel, 0]).astype(int), 0, depth.shape[1] - 1)
         row = np.clip(np.rint(pixels[sel, 1]).astype(int), 0, depth.shape[0] - 1)
         z = depth[row, col].astype(float)
-        ray = np.c_[camera.pixel_to_normalised(pixels[sel]), np.ones(len(sel))] * z[:, None]
+        ray = camera.unproject(pixels[sel], z)  # through the lens model: any camera of the dataset
         pose = true_poses[int(k)]
         hits[sel] = (ray - pose.translation) @ pose.rotation  # R^T (x - t)
     out = np.full((n_tracks, 3), np.nan)

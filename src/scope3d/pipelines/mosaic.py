@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from scope3d.errors import InputError
-from scope3d.io.dataset import Dataset, check_jobs_take
+from scope3d.io.dataset import Dataset
 from scope3d.io.images import write_image
 from scope3d.registration import mosaic as mos
 from scope3d.registration.mosaic import Mosaic, MosaicOptions
@@ -84,8 +84,6 @@ def run(options: MosaicOptions, datasets: list[Dataset], out_dir: str | Path, *,
     """
     t0, c0 = time.perf_counter(), time.process_time()
     frames, cameras, sections, owner, true_poses = [], [], [], [], []
-    for ds in datasets:
-        check_jobs_take(ds.camera, ds.root / "camera.json", "mosaic")
     for k, ds in enumerate(datasets):
         frames += [ds.frame(i) for i in range(len(ds))]
         cameras += [ds.camera] * len(ds)
@@ -127,9 +125,12 @@ def run(options: MosaicOptions, datasets: list[Dataset], out_dir: str | Path, *,
         truth = mos.true_plane_homographies(cameras, true_poses, *plane)
         err = mos.alignment_errors_px(result, truth, cameras)
         report["alignment_error_px"] = {"mean": float(err.mean()), "p95": float(np.percentile(err, 95)),
-                                        "unit": "pixels of the first frame (the mosaic's frame)"}
+                                        "unit": "rectified pixels of the first frame (the mosaic's frame)"}
+        own = mos.alignment_errors_frame_px(result, truth, cameras)
+        report["alignment_error_frame_px"] = {"mean": float(own.mean()), "p95": float(np.percentile(own, 95)),
+                                              "unit": "each frame's own pixels, through its lens (any lens alike)"}
     else:
-        report["alignment_error_px"] = None
+        report["alignment_error_px"] = report["alignment_error_frame_px"] = None
         report["alignment_error_note"] = "no planar ground truth (a curved wall has no exact 2-D mosaic)"
     write_json(out / "report.json", report)
     return MosaicResult(report, result)

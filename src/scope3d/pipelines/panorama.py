@@ -20,6 +20,12 @@
                  the true poses and depths) and true coverage
     files     <- report.json, sparse/ (COLMAP text), points.ply, mesh.ply, wall.obj/.mtl/.png (the textured
                  wall), organ_map.png and organ_coverage.png, panorama_3d.png (atomic folder)
+
+Any camera model of :mod:`scope3d.sensor.camera_models` (issue 32): every stage works on the frames as they
+are, through the dataset camera's model, and none resamples a frame to rectify it. The start's bearings,
+the triangulation and the truth's track points are unit rays (``Camera.unproject``); the relative poses'
+five-point RANSAC and the star fits work on normalised coordinates x/z, so there a fisheye's rays past
+90 deg are not used (the phantom's fisheye-140 sees 70 deg).
 """
 from __future__ import annotations
 
@@ -35,7 +41,7 @@ from scope3d.errors import InputError
 from scope3d.feature.detection import FeatureOptions, Features
 from scope3d.feature.matching import MatchOptions
 from scope3d.io.colmap import SparseModel, write_colmap_text
-from scope3d.io.dataset import Dataset, check_jobs_take
+from scope3d.io.dataset import Dataset
 from scope3d.io.images import write_image
 from scope3d.io.obj import write_textured_obj
 from scope3d.io.ply import write_ply
@@ -331,7 +337,6 @@ def save_panorama_png(path: Path, cavity: CavityMap, distances: np.ndarray | Non
 def check_dataset(options: Panorama3dOptions, dataset: Dataset) -> None:
     """What :func:`run` refuses before any work (``scope3d check --for panorama`` runs it too): raises
     InputError."""
-    check_jobs_take(dataset.camera, dataset.root / "camera.json", "panorama")
     if len(dataset) < 2:
         raise InputError(f"{dataset.root}: need at least 2 frames for a panorama, found {len(dataset)}")
     if options.stars is not None and dataset.fluorescence_paths is None:
@@ -343,7 +348,6 @@ def check_videos(options: Panorama3dOptions, datasets: Sequence[Dataset]) -> Non
     """Several videos share one organ map only in the frame their planned poses share: raises InputError
     naming the first dataset without planned poses (or when they are ignored), or with fewer than 2 frames."""
     for ds in datasets:
-        check_jobs_take(ds.camera, ds.root / "camera.json", "panorama")
         if len(ds) < 2:
             raise InputError(f"{ds.root}: need at least 2 frames for a panorama, found {len(ds)}")
         if not (options.use_planned_poses and knows_poses(ds.poses)):

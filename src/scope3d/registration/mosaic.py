@@ -20,6 +20,14 @@ Method, as in the reference with one change (global alignment instead of chainin
 A planar mosaic is exact for a plane seen from any pose, or any surface seen from one centre of projection;
 the inside of a closed organ seen from moving positions cannot be flattened without distortion, which shows
 as the alignment's residual.
+
+Any camera model: a homography relates two views of a plane only in *rectified* pixels, those of the camera's
+distortion-free pinhole with the same ``fx, fy, cx, cy``. So the algorithm needs them, but it never resamples
+a frame to get them: keypoints go to rectified pixels through the lens model (:func:`rectified_pixels`: the
+model's unit ray, then the pinhole), and :func:`blend` reads each mosaic pixel's colour from the frame's own
+pixels through the same model, in one resampling. The alignment's residuals are weighted back to each frame's
+own pixels (:func:`own_per_rectified`), where a keypoint's noise is the same across the image. A rectified pixel exists only for a ray in front of the
+camera plane: a fisheye's rays past 90 deg have none and stay out of the mosaic.
 """
 from __future__ import annotations
 
@@ -66,17 +74,20 @@ class MosaicOptions:
 
 @dataclass(frozen=True)
 class FrameLink:
-    """Verified matches between frames i and j: (M, 2) undistorted pixels in each."""
+    """Verified matches between frames i and j: (M, 2) rectified pixels in each (:func:`rectified_pixels`).
+    weights_j : (M,) frame j's own pixels per rectified pixel at ``points_j`` (:func:`own_per_rectified`), or
+    None for a pinhole without distortion (1 everywhere)."""
 
     i: int
     j: int
     points_i: np.ndarray
     points_j: np.ndarray
+    weights_j: np.ndarray | None = None
 
 
 @dataclass
 class Mosaic:
-    """homographies : (N, 3, 3) frame pixels (undistorted) -> mosaic pixels; NaN for frames left out.
+    """homographies : (N, 3, 3) rectified frame pixels (:func:`rectified_pixels`) -> mosaic pixels; NaN for frames left out.
     registered : (N,) bool. links : the verified pairs. residual_px : (M,) mosaic-pixel distance between
     the two ends of every linked match after the adjustment. image : (H, W, 3) uint8 blended mosaic, or
     None before :func:`blend`; coverage : (H, W) bool; canvas_from_mosaic : (3, 3) mosaic -> canvas pixels.
@@ -91,9 +102,49 @@ class Mosaic:
     canvas_from_mosaic: np.ndarray | None = None
 
 
-def _undistorted(camera: Camera, pixels: np.ndarray) -> np.ndarray:
-    xy = camera.pixel_to_normalised(pixels)
-    return np.stack([camera.fx * xy[:, 0] + camera.cx, camera.fy * xy[:, 1] + camera.cy], axis=1)
+#: a ray closer to the camera plane than this (its z over its length: 2.6 deg) has its rectified pixel over
+#: 20 focal lengths from the centre, where a keypoint's 0.5 px is stretched ~500-fold (1 / z^2): left out
+_MIN_RAY_Z = 0.045
+
+
+def rectified_pixels(camera: Camera, pixels: np.ndarray) -> np.ndarray:
+    """(N, 2) pixels of the frame -> (N, 2) pixels of the same rays in the camera's distortion-free pinhole
+    (``fx, fy, cx, cy``), any lens model: ``fx x + cx`` of the undistorted normalised coordinates for the
+    pinhole family, of ``x / z`` of the unit ray (:meth:`Camera.unproject`) for a fisheye. NaN for a fisheye's
+    ray at or behind the camera plane (within :data:`_MIN_RAY_Z` of it), which no pinhole images."""
+    pixels = np.asarray(pixels, float).reshape(-1, 2)
+    if not camera.lens.is_fisheye:  # the pinhole family sees in front of its plane only: no ray to drop
+        xy = camera.pixel_to_normalised(pixels)
+        return np.stack([camera.fx * xy[:, 0] + camera.cx, camera.fy * xy[:, 1] + camera.cy], axis=1)
+    rays = camera.unproject(pixels)
+    out = np.full((len(rays), 2), np.nan)
+    front = rays[:, 2] > _MIN_RAY_Z
+    out[front] = rays[front, :2] / rays[front, 2:3] * [camera.fx, camera.fy] + [camera.cx, camera.cy]
+    return out
+
+
+def frame_pixels(camera: Camera, rectified: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`rectified_pixels`: (N, 2) rectified pixels -> (N, 2) pixels of the frame through the
+    lens model (NaN where the lens does not see the ray)."""
+    r = np.asarray(rectified, float).reshape(-1, 2)
+    rays = np.c_[(r[:, 0] - camera.cx) / camera.fx, (r[:, 1] - camera.cy) / camera.fy, np.ones(len(r))]
+    return camera.project(rays)
+
+
+def own_per_rectified(camera: Camera, rectified: np.ndarray, step_px: float = 0.5) -> np.ndarray:
+    """(N,) how many of the frame's own pixels one rectified pixel spans at each of ``rectified`` (N, 2): the
+    square root of the area ratio, ``sqrt|det d own / d rectified|`` by forward differences of ``step_px``.
+    1 for a pinhole without distortion; below 1 towards a wide lens's rim (0.26 at fisheye-140's 70 deg)."""
+    r = np.asarray(rectified, float).reshape(-1, 2)
+    p0 = frame_pixels(camera, r)
+    du = (frame_pixels(camera, r + [step_px, 0.0]) - p0) / step_px
+    dv = (frame_pixels(camera, r + [0.0, step_px]) - p0) / step_px
+    return np.sqrt(np.abs(du[:, 0] * dv[:, 1] - du[:, 1] * dv[:, 0]))
+
+
+def _is_plain_pinhole(camera: Camera) -> bool:
+    """The camera's pixels are already rectified (a pinhole without distortion)."""
+    return not np.any(camera.params[4:])
 
 
 def link_frames(frames: list[np.ndarray], cameras: list[Camera], *, options: MosaicOptions = MosaicOptions(),
@@ -112,9 +163,12 @@ def link_frames(frames: list[np.ndarray], cameras: list[Camera], *, options: Mos
     for i, j in pairs:
         # Matching verifies with the camera of frame i; frames from another dataset are undistorted first.
         m = match_exhaustive(cameras[i], feats[i], feats[j], options.matching, i=i, j=j)
-        if len(m.idx_i) >= options.matching.min_matches:
-            links.append(FrameLink(i, j, _undistorted(cameras[i], feats[i].keypoints[m.idx_i]),
-                                   _undistorted(cameras[j], feats[j].keypoints[m.idx_j])))
+        pi = rectified_pixels(cameras[i], feats[i].keypoints[m.idx_i])
+        pj = rectified_pixels(cameras[j], feats[j].keypoints[m.idx_j])
+        seen = np.all(np.isfinite(pi), axis=1) & np.all(np.isfinite(pj), axis=1)
+        if seen.sum() >= options.matching.min_matches:
+            wj = None if _is_plain_pinhole(cameras[j]) else own_per_rectified(cameras[j], pj[seen])
+            links.append(FrameLink(i, j, pi[seen], pj[seen], wj))
         advance(progress)
     return links
 
@@ -142,7 +196,8 @@ def align_globally(n_frames: int, links: list[FrameLink], sizes: list[tuple[int,
         keep = np.arange(len(ln.points_i))
         if len(keep) > options.max_matches_per_pair:
             keep = np.sort(rng.choice(keep, options.max_matches_per_pair, replace=False))
-        sampled.append((ln.i, ln.j, ln.points_i[keep], ln.points_j[keep]))
+        sampled.append((ln.i, ln.j, ln.points_i[keep], ln.points_j[keep],
+                        np.ones(len(keep)) if ln.weights_j is None else ln.weights_j[keep]))
     # Conditioning: each frame's pixels centred and divided by its size before fitting.
     norm = []
     for w, h in sizes:
@@ -155,7 +210,7 @@ def align_globally(n_frames: int, links: list[FrameLink], sizes: list[tuple[int,
     mat = lil_matrix((n_rows, 6 * len(free)))
     rhs = np.zeros(n_rows)
     row = 0
-    for i, j, pi, pj in sampled:
+    for i, j, pi, pj, _ in sampled:
         xi = _apply(norm[i], pi)
         xj = _apply(norm[j], pj)
         for frame, x, sign in ((i, xi, 1.0), (j, xj, -1.0)):
@@ -182,8 +237,11 @@ def align_globally(n_frames: int, links: list[FrameLink], sizes: list[tuple[int,
 
     # Stacked observations: link index, frame i's normalised point (homogeneous), frame j's normalised point.
     link_of = np.concatenate([np.full(len(s[2]), k) for k, s in enumerate(sampled)])
-    xi_h = np.concatenate([np.column_stack([_apply(norm[i], pi), np.ones(len(pi))]) for i, _, pi, _ in sampled])
-    xj = np.concatenate([_apply(norm[j], pj) for _, j, _, pj in sampled])
+    xi_h = np.concatenate([np.column_stack([_apply(norm[i], pi), np.ones(len(pi))]) for i, _, pi, _, _ in sampled])
+    xj = np.concatenate([_apply(norm[j], pj) for _, j, _, pj, _ in sampled])
+    # each residual in frame j's own pixels: a rectified pixel at a wide lens's rim spans a fraction of one,
+    # and its keypoint's noise is stretched by as much (all 1 for a pinhole without distortion)
+    weight = np.repeat(np.concatenate([s[4] for s in sampled]), 2)
     link_i = np.array([s[0] for s in sampled])
     link_j = np.array([s[1] for s in sampled])
 
@@ -195,12 +253,12 @@ def align_globally(n_frames: int, links: list[FrameLink], sizes: list[tuple[int,
         # reference frame (which a residual measured in mosaic coordinates rewards).
         transfer = np.linalg.solve(stack[link_j], stack[link_i])  # (L, 3, 3) frame i -> frame j
         p = np.einsum("nab,nb->na", transfer[link_of], xi_h)
-        return (p[:, :2] / p[:, 2:3] - xj).ravel()
+        return (p[:, :2] / p[:, 2:3] - xj).ravel() * weight
 
     if free:
         sparsity = lil_matrix((n_rows, 8 * len(free)), dtype=np.int8)
         row = 0
-        for i, j, pi, _ in sampled:
+        for i, j, pi, _, _ in sampled:
             for frame in (i, j):
                 if frame != reference:
                     sparsity[row:row + 2 * len(pi), 8 * col[frame]:8 * col[frame] + 8] = 1
@@ -228,16 +286,46 @@ def _apply(h: np.ndarray, points: np.ndarray) -> np.ndarray:
     return p[:, :2] / p[:, 2:3]
 
 
+def _footprint(camera: Camera) -> np.ndarray:
+    """(M, 2) rectified pixels bounding a frame's image in the mosaic: the frame's four corners for a pinhole
+    without distortion (as the mosaic always took them), else the rectified border of its valid field (a
+    distorted frame's corners bend, and a fisheye's lie outside its field)."""
+    w, h = camera.width, camera.height
+    if _is_plain_pinhole(camera):
+        return np.array([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1.0]])
+    valid = camera.valid_mask().astype(np.uint8)
+    contours, _ = cv2.findContours(valid, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    border = np.concatenate([c.reshape(-1, 2) for c in contours]).astype(float)
+    rect = rectified_pixels(camera, border)
+    return rect[np.all(np.isfinite(rect), axis=1)]
+
+
+def _warp(image: np.ndarray, camera: Camera, canvas_from_frame: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """``image`` (H, W[, C]) float32 of the frame resampled (bilinear) into the canvas of ``size`` (width,
+    height) through ``canvas_from_frame`` (3, 3), a homography on rectified pixels. A pinhole without
+    distortion is warped directly; any other lens by each canvas pixel's rectified pixel taken back through
+    the lens model (:func:`frame_pixels`), within the bounding box of the frame's footprint; 0 elsewhere."""
+    if _is_plain_pinhole(camera):
+        return cv2.warpPerspective(image, canvas_from_frame, size, flags=cv2.INTER_LINEAR)
+    out = np.zeros((size[1], size[0]) + image.shape[2:], np.float32)
+    box = _apply(canvas_from_frame, _footprint(camera))
+    lo = np.clip(np.floor(box.min(axis=0)).astype(int) - 1, 0, [size[0] - 1, size[1] - 1])
+    hi = np.clip(np.ceil(box.max(axis=0)).astype(int) + 1, 0, [size[0] - 1, size[1] - 1])
+    u, v = np.meshgrid(np.arange(lo[0], hi[0] + 1, dtype=float), np.arange(lo[1], hi[1] + 1, dtype=float))
+    rect = _apply(np.linalg.inv(canvas_from_frame), np.c_[u.ravel(), v.ravel()])
+    src = np.nan_to_num(frame_pixels(camera, rect), nan=-1e6).astype(np.float32).reshape(u.shape + (2,))
+    out[lo[1]:hi[1] + 1, lo[0]:hi[0] + 1] = cv2.remap(image, src[..., 0], src[..., 1], cv2.INTER_LINEAR,
+                                                      borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    return out
+
+
 def blend(mosaic: Mosaic, frames: list[np.ndarray], cameras: list[Camera], *,
           options: MosaicOptions = MosaicOptions()) -> Mosaic:
     """Warp the registered frames into one canvas with feathered weights (step 4). Fills ``image``,
-    ``coverage`` and ``canvas_from_mosaic``. Frames with distortion are undistorted first."""
+    ``coverage`` and ``canvas_from_mosaic``. Each frame is resampled once, through its lens model
+    (:func:`_warp`): a distorted frame is never rectified into an image of its own first."""
     idx = np.flatnonzero(mosaic.registered)
-    corners = []
-    for i in idx:
-        w, h = cameras[i].width, cameras[i].height
-        corners.append(_apply(mosaic.homographies[i], np.array([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1.0]])))
-    corners = np.concatenate(corners)
+    corners = np.concatenate([_apply(mosaic.homographies[i], _footprint(cameras[i])) for i in idx])
     lo, hi = corners.min(axis=0), corners.max(axis=0)
     scale = min(1.0, options.max_canvas_px / max(hi - lo))
     canvas_from_mosaic = np.array([[scale, 0, -scale * lo[0]], [0, scale, -scale * lo[1]], [0, 0, 1.0]])
@@ -246,13 +334,12 @@ def blend(mosaic: Mosaic, frames: list[np.ndarray], cameras: list[Camera], *,
     wsum = np.zeros((size[1], size[0]), np.float32)
     for i in idx:
         cam = cameras[i]
-        img = frames[i]
-        if cam.k1 or cam.k2:
-            img = cv2.undistort(img, cam.K, cam.distortion_coeffs)
-        weight = cv2.distanceTransform(cam.mask().astype(np.uint8), cv2.DIST_L2, 5).astype(np.float32)
+        # the weight falls to zero at the edge of what the lens sees (its circular field, a fisheye's rim)
+        valid = cam.mask() if _is_plain_pinhole(cam) else cam.valid_mask()
+        weight = cv2.distanceTransform(valid.astype(np.uint8), cv2.DIST_L2, 5).astype(np.float32)
         warp = canvas_from_mosaic @ mosaic.homographies[i]
-        w_img = cv2.warpPerspective(img.astype(np.float32), warp, size, flags=cv2.INTER_LINEAR)
-        w_wt = cv2.warpPerspective(weight, warp, size, flags=cv2.INTER_LINEAR)
+        w_img = _warp(frames[i].astype(np.float32), cam, warp, size)
+        w_wt = _warp(weight, cam, warp, size)
         acc += w_img * w_wt[..., None]
         wsum += w_wt
     covered = wsum > 0
@@ -305,7 +392,7 @@ def draw_path(image: np.ndarray, centres: np.ndarray, sections: np.ndarray) -> n
 def true_plane_homographies(cameras: list[Camera], poses, plane_origin_mm: np.ndarray, plane_normal: np.ndarray,
                             *, reference: int = 0) -> np.ndarray:
     """(N, 3, 3) the exact frame -> mosaic mapping of frames of a plane (ground truth): frame ``i``'s
-    (undistorted) pixels carried through the plane into the reference frame's pixels.
+    rectified pixels (:func:`rectified_pixels`) carried through the plane into the reference frame's pixels.
 
     poses : true ``cam_from_world`` per frame; the plane passes through ``plane_origin_mm`` (3,) with
     ``plane_normal`` (3,).
@@ -327,13 +414,37 @@ def true_plane_homographies(cameras: list[Camera], poses, plane_origin_mm: np.nd
 
 def alignment_errors_px(mosaic: Mosaic, true_homographies: np.ndarray, cameras: list[Camera],
                         samples_per_side: int = 12) -> np.ndarray:
-    """Distances (mosaic pixels, i.e. the reference frame's pixels) between where the estimated and the true
-    mappings put a grid of points inside each registered frame's field. -> (M,) float."""
+    """Distances (mosaic pixels, i.e. the reference frame's rectified pixels) between where the estimated and
+    the true mappings put a grid of the frame's pixels inside each registered frame's field (rectified
+    through the lens model first). -> (M,) float."""
     out = []
     for i in np.flatnonzero(mosaic.registered):
         cam = cameras[i]
         u, v = np.meshgrid(np.linspace(0, cam.width - 1, samples_per_side), np.linspace(0, cam.height - 1, samples_per_side))
         pts = np.stack([u.ravel(), v.ravel()], axis=1)
         pts = pts[cam.in_image(pts)]
+        if not _is_plain_pinhole(cam):  # the grid of the frame's own pixels, where the lens sees, rectified
+            pts = rectified_pixels(cam, pts[cam.sees_pixels(pts)])
+            pts = pts[np.all(np.isfinite(pts), axis=1)]
         out.append(np.linalg.norm(_apply(mosaic.homographies[i], pts) - _apply(true_homographies[i], pts), axis=1))
+    return np.concatenate(out) if out else np.zeros(0)
+
+
+def alignment_errors_frame_px(mosaic: Mosaic, true_homographies: np.ndarray, cameras: list[Camera],
+                              samples_per_side: int = 12) -> np.ndarray:
+    """The alignment error in each frame's own pixels, comparable across lenses: a grid of the frame's pixels
+    where its lens sees is carried into the mosaic by the true mapping and back by the estimated one (then
+    through the lens model, :func:`frame_pixels`); the distance to where it started. A rectified pixel of a
+    wide lens's rim stands for several of its own (1 / cos^2 of the ray's angle: 8.5 at 70 deg), so
+    :func:`alignment_errors_px` weighs a fisheye's rim that much more. -> (M,) float, pixels."""
+    out = []
+    for i in np.flatnonzero(mosaic.registered):
+        cam = cameras[i]
+        u, v = np.meshgrid(np.linspace(0, cam.width - 1, samples_per_side), np.linspace(0, cam.height - 1, samples_per_side))
+        pts = np.stack([u.ravel(), v.ravel()], axis=1)
+        pts = pts[cam.in_image(pts) & cam.sees_pixels(pts)]
+        rect = rectified_pixels(cam, pts)
+        ok = np.all(np.isfinite(rect), axis=1)
+        back = frame_pixels(cam, _apply(np.linalg.inv(mosaic.homographies[i]), _apply(true_homographies[i], rect[ok])))
+        out.append(np.linalg.norm(back - pts[ok], axis=1))
     return np.concatenate(out) if out else np.zeros(0)
