@@ -53,7 +53,9 @@ def case(root: Path, seed: int, sync_s: float) -> dict:
     def offset(centres):
         return float(-np.sum(v * (centres - imported)) / np.sum(v * v))
 
+    reported = result.report.get("clock_offset") or {}
     return {"seed": seed, "sync_error_s": sync_s, "offset_from_map_s": offset(mapped), "offset_from_truth_s": offset(true),
+            "map_reports": {k: reported.get(k) for k in ("s", "sigma_s", "significant")},
             "imported_vs_truth_mm": float(np.linalg.norm(imported - true, axis=1).mean()),
             "map_vs_truth_mm": float(np.linalg.norm(mapped - true, axis=1).mean())}
 
