@@ -196,6 +196,69 @@ def test_calibrated_bounds_are_consumed_by_bundle_adjustment(tmp_path):
         BundleStageOptions(intrinsic_bounds=((1.0,) * 6, (0.0,) * 6))
 
 
+@pytest.mark.parametrize("model", ["OPENCV", "OPENCV_FISHEYE"])
+def test_bounds_on_every_parameter_of_a_lens_model_reach_bundle_adjustment(tmp_path, model):
+    """intrinsic_bounds.json of a lens model, read for every parameter: the map's BCBA frees the model's later
+    parameters (OPENCV's p1, p2; the fisheye's k3, k4) inside their boxes, holds one whose bounds are NaN, and
+    ends with every parameter inside its box; freeing them can only lower the cost reached with them held."""
+    from dataclasses import replace
+
+    from scope3d.estimators.bundle import solve
+    from scope3d.estimators.bundle.problem import extra_layout
+    from scope3d.geometry.pose import Pose
+    from scope3d.geometry.rotation import look_at
+    from scope3d.io.intrinsic_bounds import write_intrinsic_bounds
+    from scope3d.scene.tracks import Tracks
+    from scope3d.sensor.camera import INTRINSIC_NAMES
+    from scope3d.sensor.pose_tolerance import MICRO_STAGE, MeasuredPose
+    from scope3d.sfm.guided_mapping import BundleStageOptions, bundle_problem
+
+    if model == "OPENCV":
+        truth = Camera(400, 400, 380.0, 381.0, 199.5, 199.5, -0.2, 0.05, model=model, extra=(1e-3, -8e-4))
+        std = np.array([0.15, 0.15, 0.15, 0.15, 1e-3, 2e-3, 2e-4, 2e-4])
+    else:
+        truth = Camera(400, 400, 150.0, 150.5, 199.5, 199.5, 0.04, 0.003, model=model, extra=(1e-3, -3e-4))
+        std = np.array([0.15, 0.15, 0.15, 0.15, 1e-3, 2e-3, 2e-3, 8e-4])
+    # the start: the later parameters 2 sigma off, as a calibration of another day might leave them
+    start = truth.with_params(truth.params + np.r_[np.zeros(6), 2.0 * std[6:]])
+    rng = np.random.default_rng(1)
+    points = rng.uniform([-8, -8, -3], [8, 8, 3], (300, 3))
+    poses = [Pose.from_centre(look_at(np.array([x, y, 30.0]), np.array([0.0, 0.0, 0.0])), [x, y, 30.0])
+             for x in (-6.0, 0.0, 6.0) for y in (-4.0, 4.0)]
+    px = np.stack([truth.project_world(p, points) for p in poses], axis=1).reshape(-1, 2)
+    px += 0.3 * rng.standard_normal(px.shape)
+    track = np.repeat(np.arange(len(points)), len(poses))
+    tracks = Tracks(track, np.tile(np.arange(len(poses)), len(points)), np.arange(len(track)), px,
+                    np.zeros((len(points), 3), np.uint8), points + 0.05 * rng.standard_normal(points.shape))
+    write_intrinsic_bounds(tmp_path / "b.json", truth.params, std, 3.0, model=model, names=truth.param_names)
+    names = INTRINSIC_NAMES + extra_layout(model)
+    lower, upper = read_intrinsic_bounds(tmp_path / "b.json", model, names=names)
+    later = list(truth.param_names[6:])
+    assert np.all(np.isfinite(lower[:8])) and np.all(np.isnan(lower[8:]))  # OPENCV's k3..k6: absent, held
+
+    def adjusted(lo, up):
+        options = BundleStageOptions(refine_intrinsics=True, intrinsic_bounds=(tuple(lo), tuple(up)))
+        measured = [MeasuredPose(p, MICRO_STAGE) for p in poses]
+        problem = bundle_problem("bounded", measured, start, tracks, refine_intrinsics=True,
+                                 intrinsic_bounds=options.intrinsic_bounds)
+        # converged far past the map's stopping rule, so that the two costs compare to rounding
+        return solve(problem, replace(options.solver(), function_tolerance=1e-14, max_iterations=300))
+
+    freed = adjusted(lower, upper)
+    got = np.r_[freed.intrinsics[0], freed.extra[0][:len(later)]]
+    assert np.all(got >= lower[:8]) and np.all(got <= upper[:8])
+    assert np.all(got[6:] != start.params[6:])  # the later parameters moved
+    held_lower, held_upper = lower.copy(), upper.copy()
+    held_lower[6:] = held_upper[6:] = np.nan
+    held = adjusted(held_lower, held_upper)
+    np.testing.assert_array_equal(held.extra[0][:len(later)], start.params[6:])
+    assert freed.final_cost <= held.final_cost * (1 + 1e-9)
+    one = lower.copy()
+    one[7] = np.nan  # hold the second later parameter only
+    partly = adjusted(one, upper)
+    assert partly.extra[0][1] == start.params[7] and partly.extra[0][0] != start.params[6]
+
+
 def test_charuco_board_is_rendered_detected_and_calibrated():
     """ChArUco corners carry ids: each detected corner must sit on the true projection of its own id."""
     camera = Camera.from_fov(400, 300, 70.0, k1=-0.25, k2=0.08)

@@ -106,3 +106,26 @@ def test_map_refuses_bounds_of_another_model_in_one_line(fisheye_map, tmp_path, 
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "bounds of a 'pinhole_radial_k1k2' camera, for a OPENCV_FISHEYE camera" in err[0]
     assert not (tmp_path / "m").exists()
+
+
+def test_map_refines_the_fisheyes_later_parameters_inside_their_bounds(fisheye_map, tmp_path):
+    """`--intrinsic-bounds` with `--refine-later-intrinsics`: k3, k4 refined too, and every parameter of the
+    model ends inside its box (a calibration's +-3 sigma of the sizes the lab's boards give); without the flag
+    k3, k4 stay at camera.json's values. The flag alone is refused in one line."""
+    from scope3d.io.intrinsic_bounds import write_intrinsic_bounds
+
+    camera, _, data = fisheye_map
+    std = np.array([0.15, 0.15, 0.1, 0.1, 1e-3, 2e-3, 2e-3, 8e-4])
+    write_intrinsic_bounds(tmp_path / "b.json", camera.params, std, 3.0, model=camera.model,
+                           names=camera.param_names)
+    box = json.loads((tmp_path / "b.json").read_text())
+    adjusted = {}
+    for label, flag in (("held", []), ("freed", ["--refine-later-intrinsics"])):
+        assert main(["map", str(data), "--out", str(tmp_path / label), "--intrinsic-bounds", str(tmp_path / "b.json"),
+                     "--no-figures", "--no-progress", *flag]) == 0
+        adjusted[label] = json.loads((tmp_path / label / "report.json").read_text())["camera_adjusted"]["intrinsics"]
+        for name, value in adjusted[label].items():
+            assert box[name]["lower"] <= value <= box[name]["upper"], (label, name)
+    assert [adjusted["held"][n] for n in ("k3", "k4")] == list(camera.params[6:])
+    assert [adjusted["freed"][n] for n in ("k3", "k4")] != list(camera.params[6:])
+    assert main(["map", str(data), "--out", str(tmp_path / "x"), "--refine-later-intrinsics", "--no-progress"]) == 2

@@ -15,8 +15,8 @@ def register(subparsers) -> None:
         description="Detect the board in every image, fit the lens model (--model: radial, the pinhole + k1, "
         "k2 model scope3d's jobs use; opencv; full-opencv; fisheye), drop outlier views, and write "
         "DIR/camera.json of that model, DIR/intrinsic_bounds.json (value +- k sigma of each of its parameters, "
-        "for `scope3d map` and `scope3d bundle-adjust --intrinsic-bounds`, which take the radial model so "
-        "far), DIR/report.json (rms_px, n_views_used, intrinsics with value and std, "
+        "for `scope3d map --intrinsic-bounds`, which refines every parameter of any model inside them, and "
+        "`scope3d bundle-adjust --intrinsic-bounds`, which takes the radial model's f, k1, k2), DIR/report.json (rms_px, n_views_used, intrinsics with value and std, "
         "per-view errors, rejected views and why), DIR/coverage.png and DIR/residuals.png.",
     )
     p.add_argument("images", type=Path, nargs="+", help="board images of one camera (same size)")

@@ -8,11 +8,11 @@ reference eq. 6.2 and sec. 6.3, where the field of view was known only as 50-56 
      "fx": {"value": 228.6, "std": 0.09, "lower": 228.3, "upper": 228.9}, ... "k2": {...}}
 
 Only ``lower`` and ``upper`` are required per parameter; a parameter left out is held fixed by the reader's
-caller. Units: pixels for fx, fy, cx, cy; unitless for k1, k2. ``scope3d calibrate --model`` writes the
-bounds of any camera model (``model`` names it, one entry per parameter of
-:mod:`scope3d.sensor.camera_models`). The jobs read the bounds of the six parameters their bundle
-adjustment refines, ``(fx, fy, cx, cy, k1, k2)`` (:func:`scope3d.estimators.bundle.problem.lens_block`:
-k1, k2 of that model), from a file of their camera's model; a model's later parameters are held.
+caller. Units: pixels for fx, fy, cx, cy; unitless for the distortion coefficients. ``scope3d calibrate
+--model`` writes the bounds of any camera model (``model`` names it, one entry per parameter of
+:mod:`scope3d.sensor.camera_models`). ``scope3d map`` reads the bounds of every parameter of its camera's model
+(``names``: fx, fy, cx, cy, k1, k2, then the model's later ones, e.g. OPENCV's p1, p2, the fisheye's k3, k4);
+``scope3d bundle-adjust`` those of ``(fx, fy, cx, cy, k1, k2)``.
 """
 from __future__ import annotations
 
@@ -43,8 +43,10 @@ def write_intrinsic_bounds(path: str | Path, values: np.ndarray, std: np.ndarray
     write_json(path, data)
 
 
-def read_intrinsic_bounds(path: str | Path, model: str = DEFAULT_MODEL) -> tuple[np.ndarray, np.ndarray]:
-    """(lower, upper) (6,) in ``INTRINSIC_NAMES`` order; a missing parameter gives NaN in both (held fixed).
+def read_intrinsic_bounds(path: str | Path, model: str = DEFAULT_MODEL, *,
+                          names: tuple[str, ...] = INTRINSIC_NAMES) -> tuple[np.ndarray, np.ndarray]:
+    """(lower, upper) (P,) in the order of ``names`` (default ``INTRINSIC_NAMES``, the six); a missing parameter
+    gives NaN in both (held fixed).
 
     model : the camera model the bounds are for (the dataset camera's); a file of another model is refused.
     Problems are InputErrors naming the file and the parameter."""
@@ -55,10 +57,10 @@ def read_intrinsic_bounds(path: str | Path, model: str = DEFAULT_MODEL) -> tuple
     found_model = data.get("model", DEFAULT_MODEL)
     if found_model != model:
         raise InputError(f"{path}: bounds of a {found_model!r} camera, for a {model} camera")
-    lower = np.full(6, np.nan)
-    upper = np.full(6, np.nan)
+    lower = np.full(len(names), np.nan)
+    upper = np.full(len(names), np.nan)
     found = 0
-    for i, name in enumerate(INTRINSIC_NAMES):
+    for i, name in enumerate(names):
         if name not in data:
             continue
         entry = data[name]
@@ -73,7 +75,7 @@ def read_intrinsic_bounds(path: str | Path, model: str = DEFAULT_MODEL) -> tuple
         lower[i], upper[i] = float(entry["lower"]), float(entry["upper"])
         found += 1
     if found == 0:
-        raise InputError(f"{path}: no bounds on any of {', '.join(INTRINSIC_NAMES)}")
+        raise InputError(f"{path}: no bounds on any of {', '.join(names)}")
     return lower, upper
 
 

@@ -55,9 +55,12 @@ class BundleStageOptions:
         every track is re-triangulated after the adjustment (500 or 100 000 give the same points).
     refine_intrinsics : bool, let the intrinsics move (default False: the scope is calibrated, and
         with a short-baseline survey focal length and depth trade off).
-    intrinsic_bounds : ((6,), (6,)) tuples or None, a box ``(lower, upper)`` on ``(fx, fy, cx, cy, k1, k2)``
-        (from ``scope3d calibrate``'s intrinsic_bounds.json: the calibration's value +- k sigma, the
-        reference's FOV range of sec. 6.3); NaN in both holds that intrinsic fixed. Used only with
+    intrinsic_bounds : ((P,), (P,)) tuples or None, a box ``(lower, upper)`` on ``(fx, fy, cx, cy, k1, k2)``
+        (P = 6) and, beyond them, on the camera model's later parameters in
+        :attr:`scope3d.estimators.bundle.BundleProblem.intrinsic_names` order (OPENCV's p1, p2; FULL_OPENCV's
+        p1, p2, k3..k6; the fisheye's k3, k4): from ``scope3d calibrate``'s intrinsic_bounds.json, the
+        calibration's value +- k sigma, the reference's FOV range of sec. 6.3. NaN in both holds that
+        intrinsic fixed (so do the later parameters beyond P); +-inf leaves a side unbounded. Used only with
         ``refine_intrinsics``.
     align_gauge : bool, after free or bounded BA with inexact poses, move the map to the similarity frame
         that best fits all measured poses (:func:`scope3d.estimators.gauge.align_gauge`; default True). After
@@ -84,8 +87,8 @@ class BundleStageOptions:
             raise ValueError("need settled_mm >= 0 and settled_rad >= 0")
         if self.intrinsic_bounds is not None:
             lower, upper = (np.asarray(b, dtype=float) for b in self.intrinsic_bounds)
-            if lower.shape != (6,) or upper.shape != (6,) or np.any(lower > upper):
-                raise ValueError("intrinsic_bounds must be two (6,) arrays with lower <= upper")
+            if lower.ndim != 1 or lower.size < 6 or lower.shape != upper.shape or np.any(lower > upper):
+                raise ValueError("intrinsic_bounds must be two (P,) arrays, P >= 6, with lower <= upper")
 
     def solver(self) -> SolverOptions:
         return SolverOptions(max_iterations=self.max_iterations, loss="huber", loss_scale_px=self.loss_scale_px)
@@ -103,7 +106,8 @@ def bundle_problem(mode: str, measured: list[MeasuredPose], camera: Camera, trac
     free : conventional BA from ``start`` (default: the measured poses), gauge fixed on the start
         (:func:`fix_gauge`);
     fixed : the measured poses held.
-    intrinsic_bounds : (lower, upper) (6,) box on the intrinsics when they are refined (NaN: held fixed).
+    intrinsic_bounds : (lower, upper) (P,) box on the intrinsics when they are refined, in
+        ``problem.intrinsic_names`` order (NaN: held fixed; see :class:`BundleStageOptions`).
     """
     if mode not in POSE_MODES:
         raise ValueError(f"mode must be one of {POSE_MODES}, got {mode!r}")
@@ -134,15 +138,26 @@ def bundle_problem(mode: str, measured: list[MeasuredPose], camera: Camera, trac
 
 
 def _bound_intrinsics(problem: BundleProblem, refine_intrinsics: bool, intrinsic_bounds: tuple | None) -> None:
+    """Box the refined intrinsics. The six start free and are held where a bound is NaN; the model's later
+    parameters start held and are freed where one is given (a parameter the model lacks stays held)."""
     if not refine_intrinsics or intrinsic_bounds is None:
         return
     lower, upper = (np.asarray(b, dtype=float) for b in intrinsic_bounds)
+    names = problem.intrinsic_names
+    if lower.size > len(names):
+        raise InputError(f"{lower.size} intrinsic bounds for the {len(names)} parameters of a {problem.model} "
+                         f"camera ({', '.join(names)})")
+    names = names[:lower.size]
     held = np.isnan(lower) | np.isnan(upper)
-    free = [n for n, h in zip(INTRINSIC_NAMES, held) if not h]
+    absent = problem.intrinsic_absent[:lower.size]
     if held.any():
-        problem.fix("intrinsics", components=[n for n, h in zip(INTRINSIC_NAMES, held) if h])
-    if free:
-        problem.set_bounds("intrinsics", None, free, lower[~held], upper[~held])
+        problem.fix("intrinsics", components=[n for n, h in zip(names, held) if h])
+    later = [n for i, n in enumerate(names) if i >= len(INTRINSIC_NAMES) and not held[i] and not absent[i]]
+    if later:
+        problem.free("intrinsics", components=later)
+    bounded = ~held & ~absent
+    if bounded.any():
+        problem.set_bounds("intrinsics", None, [n for n, b in zip(names, bounded) if b], lower[bounded], upper[bounded])
 
 
 def fix_gauge(problem: BundleProblem, poses: list[Pose]) -> None:
@@ -246,7 +261,7 @@ def adjust_map(mode: str, measured: list[MeasuredPose], camera: Camera, tracks: 
         if movable and options.align_gauge and not exact:
             poses = align_gauge(poses, measured, bounded=mode == "bounded")
         if options.refine_intrinsics:
-            camera = camera_from_block(camera, result.intrinsics[0])
+            camera = camera_from_block(camera, result.intrinsics[0], result.extra[0] if result.extra.size else None)
         tracks = keep_on_surface(triangulate_tracks(camera, poses, tracks.untriangulated(), track_options),
                                  gross_only=True)
         if tracks.n_tracks == 0:

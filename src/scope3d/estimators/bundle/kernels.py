@@ -10,9 +10,11 @@ Layout shared by all kernels
 ----------------------------
 * Observations are sorted by point; ``point_ptr`` (n+1,) delimits each point's observations.
 * The camera side of the parameter vector is a sequence of 6-blocks: the ``m`` pose blocks
-  ``(w_x, w_y, w_z, pos_x, pos_y, pos_z)`` then the ``g`` intrinsic blocks ``(fx, fy, cx, cy, k1, k2)``.
-  ``cam_blocks`` (K, 2) gives, per observation, its pose block and its intrinsic block.
-* ``jc`` (K, 2, 12): d residual / d (pose block, intrinsic block); ``jp`` (K, 2, 3): d residual /
+  ``(w_x, w_y, w_z, pos_x, pos_y, pos_z)``, then the ``g`` intrinsic blocks ``(fx, fy, cx, cy, k1, k2)``,
+  then, when a lens model's later parameters are refined, the ``g`` blocks of those (:mod:`.lens_kernels`).
+  ``cam_blocks`` (K, H) gives, per observation, its H blocks: H = 2 (pose, intrinsics) or 3 (and the
+  lens's later parameters).
+* ``jc`` (K, 2, 6 H): d residual / d (those blocks, in that order); ``jp`` (K, 2, 3): d residual /
   d point parameters.
 * The reduced camera matrix S is symmetric and only its upper block triangle (row <= col) is written:
   block-sparse with 6x6 blocks in BSR layout (``indptr``, ``indices``, ``data``) or, for the dense
@@ -38,6 +40,7 @@ AOT_SIGNATURES = {
     "zero_frozen_columns": f"void({_F3}, {_F3}, {_I2}, {_I1}, b1[::1], b1[:, ::1])",
     "block_structure_keys": f"{_I1}({_I2}, {_I1}, i8)",
     "pair_slots": f"Tuple((i4[::1], {_I1}))({_I2}, {_I1}, {_I1}, {_I1})",
+    "term_counts": f"{_I1}({_I2}, {_I1})",
     "add_diagonal": f"void({_I1}, {_I1}, {_F3}, f8[::1])",
     "assemble_point_range": f"b1(i8, i8, i8, {_F2}, {_F3}, {_F3}, {_I2}, {_I1}, {_F2}, f8[::1], b1, i8, f8[::1], "
                             f"{_F3}, {_F2}, i4[::1])",
@@ -178,7 +181,7 @@ def gradient_and_diagonal(residuals, jc, jp, cam_blocks, point_index, n_blocks, 
     for o in range(residuals.shape[0]):
         r0 = residuals[o, 0]
         r1 = residuals[o, 1]
-        for h in range(2):
+        for h in range(cam_blocks.shape[1]):
             base = 6 * cam_blocks[o, h]
             for k in range(6):
                 a = jc[o, 0, 6 * h + k]
@@ -198,7 +201,7 @@ def gradient_and_diagonal(residuals, jc, jp, cam_blocks, point_index, n_blocks, 
 def zero_frozen_columns(jc, jp, cam_blocks, point_index, frozen_c, frozen_p):
     """Zero the Jacobian columns of frozen (fixed or active) parameters, in place (eq. 6.12)."""
     for o in range(jc.shape[0]):
-        for h in range(2):
+        for h in range(cam_blocks.shape[1]):
             base = 6 * cam_blocks[o, h]
             for k in range(6):
                 if frozen_c[base + k]:
@@ -222,7 +225,7 @@ def block_structure_keys(cam_blocks, point_ptr, n_blocks):
     total = n_blocks
     max_deg = 0
     for j in range(n_points):
-        deg = 2 * (point_ptr[j + 1] - point_ptr[j])
+        deg = cam_blocks.shape[1] * (point_ptr[j + 1] - point_ptr[j])
         total += deg * (deg + 1) // 2
         max_deg = max(max_deg, deg)
     keys = np.empty(total, dtype=np.int64)
@@ -233,7 +236,7 @@ def block_structure_keys(cam_blocks, point_ptr, n_blocks):
     for j in range(n_points):
         count = 0
         for o in range(point_ptr[j], point_ptr[j + 1]):
-            for h in range(2):
+            for h in range(cam_blocks.shape[1]):
                 b = cam_blocks[o, h]
                 seen = False
                 for t in range(count):
@@ -285,26 +288,60 @@ def _inv3(m, out):
     return True
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _shares_last_block(cam_blocks, start, stop):
+    """Whether the observations [start, stop) of a point, with three blocks each, share their third (the
+    lens's later parameters: one intrinsic group): then :func:`assemble_point_range` adds that block's terms
+    per observation, not per pair."""
+    if cam_blocks.shape[1] != 3:
+        return False
+    for o in range(start + 1, stop):
+        if cam_blocks[o, 2] != cam_blocks[start, 2]:
+            return False
+    return True
+
+
+@njit(cache=True, nogil=True)
+def term_counts(cam_blocks, point_ptr):
+    """Where each point's 6x6 terms start in the order :func:`assemble_point_range` adds them, (n + 1,) int64.
+    A point of ``deg`` observations with H blocks each adds every observation pair's (i <= k) quadrants, less
+    the lower quadrants of the diagonal pairs (the upper's transposes): ``H^2 deg (deg + 1) / 2 - deg H (H - 1)
+    / 2``; with a shared third block (:func:`_shares_last_block`), the pairs' terms of the first two blocks and
+    three terms per observation."""
+    n_points = point_ptr.shape[0] - 1
+    h_blocks = cam_blocks.shape[1]
+    slot_ptr = np.zeros(n_points + 1, dtype=np.int64)
+    for j in range(n_points):
+        deg = point_ptr[j + 1] - point_ptr[j]
+        h = h_blocks
+        per_observation = 0
+        if _shares_last_block(cam_blocks, point_ptr[j], point_ptr[j + 1]):
+            h = 2
+            per_observation = 3
+        slot_ptr[j + 1] = slot_ptr[j] + h * h * deg * (deg + 1) // 2 - deg * h * (h - 1) // 2 + per_observation * deg
+    return slot_ptr
+
+
 @njit(cache=True, nogil=True)
 def pair_slots(cam_blocks, point_ptr, indptr, indices):
     """Slot in ``data`` of every (observation pair, quadrant) term of S, in the order
     :func:`assemble_point_range` visits them (int32, one binary search each, done once per solve),
-    and where each point's terms start, (n + 1,) int64."""
+    and where each point's terms start, (n + 1,) int64 (:func:`term_counts`)."""
     n_points = point_ptr.shape[0] - 1
-    slot_ptr = np.zeros(n_points + 1, dtype=np.int64)
-    for j in range(n_points):
-        deg = point_ptr[j + 1] - point_ptr[j]
-        slot_ptr[j + 1] = slot_ptr[j] + 4 * deg * (deg + 1) // 2 - deg
+    h_blocks = cam_blocks.shape[1]
+    slot_ptr = term_counts(cam_blocks, point_ptr)
     out = np.empty(slot_ptr[n_points], dtype=np.int32)
     pos = 0
     for j in range(n_points):
         start = point_ptr[j]
         stop = point_ptr[j + 1]
+        shared = _shares_last_block(cam_blocks, start, stop)
+        h_pair = 2 if shared else h_blocks
         for oi in range(start, stop):
             for ok_ in range(oi, stop):
-                for hi in range(2):
+                for hi in range(h_pair):
                     bi = cam_blocks[oi, hi]
-                    for hk in range(2):
+                    for hk in range(h_pair):
                         if oi == ok_ and hk < hi:
                             continue
                         bk = cam_blocks[ok_, hk]
@@ -313,6 +350,12 @@ def pair_slots(cam_blocks, point_ptr, indptr, indices):
                         else:
                             out[pos] = _find_block(indptr, indices, bk, bi)
                         pos += 1
+        if shared:
+            last = cam_blocks[start, 2]
+            for o in range(start, stop):
+                for h in range(3):
+                    out[pos] = _find_block(indptr, indices, cam_blocks[o, h], last)  # the last block is the largest
+                    pos += 1
     return out, slot_ptr
 
 
@@ -348,6 +391,11 @@ def assemble_point_range(j_start, j_stop, pos, residuals, jc, jp, cam_blocks, po
     Each 6-entry row of a quadrant is updated through a view with constant indices: numba then drops its
     negative-index checks and the update runs ~1.5x faster than an indexed inner loop.
 
+    A third block shared by all of a point's observations (the lens's later parameters of its one intrinsic
+    group, ``e``) is added per observation instead of per pair: summed over k, the terms of observation i's
+    block a with it are ``Jc_ia^T (Jc_ie - P_i W_e)``, ``W_e = sum_k Jp_k^T Jc_ke`` (3x6), the same rank-2 form
+    (its own diagonal block included, a = e), so that the block costs O(deg) per point, not O(deg^2).
+
     Threads run it on disjoint point ranges with their own ``out`` and ``rhs`` (the GIL is released), and
     add the results up: the parallel Schur assembly without numba's parfors, which cost three quarters of
     the kernels' compile time.
@@ -356,13 +404,19 @@ def assemble_point_range(j_start, j_stop, pos, residuals, jc, jp, cam_blocks, po
     for j in range(j_start, j_stop):
         max_deg = max(max_deg, point_ptr[j + 1] - point_ptr[j])
     pv = np.empty((max_deg, 2, 3))
-    tk = np.empty((2, 12))
+    h_blocks = cam_blocks.shape[1]
+    tk = np.empty((2, jc.shape[2]))
+    we = np.empty((3, 6))
+    mi = np.empty((2, 6))
     v = np.empty((3, 3))
     vi = np.empty((3, 3))
     ok = True
     for j in range(j_start, j_stop):
         start = point_ptr[j]
         deg = point_ptr[j + 1] - start
+        shared = _shares_last_block(cam_blocks, start, start + deg)
+        h_pair = 2 if shared else h_blocks
+        width = 6 * h_pair
         v[:] = 0.0
         g0 = 0.0; g1 = 0.0; g2 = 0.0
         for i in range(deg):
@@ -389,7 +443,7 @@ def assemble_point_range(j_start, j_stop, pos, residuals, jc, jp, cam_blocks, po
                     pv[i, a, t] = jp[o, a, 0] * vi[0, t] + jp[o, a, 1] * vi[1, t] + jp[o, a, 2] * vi[2, t]
             e0 = pv[i, 0, 0] * g0 + pv[i, 0, 1] * g1 + pv[i, 0, 2] * g2 - residuals[o, 0]
             e1 = pv[i, 1, 0] * g0 + pv[i, 1, 1] * g1 + pv[i, 1, 2] * g2 - residuals[o, 1]
-            for h in range(2):
+            for h in range(h_blocks):
                 row0 = 6 * cam_blocks[o, h]
                 for s in range(6):
                     rhs[row0 + s] += jc[o, 0, 6 * h + s] * e0 + jc[o, 1, 6 * h + s] * e1
@@ -406,13 +460,13 @@ def assemble_point_range(j_start, j_stop, pos, residuals, jc, jp, cam_blocks, po
                     m00 -= 1.0
                     m11 -= 1.0
                 # tk = -(middle) Jc_k: the term of S is Jc_i^T tk
-                for t in range(12):
+                for t in range(width):
                     tk[0, t] = -(m00 * jc[ok_, 0, t] + m01 * jc[ok_, 1, t])
                     tk[1, t] = -(m10 * jc[ok_, 0, t] + m11 * jc[ok_, 1, t])
-                for hi in range(2):
+                for hi in range(h_pair):
                     bi = cam_blocks[oi, hi]
                     ci = 6 * hi
-                    for hk in range(2):
+                    for hk in range(h_pair):
                         if i == k and hk < hi:
                             continue  # the lower quadrant of a diagonal term is the upper's transpose
                         bk = cam_blocks[ok_, hk]
@@ -460,6 +514,40 @@ def assemble_point_range(j_start, j_stop, pos, residuals, jc, jp, cam_blocks, po
                                     val = a0 * tk[0, ck + t] + a1 * tk[1, ck + t]
                                     out[base + s * stride + t] += val
                                     out[base + t * stride + s] += val
+        if shared:
+            last = cam_blocks[start, 2]
+            we[:] = 0.0
+            for i in range(deg):
+                o = start + i
+                for t in range(3):
+                    for c in range(6):
+                        we[t, c] += jp[o, 0, t] * jc[o, 0, 12 + c] + jp[o, 1, t] * jc[o, 1, 12 + c]
+            for i in range(deg):
+                o = start + i
+                for a in range(2):
+                    for c in range(6):
+                        mi[a, c] = jc[o, a, 12 + c] - (pv[i, a, 0] * we[0, c] + pv[i, a, 1] * we[1, c]
+                                                       + pv[i, a, 2] * we[2, c])
+                t0 = mi[0, 0]; t1 = mi[0, 1]; t2 = mi[0, 2]; t3 = mi[0, 3]; t4 = mi[0, 4]; t5 = mi[0, 5]
+                u0 = mi[1, 0]; u1 = mi[1, 1]; u2 = mi[1, 2]; u3 = mi[1, 3]; u4 = mi[1, 4]; u5 = mi[1, 5]
+                for h in range(3):
+                    # the block (b, last), b <= last: stored as it is, rows of block b
+                    if dense:
+                        base = 6 * (cam_blocks[o, h] * stride + last)
+                    else:
+                        base = 36 * np.int64(slots[pos])
+                        pos += 1
+                    for s in range(6):
+                        a0 = jc[o, 0, 6 * h + s]; a1 = jc[o, 1, 6 * h + s]
+                        if a0 == 0.0 and a1 == 0.0:
+                            continue
+                        row = out[base + s * stride:]
+                        row[0] += a0 * t0 + a1 * u0
+                        row[1] += a0 * t1 + a1 * u1
+                        row[2] += a0 * t2 + a1 * u2
+                        row[3] += a0 * t3 + a1 * u3
+                        row[4] += a0 * t4 + a1 * u4
+                        row[5] += a0 * t5 + a1 * u5
     return ok
 
 
@@ -474,7 +562,7 @@ def back_substitute(jc, jp, cam_blocks, point_ptr, v_inv, gp, delta_c):
             # (J_c dc) for this observation, then J_p^T of it
             u0 = 0.0
             u1 = 0.0
-            for h in range(2):
+            for h in range(cam_blocks.shape[1]):
                 base = 6 * cam_blocks[o, h]
                 for k in range(6):
                     dv = delta_c[base + k]
@@ -496,7 +584,7 @@ def jacobian_step_norm2(jc, jp, cam_blocks, point_index, delta_c, delta_p):
         j = point_index[o]
         u0 = 0.0
         u1 = 0.0
-        for h in range(2):
+        for h in range(cam_blocks.shape[1]):
             base = 6 * cam_blocks[o, h]
             for k in range(6):
                 dv = delta_c[base + k]
@@ -518,7 +606,7 @@ def scale_rows(residuals, jc, jp, weights):
             continue
         for r in range(2):
             residuals[o, r] *= wo
-            for k in range(12):
+            for k in range(jc.shape[2]):
                 jc[o, r, k] *= wo
             for k in range(3):
                 jp[o, r, k] *= wo

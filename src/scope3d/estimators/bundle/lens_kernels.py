@@ -3,9 +3,10 @@
 
 The layout is :mod:`.kernels`' (``jc`` (K, 2, 12): the 6 pose columns, then the intrinsic block
 ``(fx, fy, cx, cy, k1, k2)``; ``jp`` (K, 2, 3)). The model's parameters after k2 (``extra`` (g, E) per
-intrinsic group) enter the projection and are held where they are: a pinhole family's ``(p1, p2, k3, k4, k5,
-k6)`` (zeros for the terms a model lacks), a fisheye's ``(k3, k4)``. The maths is that of
-:mod:`scope3d.sensor.camera_models` (tests check they agree to rounding):
+intrinsic group: a pinhole family's ``(p1, p2, k3, k4, k5, k6)``, zeros for the terms a model lacks, a
+fisheye's ``(k3, k4)``) enter the projection. With ``jc`` (K, 2, 18) the kernel also writes their columns, a
+third 6-block (the fisheye's padded with zeros): the bundle adjuster refines them; with (K, 2, 12) they are
+held. The maths is that of :mod:`scope3d.sensor.camera_models` (tests check they agree to rounding):
 
 * pinhole family: ``x = X/Z``, ``radial = (1 + k1 r^2 + k2 r^4 + k3 r^6) / (1 + k4 r^2 + k5 r^4 + k6 r^6)``,
   ``x_d = x radial + 2 p1 x y + p2 (r^2 + 2 x^2)``, ``y_d = y radial + p1 (r^2 + 2 y^2) + 2 p2 x y``;
@@ -30,7 +31,8 @@ AOT_SIGNATURES = {"residuals_and_jacobians": _RJ, "squared_residuals": _SQ}
 @njit(cache=True, nogil=True, inline="always")
 def _pinhole(p0, p1, p2, k1, k2, e):
     """Distorted normalised coordinates of the pinhole family, d (x_d, y_d) / d P (2 x 3) and the factors
-    of k1, k2: returns (xd, yd, e00..e12, dk1x, dk1y, dk2x, dk2y). e : (p1, p2, k3, k4, k5, k6)."""
+    of k1, k2: returns (xd, yd, e00..e12, dk1x, dk1y, dk2x, dk2y, x, y, r^2, radial). e : (p1, p2, k3, k4, k5,
+    k6)."""
     iz = 1.0 / p2
     x = p0 * iz
     y = p1 * iz
@@ -56,12 +58,13 @@ def _pinhole(p0, p1, p2, k1, k2, e):
     e10 = jyx * iz
     e11 = jyy * iz
     e12 = -(jyx * x + jyy * y) * iz
-    return (xd, yd, e00, e01, e02, e10, e11, e12, x * r2 / den, y * r2 / den, x * r4 / den, y * r4 / den)
+    return (xd, yd, e00, e01, e02, e10, e11, e12, x * r2 / den, y * r2 / den, x * r4 / den, y * r4 / den,
+            x, y, r2, radial)
 
 
 @njit(cache=True, nogil=True, inline="always")
 def _fisheye(p0, p1, p2, k1, k2, e):
-    """The same for the fisheye. e : (k3, k4)."""
+    """The same for the fisheye, its last four (0, 0, theta^2, 0). e : (k3, k4)."""
     rho2 = p0 * p0 + p1 * p1
     rho = math.sqrt(rho2)
     R2 = rho2 + p2 * p2
@@ -87,7 +90,38 @@ def _fisheye(p0, p1, p2, k1, k2, e):
     t3 = theta * t2
     t5 = t3 * t2
     return (s * p0, s * p1, s + p0 * ds_dx, p0 * ds_dy, p0 * ds_dz, p1 * ds_dx, s + p1 * ds_dy, p1 * ds_dz,
-            t3 * cx_, t3 * cy_, t5 * cx_, t5 * cy_)
+            t3 * cx_, t3 * cy_, t5 * cx_, t5 * cy_, 0.0, 0.0, t2, 0.0)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _write_extra(fisheye, fx, fy, xd_k1, yd_k1, x, y, r2, radial, jc, o):
+    """jc[o, :, 12:18] = d pixel / d the later parameters, from what :func:`_pinhole` / :func:`_fisheye` return
+    (``xd_k1, yd_k1`` = d (x_d, y_d) / d k1).
+
+    * pinhole family, (p1, p2, k3, k4, k5, k6): ``d x_d / d p1 = 2 x y``, ``d y_d / d p1 = r^2 + 2 y^2``,
+      ``d x_d / d p2 = r^2 + 2 x^2``, ``d y_d / d p2 = 2 x y``; ``d radial / d k3 = r^6 / den`` = (d / d k1)
+      ``r^4`` and ``d radial / d k(3+i) = -num r^(2i) / den^2`` = -(d / d k1) ``radial r^(2i-2)``, times (x, y);
+    * fisheye, (k3, k4) then four zero columns: ``d theta_d / d k3 = theta^7`` = (d / d k1) ``theta^4``,
+      ``d theta_d / d k4 = theta^9``; ``r2`` carries ``theta^2`` here.
+    """
+    if fisheye:
+        t4 = r2 * r2
+        jc[o, 0, 12] = fx * xd_k1 * t4; jc[o, 1, 12] = fy * yd_k1 * t4
+        jc[o, 0, 13] = fx * xd_k1 * t4 * r2; jc[o, 1, 13] = fy * yd_k1 * t4 * r2
+        for k in range(14, 18):
+            jc[o, 0, k] = 0.0
+            jc[o, 1, k] = 0.0
+        return
+    xy2 = 2.0 * x * y
+    jc[o, 0, 12] = fx * xy2; jc[o, 1, 12] = fy * (r2 + 2.0 * y * y)
+    jc[o, 0, 13] = fx * (r2 + 2.0 * x * x); jc[o, 1, 13] = fy * xy2
+    r4 = r2 * r2
+    jc[o, 0, 14] = fx * xd_k1 * r4; jc[o, 1, 14] = fy * yd_k1 * r4
+    ax = -fx * xd_k1 * radial
+    ay = -fy * yd_k1 * radial
+    jc[o, 0, 15] = ax; jc[o, 1, 15] = ay
+    jc[o, 0, 16] = ax * r2; jc[o, 1, 16] = ay * r2
+    jc[o, 0, 17] = ax * r4; jc[o, 1, 17] = ay * r4
 
 
 @njit(cache=True, nogil=True)
@@ -96,7 +130,8 @@ def residuals_and_jacobians(
     points, point_jac, intrinsics, extra, square_pixels, residuals, jc, jp,
 ):
     """:func:`scope3d.estimators.bundle.kernels.residuals_and_jacobians` through the fisheye (``fisheye``) or
-    the pinhole family with ``extra`` held fixed."""
+    the pinhole family; ``jc`` (K, 2, 12) holds ``extra`` fixed, (K, 2, 18) adds its columns."""
+    with_extra = jc.shape[2] > 12
     for o in range(observed.shape[0]):
         c = cam_index[o]
         j = point_index[o]
@@ -116,10 +151,10 @@ def residuals_and_jacobians(
         if centre_param:
             a0 = p0; a1 = p1; a2 = p2
         if fisheye:
-            xd, yd, d00, d01, d02, d10, d11, d12, k1x, k1y, k2x, k2y = _fisheye(
+            xd, yd, d00, d01, d02, d10, d11, d12, k1x, k1y, k2x, k2y, x, y, r2, radial = _fisheye(
                 p0, p1, p2, intrinsics[q, 4], intrinsics[q, 5], extra[q])
         else:
-            xd, yd, d00, d01, d02, d10, d11, d12, k1x, k1y, k2x, k2y = _pinhole(
+            xd, yd, d00, d01, d02, d10, d11, d12, k1x, k1y, k2x, k2y, x, y, r2, radial = _pinhole(
                 p0, p1, p2, intrinsics[q, 4], intrinsics[q, 5], extra[q])
         residuals[o, 0] = fx * xd + intrinsics[q, 2] - observed[o, 0]
         residuals[o, 1] = fy * yd + intrinsics[q, 3] - observed[o, 1]
@@ -158,6 +193,8 @@ def residuals_and_jacobians(
         for k in range(3):
             jp[o, 0, k] = g00 * point_jac[j, 0, k] + g01 * point_jac[j, 1, k] + g02 * point_jac[j, 2, k]
             jp[o, 1, k] = g10 * point_jac[j, 0, k] + g11 * point_jac[j, 1, k] + g12 * point_jac[j, 2, k]
+        if with_extra:
+            _write_extra(fisheye, fx, fy, k1x, k1y, x, y, r2, radial, jc, o)
 
 
 @njit(cache=True, nogil=True)

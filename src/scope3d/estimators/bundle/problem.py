@@ -17,9 +17,14 @@ Parameters (every scalar is fixed, free, or bounded by a box ``[lower, upper]``,
   ``intrinsics_index``. With ``square_pixels=True`` fy is tied to fx (the BAL and COLMAP RADIAL model)
   and fy is held fixed and ignored. The lens ``model`` (:mod:`scope3d.sensor.camera_models`, default
   scope3d's radial ``pinhole_radial_k1k2``) decides what k1, k2 mean: radial for the pinhole family, the
-  fisheye's first two for ``OPENCV_FISHEYE``; the model's parameters after k2 (``extra``: OPENCV's p1, p2,
-  FULL_OPENCV's k3..k6, the fisheye's k3, k4) enter the projection and are held at their (calibrated)
-  values (:func:`lens_block`); a ``PINHOLE`` camera's k1, k2 are fixed at 0.
+  fisheye's first two for ``OPENCV_FISHEYE``; a ``PINHOLE`` camera's k1, k2 are fixed at 0.
+* **The model's later parameters** (``extra``, :func:`lens_block`: OPENCV's p1, p2, FULL_OPENCV's p1, p2,
+  k3..k6, the fisheye's k3, k4) enter the projection. They start *held* at their (calibrated) values, and
+  are intrinsics like the six above otherwise: named in :meth:`BundleProblem.fix`, :meth:`~BundleProblem.free`
+  and :meth:`~BundleProblem.set_bounds` (kind ``"intrinsics"``, :attr:`BundleProblem.intrinsic_names`),
+  boxed alike. Once one is free, the camera side gets a third 6-block per intrinsic group for them (the
+  kernels' layout, :mod:`.kernels`; a fisheye's two padded with four held zeros); while all are held the
+  problem is solved exactly as before they could move.
 * **Points**, 3 scalars each, in one of two parameterisations chosen per point:
 
   - linear (default): ``X = o + Q y`` with an origin ``o`` and an orthonormal frame ``Q``. With
@@ -40,7 +45,7 @@ Observations are stored sorted by point (the Schur complement eliminates points 
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Iterable, Sequence
 
 import numpy as np
@@ -65,23 +70,43 @@ class BundleParameters:
     pose : (m, 6) float, ``(w rad, position mm)`` per camera, see the module docstring.
     intrinsics : (g, 6) float, ``(fx, fy, cx, cy, k1, k2)`` per intrinsic group.
     points : (n, 3) float, each point in its own parameterisation.
+    extra : (g, E) float, the lens model's later parameters per group in :func:`lens_block`'s layout
+        (E = 0 for the default model).
     """
 
     pose: np.ndarray
     intrinsics: np.ndarray
     points: np.ndarray
+    extra: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
 
     def copy(self) -> "BundleParameters":
-        return BundleParameters(self.pose.copy(), self.intrinsics.copy(), self.points.copy())
+        return BundleParameters(self.pose.copy(), self.intrinsics.copy(), self.points.copy(), self.extra.copy())
 
-    def camera_vector(self) -> np.ndarray:
-        """(6 (m + g),) the camera side of the parameter vector: poses then intrinsics."""
-        return np.concatenate([self.pose.ravel(), self.intrinsics.ravel()])
+    def camera_vector(self, with_extra: bool = False) -> np.ndarray:
+        """The camera side of the parameter vector: poses then intrinsics (6 (m + g),), and with ``with_extra``
+        the later lens parameters, padded to a 6-block per group with zeros (6 (m + 2 g),)."""
+        parts = [self.pose.ravel(), self.intrinsics.ravel()]
+        if with_extra:
+            block = np.zeros((self.intrinsics.shape[0], EXTRA_BLOCK))
+            block[:, :self.extra.shape[1]] = self.extra
+            parts.append(block.ravel())
+        return np.concatenate(parts)
 
 
-# the fixed parameters after k2 that each family's kernel takes (scope3d.estimators.bundle.lens_kernels)
+# the parameters after k2 that each family's kernel takes (scope3d.estimators.bundle.lens_kernels)
 _PINHOLE_EXTRA = ("p1", "p2", "k3", "k4", "k5", "k6")
 _FISHEYE_EXTRA = ("k3", "k4")
+EXTRA_BLOCK = 6  # their block on the camera side when refined: the kernels' 6-blocks
+
+
+def extra_layout(model: str) -> tuple[str, ...]:
+    """The names of ``model``'s parameters after k2 in the kernels' layout (:func:`lens_block`), including the
+    pinhole family's terms the model lacks (held at 0); () for the default model. ValueError for an unknown
+    model."""
+    lens = lens_model(model)
+    if model == DEFAULT_MODEL:
+        return ()
+    return _FISHEYE_EXTRA if lens.is_fisheye else _PINHOLE_EXTRA
 
 
 def lens_block(camera: Camera) -> tuple[np.ndarray, str, np.ndarray]:
@@ -93,25 +118,26 @@ def lens_block(camera: Camera) -> tuple[np.ndarray, str, np.ndarray]:
     block = np.array([values[n] if n in values else 0.0 for n in INTRINSIC_NAMES])
     if camera.model == DEFAULT_MODEL:
         return block, camera.model, np.zeros(0)
-    names = _FISHEYE_EXTRA if camera.lens.is_fisheye else _PINHOLE_EXTRA
-    return block, camera.model, np.array([values.get(n, 0.0) for n in names])
+    return block, camera.model, np.array([values.get(n, 0.0) for n in extra_layout(camera.model)])
 
 
-def camera_from_block(camera: Camera, block: np.ndarray) -> Camera:
-    """``camera`` with its intrinsic block replaced by an adjusted one (its other parameters as they were)."""
+def camera_from_block(camera: Camera, block: np.ndarray, extra: np.ndarray | None = None) -> Camera:
+    """``camera`` with its intrinsic block replaced by an adjusted one, and its later parameters by ``extra``
+    (:func:`lens_block`'s layout) when given (else as they were)."""
     params = camera.params.copy()
     n = min(6, len(params))
     params[:n] = np.asarray(block, dtype=float)[:n]
+    if extra is not None:
+        names = camera.param_names
+        for name, value in zip(extra_layout(camera.model), np.asarray(extra, dtype=float)):
+            if name in names:
+                params[names.index(name)] = value
     return camera.with_params(params)
 
 
 def _extra_block(model: str, extra, groups: int) -> np.ndarray:
-    """(g, E) the fixed parameters of ``groups`` intrinsic groups (E = 0 for the default model)."""
-    lens = lens_model(model)  # ValueError naming the known models
-    if model == DEFAULT_MODEL:
-        size = 0
-    else:
-        size = len(_FISHEYE_EXTRA if lens.is_fisheye else _PINHOLE_EXTRA)
+    """(g, E) the later parameters of ``groups`` intrinsic groups (E = 0 for the default model)."""
+    size = len(extra_layout(model))  # ValueError naming the known models
     if extra is None:
         return np.zeros((groups, size))
     out = np.atleast_2d(np.asarray(extra, dtype=float)).reshape(-1, size) if size else np.zeros((groups, 0))
@@ -162,10 +188,10 @@ class BundleProblem:
         one group per camera when it has m rows.
     position_parameter : "centre" (camera centre C, mm, world axes) or "translation" (t of cam_from_world).
     square_pixels : bool, tie fy to fx.
-    model : the lens model's name; extra : (E,) or (g, E) its fixed parameters in :func:`lens_block`'s
+    model : the lens model's name; extra : (E,) or (g, E) its later parameters in :func:`lens_block`'s
         layout (None: zeros), for a model other than the default.
 
-    Every parameter starts free. Use :meth:`fix`, :meth:`set_bounds` and the convenience methods to
+    Every parameter starts free but the model's later parameters (``extra``), which start held. Use :meth:`fix`, :meth:`set_bounds` and the convenience methods to
     constrain them, or :meth:`from_measured_poses` to build the reference's BCBA problem.
     """
 
@@ -258,7 +284,7 @@ class BundleProblem:
 
         position = -np.einsum("mji,mj->mi", rot, trans) if position_parameter == "centre" else trans.copy()
         self.initial = BundleParameters(
-            np.concatenate([np.zeros((m, 3)), position], axis=1), intr.copy(), pts.copy()
+            np.concatenate([np.zeros((m, 3)), position], axis=1), intr.copy(), pts.copy(), self.extra.copy()
         )
         self.pose_lower = np.full((m, 6), -np.inf)
         self.pose_upper = np.full((m, 6), np.inf)
@@ -267,13 +293,25 @@ class BundleProblem:
         # (:meth:`set_box_prior`); weight 0: none
         self.pose_prior_mean = np.zeros((m, 6))
         self.pose_prior_weight = np.zeros((m, 6))
-        self.intrinsics_lower = np.full((g, 6), -np.inf)
-        self.intrinsics_upper = np.full((g, 6), np.inf)
-        self.intrinsics_fixed = np.zeros((g, 6), dtype=bool)
+        # the intrinsics' bounds and holds, (g, 6 + E): the six of the block, then the model's later parameters
+        # (held at the start); ``intrinsics_*`` (g, 6) and ``extra_*`` (g, E) are views of them
+        layout = extra_layout(model)
+        model_names = set(lens_model(model).param_names)
+        self.intrinsic_names = INTRINSIC_NAMES + layout
+        # scalars the model lacks (PINHOLE's k1, k2; OPENCV's k3..k6): held at 0 for good
+        self.intrinsic_absent = np.array([n not in model_names for n in self.intrinsic_names])
+        if model == DEFAULT_MODEL:
+            self.intrinsic_absent[:] = False
+        self.intrinsic_lower = np.full((g, 6 + len(layout)), -np.inf)
+        self.intrinsic_upper = np.full((g, 6 + len(layout)), np.inf)
+        self.intrinsic_fixed = np.zeros((g, 6 + len(layout)), dtype=bool)
+        self.intrinsic_fixed[:, 6:] = True
+        self.intrinsic_fixed[:, self.intrinsic_absent] = True
         if self.square_pixels:
-            self.intrinsics_fixed[:, 1] = True
-        if model == "PINHOLE":
-            self.intrinsics_fixed[:, 4:] = True
+            self.intrinsic_fixed[:, 1] = True
+        self.intrinsics_lower, self.extra_lower = self.intrinsic_lower[:, :6], self.intrinsic_lower[:, 6:]
+        self.intrinsics_upper, self.extra_upper = self.intrinsic_upper[:, :6], self.intrinsic_upper[:, 6:]
+        self.intrinsics_fixed, self.extra_fixed = self.intrinsic_fixed[:, :6], self.intrinsic_fixed[:, 6:]
         self.point_lower = np.full((n, 3), -np.inf)
         self.point_upper = np.full((n, 3), np.inf)
         self.point_fixed = np.zeros((n, 3), dtype=bool)
@@ -305,7 +343,8 @@ class BundleProblem:
         measured_poses : m MeasuredPose. camera : Camera of any model (:func:`lens_block`) or (6,) radial
         intrinsics.
         points_world : (n, 3) mm initial points. observations_px : (K, 2). camera_index, point_index : (K,).
-        refine_intrinsics : True (all six), False, or names from ``("fx", ..., "k2")`` to refine.
+        refine_intrinsics : True (all six; the model's later parameters stay held), False, or names from
+            :attr:`intrinsic_names` to refine (the six and the later parameters, e.g. ``"p1"``).
         intrinsics_lower, intrinsics_upper : (6,) optional box on the intrinsics (e.g. from an FOV range).
         """
         if len(measured_poses) == 0:
@@ -331,6 +370,9 @@ class BundleProblem:
         elif refine_intrinsics is not True:
             keep = set(refine_intrinsics)
             problem.fix("intrinsics", components=[n for n in INTRINSIC_NAMES if n not in keep])
+            later = [n for n in problem.intrinsic_names[6:] if n in keep]
+            if later:
+                problem.free("intrinsics", components=later)
         if intrinsics_lower is not None or intrinsics_upper is not None:
             lo = np.full(6, -np.inf) if intrinsics_lower is None else np.asarray(intrinsics_lower, float)
             hi = np.full(6, np.inf) if intrinsics_upper is None else np.asarray(intrinsics_upper, float)
@@ -391,7 +433,7 @@ class BundleProblem:
         if kind == "pose":
             return self.pose_lower, self.pose_upper, self.pose_fixed, POSE_NAMES, self.num_cameras
         if kind == "intrinsics":
-            return self.intrinsics_lower, self.intrinsics_upper, self.intrinsics_fixed, INTRINSIC_NAMES, self.num_groups
+            return self.intrinsic_lower, self.intrinsic_upper, self.intrinsic_fixed, self.intrinsic_names, self.num_groups
         if kind == "point":
             return self.point_lower, self.point_upper, self.point_fixed, ("y0", "y1", "y2"), self.num_points
         raise InputError(f"unknown parameter kind {kind!r}; expected pose, intrinsics or point")
@@ -400,8 +442,8 @@ class BundleProblem:
         """Hold parameters at their initial values.
 
         kind : "pose", "intrinsics" or "point". items : indices (cameras, groups, points), None for all.
-        components : names (pose: wx wy wz px py pz; intrinsics: fx fy cx cy k1 k2; point: y0 y1 y2),
-        None for all.
+        components : names (pose: wx wy wz px py pz; intrinsics: :attr:`intrinsic_names`, fx fy cx cy k1 k2
+        then the model's later parameters; point: y0 y1 y2), None for all.
         """
         _, _, fixed, names, count = self._block(kind)
         rows = _as_index_list(items, count, kind)
@@ -409,12 +451,15 @@ class BundleProblem:
         fixed[np.ix_(rows, cols)] = True
 
     def free(self, kind: str, items: Iterable[int] | None = None, components: Sequence[str] | None = None) -> None:
-        """Undo :meth:`fix` and drop bounds: the parameters become unconstrained."""
+        """Undo :meth:`fix` and drop bounds: the parameters become unconstrained. The intrinsics a model
+        lacks (:attr:`intrinsic_absent`) and fy with square pixels stay held."""
         lower, upper, fixed, names, count = self._block(kind)
         rows = _as_index_list(items, count, kind)
         cols = _components(components, names, kind)
-        if kind == "intrinsics" and self.square_pixels:
-            cols = cols[cols != 1]
+        if kind == "intrinsics":
+            cols = cols[~self.intrinsic_absent[cols]]
+            if self.square_pixels:
+                cols = cols[cols != 1]
         fixed[np.ix_(rows, cols)] = False
         lower[np.ix_(rows, cols)] = -np.inf
         upper[np.ix_(rows, cols)] = np.inf
@@ -579,18 +624,39 @@ class BundleProblem:
         return [Pose(r, t) for r, t in zip(rot, trans)]
 
     # --- flat views used by the solver ---------------------------------------------------------
+    @property
+    def refines_extra(self) -> bool:
+        """Whether one of the model's later parameters is free: then the camera side has their blocks."""
+        return bool(self.extra.shape[1]) and not self.extra_fixed.all()
+
+    @property
+    def num_camera_blocks(self) -> int:
+        """6-blocks on the camera side: m poses, g intrinsic groups, and g blocks of later lens parameters
+        when :attr:`refines_extra`."""
+        return self.num_cameras + self.num_groups * (2 if self.refines_extra else 1)
+
     def camera_bounds(self):
-        """lower, upper (6 (m + g),) and fixed (6 (m + g),) bool on the camera side."""
-        lower = np.concatenate([self.pose_lower.ravel(), self.intrinsics_lower.ravel()])
-        upper = np.concatenate([self.pose_upper.ravel(), self.intrinsics_upper.ravel()])
-        fixed = np.concatenate([self.pose_fixed.ravel(), self.intrinsics_fixed.ravel()])
-        return lower, upper, fixed
+        """lower, upper (6 B,) and fixed (6 B,) bool on the camera side, B = :attr:`num_camera_blocks` (the
+        later lens parameters' padding held)."""
+        lower = [self.pose_lower.ravel(), self.intrinsics_lower.ravel()]
+        upper = [self.pose_upper.ravel(), self.intrinsics_upper.ravel()]
+        fixed = [self.pose_fixed.ravel(), self.intrinsics_fixed.ravel()]
+        if self.refines_extra:
+            pad = EXTRA_BLOCK - self.extra.shape[1]
+            g = self.num_groups
+            lower.append(np.hstack([self.extra_lower, np.full((g, pad), -np.inf)]).ravel())
+            upper.append(np.hstack([self.extra_upper, np.full((g, pad), np.inf)]).ravel())
+            fixed.append(np.hstack([self.extra_fixed, np.ones((g, pad), dtype=bool)]).ravel())
+        return np.concatenate(lower), np.concatenate(upper), np.concatenate(fixed)
 
     def cam_blocks(self) -> np.ndarray:
-        """(K, 2) int64: per stored observation its pose block and its intrinsic block."""
-        return np.ascontiguousarray(
-            np.stack([self.camera_index, self.num_cameras + self.intrinsics_index[self.camera_index]], axis=1)
-        )
+        """(K, H) int64: per stored observation its pose block and its intrinsic block, and (H = 3) its later
+        lens parameters' block when :attr:`refines_extra`."""
+        group = self.num_cameras + self.intrinsics_index[self.camera_index]
+        blocks = [self.camera_index, group]
+        if self.refines_extra:
+            blocks.append(group + self.num_groups)
+        return np.ascontiguousarray(np.stack(blocks, axis=1))
 
     @property
     def num_observations(self) -> int:
@@ -598,7 +664,8 @@ class BundleProblem:
 
     @property
     def num_parameters(self) -> int:
-        return 6 * (self.num_cameras + self.num_groups) + 3 * self.num_points
+        later = int((~self.intrinsic_absent[6:]).sum())
+        return (6 + later) * self.num_groups + 6 * self.num_cameras + 3 * self.num_points
 
     def num_free_parameters(self) -> int:
         _, _, fixed_c = self.camera_bounds()

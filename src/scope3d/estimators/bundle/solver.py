@@ -149,6 +149,12 @@ class BundleResult:
     threads: int = 1  # threads used by the Schur assembly
 
     @property
+    def extra(self) -> np.ndarray:
+        """(g, E) the lens model's solved later parameters (:func:`scope3d.estimators.bundle.problem.lens_block`'s
+        layout; as they started where held)."""
+        return self.parameters.extra.copy()
+
+    @property
     def rotations(self) -> np.ndarray:
         """(m, 3, 3) solved cam_from_world rotations."""
         return self.problem.camera_state(self.parameters.pose)[0]
@@ -265,15 +271,17 @@ class BundleResult:
 def evaluate(problem: BundleProblem, parameters: BundleParameters):
     """Residuals and Jacobians at ``parameters`` (no loss), in the problem's stored observation order.
 
-    Returns residuals (K, 2) px = projected - observed; jc (K, 2, 12) d residual / d (pose block
-    ``(w, position)``, intrinsic block ``(fx, fy, cx, cy, k1, k2)``); jp (K, 2, 3) d residual / d point
-    parameters.
+    Returns residuals (K, 2) px = projected - observed; jc (K, 2, 6 H) d residual / d (pose block
+    ``(w, position)``, intrinsic block ``(fx, fy, cx, cy, k1, k2)``, and when the problem refines the lens
+    model's later parameters (H = 3) their block, :meth:`BundleProblem.cam_blocks`); jp (K, 2, 3) d residual
+    / d point parameters.
     """
     k = problem.num_observations
     r = np.empty((k, 2))
-    jc = np.empty((k, 2, 12))
+    jc = np.empty((k, 2, 6 * problem.cam_blocks().shape[1]))
     jp = np.empty((k, 2, 3))
-    _linearise(problem, parameters.pose, parameters.intrinsics, parameters.points, r, jc, jp)
+    extra = parameters.extra if parameters.extra.shape == problem.extra.shape else problem.extra
+    _linearise(problem, parameters.pose, parameters.intrinsics, extra, parameters.points, r, jc, jp)
     return r, jc, jp
 
 
@@ -295,7 +303,7 @@ class _Ranges:
         return list(self.pool.map(lambda bounds: fn(*bounds), self.ranges))
 
 
-def _linearise(problem, pose, intrinsics, points, r, jc, jp, ranges: _Ranges | None = None):
+def _linearise(problem, pose, intrinsics, extra, points, r, jc, jp, ranges: _Ranges | None = None):
     rot, trans, rot_jac = problem.camera_state(pose)
     world, point_jac = problem.points_world(points, with_jacobian=True)
     # contiguous arrays: the ahead-of-time kernels take exactly the types of kernels.AOT_SIGNATURES
@@ -303,9 +311,9 @@ def _linearise(problem, pose, intrinsics, points, r, jc, jp, ranges: _Ranges | N
              problem.position_parameter == "centre", np.ascontiguousarray(world), np.ascontiguousarray(point_jac),
              np.ascontiguousarray(intrinsics), bool(problem.square_pixels))
     intr_obs = problem.intrinsics_index[problem.camera_index]
-    if problem.model != DEFAULT_MODEL:  # another lens: its kernel, the model's fixed parameters after k2
+    if problem.model != DEFAULT_MODEL:  # another lens: its kernel, the model's parameters after k2
         fisheye = lens_model(problem.model).is_fisheye
-        state = state[:7] + (np.ascontiguousarray(problem.extra),) + state[7:]
+        state = state[:7] + (np.ascontiguousarray(extra),) + state[7:]
 
         def run(_pa, _pb, oa, ob):
             lens_kernels.residuals_and_jacobians(
@@ -320,14 +328,14 @@ def _linearise(problem, pose, intrinsics, points, r, jc, jp, ranges: _Ranges | N
     (ranges or _Ranges(problem.point_ptr)).map(run)
 
 
-def _squared_residuals(problem, pose, intrinsics, points, intr_obs, out, ranges: _Ranges | None = None):
+def _squared_residuals(problem, pose, intrinsics, extra, points, intr_obs, out, ranges: _Ranges | None = None):
     rot, trans, _ = problem.camera_state(pose)
     state = (np.ascontiguousarray(rot), np.ascontiguousarray(trans), np.ascontiguousarray(problem.points_world(points)),
              np.ascontiguousarray(intrinsics), bool(problem.square_pixels))
 
     if problem.model != DEFAULT_MODEL:
         fisheye = lens_model(problem.model).is_fisheye
-        state = state[:4] + (np.ascontiguousarray(problem.extra),) + state[4:]
+        state = state[:4] + (np.ascontiguousarray(extra),) + state[4:]
 
         def run(_pa, _pb, oa, ob):
             lens_kernels.squared_residuals(fisheye, problem.observations_px[oa:ob], problem.camera_index[oa:ob],
@@ -370,13 +378,14 @@ class _ReducedSystem:
     """Layout of the reduced camera matrix and the chosen way of solving it.
 
     The dense solver assembles straight into a dense matrix and factors only the rows and columns of
-    parameters not fixed in every block (BAL: fy, cx, cy fixed; 441 of 588 on ladybug-49). The sparse
-    and PCG solvers assemble 6x6 blocks in BSR layout.
+    parameters not fixed in every block of their kind (BAL: fy, cx, cy fixed; 441 of 588 on ladybug-49; a
+    fisheye's padding in the blocks of its later parameters). The sparse and PCG solvers assemble 6x6 blocks
+    in BSR layout.
     """
 
     def __init__(self, problem: BundleProblem, cam_blocks: np.ndarray, method: str, fixed_c: np.ndarray,
                  num_threads: int) -> None:
-        n_blocks = problem.num_cameras + problem.num_groups
+        n_blocks = problem.num_camera_blocks
         point_ptr = problem.point_ptr
         self.method = method
         self.dense = method == "dense"
@@ -385,13 +394,16 @@ class _ReducedSystem:
             self.stride = self.size
             self.out = np.empty(self.size * self.size)
             self.slots = np.empty(0, dtype=np.int32)
-            deg = np.diff(point_ptr)
-            self.slot_ptr = np.concatenate([[0], np.cumsum(4 * deg * (deg + 1) // 2 - deg)])
-            # a column fixed in every block of its kind (pose or intrinsics) is zero in S but for the damping
-            m = problem.num_cameras
-            kind_fixed = np.concatenate([np.broadcast_to(fixed_c[: 6 * m].reshape(m, 6).all(axis=0), (m, 6)),
-                                         np.broadcast_to(fixed_c[6 * m:].reshape(-1, 6).all(axis=0),
-                                                         (n_blocks - m, 6))]).ravel()
+            self.slot_ptr = kernels.term_counts(cam_blocks, point_ptr)
+            # a column fixed in every block of its kind (pose or intrinsics) is zero in S but for the damping, and
+            # is left out of the factorisation. Not in the later lens parameters' blocks: their held columns (a
+            # fisheye's padding, OPENCV's absent k3..k6) are a few of thousands, and copying out the rest of S
+            # each iteration cost more (8 ms at 1500 columns) than factoring them as the decoupled rows they are
+            m, g = problem.num_cameras, problem.num_groups
+            kind_fixed = np.concatenate([
+                np.broadcast_to(fixed_c[:6 * m].reshape(m, 6).all(axis=0), (m, 6)).ravel(),
+                np.broadcast_to(fixed_c[6 * m:6 * (m + g)].reshape(g, 6).all(axis=0), (g, 6)).ravel(),
+                np.zeros(6 * (n_blocks - m - g), dtype=bool)])
             self.free_index = np.flatnonzero(~kind_fixed) if not kind_fixed.all() else np.arange(self.size)
             pieces = int(self.slot_ptr[-1])
         else:
@@ -541,12 +553,13 @@ def solve(
     start = time.perf_counter()
     problem.validate()
     m, g, n = problem.num_cameras, problem.num_groups, problem.num_points
-    n_blocks = m + g
+    n_blocks = problem.num_camera_blocks
+    with_extra = problem.refines_extra
     lower_c, upper_c, fixed_c = problem.camera_bounds()
     lower_p, upper_p, fixed_p = problem.point_lower, problem.point_upper, problem.point_fixed
 
     x = problem.initial.copy()
-    xc = x.camera_vector()
+    xc = x.camera_vector(with_extra)
     xp = x.points
     clamped = int(np.sum((xc < lower_c) | (xc > upper_c)) + np.sum((xp < lower_p) | (xp > upper_p)))
     if clamped:
@@ -563,31 +576,35 @@ def solve(
     system = _ReducedSystem(problem, cam_blocks, _choose_method(options, 6 * n_blocks), fixed_c, options.num_threads)
     k = problem.num_observations
     r = np.empty((k, 2))
-    jc = np.empty((k, 2, 12))
+    jc = np.empty((k, 2, 6 * cam_blocks.shape[1]))
     jp = np.empty((k, 2, 3))
     sq = np.empty(k)
     v_inv = np.empty((n, 3, 3))
     gp_buf = np.empty((n, 3))
 
+    n_extra = problem.extra.shape[1]
+
     def split(vec):
-        return vec[: 6 * m].reshape(m, 6), vec[6 * m:].reshape(g, 6)
+        """pose (m, 6), intrinsics (g, 6) and the later lens parameters (g, E) of a camera vector."""
+        extra = vec[6 * (m + g):].reshape(g, 6)[:, :n_extra] if with_extra else problem.extra
+        return vec[: 6 * m].reshape(m, 6), vec[6 * m:6 * (m + g)].reshape(g, 6), np.ascontiguousarray(extra)
 
     # the poses' Gaussian prior (BundleProblem.set_box_prior), on the camera vector: a residual block of its own
-    prior_weight = np.concatenate([problem.pose_prior_weight.ravel(), np.zeros(6 * g)])
-    prior_mean = np.concatenate([problem.pose_prior_mean.ravel(), np.zeros(6 * g)])
+    prior_weight = np.concatenate([problem.pose_prior_weight.ravel(), np.zeros(6 * (n_blocks - m))])
+    prior_mean = np.concatenate([problem.pose_prior_mean.ravel(), np.zeros(6 * (n_blocks - m))])
     has_prior = bool(np.any(prior_weight > 0))
 
     def prior_cost(vc) -> float:
         return 0.5 * float(prior_weight @ (vc - prior_mean) ** 2) if has_prior else 0.0
 
     def cost_of(vc, vp) -> float:
-        pose, intr = split(vc)
-        _squared_residuals(problem, pose, intr, vp, intr_obs, sq, ranges)
+        pose, intr, extra = split(vc)
+        _squared_residuals(problem, pose, intr, extra, vp, intr_obs, sq, ranges)
         return 0.5 * float(np.sum(loss_rho(options.loss, sq, options.loss_scale_px))) + prior_cost(vc)
 
     def linearise(vc, vp) -> float:
-        pose, intr = split(vc)
-        _linearise(problem, pose, intr, vp, r, jc, jp, ranges)
+        pose, intr, extra = split(vc)
+        _linearise(problem, pose, intr, extra, vp, r, jc, jp, ranges)
         np.einsum("ki,ki->k", r, r, out=sq)
         weights = loss_weight(options.loss, sq, options.loss_scale_px)
         if weights is not None:
@@ -595,8 +612,8 @@ def solve(
         return 0.5 * float(np.sum(loss_rho(options.loss, sq, options.loss_scale_px))) + prior_cost(vc)
 
     def params_view(vc, vp) -> BundleParameters:
-        pose, intr = split(vc)
-        return BundleParameters(pose, intr, vp)
+        pose, intr, extra = split(vc)
+        return BundleParameters(pose, intr, vp, extra)
 
     with _thread_pool(system.threads) as pool:
         ranges = _Ranges(problem.point_ptr, system.chunks, pool)
@@ -703,8 +720,8 @@ def solve(
             if callback:
                 callback(log[-1], params_view(xc, xp))
 
-    pose, intr = split(xc)
-    solution = BundleParameters(pose.copy(), intr.copy(), xp.copy())
+    pose, intr, extra = split(xc)
+    solution = BundleParameters(pose.copy(), intr.copy(), xp.copy(), extra.copy())
     return BundleResult(
         problem=problem,
         parameters=solution,
